@@ -1,0 +1,453 @@
+//! The [`Bus`]: one endpoint on a CAN bus, whatever carries it.
+//!
+//! An endpoint is a [`BusReceiver`] (one per endpoint, with its own acceptance filters) and any
+//! number of cheap [`BusSender`] clones. Backends are chosen by URL (DESIGN.md §3):
+//! `mem://NAME`, `socketcand://HOST:PORT/CHANNEL`, `socketcan://IFACE`.
+
+use std::fmt;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+
+use tokio::sync::mpsc;
+
+use crate::frame::{Filter, Frame};
+use crate::{mem, socketcand};
+
+/// Default TCP port of socketcand and of `canlift hub`.
+pub const SOCKETCAND_DEFAULT_PORT: u16 = 29536;
+
+/// Frames an endpoint buffers before it counts overruns (like a SocketCAN receive queue).
+pub const DEFAULT_RX_QUEUE: usize = 8192;
+
+/// Why a bus operation failed.
+#[derive(Debug, thiserror::Error)]
+pub enum BusError {
+    /// The URL is not one of the supported forms.
+    #[error("invalid bus URL {url:?}: {reason}")]
+    InvalidUrl {
+        /// The URL as given.
+        url: String,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// The link to a remote bus is down; the frame was not sent.
+    #[error("bus link {link} is down; frame not sent")]
+    Offline {
+        /// Which link (`socketcand://…`).
+        link: String,
+    },
+    /// The backend has shut down.
+    #[error("bus endpoint is closed")]
+    Closed,
+    /// The frame cannot be carried by this backend (e.g. a remote frame over socketcand).
+    #[error("{0}")]
+    Unsupported(String),
+    /// An I/O error from the operating system.
+    #[error("{context}: {source}")]
+    Io {
+        /// What was being done.
+        context: String,
+        /// The OS error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The remote end broke the protocol during set-up.
+    #[error("{0}")]
+    Protocol(String),
+}
+
+impl BusError {
+    pub(crate) fn io(context: impl Into<String>, source: std::io::Error) -> Self {
+        BusError::Io {
+            context: context.into(),
+            source,
+        }
+    }
+}
+
+/// Something that happened on an endpoint: a frame, or news about the link.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum BusEvent {
+    /// A frame that passed the endpoint's filters.
+    Frame(Frame),
+    /// The link to the bus came back (after [`BusEvent::LinkDown`]).
+    LinkUp,
+    /// The link to the bus is lost; frames sent meanwhile fail with [`BusError::Offline`].
+    LinkDown {
+        /// Why, for logs and operators.
+        reason: String,
+    },
+    /// The receive queue was full and this many frames were dropped since the last report.
+    Overrun {
+        /// Frames lost.
+        dropped: u64,
+    },
+}
+
+/// A parsed bus URL.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum BusUrl {
+    /// `mem://NAME`: an in-process bus shared by everything in this process that opens NAME.
+    Mem(String),
+    /// `socketcand://HOST:PORT/CHANNEL`: a socketcand server (or `canlift hub`).
+    Socketcand {
+        /// Host name or address.
+        host: String,
+        /// TCP port (default 29536).
+        port: u16,
+        /// The channel (bus) name on that server.
+        channel: String,
+    },
+    /// `socketcan://IFACE`: a Linux SocketCAN interface.
+    Socketcan(String),
+}
+
+impl std::str::FromStr for BusUrl {
+    type Err = BusError;
+
+    fn from_str(url: &str) -> Result<Self, BusError> {
+        let bad = |reason: &str| BusError::InvalidUrl {
+            url: url.to_owned(),
+            reason: reason.to_owned(),
+        };
+        let (scheme, rest) = url
+            .split_once("://")
+            .ok_or_else(|| bad("expected SCHEME://…"))?;
+        let valid_name =
+            |s: &str| !s.is_empty() && s.len() <= 64 && s.bytes().all(|b| b.is_ascii_graphic());
+        match scheme {
+            "mem" if valid_name(rest) => Ok(BusUrl::Mem(rest.to_owned())),
+            "mem" => Err(bad("mem:// needs a bus name")),
+            "socketcan" if valid_name(rest) && !rest.contains('/') && rest.len() < 16 => {
+                Ok(BusUrl::Socketcan(rest.to_owned()))
+            }
+            "socketcan" => Err(bad(
+                "socketcan:// needs an interface name of 1-15 characters",
+            )),
+            "socketcand" => {
+                let (authority, channel) = rest
+                    .split_once('/')
+                    .ok_or_else(|| bad("socketcand:// needs HOST[:PORT]/CHANNEL"))?;
+                if !valid_name(channel) || channel.contains('/') {
+                    return Err(bad("socketcand:// needs a channel name after the host"));
+                }
+                let (host, port) = split_host_port(authority)
+                    .ok_or_else(|| bad("socketcand:// has an invalid host or port"))?;
+                Ok(BusUrl::Socketcand {
+                    host,
+                    port,
+                    channel: channel.to_owned(),
+                })
+            }
+            _ => Err(bad("supported schemes: mem, socketcand, socketcan")),
+        }
+    }
+}
+
+fn split_host_port(authority: &str) -> Option<(String, u16)> {
+    let (host, port) = if let Some(v6) = authority.strip_prefix('[') {
+        let (host, after) = v6.split_once(']')?;
+        (host, after.strip_prefix(':'))
+    } else {
+        match authority.rsplit_once(':') {
+            Some((host, port)) => (host, Some(port)),
+            None => (authority, None),
+        }
+    };
+    if host.is_empty() {
+        return None;
+    }
+    let port = match port {
+        Some(p) => p.parse().ok().filter(|&p| p != 0)?,
+        None => SOCKETCAND_DEFAULT_PORT,
+    };
+    Some((host.to_owned(), port))
+}
+
+impl fmt::Display for BusUrl {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            BusUrl::Mem(name) => write!(f, "mem://{name}"),
+            BusUrl::Socketcand {
+                host,
+                port,
+                channel,
+            } if host.contains(':') => write!(f, "socketcand://[{host}]:{port}/{channel}"),
+            BusUrl::Socketcand {
+                host,
+                port,
+                channel,
+            } => write!(f, "socketcand://{host}:{port}/{channel}"),
+            BusUrl::Socketcan(iface) => write!(f, "socketcan://{iface}"),
+        }
+    }
+}
+
+/// How an endpoint is opened.
+#[derive(Debug, Clone)]
+pub struct BusOptions {
+    /// Deliver this endpoint's own frames back to it (off by default, as on SocketCAN).
+    pub receive_own: bool,
+    /// Frames buffered for the receiver before overruns are counted.
+    pub rx_queue: usize,
+}
+
+impl Default for BusOptions {
+    fn default() -> Self {
+        BusOptions {
+            receive_own: false,
+            rx_queue: DEFAULT_RX_QUEUE,
+        }
+    }
+}
+
+/// The sending half of an endpoint; clone it freely (an `Arc` inside).
+#[derive(Clone)]
+pub struct BusSender {
+    inner: SenderInner,
+}
+
+#[derive(Clone)]
+pub(crate) enum SenderInner {
+    Mem(mem::MemSender),
+    Socketcand(socketcand::client::ClientSender),
+    #[cfg(target_os = "linux")]
+    Socketcan(crate::socketcan::SocketcanSender),
+}
+
+impl BusSender {
+    pub(crate) fn new(inner: SenderInner) -> Self {
+        BusSender { inner }
+    }
+
+    /// Put `frame` on the bus. Waits while the backend's transmit queue is full.
+    pub async fn send(&self, frame: Frame) -> Result<(), BusError> {
+        match &self.inner {
+            SenderInner::Mem(s) => s.send(frame),
+            SenderInner::Socketcand(s) => s.send(frame).await,
+            #[cfg(target_os = "linux")]
+            SenderInner::Socketcan(s) => s.send(frame).await,
+        }
+    }
+}
+
+impl fmt::Debug for BusSender {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str("BusSender")
+    }
+}
+
+/// The backend side of an endpoint's receive queue.
+#[derive(Debug, Clone)]
+pub(crate) struct RxFeed {
+    tx: mpsc::Sender<BusEvent>,
+    overruns: Arc<AtomicU64>,
+}
+
+impl RxFeed {
+    /// Queue an event without waiting; a full queue counts an overrun. Returns `false` once the
+    /// receiver is gone, so the backend can stop feeding it.
+    pub(crate) fn push(&self, event: BusEvent) -> bool {
+        match self.tx.try_send(event) {
+            Ok(()) => true,
+            Err(mpsc::error::TrySendError::Full(_)) => {
+                self.overruns.fetch_add(1, Ordering::Relaxed);
+                true
+            }
+            Err(mpsc::error::TrySendError::Closed(_)) => false,
+        }
+    }
+
+    /// Queue a link event, waiting for room: those must not be lost to an overrun.
+    pub(crate) async fn push_link(&self, event: BusEvent) -> bool {
+        self.tx.send(event).await.is_ok()
+    }
+
+    pub(crate) fn is_closed(&self) -> bool {
+        self.tx.is_closed()
+    }
+
+    /// Resolves once the receiver is gone.
+    pub(crate) async fn closed(&self) {
+        self.tx.closed().await
+    }
+}
+
+/// The receiving half of an endpoint.
+#[derive(Debug)]
+pub struct BusReceiver {
+    rx: mpsc::Receiver<BusEvent>,
+    overruns: Arc<AtomicU64>,
+    filters: Vec<Filter>,
+}
+
+impl BusReceiver {
+    pub(crate) fn channel(capacity: usize) -> (RxFeed, BusReceiver) {
+        let (tx, rx) = mpsc::channel(capacity.max(1));
+        let overruns = Arc::new(AtomicU64::new(0));
+        (
+            RxFeed {
+                tx,
+                overruns: overruns.clone(),
+            },
+            BusReceiver {
+                rx,
+                overruns,
+                filters: Vec::new(),
+            },
+        )
+    }
+
+    /// Accept only frames matching at least one of `filters`; an empty list accepts all.
+    pub fn set_filters(&mut self, filters: &[Filter]) {
+        self.filters = filters.to_vec();
+    }
+
+    fn accepts(&self, frame: &Frame) -> bool {
+        self.filters.is_empty() || self.filters.iter().any(|f| f.matches(frame))
+    }
+
+    fn take_overrun(&self) -> Option<BusEvent> {
+        let dropped = self.overruns.swap(0, Ordering::Relaxed);
+        (dropped > 0).then_some(BusEvent::Overrun { dropped })
+    }
+
+    /// The next event; `None` once the backend is gone for good.
+    pub async fn recv(&mut self) -> Option<BusEvent> {
+        loop {
+            if let Some(overrun) = self.take_overrun() {
+                return Some(overrun);
+            }
+            match self.rx.recv().await? {
+                BusEvent::Frame(f) if !self.accepts(&f) => continue,
+                event => return Some(event),
+            }
+        }
+    }
+
+    /// The next event if one is queued, without waiting.
+    pub fn try_recv(&mut self) -> Option<BusEvent> {
+        loop {
+            if let Some(overrun) = self.take_overrun() {
+                return Some(overrun);
+            }
+            match self.rx.try_recv().ok()? {
+                BusEvent::Frame(f) if !self.accepts(&f) => continue,
+                event => return Some(event),
+            }
+        }
+    }
+
+    /// The next frame, skipping link and overrun events; `None` once the backend is gone.
+    pub async fn recv_frame(&mut self) -> Option<Frame> {
+        loop {
+            if let BusEvent::Frame(f) = self.recv().await? {
+                return Some(f);
+            }
+        }
+    }
+}
+
+/// One endpoint on a bus: a receiver and a sender.
+#[derive(Debug)]
+pub struct Bus {
+    /// Sends on this endpoint; clone it to send from several tasks.
+    pub sender: BusSender,
+    /// Receives what others sent.
+    pub receiver: BusReceiver,
+    url: BusUrl,
+}
+
+impl Bus {
+    /// Open an endpoint on the bus named by `url` with default options.
+    pub async fn open(url: &str) -> Result<Bus, BusError> {
+        Self::open_with(url, BusOptions::default()).await
+    }
+
+    /// Open an endpoint on the bus named by `url`.
+    pub async fn open_with(url: &str, options: BusOptions) -> Result<Bus, BusError> {
+        let parsed: BusUrl = url.parse()?;
+        let (feed, receiver) = BusReceiver::channel(options.rx_queue);
+        let sender = match &parsed {
+            BusUrl::Mem(name) => mem::open(name, feed, &options),
+            BusUrl::Socketcand {
+                host,
+                port,
+                channel,
+            } => socketcand::client::open(host, *port, channel, feed, &options).await?,
+            BusUrl::Socketcan(iface) => crate::socketcan::open(iface, feed, &options)?,
+        };
+        Ok(Bus {
+            sender,
+            receiver,
+            url: parsed,
+        })
+    }
+
+    /// The URL this endpoint was opened with.
+    pub fn url(&self) -> &BusUrl {
+        &self.url
+    }
+
+    /// Send a frame (see [`BusSender::send`]).
+    pub async fn send(&self, frame: Frame) -> Result<(), BusError> {
+        self.sender.send(frame).await
+    }
+
+    /// Receive the next event (see [`BusReceiver::recv`]).
+    pub async fn recv(&mut self) -> Option<BusEvent> {
+        self.receiver.recv().await
+    }
+
+    /// Split into the sender and the receiver.
+    pub fn split(self) -> (BusSender, BusReceiver) {
+        (self.sender, self.receiver)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn urls_parse_and_print() {
+        let cases = [
+            ("mem://lift", BusUrl::Mem("lift".into())),
+            ("socketcan://can0", BusUrl::Socketcan("can0".into())),
+            (
+                "socketcand://127.0.0.1:29536/can0",
+                BusUrl::Socketcand {
+                    host: "127.0.0.1".into(),
+                    port: 29536,
+                    channel: "can0".into(),
+                },
+            ),
+            (
+                "socketcand://[::1]:1234/vcan0",
+                BusUrl::Socketcand {
+                    host: "::1".into(),
+                    port: 1234,
+                    channel: "vcan0".into(),
+                },
+            ),
+        ];
+        for (text, url) in cases {
+            assert_eq!(text.parse::<BusUrl>().unwrap(), url);
+            assert_eq!(url.to_string(), text);
+        }
+        let default_port: BusUrl = "socketcand://hub/can1".parse().unwrap();
+        assert_eq!(default_port.to_string(), "socketcand://hub:29536/can1");
+        for bad in [
+            "can0",
+            "mem://",
+            "tcp://x/y",
+            "socketcand://host:0/c",
+            "socketcand://host:99999/c",
+            "socketcand://host",
+            "socketcand://:1/c",
+            "socketcan://averyveryverylongname",
+        ] {
+            assert!(bad.parse::<BusUrl>().is_err(), "{bad}");
+        }
+    }
+}

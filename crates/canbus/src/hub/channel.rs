@@ -1,0 +1,201 @@
+//! One bus of the hub: its subscribers, fan-out, and (with a bit rate) the wire model.
+
+use std::collections::{HashMap, VecDeque};
+use std::sync::atomic::Ordering;
+use std::sync::{Arc, PoisonError, RwLock, Weak};
+use std::time::SystemTime;
+
+use tokio::sync::{mpsc, Notify, OwnedSemaphorePermit};
+use tokio::time::Instant;
+
+use super::HubStats;
+use crate::frame::Frame;
+use crate::wire;
+
+/// What the hub queues for a client's writer.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Outgoing {
+    /// A frame seen on the bus (timestamped).
+    Frame(Frame),
+    /// The answer to `< echo >`.
+    Echo,
+}
+
+pub(super) struct Subscriber {
+    pub(super) client: u64,
+    pub(super) tx: mpsc::Sender<Outgoing>,
+    /// Woken when the hub drops the client (slow reader).
+    pub(super) kill: Arc<Notify>,
+}
+
+/// A frame waiting for the bus in bit-rate mode.
+pub(super) struct Queued {
+    pub(super) from: u64,
+    pub(super) frame: Frame,
+    pub(super) arrival: Instant,
+    /// Returned when the frame has left, which bounds each client's transmit queue.
+    pub(super) _permit: OwnedSemaphorePermit,
+}
+
+pub(super) struct Channel {
+    pub(super) name: String,
+    subscribers: RwLock<Vec<Subscriber>>,
+    /// Present in bit-rate mode: frames go through the arbiter instead of straight out.
+    arbiter: Option<mpsc::UnboundedSender<Queued>>,
+    stats: Arc<HubStats>,
+}
+
+impl Channel {
+    pub(super) fn new(name: &str, bitrate: Option<u32>, stats: Arc<HubStats>) -> Arc<Self> {
+        Arc::new_cyclic(|weak: &Weak<Channel>| {
+            let arbiter = bitrate.map(|bitrate| {
+                let (tx, rx) = mpsc::unbounded_channel();
+                tokio::spawn(arbitrate(weak.clone(), rx, bitrate));
+                tx
+            });
+            Channel {
+                name: name.to_owned(),
+                subscribers: RwLock::new(Vec::new()),
+                arbiter,
+                stats,
+            }
+        })
+    }
+
+    pub(super) fn add(&self, subscriber: Subscriber) {
+        self.subscribers
+            .write()
+            .unwrap_or_else(PoisonError::into_inner)
+            .push(subscriber);
+    }
+
+    /// Remove a client; returns whether the channel is now empty.
+    pub(super) fn remove(&self, client: u64) -> bool {
+        let mut subs = self
+            .subscribers
+            .write()
+            .unwrap_or_else(PoisonError::into_inner);
+        subs.retain(|s| s.client != client);
+        subs.is_empty()
+    }
+
+    pub(super) fn is_timed(&self) -> bool {
+        self.arbiter.is_some()
+    }
+
+    /// Hand a frame from `from` to the bus: straight out, or to the arbiter in bit-rate mode
+    /// (then `permit` is held until the frame has left).
+    pub(super) fn submit(&self, from: u64, frame: Frame, permit: Option<OwnedSemaphorePermit>) {
+        self.stats.frames_in.fetch_add(1, Ordering::Relaxed);
+        match (&self.arbiter, permit) {
+            (Some(arbiter), Some(permit)) => {
+                let queued = Queued {
+                    from,
+                    frame,
+                    arrival: Instant::now(),
+                    _permit: permit,
+                };
+                // The arbiter lives as long as the channel; a send error means shutdown.
+                let _ = arbiter.send(queued);
+            }
+            _ => self.broadcast(from, frame),
+        }
+    }
+
+    /// Deliver `frame` to every subscriber but its sender. A subscriber whose queue is full is
+    /// dropped from the bus: memory stays bounded and one stalled reader never holds up others.
+    pub(super) fn broadcast(&self, from: u64, frame: Frame) {
+        let frame = frame.with_timestamp(SystemTime::now());
+        let mut stalled = Vec::new();
+        {
+            let subs = self
+                .subscribers
+                .read()
+                .unwrap_or_else(PoisonError::into_inner);
+            for sub in subs.iter().filter(|s| s.client != from) {
+                match sub.tx.try_send(Outgoing::Frame(frame)) {
+                    Ok(()) => {
+                        self.stats.frames_out.fetch_add(1, Ordering::Relaxed);
+                    }
+                    Err(mpsc::error::TrySendError::Full(_)) => stalled.push(sub.client),
+                    Err(mpsc::error::TrySendError::Closed(_)) => {}
+                }
+            }
+        }
+        if stalled.is_empty() {
+            return;
+        }
+        let mut subs = self
+            .subscribers
+            .write()
+            .unwrap_or_else(PoisonError::into_inner);
+        subs.retain(|sub| {
+            if !stalled.contains(&sub.client) {
+                return true;
+            }
+            tracing::warn!(
+                channel = %self.name,
+                client = sub.client,
+                "client does not keep up reading (queue full); disconnecting it"
+            );
+            self.stats.clients_dropped.fetch_add(1, Ordering::Relaxed);
+            sub.kill.notify_one();
+            false
+        });
+    }
+}
+
+/// The bus in bit-rate mode. Each client has a FIFO transmit queue (as a CAN controller's
+/// queue); whenever the bus becomes free, the heads of the queues that were already waiting
+/// arbitrate and the lowest arbitration key wins. The winner occupies the bus for its exact wire
+/// time and is delivered when its last bit (end of interframe space) has passed.
+///
+/// Time is kept as the instant the bus becomes free (`free_at`), advanced by each frame's wire
+/// time, so timer granularity delays a delivery by at most a timer tick but never accumulates.
+async fn arbitrate(channel: Weak<Channel>, mut rx: mpsc::UnboundedReceiver<Queued>, bitrate: u32) {
+    let mut queues: HashMap<u64, VecDeque<Queued>> = HashMap::new();
+    let mut free_at = Instant::now();
+    loop {
+        if queues.is_empty() {
+            let Some(q) = rx.recv().await else { return };
+            queues.entry(q.from).or_default().push_back(q);
+        }
+        while let Ok(q) = rx.try_recv() {
+            queues.entry(q.from).or_default().push_back(q);
+        }
+        let Some(winner) = pick(&mut queues, free_at) else {
+            continue;
+        };
+        let start = free_at.max(winner.arrival);
+        free_at = start + wire::frame_duration(&winner.frame, bitrate);
+        if free_at > Instant::now() {
+            tokio::time::sleep_until(free_at).await;
+        }
+        let Some(channel) = channel.upgrade() else {
+            return;
+        };
+        channel.broadcast(winner.from, winner.frame);
+    }
+}
+
+/// Take the frame that wins arbitration when the bus is free at `free_at`.
+fn pick(queues: &mut HashMap<u64, VecDeque<Queued>>, free_at: Instant) -> Option<Queued> {
+    let earliest = queues
+        .values()
+        .filter_map(|q| q.front())
+        .map(|q| q.arrival)
+        .min()?;
+    // Only frames already waiting when arbitration starts take part in it.
+    let start = free_at.max(earliest);
+    let (&client, _) = queues
+        .iter()
+        .filter_map(|(client, q)| q.front().map(|head| (client, head)))
+        .filter(|(_, head)| head.arrival <= start)
+        .min_by_key(|(_, head)| (wire::arbitration_key(&head.frame), head.arrival))?;
+    let queue = queues.get_mut(&client)?;
+    let winner = queue.pop_front();
+    if queue.is_empty() {
+        queues.remove(&client);
+    }
+    winner
+}

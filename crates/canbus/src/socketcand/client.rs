@@ -1,0 +1,280 @@
+//! `socketcand://HOST:PORT/CHANNEL`: a raw-mode socketcand client that survives outages.
+//!
+//! `open` connects and completes the handshake (`< hi >`, `< open CHANNEL >`, `< rawmode >`)
+//! before it returns, so a wrong address fails at once. Afterwards one task owns the connection:
+//! it writes queued frames (batched into as few TCP segments as the queue allows) and reads
+//! frames into the receive queue concurrently. When the link breaks the receiver gets
+//! [`BusEvent::LinkDown`], sends fail with [`BusError::Offline`], and the task reconnects with
+//! capped full-jitter backoff until it succeeds ([`BusEvent::LinkUp`]) or the endpoint is dropped.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant, SystemTime};
+
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
+use tokio::net::TcpStream;
+use tokio::sync::mpsc;
+
+use super::codec::{self, DecodeError, Decoder, Message};
+use crate::backoff::Backoff;
+use crate::bus::{BusError, BusEvent, BusOptions, BusSender, RxFeed, SenderInner};
+use crate::frame::{Frame, FrameKind};
+
+/// How long connecting plus the handshake may take.
+const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(5);
+/// Frames queued for transmission before `send` waits.
+const TX_QUEUE: usize = 1024;
+/// Frames written per TCP write at most.
+const TX_BATCH: usize = 64;
+/// A link that stayed up this long resets the reconnect backoff.
+const STABLE_LINK: Duration = Duration::from_secs(60);
+
+struct Link {
+    name: String,
+    online: AtomicBool,
+}
+
+/// The sending side of a `socketcand://` endpoint.
+#[derive(Clone)]
+pub(crate) struct ClientSender {
+    tx: mpsc::Sender<Frame>,
+    link: Arc<Link>,
+    loopback: Option<RxFeed>,
+}
+
+impl ClientSender {
+    pub(crate) async fn send(&self, frame: Frame) -> Result<(), BusError> {
+        if frame.kind() != FrameKind::Data {
+            return Err(BusError::Unsupported(
+                "socketcand raw mode carries data frames only (no remote or error frames)".into(),
+            ));
+        }
+        if !self.link.online.load(Ordering::Acquire) {
+            return Err(BusError::Offline {
+                link: self.link.name.clone(),
+            });
+        }
+        self.tx.send(frame).await.map_err(|_| BusError::Closed)?;
+        if let Some(feed) = &self.loopback {
+            feed.push(BusEvent::Frame(frame.with_timestamp(SystemTime::now())));
+        }
+        Ok(())
+    }
+}
+
+struct Connection {
+    reader: OwnedReadHalf,
+    writer: OwnedWriteHalf,
+    decoder: Decoder,
+}
+
+async fn expect(
+    stream: &mut TcpStream,
+    decoder: &mut Decoder,
+    wanted: Message,
+) -> Result<(), BusError> {
+    let mut buf = [0u8; 512];
+    loop {
+        match decoder.next_message() {
+            Some(Ok(m)) if m == wanted => return Ok(()),
+            Some(Ok(Message::Error(text))) => {
+                return Err(BusError::Protocol(format!(
+                    "socketcand refused ({wanted:?}): {text}"
+                )))
+            }
+            Some(other) => {
+                return Err(BusError::Protocol(format!(
+                    "socketcand handshake: expected {wanted:?}, got {other:?}"
+                )))
+            }
+            None => {}
+        }
+        let n = stream
+            .read(&mut buf)
+            .await
+            .map_err(|e| BusError::io("socketcand handshake", e))?;
+        if n == 0 {
+            return Err(BusError::Protocol(
+                "socketcand closed the connection during the handshake".into(),
+            ));
+        }
+        decoder.feed(&buf[..n]);
+    }
+}
+
+async fn connect(host: &str, port: u16, channel: &str) -> Result<Connection, BusError> {
+    let handshake = async {
+        let mut stream = TcpStream::connect((host, port))
+            .await
+            .map_err(|e| BusError::io(format!("connecting to socketcand at {host}:{port}"), e))?;
+        stream
+            .set_nodelay(true)
+            .map_err(|e| BusError::io("setting TCP_NODELAY", e))?;
+        let mut decoder = Decoder::new();
+        expect(&mut stream, &mut decoder, Message::Hi).await?;
+        let open = codec::encode_control(&Message::Open(channel.to_owned()));
+        stream
+            .write_all(open.as_bytes())
+            .await
+            .map_err(|e| BusError::io("socketcand handshake", e))?;
+        expect(&mut stream, &mut decoder, Message::Ok).await?;
+        stream
+            .write_all(b"< rawmode >")
+            .await
+            .map_err(|e| BusError::io("socketcand handshake", e))?;
+        expect(&mut stream, &mut decoder, Message::Ok).await?;
+        let (reader, writer) = stream.into_split();
+        Ok(Connection {
+            reader,
+            writer,
+            decoder,
+        })
+    };
+    tokio::time::timeout(HANDSHAKE_TIMEOUT, handshake)
+        .await
+        .map_err(|_| {
+            BusError::Protocol(format!(
+                "socketcand at {host}:{port} did not complete the handshake in {HANDSHAKE_TIMEOUT:?}"
+            ))
+        })?
+}
+
+pub(crate) async fn open(
+    host: &str,
+    port: u16,
+    channel: &str,
+    feed: RxFeed,
+    options: &BusOptions,
+) -> Result<BusSender, BusError> {
+    let conn = connect(host, port, channel).await?;
+    let link = Arc::new(Link {
+        name: format!("socketcand://{host}:{port}/{channel}"),
+        online: AtomicBool::new(true),
+    });
+    let (tx, rx) = mpsc::channel(TX_QUEUE);
+    let target = (host.to_owned(), port, channel.to_owned());
+    tokio::spawn(supervise(conn, target, link.clone(), rx, feed.clone()));
+    Ok(BusSender::new(SenderInner::Socketcand(ClientSender {
+        tx,
+        link,
+        loopback: options.receive_own.then_some(feed),
+    })))
+}
+
+/// Why a connection ended.
+enum End {
+    Lost(String),
+    Shutdown,
+}
+
+async fn supervise(
+    mut conn: Connection,
+    (host, port, channel): (String, u16, String),
+    link: Arc<Link>,
+    mut frames: mpsc::Receiver<Frame>,
+    feed: RxFeed,
+) {
+    let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(10));
+    loop {
+        let since = Instant::now();
+        let reason = match run(conn, &mut frames, &feed).await {
+            End::Shutdown => return,
+            End::Lost(reason) => reason,
+        };
+        link.online.store(false, Ordering::Release);
+        let dropped = std::iter::from_fn(|| frames.try_recv().ok()).count();
+        tracing::warn!(link = %link.name, %reason, dropped, "bus link down; reconnecting");
+        feed.push_link(BusEvent::LinkDown {
+            reason: format!("{reason} ({dropped} queued frame(s) not sent)"),
+        })
+        .await;
+        if since.elapsed() >= STABLE_LINK {
+            backoff.reset();
+        }
+        conn = loop {
+            let delay = backoff.next_delay();
+            tokio::select! {
+                _ = tokio::time::sleep(delay) => {}
+                _ = feed.closed(), if frames.sender_strong_count() == 0 => return,
+            }
+            if feed.is_closed() && frames.sender_strong_count() == 0 {
+                return;
+            }
+            match connect(&host, port, &channel).await {
+                Ok(conn) => break conn,
+                Err(e) => tracing::debug!(link = %link.name, error = %e, "reconnect failed"),
+            }
+        };
+        link.online.store(true, Ordering::Release);
+        tracing::info!(link = %link.name, "bus link up again");
+        feed.push_link(BusEvent::LinkUp).await;
+    }
+}
+
+async fn run(conn: Connection, frames: &mut mpsc::Receiver<Frame>, feed: &RxFeed) -> End {
+    let Connection {
+        mut reader,
+        writer,
+        mut decoder,
+    } = conn;
+    tokio::select! {
+        end = read_loop(&mut reader, &mut decoder, feed) => end,
+        end = write_loop(writer, frames, feed) => end,
+    }
+}
+
+async fn read_loop(reader: &mut OwnedReadHalf, decoder: &mut Decoder, feed: &RxFeed) -> End {
+    let mut buf = vec![0u8; 16 * 1024];
+    let mut reported = 0u32;
+    loop {
+        while let Some(message) = decoder.next_message() {
+            match message {
+                Ok(Message::Frame(frame)) => {
+                    feed.push(BusEvent::Frame(frame));
+                }
+                Ok(Message::Echo) | Ok(Message::Ok) => {}
+                Ok(other) => tracing::warn!(?other, "unexpected socketcand message in raw mode"),
+                Err(DecodeError::Oversized) => {
+                    return End::Lost("socketcand sent an oversized message".into())
+                }
+                Err(e) if reported < 10 => {
+                    reported += 1;
+                    tracing::warn!(error = %e, "bad data from socketcand dropped");
+                }
+                Err(_) => {}
+            }
+        }
+        match reader.read(&mut buf).await {
+            Ok(0) => return End::Lost("connection closed by the server".into()),
+            Ok(n) => decoder.feed(&buf[..n]),
+            Err(e) => return End::Lost(format!("read failed: {e}")),
+        }
+    }
+}
+
+async fn write_loop(
+    mut writer: OwnedWriteHalf,
+    frames: &mut mpsc::Receiver<Frame>,
+    feed: &RxFeed,
+) -> End {
+    let mut text = String::with_capacity(TX_BATCH * 48);
+    loop {
+        let Some(first) = frames.recv().await else {
+            // Every sender is gone: keep receiving until the receiver is gone too.
+            feed.closed().await;
+            return End::Shutdown;
+        };
+        text.clear();
+        codec::encode_send(&first, &mut text);
+        for _ in 1..TX_BATCH {
+            match frames.try_recv() {
+                Ok(frame) => codec::encode_send(&frame, &mut text),
+                Err(_) => break,
+            }
+        }
+        if let Err(e) = writer.write_all(text.as_bytes()).await {
+            return End::Lost(format!("write failed: {e}"));
+        }
+    }
+}

@@ -1,0 +1,5 @@
+//! The subcommands of `canlift`.
+
+pub mod bench;
+pub mod dump;
+pub mod hub;

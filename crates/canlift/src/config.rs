@@ -1,0 +1,113 @@
+//! Daemon configuration: a TOML file, then `CANLIFT_<SECTION>_<KEY>` environment overrides,
+//! then command-line flags (DESIGN.md §3). `--print-config` shows the result with defaults.
+
+use std::path::Path;
+
+use anyhow::{bail, Context};
+use serde::de::DeserializeOwned;
+use serde::Serialize;
+
+/// Load section `section` of the TOML file at `file` (if any) into `T`, applying environment
+/// overrides. Unknown keys in the section are an error, so a typo never goes unnoticed.
+pub fn load<T: DeserializeOwned + Serialize + Default>(
+    file: Option<&Path>,
+    section: &str,
+) -> anyhow::Result<T> {
+    let mut table = match file {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("reading {}", path.display()))?;
+            let mut doc: toml::Table =
+                toml::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+            match doc.remove(section) {
+                Some(toml::Value::Table(t)) => t,
+                Some(_) => bail!("{}: [{section}] must be a table", path.display()),
+                None => toml::Table::new(),
+            }
+        }
+        None => toml::Table::new(),
+    };
+    apply_env(&mut table, section, std::env::vars())?;
+    T::deserialize(toml::Value::Table(table))
+        .with_context(|| format!("invalid [{section}] configuration"))
+}
+
+/// Apply `CANLIFT_<SECTION>_<KEY>=VALUE` overrides. A value is read as TOML (numbers, booleans,
+/// arrays) and, failing that, as a plain string.
+fn apply_env(
+    table: &mut toml::Table,
+    section: &str,
+    vars: impl Iterator<Item = (String, String)>,
+) -> anyhow::Result<()> {
+    let prefix = format!("CANLIFT_{}_", section.to_ascii_uppercase());
+    for (name, value) in vars {
+        let Some(key) = name.strip_prefix(&prefix) else {
+            continue;
+        };
+        let key = key.to_ascii_lowercase();
+        let parsed = toml::from_str::<toml::Table>(&format!("v = {value}"))
+            .ok()
+            .and_then(|mut t| t.remove("v"))
+            .unwrap_or(toml::Value::String(value));
+        table.insert(key, parsed);
+    }
+    Ok(())
+}
+
+/// The effective configuration as TOML under `[section]`.
+pub fn render<T: Serialize>(section: &str, config: &T) -> anyhow::Result<String> {
+    let mut doc = toml::Table::new();
+    doc.insert(section.to_owned(), toml::Value::try_from(config)?);
+    Ok(toml::to_string_pretty(&doc)?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde::Deserialize;
+
+    #[derive(Debug, Default, Serialize, Deserialize, PartialEq)]
+    #[serde(default, deny_unknown_fields)]
+    struct Sample {
+        listen: String,
+        bitrate: Option<u32>,
+        verbose: bool,
+    }
+
+    #[test]
+    fn env_overrides_file_values() {
+        let mut table: toml::Table = toml::from_str("listen = \"a:1\"\nbitrate = 5").unwrap();
+        let vars = [
+            ("CANLIFT_HUB_BITRATE".to_owned(), "250000".to_owned()),
+            ("CANLIFT_HUB_LISTEN".to_owned(), "127.0.0.1:2".to_owned()),
+            ("CANLIFT_GATEWAY_BITRATE".to_owned(), "1".to_owned()),
+            ("OTHER".to_owned(), "x".to_owned()),
+        ];
+        apply_env(&mut table, "hub", vars.into_iter()).unwrap();
+        let s = Sample::deserialize(toml::Value::Table(table)).unwrap();
+        assert_eq!(
+            s,
+            Sample {
+                listen: "127.0.0.1:2".into(),
+                bitrate: Some(250_000),
+                verbose: false
+            }
+        );
+        let text = render("hub", &s).unwrap();
+        assert!(
+            text.contains("[hub]") && text.contains("bitrate = 250000"),
+            "{text}"
+        );
+    }
+
+    #[test]
+    fn unknown_keys_are_errors() {
+        let dir = std::env::temp_dir().join(format!("canlift-config-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("c.toml");
+        std::fs::write(&path, "[hub]\nbitrat = 5\n").unwrap();
+        let err = load::<Sample>(Some(&path), "hub").unwrap_err();
+        assert!(format!("{err:#}").contains("bitrat"), "{err:#}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

@@ -1,0 +1,54 @@
+//! `canlift`: the NXg CANopen-Lift Connector and the CANopen stack beneath it, in one binary.
+
+mod cmd;
+mod config;
+mod logging;
+
+use clap::{Parser, Subcommand};
+
+/// canlift — CANopen-Lift (CiA 417) to cloud, and the tools around it.
+#[derive(Debug, Parser)]
+#[command(name = "canlift", version, about, long_about = None)]
+struct Cli {
+    /// Log format on stderr (level from RUST_LOG, default info).
+    #[arg(long, value_enum, global = true, default_value = "text")]
+    log_format: logging::LogFormat,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Virtual CAN bus server speaking socketcand's raw mode (python-can and canlift can join).
+    Hub(cmd::hub::HubArgs),
+    /// Print frames from a bus like candump, with their CANopen meaning.
+    Dump(cmd::dump::DumpArgs),
+    /// Measure canlift's components.
+    Bench(cmd::bench::BenchArgs),
+}
+
+fn main() -> std::process::ExitCode {
+    let cli = Cli::parse();
+    logging::init(cli.log_format);
+    let runtime = match tokio::runtime::Runtime::new() {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("canlift: cannot start the async runtime: {e}");
+            return std::process::ExitCode::FAILURE;
+        }
+    };
+    let result = runtime.block_on(async {
+        match cli.command {
+            Command::Hub(args) => cmd::hub::run(args).await,
+            Command::Dump(args) => cmd::dump::run(args).await,
+            Command::Bench(args) => cmd::bench::run(args).await,
+        }
+    });
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("canlift: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}

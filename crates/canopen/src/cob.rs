@@ -1,0 +1,79 @@
+//! The pre-defined connection set (CiA 301 §7.3.5): which COB-ID carries which service.
+
+/// A function code: the upper four bits of an 11-bit COB-ID in the pre-defined connection set.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Function {
+    /// 000h: NMT node control.
+    Nmt,
+    /// 080h: SYNC.
+    Sync,
+    /// 081h–0FFh: emergency of node 1–127.
+    Emcy(u8),
+    /// 100h: TIME stamp.
+    Time,
+    /// TPDO1–4 (180h/280h/380h/480h + node).
+    Tpdo(u8, u8),
+    /// RPDO1–4 (200h/300h/400h/500h + node).
+    Rpdo(u8, u8),
+    /// 580h + node: SDO server → client (response).
+    SdoResponse(u8),
+    /// 600h + node: SDO client → server (request).
+    SdoRequest(u8),
+    /// 700h + node: NMT error control (heartbeat, boot-up, node guarding).
+    ErrorControl(u8),
+    /// 7E4h: LSS slave → master (CiA 305).
+    LssResponse,
+    /// 7E5h: LSS master → slave (CiA 305).
+    LssRequest,
+    /// Any other identifier.
+    Other,
+}
+
+/// Classify an 11-bit COB-ID by the pre-defined connection set.
+pub fn classify(cob_id: u16) -> Function {
+    let node = (cob_id & 0x7F) as u8;
+    match (cob_id, cob_id & 0x780) {
+        (0x000, _) => Function::Nmt,
+        (0x080, _) => Function::Sync,
+        (0x100, _) => Function::Time,
+        (0x7E4, _) => Function::LssResponse,
+        (0x7E5, _) => Function::LssRequest,
+        (_, _) if node == 0 => Function::Other,
+        (_, 0x080) => Function::Emcy(node),
+        (_, 0x180) => Function::Tpdo(1, node),
+        (_, 0x200) => Function::Rpdo(1, node),
+        (_, 0x280) => Function::Tpdo(2, node),
+        (_, 0x300) => Function::Rpdo(2, node),
+        (_, 0x380) => Function::Tpdo(3, node),
+        (_, 0x400) => Function::Rpdo(3, node),
+        (_, 0x480) => Function::Tpdo(4, node),
+        (_, 0x500) => Function::Rpdo(4, node),
+        (_, 0x580) => Function::SdoResponse(node),
+        (_, 0x600) => Function::SdoRequest(node),
+        (_, 0x700) => Function::ErrorControl(node),
+        _ => Function::Other,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn predefined_connection_set() {
+        assert_eq!(classify(0x000), Function::Nmt);
+        assert_eq!(classify(0x080), Function::Sync);
+        assert_eq!(classify(0x081), Function::Emcy(1));
+        assert_eq!(classify(0x100), Function::Time);
+        assert_eq!(classify(0x18C), Function::Tpdo(1, 12));
+        assert_eq!(classify(0x4FF), Function::Tpdo(4, 127));
+        assert_eq!(classify(0x209), Function::Rpdo(1, 9));
+        assert_eq!(classify(0x581), Function::SdoResponse(1));
+        assert_eq!(classify(0x67F), Function::SdoRequest(127));
+        assert_eq!(classify(0x701), Function::ErrorControl(1));
+        assert_eq!(classify(0x7E5), Function::LssRequest);
+        assert_eq!(classify(0x180), Function::Other, "node 0 is not a node");
+        assert_eq!(classify(0x766), Function::ErrorControl(0x66));
+        assert_eq!(classify(0x7E6), Function::Other);
+    }
+}
