@@ -40,7 +40,8 @@ pub struct HubConfig {
     pub listen: SocketAddr,
     /// Bus bit rate in bit/s; `None` delivers frames as fast as the host can.
     pub bitrate: Option<u32>,
-    /// Frames queued for one client before it counts as not reading and is disconnected.
+    /// Frames queued for one client before it counts as not reading and is disconnected
+    /// (about 48 bytes each, so the default bounds a client's backlog at ~1.5 MB).
     pub client_queue: usize,
     /// Frames one client may have waiting for the bus in bit-rate mode before the hub stops
     /// reading from its socket (TCP backpressure, like a full controller transmit queue).
@@ -60,9 +61,9 @@ impl Default for HubConfig {
         HubConfig {
             listen: SocketAddr::from(([127, 0, 0, 1], crate::SOCKETCAND_DEFAULT_PORT)),
             bitrate: None,
-            client_queue: 8192,
+            client_queue: 32_768,
             client_tx_queue: 64,
-            max_clients: 4096,
+            max_clients: 1024,
             max_channels: 1024,
             handshake_timeout: Duration::from_secs(30),
             raw_mode_hold: Duration::from_millis(50),
