@@ -12,7 +12,11 @@ usage: pattern.py send|recv|loop HOST PORT CHANNEL COUNT
 import sys
 import threading
 
+import logging
+
 import can
+
+logging.getLogger("can").setLevel(logging.ERROR)
 
 
 def pattern(i):
