@@ -6,4 +6,6 @@
 
 pub mod cob;
 pub mod monitor;
+pub mod od;
 pub mod sdo;
+pub mod types;

@@ -39,12 +39,47 @@ const TABLE: &[(u32, &str)] = &[
     (0x0800_0024, "No data available"),
 ];
 
+#[allow(missing_docs)]
 impl AbortCode {
+    pub const TOGGLE: Self = Self(0x0503_0000);
+    pub const TIMEOUT: Self = Self(0x0504_0000);
+    pub const COMMAND: Self = Self(0x0504_0001);
+    pub const BLOCK_SIZE: Self = Self(0x0504_0002);
+    pub const SEQUENCE: Self = Self(0x0504_0003);
+    pub const CRC: Self = Self(0x0504_0004);
+    pub const OUT_OF_MEMORY: Self = Self(0x0504_0005);
+    pub const UNSUPPORTED_ACCESS: Self = Self(0x0601_0000);
+    pub const WRITE_ONLY: Self = Self(0x0601_0001);
+    pub const READ_ONLY: Self = Self(0x0601_0002);
+    pub const NO_OBJECT: Self = Self(0x0602_0000);
+    pub const NOT_MAPPABLE: Self = Self(0x0604_0041);
+    pub const PDO_LENGTH: Self = Self(0x0604_0042);
+    pub const PARAMETER_INCOMPATIBLE: Self = Self(0x0604_0043);
+    pub const INTERNAL_INCOMPATIBLE: Self = Self(0x0604_0047);
+    pub const HARDWARE: Self = Self(0x0606_0000);
+    pub const LENGTH_MISMATCH: Self = Self(0x0607_0010);
+    pub const LENGTH_TOO_HIGH: Self = Self(0x0607_0012);
+    pub const LENGTH_TOO_LOW: Self = Self(0x0607_0013);
+    pub const NO_SUB_INDEX: Self = Self(0x0609_0011);
+    pub const INVALID_VALUE: Self = Self(0x0609_0030);
+    pub const VALUE_TOO_HIGH: Self = Self(0x0609_0031);
+    pub const VALUE_TOO_LOW: Self = Self(0x0609_0032);
+    pub const MAX_LESS_THAN_MIN: Self = Self(0x0609_0036);
+    pub const NO_RESOURCE: Self = Self(0x060A_0023);
+    pub const GENERAL: Self = Self(0x0800_0000);
+    pub const CANNOT_STORE: Self = Self(0x0800_0020);
+    pub const LOCAL_CONTROL: Self = Self(0x0800_0021);
+    pub const DEVICE_STATE: Self = Self(0x0800_0022);
+    pub const NO_DICTIONARY: Self = Self(0x0800_0023);
+    pub const NO_DATA: Self = Self(0x0800_0024);
+
     /// The specification's description, if the code is a standard one.
     pub fn description(self) -> Option<&'static str> {
         TABLE.iter().find(|(c, _)| *c == self.0).map(|(_, d)| *d)
     }
 }
+
+impl std::error::Error for AbortCode {}
 
 impl std::fmt::Display for AbortCode {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {

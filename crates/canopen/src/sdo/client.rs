@@ -1,0 +1,578 @@
+//! SDO client, sans-IO (CiA 301 §7.2.4.3): one transfer at a time on one client channel.
+//!
+//! Start a transfer with [`SdoClient::start_upload`] or [`SdoClient::start_download`], feed
+//! every response payload to [`SdoClient::handle`] and call [`SdoClient::handle_timeout`] once
+//! [`SdoClient::poll_timeout`] has passed; both return the outcome when the transfer ends.
+
+use std::time::{Duration, Instant};
+
+use super::abort::AbortCode;
+use super::crc::Crc16;
+use super::{
+    abort_code, abort_payload, block_segment, mux, with_mux, Payload, MAX_BLOCK_SIZE, SEGMENT_DATA,
+};
+
+/// How a transfer fails.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum SdoError {
+    /// The server aborted with this code.
+    #[error("server aborted: {0}")]
+    Aborted(AbortCode),
+    /// The client aborted (and told the server) because the server broke the protocol.
+    #[error("aborted by client: {0}")]
+    Protocol(AbortCode),
+    /// The server did not answer in time.
+    #[error("SDO timeout: no response")]
+    Timeout,
+    /// A transfer is already in progress on this client.
+    #[error("SDO client busy")]
+    Busy,
+}
+
+impl SdoError {
+    /// The abort code that describes the failure (timeouts: 0x05040000).
+    pub fn abort_code(&self) -> AbortCode {
+        match self {
+            SdoError::Aborted(c) | SdoError::Protocol(c) => *c,
+            SdoError::Timeout => AbortCode::TIMEOUT,
+            SdoError::Busy => AbortCode::NO_RESOURCE,
+        }
+    }
+}
+
+/// How a client channel behaves.
+#[derive(Debug, Clone)]
+pub struct ClientConfig {
+    /// How long to wait for each response.
+    pub timeout: Duration,
+    /// Segments per block the client asks for in block uploads (1–127).
+    pub block_size: u8,
+    /// Offer CRC in block transfers.
+    pub crc: bool,
+    /// Protocol switch threshold for block uploads: values up to this many bytes are sent by
+    /// the server with the normal upload protocol (0: never switch).
+    pub switch_threshold: u8,
+}
+
+impl Default for ClientConfig {
+    fn default() -> Self {
+        ClientConfig {
+            timeout: super::DEFAULT_TIMEOUT,
+            block_size: MAX_BLOCK_SIZE,
+            crc: true,
+            switch_threshold: 21,
+        }
+    }
+}
+
+/// How a transfer moves its data.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Transfer {
+    /// Expedited when it fits in 4 bytes, segmented otherwise.
+    Normal,
+    /// Segmented even for 4 bytes or less.
+    Segmented,
+    /// Block transfer.
+    Block,
+}
+
+/// What a finished transfer gives: the uploaded bytes (empty for a download) or the failure.
+pub type Outcome = Result<Vec<u8>, SdoError>;
+
+enum State {
+    Idle,
+    DownloadInit {
+        data: Vec<u8>,
+        expedited: bool,
+    },
+    DownloadSegment {
+        data: Vec<u8>,
+        pos: usize,
+        toggle: bool,
+        last: bool,
+    },
+    UploadInit,
+    UploadSegment {
+        buf: Vec<u8>,
+        toggle: bool,
+        size: Option<u64>,
+    },
+    BlockDownloadInit {
+        data: Vec<u8>,
+    },
+    BlockDownloadSub {
+        data: Vec<u8>,
+        block_start: usize,
+        sent: usize,
+        crc: bool,
+    },
+    BlockDownloadEnd,
+    BlockUploadInit,
+    BlockUploadSub(BlockUpload),
+    BlockUploadEnd(BlockUpload),
+}
+
+struct BlockUpload {
+    buf: Vec<u8>,
+    size: Option<u64>,
+    crc: bool,
+    expected: u8,
+    last: Option<[u8; SEGMENT_DATA]>,
+}
+
+/// One SDO client channel.
+pub struct SdoClient {
+    config: ClientConfig,
+    state: State,
+    mux: (u16, u8),
+    deadline: Option<Instant>,
+    done: u64,
+    total: Option<u64>,
+}
+
+impl SdoClient {
+    /// An idle client.
+    pub fn new(config: ClientConfig) -> Self {
+        SdoClient {
+            config,
+            state: State::Idle,
+            mux: (0, 0),
+            deadline: None,
+            done: 0,
+            total: None,
+        }
+    }
+
+    /// Whether a transfer is in progress.
+    pub fn is_busy(&self) -> bool {
+        !matches!(self.state, State::Idle)
+    }
+
+    /// Bytes transferred so far and the total if known.
+    pub fn progress(&self) -> (u64, Option<u64>) {
+        (self.done, self.total)
+    }
+
+    /// When [`Self::handle_timeout`] must be called.
+    pub fn poll_timeout(&self) -> Option<Instant> {
+        self.deadline
+    }
+
+    fn begin(&mut self, index: u16, sub: u8, now: Instant) -> Result<(), SdoError> {
+        if self.is_busy() {
+            return Err(SdoError::Busy);
+        }
+        self.mux = (index, sub);
+        self.deadline = Some(now + self.config.timeout);
+        self.done = 0;
+        self.total = None;
+        Ok(())
+    }
+
+    /// Read `index`/`sub` from the server.
+    pub fn start_upload(
+        &mut self,
+        index: u16,
+        sub: u8,
+        how: Transfer,
+        now: Instant,
+        out: &mut Vec<Payload>,
+    ) -> Result<(), SdoError> {
+        self.begin(index, sub, now)?;
+        if how == Transfer::Block {
+            let cc = if self.config.crc { 4 } else { 0 };
+            let blksize = self.config.block_size.clamp(1, MAX_BLOCK_SIZE);
+            out.push(with_mux(
+                0xA0 | cc,
+                index,
+                sub,
+                [blksize, self.config.switch_threshold, 0, 0],
+            ));
+            self.state = State::BlockUploadInit;
+        } else {
+            out.push(with_mux(0x40, index, sub, [0; 4]));
+            self.state = State::UploadInit;
+        }
+        Ok(())
+    }
+
+    /// Write `data` to `index`/`sub` on the server.
+    pub fn start_download(
+        &mut self,
+        index: u16,
+        sub: u8,
+        data: Vec<u8>,
+        how: Transfer,
+        now: Instant,
+        out: &mut Vec<Payload>,
+    ) -> Result<(), SdoError> {
+        self.begin(index, sub, now)?;
+        let len = u32::try_from(data.len())
+            .map_err(|_| SdoError::Protocol(AbortCode::LENGTH_TOO_HIGH))?;
+        self.total = Some(len.into());
+        match how {
+            Transfer::Normal if (1..=4).contains(&data.len()) => {
+                let n = (4 - data.len()) as u8;
+                let mut d = [0u8; 4];
+                d[..data.len()].copy_from_slice(&data);
+                out.push(with_mux(0x23 | n << 2, index, sub, d));
+                self.state = State::DownloadInit {
+                    data,
+                    expedited: true,
+                };
+            }
+            Transfer::Block => {
+                let cc = if self.config.crc { 4 } else { 0 };
+                out.push(with_mux(0xC2 | cc, index, sub, len.to_le_bytes()));
+                self.state = State::BlockDownloadInit { data };
+            }
+            _ => {
+                out.push(with_mux(0x21, index, sub, len.to_le_bytes()));
+                self.state = State::DownloadInit {
+                    data,
+                    expedited: false,
+                };
+            }
+        }
+        Ok(())
+    }
+
+    /// Abort the transfer from this side with `code`.
+    pub fn abort(&mut self, code: AbortCode, out: &mut Vec<Payload>) {
+        if self.is_busy() {
+            out.push(abort_payload(self.mux.0, self.mux.1, code));
+        }
+        self.state = State::Idle;
+        self.deadline = None;
+    }
+
+    /// Give up on a silent server: abort it with 0x05040000 and report the timeout.
+    pub fn handle_timeout(&mut self, now: Instant, out: &mut Vec<Payload>) -> Option<Outcome> {
+        if self.deadline.is_none_or(|d| now < d) {
+            return None;
+        }
+        self.abort(AbortCode::TIMEOUT, out);
+        Some(Err(SdoError::Timeout))
+    }
+
+    /// Handle one response payload; returns the outcome when the transfer ends.
+    pub fn handle(
+        &mut self,
+        resp: &Payload,
+        now: Instant,
+        out: &mut Vec<Payload>,
+    ) -> Option<Outcome> {
+        if !self.is_busy() {
+            return None;
+        }
+        // A sub-block of a block upload carries segments whose first byte is a sequence number;
+        // 0x80 (sequence 0) cannot be one, so it is an abort there too.
+        let in_subblock = matches!(self.state, State::BlockUploadSub(_));
+        if resp[0] == 0x80 || (!in_subblock && resp[0] >> 5 == 4) {
+            self.state = State::Idle;
+            self.deadline = None;
+            return Some(Err(SdoError::Aborted(abort_code(resp))));
+        }
+        self.deadline = Some(now + self.config.timeout);
+        let state = std::mem::replace(&mut self.state, State::Idle);
+        match self.step(state, resp, out) {
+            Ok(None) => None,
+            Ok(Some(data)) => {
+                self.deadline = None;
+                Some(Ok(data))
+            }
+            Err(code) => {
+                self.abort_with(code, out);
+                Some(Err(SdoError::Protocol(code)))
+            }
+        }
+    }
+
+    fn abort_with(&mut self, code: AbortCode, out: &mut Vec<Payload>) {
+        out.push(abort_payload(self.mux.0, self.mux.1, code));
+        self.state = State::Idle;
+        self.deadline = None;
+    }
+
+    fn check_mux(&self, resp: &Payload) -> Result<(), AbortCode> {
+        if mux(resp) == self.mux {
+            Ok(())
+        } else {
+            Err(AbortCode::GENERAL)
+        }
+    }
+
+    fn step(
+        &mut self,
+        state: State,
+        resp: &Payload,
+        out: &mut Vec<Payload>,
+    ) -> Result<Option<Vec<u8>>, AbortCode> {
+        let scs = resp[0] >> 5;
+        match state {
+            State::DownloadInit { data, expedited } if scs == 3 => {
+                self.check_mux(resp)?;
+                if expedited {
+                    self.done = data.len() as u64;
+                    return Ok(Some(Vec::new()));
+                }
+                self.send_download_segment(data, 0, false, out);
+                Ok(None)
+            }
+            State::DownloadSegment {
+                data,
+                pos,
+                toggle,
+                last,
+            } if scs == 1 => {
+                if (resp[0] & 0x10 != 0) != toggle {
+                    return Err(AbortCode::TOGGLE);
+                }
+                if last {
+                    return Ok(Some(Vec::new()));
+                }
+                self.send_download_segment(data, pos, !toggle, out);
+                Ok(None)
+            }
+            State::UploadInit if scs == 2 => self.upload_initiated(resp, out),
+            State::BlockUploadInit if scs == 2 => self.upload_initiated(resp, out),
+            State::UploadSegment {
+                mut buf,
+                toggle,
+                size,
+            } if scs == 0 => {
+                if (resp[0] & 0x10 != 0) != toggle {
+                    return Err(AbortCode::TOGGLE);
+                }
+                let n = usize::from((resp[0] >> 1) & 7);
+                buf.extend_from_slice(&resp[1..8 - n]);
+                self.done = buf.len() as u64;
+                if size.is_some_and(|s| buf.len() as u64 > s) {
+                    return Err(AbortCode::LENGTH_TOO_HIGH);
+                }
+                if resp[0] & 1 == 1 {
+                    if size.is_some_and(|s| buf.len() as u64 != s) {
+                        return Err(AbortCode::LENGTH_MISMATCH);
+                    }
+                    return Ok(Some(buf));
+                }
+                out.push([0x60 | if toggle { 0 } else { 0x10 }, 0, 0, 0, 0, 0, 0, 0]);
+                self.state = State::UploadSegment {
+                    buf,
+                    toggle: !toggle,
+                    size,
+                };
+                Ok(None)
+            }
+            State::BlockDownloadInit { data } if scs == 5 && resp[0] & 3 == 0 => {
+                self.check_mux(resp)?;
+                let blksize = resp[4];
+                if !(1..=MAX_BLOCK_SIZE).contains(&blksize) {
+                    return Err(AbortCode::BLOCK_SIZE);
+                }
+                let crc = resp[0] & 4 != 0 && self.config.crc;
+                let sent = self.send_sub_block(&data, 0, blksize, out);
+                self.state = State::BlockDownloadSub {
+                    data,
+                    block_start: 0,
+                    sent,
+                    crc,
+                };
+                Ok(None)
+            }
+            State::BlockDownloadSub {
+                data,
+                block_start,
+                sent,
+                crc,
+            } if scs == 5 && resp[0] & 3 == 2 => {
+                let ackseq = usize::from(resp[1]);
+                let blksize = resp[2];
+                let segments_sent = sent.div_ceil(SEGMENT_DATA).max(1);
+                if ackseq > segments_sent {
+                    return Err(AbortCode::SEQUENCE);
+                }
+                if !(1..=MAX_BLOCK_SIZE).contains(&blksize) {
+                    return Err(AbortCode::BLOCK_SIZE);
+                }
+                let acked_end = (block_start + ackseq * SEGMENT_DATA).min(data.len());
+                self.done = acked_end as u64;
+                let all_sent = block_start + sent >= data.len();
+                if all_sent && ackseq == segments_sent {
+                    let last_len = data.len() - (block_start + (segments_sent - 1) * SEGMENT_DATA);
+                    let n = (SEGMENT_DATA - last_len) as u8;
+                    let crc = if crc {
+                        let mut c = Crc16::new();
+                        c.update(&data);
+                        c.value()
+                    } else {
+                        0
+                    };
+                    let c = crc.to_le_bytes();
+                    out.push([0xC1 | n << 2, c[0], c[1], 0, 0, 0, 0, 0]);
+                    self.state = State::BlockDownloadEnd;
+                    return Ok(None);
+                }
+                // Resume after the last acknowledged segment (retransmitting what was lost).
+                let sent = self.send_sub_block(&data, acked_end, blksize, out);
+                self.state = State::BlockDownloadSub {
+                    data,
+                    block_start: acked_end,
+                    sent,
+                    crc,
+                };
+                Ok(None)
+            }
+            State::BlockDownloadEnd if scs == 5 && resp[0] & 3 == 1 => Ok(Some(Vec::new())),
+            State::BlockUploadInit if scs == 6 && resp[0] & 1 == 0 => {
+                self.check_mux(resp)?;
+                let size = (resp[0] & 2 != 0)
+                    .then(|| u64::from(u32::from_le_bytes([resp[4], resp[5], resp[6], resp[7]])));
+                self.total = size;
+                out.push([0xA3, 0, 0, 0, 0, 0, 0, 0]);
+                self.state = State::BlockUploadSub(BlockUpload {
+                    buf: Vec::with_capacity(size.unwrap_or(0).min(1 << 20) as usize),
+                    size,
+                    crc: resp[0] & 4 != 0 && self.config.crc,
+                    expected: 1,
+                    last: None,
+                });
+                Ok(None)
+            }
+            State::BlockUploadSub(b) => self.block_upload_segment(b, resp, out),
+            State::BlockUploadEnd(b) if scs == 6 && resp[0] & 1 == 1 => {
+                let mut b = b;
+                let n = usize::from((resp[0] >> 2) & 7);
+                let held = b.last.unwrap_or([0; SEGMENT_DATA]);
+                b.buf.extend_from_slice(&held[..SEGMENT_DATA - n]);
+                self.done = b.buf.len() as u64;
+                if b.size.is_some_and(|s| s != b.buf.len() as u64) {
+                    return Err(AbortCode::LENGTH_MISMATCH);
+                }
+                if b.crc {
+                    let mut c = Crc16::new();
+                    c.update(&b.buf);
+                    if c.value() != u16::from_le_bytes([resp[1], resp[2]]) {
+                        return Err(AbortCode::CRC);
+                    }
+                }
+                out.push([0xA1, 0, 0, 0, 0, 0, 0, 0]);
+                Ok(Some(b.buf))
+            }
+            _ => Err(AbortCode::COMMAND),
+        }
+    }
+
+    fn upload_initiated(
+        &mut self,
+        resp: &Payload,
+        out: &mut Vec<Payload>,
+    ) -> Result<Option<Vec<u8>>, AbortCode> {
+        self.check_mux(resp)?;
+        let expedited = resp[0] & 2 != 0;
+        let sized = resp[0] & 1 != 0;
+        if expedited {
+            let n = if sized {
+                usize::from((resp[0] >> 2) & 3)
+            } else {
+                0
+            };
+            let data = resp[4..8 - n].to_vec();
+            self.done = data.len() as u64;
+            return Ok(Some(data));
+        }
+        let size =
+            sized.then(|| u64::from(u32::from_le_bytes([resp[4], resp[5], resp[6], resp[7]])));
+        self.total = size;
+        out.push([0x60, 0, 0, 0, 0, 0, 0, 0]);
+        self.state = State::UploadSegment {
+            buf: Vec::with_capacity(size.unwrap_or(0).min(1 << 20) as usize),
+            toggle: false,
+            size,
+        };
+        Ok(None)
+    }
+
+    fn send_download_segment(
+        &mut self,
+        data: Vec<u8>,
+        pos: usize,
+        toggle: bool,
+        out: &mut Vec<Payload>,
+    ) {
+        let end = (pos + SEGMENT_DATA).min(data.len());
+        let chunk = &data[pos..end];
+        let last = end == data.len();
+        let mut p = [0u8; 8];
+        p[0] = if toggle { 0x10 } else { 0 }
+            | ((SEGMENT_DATA - chunk.len()) as u8) << 1
+            | u8::from(last);
+        p[1..1 + chunk.len()].copy_from_slice(chunk);
+        out.push(p);
+        self.done = pos as u64;
+        self.state = State::DownloadSegment {
+            data,
+            pos: end,
+            toggle,
+            last,
+        };
+    }
+
+    /// Send up to `blksize` segments of `data` from `start`; returns the bytes covered.
+    fn send_sub_block(
+        &mut self,
+        data: &[u8],
+        start: usize,
+        blksize: u8,
+        out: &mut Vec<Payload>,
+    ) -> usize {
+        let mut pos = start;
+        for seq in 1..=blksize {
+            let end = (pos + SEGMENT_DATA).min(data.len());
+            let last = end == data.len();
+            out.push(block_segment(seq, last, &data[pos..end]));
+            pos = end;
+            if last {
+                break;
+            }
+        }
+        pos - start
+    }
+
+    fn block_upload_segment(
+        &mut self,
+        mut b: BlockUpload,
+        resp: &Payload,
+        out: &mut Vec<Payload>,
+    ) -> Result<Option<Vec<u8>>, AbortCode> {
+        let seq = resp[0] & 0x7F;
+        let is_last = resp[0] & 0x80 != 0;
+        if seq == 0 {
+            return Err(AbortCode::SEQUENCE);
+        }
+        if seq == b.expected {
+            if is_last {
+                let mut held = [0u8; SEGMENT_DATA];
+                held.copy_from_slice(&resp[1..8]);
+                b.last = Some(held);
+            } else {
+                b.buf.extend_from_slice(&resp[1..8]);
+                self.done = b.buf.len() as u64;
+                if b.size.is_some_and(|s| b.buf.len() as u64 > s) {
+                    return Err(AbortCode::LENGTH_TOO_HIGH);
+                }
+            }
+            b.expected += 1;
+        }
+        if seq >= self.config.block_size || is_last {
+            out.push([0xA2, b.expected - 1, self.config.block_size, 0, 0, 0, 0, 0]);
+            b.expected = 1;
+            if b.last.is_some() {
+                self.state = State::BlockUploadEnd(b);
+                return Ok(None);
+            }
+        }
+        self.state = State::BlockUploadSub(b);
+        Ok(None)
+    }
+}
