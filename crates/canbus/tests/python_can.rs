@@ -12,45 +12,17 @@ use std::time::Duration;
 
 use canbus::hub::HubConfig;
 use canbus::{Bus, BusOptions};
-use common::{hub, pattern, same, skip, url};
+use common::{hub, pattern, same, url};
+use testkit::{interop_script, python};
 use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::Command;
 
 const FRAMES: u32 = 10_000;
 
-fn workspace() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
-/// The Python with python-can, or `None` (skip) when it is not set up.
-fn python() -> Option<PathBuf> {
-    let candidate = std::env::var_os("CANLIFT_PYTHON")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| workspace().join(".venv/bin/python"));
-    let works = std::process::Command::new(&candidate)
-        .args(["-c", "import can, canopen"])
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .status()
-        .is_ok_and(|s| s.success());
-    if works {
-        return Some(candidate);
-    }
-    let reason = format!(
-        "python-can interop: {} cannot import can/canopen; run scripts/test to set up .venv",
-        candidate.display()
-    );
-    if std::env::var("CANLIFT_REQUIRE_INTEROP").as_deref() == Ok("1") {
-        panic!("{reason}");
-    }
-    skip(&reason);
-    None
-}
-
 fn script(python: &PathBuf, mode: &str, hub: &canbus::hub::HubHandle, count: u32) -> Command {
     let addr = hub.local_addr();
     let mut cmd = Command::new(python);
-    cmd.arg(workspace().join("tests/interop/pattern.py"))
+    cmd.arg(interop_script("pattern.py"))
         .args([
             mode,
             &addr.ip().to_string(),

@@ -1,12 +1,10 @@
 //! SocketCAN backend against a real (virtual) interface. Needs AF_CAN and a `vcan0` interface
 //! (`ip link add vcan0 type vcan && ip link set vcan0 up`); skips with the reason otherwise.
 
-mod common;
-
 use std::time::Duration;
 
 use canbus::{Bus, CanId, Frame};
-use common::skip;
+use testkit::skip;
 
 #[tokio::test]
 async fn vcan_loopback_between_two_endpoints() {

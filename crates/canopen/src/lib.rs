@@ -5,6 +5,8 @@
 //! EMCY, SYNC, TIME, PDO and LSS services follow the layout of DESIGN.md §2.
 
 pub mod cob;
+#[cfg(feature = "tokio")]
+pub mod driver;
 pub mod monitor;
 pub mod od;
 pub mod sdo;

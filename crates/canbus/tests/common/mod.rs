@@ -1,7 +1,6 @@
 //! Helpers shared by the integration tests.
 #![allow(dead_code)]
 
-use std::io::Write;
 use std::net::SocketAddr;
 use std::time::Duration;
 
@@ -42,11 +41,6 @@ pub async fn hub(config: HubConfig) -> HubHandle {
 
 pub fn url(hub: &HubHandle, channel: &str) -> String {
     format!("socketcand://{}/{channel}", hub.local_addr())
-}
-
-/// Print a skip reason past libtest's output capture, so CI logs show it.
-pub fn skip(reason: &str) {
-    let _ = writeln!(std::io::stderr(), "SKIP: {reason}");
 }
 
 /// A hand-driven socketcand client, for feeding the hub bad input.

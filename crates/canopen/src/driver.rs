@@ -1,0 +1,543 @@
+//! The tokio edge of the SDO machines: a server task that serves an object dictionary on a
+//! [`canbus::Bus`], and [`SdoClients`], the async client API.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::{Duration, Instant};
+
+use canbus::{Bus, BusSender, CanId, Filter, Frame};
+use tokio::sync::mpsc;
+use tokio::task::JoinHandle;
+
+use crate::od::ObjectDictionary;
+use crate::sdo::abort::AbortCode;
+use crate::sdo::client::{ClientConfig, SdoClient, SdoError, Transfer};
+use crate::sdo::server::{SdoServer, ServerConfig};
+use crate::sdo::{payload, Payload};
+use crate::types::{CanopenValue, TypeError};
+
+/// A dictionary shared between the protocol tasks and the application.
+pub type SharedDictionary = Arc<Mutex<ObjectDictionary>>;
+
+/// COB-ID bit 31: the channel is not valid (CiA 301 §7.4.8.8).
+const COB_INVALID: u32 = 0x8000_0000;
+/// COB-ID bit 29: 29-bit identifier.
+const COB_EXTENDED: u32 = 0x2000_0000;
+
+fn cob_to_id(cob: u32) -> Option<CanId> {
+    if cob & COB_INVALID != 0 {
+        return None;
+    }
+    if cob & COB_EXTENDED != 0 {
+        CanId::extended(cob & 0x1FFF_FFFF).ok()
+    } else {
+        u16::try_from(cob & 0x7FF).ok().map(CanId::Standard)
+    }
+}
+
+/// The server channels of a node: (request COB-ID, response COB-ID) of every valid SDO server
+/// parameter object 0x1200–0x127F, or the default channel 0x600/0x580 + node-ID when the
+/// dictionary has none.
+pub fn server_channels(od: &ObjectDictionary, node_id: u8) -> Vec<(CanId, CanId)> {
+    let mut channels = Vec::new();
+    for index in 0x1200..=0x127F {
+        let cob = |sub| match od.get_value(index, sub) {
+            Ok(crate::types::Value::Uint(v)) => u32::try_from(v).ok(),
+            _ => None,
+        };
+        if let (Some(rx), Some(tx)) = (cob(1), cob(2)) {
+            if let (Some(rx), Some(tx)) = (cob_to_id(rx), cob_to_id(tx)) {
+                channels.push((rx, tx));
+            }
+        } else if index == 0x1200 && od.object(0x1200).is_some() {
+            // 0x1200 often leaves its COB-IDs implicit ($NODEID formulas, or ro entries).
+            channels.push(default_channel(node_id));
+        }
+    }
+    if channels.is_empty() {
+        channels.push(default_channel(node_id));
+    }
+    channels
+}
+
+fn default_channel(node_id: u8) -> (CanId, CanId) {
+    (
+        CanId::Standard(0x600 + u16::from(node_id)),
+        CanId::Standard(0x580 + u16::from(node_id)),
+    )
+}
+
+fn frame(id: CanId, p: &Payload) -> Frame {
+    Frame::new(id, p).unwrap_or_else(|_| unreachable!("8 bytes always fit"))
+}
+
+/// Serve `od` on `bus` as node `node_id` on every SDO server channel, until the bus closes.
+pub fn serve_sdo(
+    bus: Bus,
+    od: SharedDictionary,
+    node_id: u8,
+    config: ServerConfig,
+) -> JoinHandle<()> {
+    let (sender, mut receiver) = bus.split();
+    let channels = server_channels(&od.lock().unwrap_or_else(PoisonError::into_inner), node_id);
+    let filters: Vec<Filter> = channels
+        .iter()
+        .map(|(rx, _)| match rx {
+            CanId::Standard(id) => Filter::standard(*id, 0x7FF),
+            CanId::Extended(id) => Filter::extended(*id, 0x1FFF_FFFF),
+        })
+        .collect();
+    receiver.set_filters(&filters);
+    tokio::spawn(async move {
+        let mut servers: Vec<(CanId, CanId, SdoServer)> = channels
+            .into_iter()
+            .map(|(rx, tx)| (rx, tx, SdoServer::new(config.clone())))
+            .collect();
+        let mut out = Vec::new();
+        loop {
+            let deadline = servers
+                .iter()
+                .filter_map(|(_, _, s)| s.poll_timeout())
+                .min();
+            let sleep = async {
+                match deadline {
+                    Some(d) => tokio::time::sleep_until(d.into()).await,
+                    None => std::future::pending().await,
+                }
+            };
+            let received = tokio::select! {
+                f = receiver.recv_frame() => match f {
+                    Some(f) => Some(f),
+                    None => return,
+                },
+                _ = sleep => None,
+            };
+            let now = Instant::now();
+            for (rx, tx, server) in &mut servers {
+                out.clear();
+                match &received {
+                    Some(f) if f.id() == *rx => {
+                        let Some(p) = payload(f.data()) else {
+                            tracing::debug!(frame = %f, "SDO request without 8 bytes ignored");
+                            continue;
+                        };
+                        let mut od = od.lock().unwrap_or_else(PoisonError::into_inner);
+                        server.handle(&mut od, &p, now, &mut out);
+                    }
+                    _ => server.handle_timeout(now, &mut out),
+                }
+                for p in &out {
+                    if sender.send(frame(*tx, p)).await.is_err() {
+                        return;
+                    }
+                }
+            }
+        }
+    })
+}
+
+/// Why an SDO operation failed, from the caller's point of view.
+#[derive(Debug, thiserror::Error)]
+pub enum ClientError {
+    /// The transfer failed on the protocol level.
+    #[error("SDO {index:04X}:{sub:02X} on node {node}: {source}")]
+    Sdo {
+        /// Node-ID.
+        node: u8,
+        /// Index.
+        index: u16,
+        /// Sub-index.
+        sub: u8,
+        /// What went wrong.
+        #[source]
+        source: SdoError,
+    },
+    /// The value read does not fit the requested type.
+    #[error("SDO {index:04X}:{sub:02X} on node {node}: {source}")]
+    Type {
+        /// Node-ID.
+        node: u8,
+        /// Index.
+        index: u16,
+        /// Sub-index.
+        sub: u8,
+        /// The mismatch.
+        #[source]
+        source: TypeError,
+    },
+    /// The bus failed.
+    #[error(transparent)]
+    Bus(#[from] canbus::BusError),
+    /// The client's dispatcher is gone (the bus closed).
+    #[error("SDO client closed")]
+    Closed,
+}
+
+impl ClientError {
+    /// The CiA 301 abort code that describes the failure.
+    pub fn abort_code(&self) -> AbortCode {
+        match self {
+            ClientError::Sdo { source, .. } => source.abort_code(),
+            ClientError::Type { source, .. } => source.abort_code(),
+            ClientError::Bus(_) | ClientError::Closed => AbortCode::GENERAL,
+        }
+    }
+}
+
+/// Progress of a transfer: bytes done and the total if known.
+pub type Progress<'a> = &'a (dyn Fn(u64, Option<u64>) + Send + Sync);
+
+/// Options for one transfer.
+#[derive(Clone, Copy)]
+pub struct TransferOptions<'a> {
+    /// Expedited/segmented or block.
+    pub how: Transfer,
+    /// Called as the transfer advances.
+    pub progress: Option<Progress<'a>>,
+}
+
+impl Default for TransferOptions<'_> {
+    fn default() -> Self {
+        TransferOptions {
+            how: Transfer::Normal,
+            progress: None,
+        }
+    }
+}
+
+struct ClientInner {
+    sender: BusSender,
+    config: ClientConfig,
+    /// Responses for the transfer in progress, by response COB-ID.
+    routes: Mutex<HashMap<u16, mpsc::Sender<Payload>>>,
+    /// One lock per node: transfers to the same node wait their turn.
+    nodes: Mutex<HashMap<u8, Arc<tokio::sync::Mutex<()>>>>,
+}
+
+/// SDO client for every node of a bus (the default client channels 0x600/0x580 + node-ID).
+/// Transfers to different nodes run concurrently; transfers to the same node queue.
+#[derive(Clone)]
+pub struct SdoClients {
+    inner: Arc<ClientInner>,
+}
+
+impl SdoClients {
+    /// Use `bus` for SDO client transfers; spawns the task that routes responses.
+    pub fn new(bus: Bus, config: ClientConfig) -> Self {
+        let (sender, mut receiver) = bus.split();
+        receiver.set_filters(&[Filter::standard(0x580, 0x780)]);
+        let inner = Arc::new(ClientInner {
+            sender,
+            config,
+            routes: Mutex::new(HashMap::new()),
+            nodes: Mutex::new(HashMap::new()),
+        });
+        let weak = Arc::downgrade(&inner);
+        tokio::spawn(async move {
+            while let Some(f) = receiver.recv_frame().await {
+                let Some(inner) = weak.upgrade() else { return };
+                let (CanId::Standard(id), Some(p)) = (f.id(), payload(f.data())) else {
+                    continue;
+                };
+                let route = inner
+                    .routes
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .get(&id)
+                    .cloned();
+                if let Some(route) = route {
+                    let _ = route.try_send(p);
+                }
+            }
+        });
+        SdoClients { inner }
+    }
+
+    fn node_lock(&self, node: u8) -> Arc<tokio::sync::Mutex<()>> {
+        self.inner
+            .nodes
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .entry(node)
+            .or_default()
+            .clone()
+    }
+
+    async fn transfer(
+        &self,
+        node: u8,
+        (index, sub): (u16, u8),
+        download: Option<Vec<u8>>,
+        options: TransferOptions<'_>,
+    ) -> Result<Vec<u8>, ClientError> {
+        let lock = self.node_lock(node);
+        let _turn = lock.lock().await;
+        let request_id = CanId::Standard(0x600 + u16::from(node & 0x7F));
+        let response_id = 0x580 + u16::from(node & 0x7F);
+        let (tx, mut rx) = mpsc::channel(256);
+        self.inner
+            .routes
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .insert(response_id, tx);
+        let _route = RouteGuard {
+            inner: &self.inner,
+            id: response_id,
+        };
+        let mut client = SdoClient::new(self.inner.config.clone());
+        let mut out = Vec::new();
+        let now = Instant::now();
+        let started = match download {
+            Some(data) => client.start_download(index, sub, data, options.how, now, &mut out),
+            None => client.start_upload(index, sub, options.how, now, &mut out),
+        };
+        let wrap = |source| ClientError::Sdo {
+            node,
+            index,
+            sub,
+            source,
+        };
+        started.map_err(wrap)?;
+        loop {
+            for p in out.drain(..) {
+                self.inner.sender.send(frame(request_id, &p)).await?;
+            }
+            let deadline = client
+                .poll_timeout()
+                .unwrap_or_else(|| Instant::now() + Duration::from_secs(1));
+            let outcome = tokio::select! {
+                p = rx.recv() => match p {
+                    Some(p) => client.handle(&p, Instant::now(), &mut out),
+                    None => return Err(ClientError::Closed),
+                },
+                _ = tokio::time::sleep_until(deadline.into()) => client.handle_timeout(Instant::now(), &mut out),
+            };
+            if let Some(progress) = options.progress {
+                let (done, total) = client.progress();
+                progress(done, total);
+            }
+            if let Some(outcome) = outcome {
+                for p in out.drain(..) {
+                    self.inner.sender.send(frame(request_id, &p)).await?;
+                }
+                return outcome.map_err(wrap);
+            }
+        }
+    }
+
+    /// Read raw bytes from `node`.
+    pub async fn read_raw(&self, node: u8, index: u16, sub: u8) -> Result<Vec<u8>, ClientError> {
+        self.transfer(node, (index, sub), None, TransferOptions::default())
+            .await
+    }
+
+    /// Read raw bytes with options (block transfer, progress).
+    pub async fn read_with(
+        &self,
+        node: u8,
+        index: u16,
+        sub: u8,
+        options: TransferOptions<'_>,
+    ) -> Result<Vec<u8>, ClientError> {
+        self.transfer(node, (index, sub), None, options).await
+    }
+
+    /// Read a typed value: `read::<u32>(1, 0x1000, 0)`.
+    pub async fn read<T: CanopenValue>(
+        &self,
+        node: u8,
+        index: u16,
+        sub: u8,
+    ) -> Result<T, ClientError> {
+        let bytes = self.read_raw(node, index, sub).await?;
+        T::from_bytes(&bytes).map_err(|source| ClientError::Type {
+            node,
+            index,
+            sub,
+            source,
+        })
+    }
+
+    /// Write raw bytes to `node`.
+    pub async fn write_raw(
+        &self,
+        node: u8,
+        index: u16,
+        sub: u8,
+        data: &[u8],
+    ) -> Result<(), ClientError> {
+        self.transfer(
+            node,
+            (index, sub),
+            Some(data.to_vec()),
+            TransferOptions::default(),
+        )
+        .await
+        .map(drop)
+    }
+
+    /// Write raw bytes with options (block transfer, progress).
+    pub async fn write_with(
+        &self,
+        node: u8,
+        index: u16,
+        sub: u8,
+        data: Vec<u8>,
+        options: TransferOptions<'_>,
+    ) -> Result<(), ClientError> {
+        self.transfer(node, (index, sub), Some(data), options)
+            .await
+            .map(drop)
+    }
+
+    /// Write a typed value: `write(1, 0x1017, 0, 1000u16)`.
+    pub async fn write<T: CanopenValue>(
+        &self,
+        node: u8,
+        index: u16,
+        sub: u8,
+        value: T,
+    ) -> Result<(), ClientError> {
+        self.write_raw(node, index, sub, &value.to_bytes()).await
+    }
+}
+
+/// Removes a transfer's response route however the transfer ends.
+struct RouteGuard<'a> {
+    inner: &'a ClientInner,
+    id: u16,
+}
+
+impl Drop for RouteGuard<'_> {
+    fn drop(&mut self) {
+        self.inner
+            .routes
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .remove(&self.id);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::od::{Access, Object, Variable};
+    use crate::types::{DataType, Value};
+
+    fn node_dictionary(serial: u32) -> SharedDictionary {
+        let mut od = ObjectDictionary::new();
+        od.insert(Object::var(
+            0x1000,
+            Variable::new("Device type", DataType::Unsigned32, Access::Ro)
+                .with_value(Value::Uint(0x0001_01A1)),
+        ));
+        od.insert(Object::var(
+            0x1018,
+            Variable::new("Serial", DataType::Unsigned32, Access::Ro)
+                .with_value(Value::Uint(serial.into())),
+        ));
+        od.insert(Object::var(
+            0x2000,
+            Variable::new("Blob", DataType::Domain, Access::Rw),
+        ));
+        Arc::new(Mutex::new(od))
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn typed_and_raw_transfers_over_a_bus() {
+        let url = "mem://driver-typed";
+        let od = node_dictionary(7);
+        let server = serve_sdo(
+            Bus::open(url).await.unwrap(),
+            od.clone(),
+            5,
+            ServerConfig::default(),
+        );
+        let sdo = SdoClients::new(Bus::open(url).await.unwrap(), ClientConfig::default());
+        assert_eq!(sdo.read::<u32>(5, 0x1000, 0).await.unwrap(), 0x0001_01A1);
+        let err = sdo.read::<u16>(5, 0x1000, 0).await.unwrap_err();
+        assert_eq!(err.abort_code(), AbortCode::LENGTH_TOO_HIGH);
+        let err = sdo.write(5, 0x1000, 0, 1u32).await.unwrap_err();
+        assert_eq!(err.abort_code(), AbortCode::READ_ONLY);
+        assert!(err.to_string().contains("1000:00 on node 5"), "{err}");
+        let blob: Vec<u8> = (0..5000u32).map(|i| i as u8).collect();
+        let seen = std::sync::atomic::AtomicU64::new(0);
+        let progress =
+            |done: u64, _: Option<u64>| seen.store(done, std::sync::atomic::Ordering::Relaxed);
+        let options = TransferOptions {
+            how: Transfer::Block,
+            progress: Some(&progress),
+        };
+        sdo.write_with(5, 0x2000, 0, blob.clone(), options)
+            .await
+            .unwrap();
+        assert_eq!(seen.load(std::sync::atomic::Ordering::Relaxed), 5000);
+        assert_eq!(sdo.read_with(5, 0x2000, 0, options).await.unwrap(), blob);
+        assert_eq!(od.lock().unwrap().read(0x2000, 0).unwrap(), blob);
+        // No server at node 6: a timeout with the CiA code.
+        let err = sdo.read_raw(6, 0x1000, 0).await.unwrap_err();
+        assert_eq!(err.abort_code(), AbortCode::TIMEOUT);
+        server.abort();
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn concurrent_nodes_and_queued_transfers_to_one_node() {
+        let url = "mem://driver-concurrent";
+        let mut servers = Vec::new();
+        for node in 1..=4u8 {
+            servers.push(serve_sdo(
+                Bus::open(url).await.unwrap(),
+                node_dictionary(node.into()),
+                node,
+                ServerConfig::default(),
+            ));
+        }
+        let sdo = SdoClients::new(Bus::open(url).await.unwrap(), ClientConfig::default());
+        let mut tasks = Vec::new();
+        for i in 0..40u32 {
+            let sdo = sdo.clone();
+            let node = (i % 4 + 1) as u8;
+            tasks.push(tokio::spawn(async move {
+                let data = vec![i as u8; 100 + i as usize];
+                sdo.write_raw(node, 0x2000, 0, &data).await.unwrap();
+                let serial = sdo.read::<u32>(node, 0x1018, 0).await.unwrap();
+                assert_eq!(serial, u32::from(node));
+            }));
+        }
+        for t in tasks {
+            t.await.unwrap();
+        }
+        for s in servers {
+            s.abort();
+        }
+    }
+
+    #[test]
+    fn server_channels_from_the_dictionary() {
+        let mut od = ObjectDictionary::new();
+        assert_eq!(
+            server_channels(&od, 3),
+            vec![(CanId::Standard(0x603), CanId::Standard(0x583))]
+        );
+        let u32v = |v: u32| {
+            Variable::new("COB-ID", DataType::Unsigned32, Access::Ro)
+                .with_value(Value::Uint(v.into()))
+        };
+        od.insert(Object::composite(
+            0x1201,
+            "SDO server 2",
+            crate::od::ObjectCode::Record,
+            [(1, u32v(0x640)), (2, u32v(0x5C0))],
+        ));
+        od.insert(Object::composite(
+            0x1202,
+            "SDO server 3",
+            crate::od::ObjectCode::Record,
+            [(1, u32v(0x8000_0641)), (2, u32v(0x5C1))],
+        ));
+        assert_eq!(
+            server_channels(&od, 3),
+            vec![(CanId::Standard(0x640), CanId::Standard(0x5C0))]
+        );
+    }
+}

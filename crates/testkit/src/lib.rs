@@ -1,0 +1,48 @@
+//! Helpers shared by the integration tests of several crates: finding the interop Python and
+//! reporting skipped tests where CI logs show them.
+
+use std::io::Write;
+use std::path::PathBuf;
+use std::process::{Command, Stdio};
+
+/// The workspace root.
+pub fn workspace() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+/// A script under `tests/interop/`.
+pub fn interop_script(name: &str) -> PathBuf {
+    workspace().join("tests/interop").join(name)
+}
+
+/// Print a skip reason past libtest's output capture, so CI logs show it.
+pub fn skip(reason: &str) {
+    let _ = writeln!(std::io::stderr(), "SKIP: {reason}");
+}
+
+/// The Python with python-can and canopen (the venv `scripts/test` makes), or `None` after
+/// printing why the test is skipped. With CANLIFT_REQUIRE_INTEROP=1 (as `scripts/test` and CI
+/// set) a missing venv fails the test instead.
+pub fn python() -> Option<PathBuf> {
+    let candidate = std::env::var_os("CANLIFT_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| workspace().join(".venv/bin/python"));
+    let works = Command::new(&candidate)
+        .args(["-c", "import can, canopen"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success());
+    if works {
+        return Some(candidate);
+    }
+    let reason = format!(
+        "interop: {} cannot import can/canopen; run scripts/test to set up .venv",
+        candidate.display()
+    );
+    if std::env::var("CANLIFT_REQUIRE_INTEROP").as_deref() == Ok("1") {
+        panic!("{reason}");
+    }
+    skip(&reason);
+    None
+}
