@@ -23,6 +23,8 @@ enum Command {
     Hub(cmd::hub::HubArgs),
     /// Print frames from a bus like candump, with their CANopen meaning.
     Dump(cmd::dump::DumpArgs),
+    /// Read or write an object of a node by SDO.
+    Sdo(cmd::sdo::SdoArgs),
     /// Measure canlift's components.
     Bench(cmd::bench::BenchArgs),
 }
@@ -41,6 +43,7 @@ fn main() -> std::process::ExitCode {
         match cli.command {
             Command::Hub(args) => cmd::hub::run(args).await,
             Command::Dump(args) => cmd::dump::run(args).await,
+            Command::Sdo(args) => cmd::sdo::run(args).await,
             Command::Bench(args) => cmd::bench::run(args).await,
         }
     });

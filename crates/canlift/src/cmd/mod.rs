@@ -3,3 +3,4 @@
 pub mod bench;
 pub mod dump;
 pub mod hub;
+pub mod sdo;
