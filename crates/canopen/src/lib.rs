@@ -7,6 +7,7 @@
 pub mod cob;
 #[cfg(feature = "tokio")]
 pub mod driver;
+pub mod eds;
 pub mod monitor;
 pub mod od;
 pub mod sdo;

@@ -130,3 +130,39 @@ async fn canlift_client_against_python_canopen_local_node() {
     let _ = tokio::time::timeout(Duration::from_secs(10), child.wait()).await;
     hub.shutdown().await;
 }
+
+#[test]
+fn python_canopen_imports_our_exported_eds() {
+    let Some(python) = python() else { return };
+    let fixture =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/eds/canopennode-style.eds");
+    let description = canopen::eds::import_file(&fixture, Some(5)).unwrap();
+    let dir = std::env::temp_dir().join(format!("canlift-eds-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let exported = dir.join("exported.eds");
+    std::fs::write(&exported, canopen::eds::export(&description, false)).unwrap();
+    let out = std::process::Command::new(python)
+        .arg(interop_script("read_eds.py"))
+        .arg(&exported)
+        .args([
+            "5", "1014:00", "1200:01", "1200:02", "1018:01", "1017:00", "1008:00",
+        ])
+        .output()
+        .unwrap();
+    std::fs::remove_dir_all(&dir).unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let expected = [
+        "1014:00 COB-ID EMCY 133",
+        "1200:01 COB-ID client to server (rx) 1541",
+        "1200:02 COB-ID server to client (tx) 1413",
+        "1018:01 Vendor-ID 1050",
+        "1017:00 Producer heartbeat time 1000",
+        "1008:00 Manufacturer device name canlift lift controller",
+    ];
+    assert_eq!(stdout.lines().collect::<Vec<_>>(), expected);
+}
