@@ -3,10 +3,9 @@
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, PoisonError, RwLock, Weak};
-use std::time::SystemTime;
+use std::time::{Instant, SystemTime};
 
 use tokio::sync::{mpsc, Notify, OwnedSemaphorePermit};
-use tokio::time::Instant;
 
 use super::HubStats;
 use crate::frame::Frame;
@@ -41,17 +40,28 @@ pub(super) struct Channel {
     pub(super) name: String,
     subscribers: RwLock<Vec<Subscriber>>,
     /// Present in bit-rate mode: frames go through the arbiter instead of straight out.
-    arbiter: Option<mpsc::UnboundedSender<Queued>>,
+    arbiter: Option<std::sync::mpsc::Sender<Queued>>,
     stats: Arc<HubStats>,
 }
 
 impl Channel {
     pub(super) fn new(name: &str, bitrate: Option<u32>, stats: Arc<HubStats>) -> Arc<Self> {
         Arc::new_cyclic(|weak: &Weak<Channel>| {
-            let arbiter = bitrate.map(|bitrate| {
-                let (tx, rx) = mpsc::unbounded_channel();
-                tokio::spawn(arbitrate(weak.clone(), rx, bitrate));
-                tx
+            let arbiter = bitrate.and_then(|bitrate| {
+                let (tx, rx) = std::sync::mpsc::channel();
+                let weak = weak.clone();
+                // An OS thread, not a task: tokio's timer has millisecond resolution, a frame at
+                // 1 Mbit/s lasts about 0.13 ms, and thread sleeps are precise to microseconds.
+                let spawned = std::thread::Builder::new()
+                    .name(format!("hub-bus-{name}"))
+                    .spawn(move || arbitrate(weak, rx, bitrate));
+                match spawned {
+                    Ok(_) => Some(tx),
+                    Err(e) => {
+                        tracing::error!(channel = name, error = %e, "cannot start the bus thread; channel runs unthrottled");
+                        None
+                    }
+                }
             });
             Channel {
                 name: name.to_owned(),
@@ -151,13 +161,13 @@ impl Channel {
 /// time and is delivered when its last bit (end of interframe space) has passed.
 ///
 /// Time is kept as the instant the bus becomes free (`free_at`), advanced by each frame's wire
-/// time, so timer granularity delays a delivery by at most a timer tick but never accumulates.
-async fn arbitrate(channel: Weak<Channel>, mut rx: mpsc::UnboundedReceiver<Queued>, bitrate: u32) {
+/// time, so a late wake-up delays one delivery slightly but never accumulates.
+fn arbitrate(channel: Weak<Channel>, rx: std::sync::mpsc::Receiver<Queued>, bitrate: u32) {
     let mut queues: HashMap<u64, VecDeque<Queued>> = HashMap::new();
     let mut free_at = Instant::now();
     loop {
         if queues.is_empty() {
-            let Some(q) = rx.recv().await else { return };
+            let Ok(q) = rx.recv() else { return };
             queues.entry(q.from).or_default().push_back(q);
         }
         while let Ok(q) = rx.try_recv() {
@@ -168,8 +178,9 @@ async fn arbitrate(channel: Weak<Channel>, mut rx: mpsc::UnboundedReceiver<Queue
         };
         let start = free_at.max(winner.arrival);
         free_at = start + wire::frame_duration(&winner.frame, bitrate);
-        if free_at > Instant::now() {
-            tokio::time::sleep_until(free_at).await;
+        let now = Instant::now();
+        if free_at > now {
+            std::thread::sleep(free_at - now);
         }
         let Some(channel) = channel.upgrade() else {
             return;

@@ -24,6 +24,25 @@ pub struct BenchArgs {
 enum BenchKind {
     /// Frames/s, latency and CPU per frame through the hub.
     Hub(HubBench),
+    /// SDO transfer rates through the hub, canlift's client and python-canopen's on one server.
+    Sdo(SdoBench),
+}
+
+#[derive(Debug, Clone, clap::Args)]
+struct SdoBench {
+    /// Expedited reads to time.
+    #[arg(long, default_value_t = 2000)]
+    reads: u32,
+    /// Bytes per segmented/block transfer.
+    #[arg(long, default_value_t = 65536)]
+    size: usize,
+    /// Start the hub with this --bitrate (then only block transfers are timed, against the
+    /// bus ceiling).
+    #[arg(long)]
+    bitrate: Option<u32>,
+    /// Python with python-canopen for the comparison [default: $CANLIFT_PYTHON or .venv/bin/python].
+    #[arg(long)]
+    python: Option<std::path::PathBuf>,
 }
 
 #[derive(Debug, Clone, clap::Args)]
@@ -248,9 +267,175 @@ async fn run_hub_bench(args: HubBench) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The time the data segments of a block transfer of `data` occupy a bus at `bitrate`: the
+/// ceiling no block transfer can beat.
+fn block_ceiling(data: &[u8], bitrate: u32) -> Duration {
+    data.chunks(7)
+        .enumerate()
+        .map(|(i, chunk)| {
+            let mut p = [0u8; 8];
+            p[0] = (i % 127 + 1) as u8;
+            p[1..1 + chunk.len()].copy_from_slice(chunk);
+            let frame = Frame::new(CanId::Standard(0x585), &p).unwrap_or_else(|_| unreachable!());
+            canbus::wire::frame_duration(&frame, bitrate)
+        })
+        .sum()
+}
+
+fn kib_s(bytes: usize, elapsed: Duration) -> f64 {
+    bytes as f64 / 1024.0 / elapsed.as_secs_f64()
+}
+
+async fn run_sdo_bench(args: SdoBench) -> anyhow::Result<()> {
+    use canopen::driver::{serve_sdo, SdoClients, TransferOptions};
+    use canopen::od::{Access, Object, ObjectDictionary, Variable};
+    use canopen::sdo::client::{ClientConfig, Transfer};
+    use canopen::sdo::server::ServerConfig;
+    use canopen::types::{DataType, Value};
+
+    let hub = start_hub(args.bitrate).await?;
+    let url = format!("socketcand://{}/sdo", hub.addr);
+    let mut od = ObjectDictionary::new();
+    od.insert(Object::var(
+        0x1000,
+        Variable::new("Device type", DataType::Unsigned32, Access::Ro)
+            .with_value(Value::Uint(0x0001_01A1)),
+    ));
+    od.insert(Object::var(
+        0x2000,
+        Variable::new("Blob", DataType::Domain, Access::Rw),
+    ));
+    let od = std::sync::Arc::new(std::sync::Mutex::new(od));
+    let server = serve_sdo(Bus::open(&url).await?, od, 5, ServerConfig::default());
+    let config = ClientConfig {
+        timeout: Duration::from_secs(5),
+        ..ClientConfig::default()
+    };
+    let sdo = SdoClients::new(Bus::open(&url).await?, config);
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let data: Vec<u8> = (0..args.size).map(|i| (i * 131 + 7) as u8).collect();
+    let timed = |how: Transfer, download: bool| {
+        let (sdo, data) = (sdo.clone(), data.clone());
+        async move {
+            let options = TransferOptions {
+                how,
+                progress: None,
+            };
+            let start = Instant::now();
+            if download {
+                sdo.write_with(5, 0x2000, 0, data, options).await?;
+            } else {
+                let back = sdo.read_with(5, 0x2000, 0, options).await?;
+                anyhow::ensure!(back == data, "uploaded data differs");
+            }
+            anyhow::Ok(start.elapsed())
+        }
+    };
+    println!(
+        "SDO bench: node 5 served by canlift through canlift hub{}",
+        match args.bitrate {
+            Some(b) => format!(" at {b} bit/s"),
+            None => " (no bit-rate limit)".to_owned(),
+        }
+    );
+    if let Some(bitrate) = args.bitrate {
+        let ceiling = block_ceiling(&data, bitrate);
+        let ceiling_rate = kib_s(args.size, ceiling);
+        println!(
+            "  ceiling for {} bytes of block data at {bitrate} bit/s: {ceiling_rate:.2} KiB/s",
+            args.size
+        );
+        for (name, download) in [("block download", true), ("block upload", false)] {
+            let t = timed(Transfer::Block, download).await?;
+            let rate = kib_s(args.size, t);
+            println!(
+                "  {name:<16} {rate:8.2} KiB/s = {:.1} % of the ceiling",
+                rate / ceiling_rate * 100.0
+            );
+        }
+        server.abort();
+        return Ok(());
+    }
+    let start = Instant::now();
+    for _ in 0..args.reads {
+        sdo.read_raw(5, 0x1000, 0).await?;
+    }
+    let reads = f64::from(args.reads) / start.elapsed().as_secs_f64();
+    let mut ours = vec![("expedited_reads_per_s", reads)];
+    for (key, how, download) in [
+        ("segmented_download_kib_s", Transfer::Segmented, true),
+        ("segmented_upload_kib_s", Transfer::Segmented, false),
+        ("block_download_kib_s", Transfer::Block, true),
+        ("block_upload_kib_s", Transfer::Block, false),
+    ] {
+        ours.push((key, kib_s(args.size, timed(how, download).await?)));
+    }
+    let python = args
+        .python
+        .or_else(|| std::env::var_os("CANLIFT_PYTHON").map(Into::into))
+        .unwrap_or_else(|| ".venv/bin/python".into());
+    let theirs = tokio::process::Command::new(&python)
+        .arg("tests/interop/bench_sdo_python.py")
+        .args([
+            hub.addr.ip().to_string(),
+            hub.addr.port().to_string(),
+            "sdo".into(),
+            "5".into(),
+        ])
+        .args([args.reads.to_string(), args.size.to_string()])
+        .output()
+        .await;
+    let theirs: Option<std::collections::HashMap<String, f64>> = match theirs {
+        Ok(out) if out.status.success() => {
+            parse_json_numbers(&String::from_utf8_lossy(&out.stdout))
+        }
+        Ok(out) => {
+            println!(
+                "  python-canopen comparison failed: {}",
+                String::from_utf8_lossy(&out.stderr)
+                    .lines()
+                    .last()
+                    .unwrap_or("")
+            );
+            None
+        }
+        Err(e) => {
+            println!("  python-canopen comparison skipped ({}: {e}); run scripts/test once to create .venv", python.display());
+            None
+        }
+    };
+    println!(
+        "  {:<26} {:>12} {:>16} {:>7}",
+        "", "canlift", "python-canopen", "ratio"
+    );
+    for (key, value) in ours {
+        match theirs.as_ref().and_then(|t| t.get(key)) {
+            Some(p) => println!("  {key:<26} {value:>12.1} {p:>16.1} {:>6.1}x", value / p),
+            None => println!("  {key:<26} {value:>12.1}"),
+        }
+    }
+    server.abort();
+    Ok(())
+}
+
+/// The numbers of a flat JSON object (the Python side prints one line of them).
+fn parse_json_numbers(text: &str) -> Option<std::collections::HashMap<String, f64>> {
+    let body = text.trim().strip_prefix('{')?.strip_suffix('}')?;
+    body.split(',')
+        .map(|pair| {
+            let (k, v) = pair.split_once(':')?;
+            Some((
+                k.trim().trim_matches('"').to_owned(),
+                v.trim().parse().ok()?,
+            ))
+        })
+        .collect()
+}
+
 /// Run a benchmark.
 pub async fn run(args: BenchArgs) -> anyhow::Result<()> {
     match args.what {
         BenchKind::Hub(h) => run_hub_bench(h).await,
+        BenchKind::Sdo(s) => run_sdo_bench(s).await,
     }
 }
