@@ -35,27 +35,39 @@ fn cob_to_id(cob: u32) -> Option<CanId> {
     }
 }
 
-/// The server channels of a node: (request COB-ID, response COB-ID) of every valid SDO server
-/// parameter object 0x1200–0x127F, or the default channel 0x600/0x580 + node-ID when the
-/// dictionary has none.
+/// The server channels of a node: the default channel 0x600/0x580 + node-ID (0x1200, always
+/// present per CiA 301) and (request COB-ID, response COB-ID) of every further valid SDO server
+/// parameter object 0x1201–0x127F.
 pub fn server_channels(od: &ObjectDictionary, node_id: u8) -> Vec<(CanId, CanId)> {
-    let mut channels = Vec::new();
-    for index in 0x1200..=0x127F {
+    let mut channels = vec![default_channel(node_id)];
+    for index in 0x1201..=0x127F {
         let cob = |sub| match od.get_value(index, sub) {
-            Ok(crate::types::Value::Uint(v)) => u32::try_from(v).ok(),
+            Ok(crate::types::Value::Uint(v)) => u32::try_from(v).ok().and_then(cob_to_id),
             _ => None,
         };
         if let (Some(rx), Some(tx)) = (cob(1), cob(2)) {
-            if let (Some(rx), Some(tx)) = (cob_to_id(rx), cob_to_id(tx)) {
-                channels.push((rx, tx));
-            }
-        } else if index == 0x1200 && od.object(0x1200).is_some() {
-            // 0x1200 often leaves its COB-IDs implicit ($NODEID formulas, or ro entries).
-            channels.push(default_channel(node_id));
+            channels.push((rx, tx));
         }
     }
-    if channels.is_empty() {
-        channels.push(default_channel(node_id));
+    channels
+}
+
+/// The SDO client channels of a dictionary: (server node-ID, request COB-ID, response COB-ID) of
+/// every valid SDO client parameter object 0x1280–0x12FF (sub-indices 1, 2 and 3).
+pub fn client_channels(od: &ObjectDictionary) -> Vec<(u8, CanId, CanId)> {
+    let mut channels = Vec::new();
+    for index in 0x1280..=0x12FF {
+        let number = |sub| match od.get_value(index, sub) {
+            Ok(crate::types::Value::Uint(v)) => u32::try_from(v).ok(),
+            _ => None,
+        };
+        if let (Some(tx), Some(rx), Some(node)) = (number(1), number(2), number(3)) {
+            if let (Some(tx), Some(rx), Ok(node)) =
+                (cob_to_id(tx), cob_to_id(rx), u8::try_from(node))
+            {
+                channels.push((node, tx, rx));
+            }
+        }
     }
     channels
 }
@@ -209,7 +221,9 @@ struct ClientInner {
     sender: BusSender,
     config: ClientConfig,
     /// Responses for the transfer in progress, by response COB-ID.
-    routes: Mutex<HashMap<u16, mpsc::Sender<Payload>>>,
+    routes: Mutex<HashMap<CanId, mpsc::Sender<Payload>>>,
+    /// Channels other than the default one, by server node-ID.
+    channels: HashMap<u8, (CanId, CanId)>,
     /// One lock per node: transfers to the same node wait their turn.
     nodes: Mutex<HashMap<u8, Arc<tokio::sync::Mutex<()>>>>,
 }
@@ -222,28 +236,44 @@ pub struct SdoClients {
 }
 
 impl SdoClients {
-    /// Use `bus` for SDO client transfers; spawns the task that routes responses.
+    /// Use `bus` for SDO client transfers on the default channels (0x600/0x580 + node-ID);
+    /// spawns the task that routes responses.
     pub fn new(bus: Bus, config: ClientConfig) -> Self {
+        Self::with_channels(bus, config, &[])
+    }
+
+    /// Like [`Self::new`], with configured client channels (server node-ID, request COB-ID,
+    /// response COB-ID), e.g. from [`client_channels`]; other nodes use the default channel.
+    pub fn with_channels(bus: Bus, config: ClientConfig, channels: &[(u8, CanId, CanId)]) -> Self {
         let (sender, mut receiver) = bus.split();
-        receiver.set_filters(&[Filter::standard(0x580, 0x780)]);
+        let mut filters = vec![Filter::standard(0x580, 0x780)];
+        for (_, _, response) in channels {
+            filters.push(match response {
+                CanId::Standard(id) => Filter::standard(*id, 0x7FF),
+                CanId::Extended(id) => Filter::extended(*id, 0x1FFF_FFFF),
+            });
+        }
+        receiver.set_filters(&filters);
         let inner = Arc::new(ClientInner {
             sender,
             config,
             routes: Mutex::new(HashMap::new()),
+            channels: channels
+                .iter()
+                .map(|&(node, req, resp)| (node, (req, resp)))
+                .collect(),
             nodes: Mutex::new(HashMap::new()),
         });
         let weak = Arc::downgrade(&inner);
         tokio::spawn(async move {
             while let Some(f) = receiver.recv_frame().await {
                 let Some(inner) = weak.upgrade() else { return };
-                let (CanId::Standard(id), Some(p)) = (f.id(), payload(f.data())) else {
-                    continue;
-                };
+                let Some(p) = payload(f.data()) else { continue };
                 let route = inner
                     .routes
                     .lock()
                     .unwrap_or_else(PoisonError::into_inner)
-                    .get(&id)
+                    .get(&f.id())
                     .cloned();
                 if let Some(route) = route {
                     let _ = route.try_send(p);
@@ -272,8 +302,12 @@ impl SdoClients {
     ) -> Result<Vec<u8>, ClientError> {
         let lock = self.node_lock(node);
         let _turn = lock.lock().await;
-        let request_id = CanId::Standard(0x600 + u16::from(node & 0x7F));
-        let response_id = 0x580 + u16::from(node & 0x7F);
+        let (request_id, response_id) = self
+            .inner
+            .channels
+            .get(&node)
+            .copied()
+            .unwrap_or_else(|| default_channel(node & 0x7F));
         let (tx, mut rx) = mpsc::channel(256);
         self.inner
             .routes
@@ -405,7 +439,7 @@ impl SdoClients {
 /// Removes a transfer's response route however the transfer ends.
 struct RouteGuard<'a> {
     inner: &'a ClientInner,
-    id: u16,
+    id: CanId,
 }
 
 impl Drop for RouteGuard<'_> {
@@ -512,6 +546,56 @@ mod tests {
         }
     }
 
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn configured_channels_carry_the_transfers() {
+        let url = "mem://driver-channels";
+        let od = node_dictionary(7);
+        let u32v = |v: u32| {
+            Variable::new("COB-ID", DataType::Unsigned32, Access::Ro)
+                .with_value(Value::Uint(v.into()))
+        };
+        od.lock().unwrap().insert(Object::composite(
+            0x1201,
+            "SDO server 2",
+            crate::od::ObjectCode::Record,
+            [(1, u32v(0x640)), (2, u32v(0x5C0))],
+        ));
+        let server = serve_sdo(
+            Bus::open(url).await.unwrap(),
+            od,
+            7,
+            ServerConfig::default(),
+        );
+        let mut client_od = ObjectDictionary::new();
+        client_od.insert(Object::composite(
+            0x1280,
+            "SDO client 1",
+            crate::od::ObjectCode::Record,
+            [(1, u32v(0x640)), (2, u32v(0x5C0)), (3, u32v(7))],
+        ));
+        let channels = client_channels(&client_od);
+        assert_eq!(
+            channels,
+            vec![(7, CanId::Standard(0x640), CanId::Standard(0x5C0))]
+        );
+        let mut monitor = Bus::open(url).await.unwrap();
+        let sdo = SdoClients::with_channels(
+            Bus::open(url).await.unwrap(),
+            ClientConfig::default(),
+            &channels,
+        );
+        assert_eq!(sdo.read::<u32>(7, 0x1018, 0).await.unwrap(), 7);
+        let ids: Vec<CanId> = [
+            monitor.receiver.recv_frame().await.unwrap(),
+            monitor.receiver.recv_frame().await.unwrap(),
+        ]
+        .iter()
+        .map(|f| f.id())
+        .collect();
+        assert_eq!(ids, vec![CanId::Standard(0x640), CanId::Standard(0x5C0)]);
+        server.abort();
+    }
+
     #[test]
     fn server_channels_from_the_dictionary() {
         let mut od = ObjectDictionary::new();
@@ -537,7 +621,10 @@ mod tests {
         ));
         assert_eq!(
             server_channels(&od, 3),
-            vec![(CanId::Standard(0x640), CanId::Standard(0x5C0))]
+            vec![
+                (CanId::Standard(0x603), CanId::Standard(0x583)),
+                (CanId::Standard(0x640), CanId::Standard(0x5C0))
+            ]
         );
     }
 }
