@@ -231,6 +231,21 @@ impl BusSender {
     }
 }
 
+impl BusSender {
+    /// Wait until every frame sent so far has left this process (written to the socket or
+    /// handed to the kernel). Call it before exiting, or a frame still queued for a socketcand
+    /// link is lost.
+    pub async fn flush(&self) -> Result<(), BusError> {
+        match &self.inner {
+            SenderInner::Socketcand(s) => s.flush().await,
+            // Sends on these complete synchronously (in-process delivery, kernel write).
+            SenderInner::Mem(_) => Ok(()),
+            #[cfg(target_os = "linux")]
+            SenderInner::Socketcan(_) => Ok(()),
+        }
+    }
+}
+
 impl fmt::Debug for BusSender {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str("BusSender")

@@ -417,3 +417,34 @@ async fn shutdown_disconnects_everyone() {
         .unwrap();
     assert!(raw.closed_within(Duration::from_secs(5)).await);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn flush_delivers_queued_frames_before_the_process_ends() {
+    let hub = hub(HubConfig::default()).await;
+    let mut peer = Bus::open(&url(&hub, "can0")).await.unwrap();
+    let target = url(&hub, "can0");
+    // Like a short-lived command: its own runtime, which ends (killing every task) right after
+    // the last send. Without the flush, frames still queued for the socket would be lost.
+    std::thread::spawn(move || {
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        rt.block_on(async {
+            let bus = Bus::open(&target).await.unwrap();
+            for i in 0..500u16 {
+                bus.send(Frame::standard(0x100, &i.to_le_bytes()).unwrap())
+                    .await
+                    .unwrap();
+            }
+            bus.sender.flush().await.unwrap();
+        });
+        drop(rt);
+    })
+    .join()
+    .unwrap();
+    for i in 0..500u16 {
+        assert_eq!(recv_frame(&mut peer).await.data(), &i.to_le_bytes());
+    }
+    hub.shutdown().await;
+}

@@ -11,7 +11,7 @@ use tokio::task::JoinHandle;
 
 use crate::od::ObjectDictionary;
 use crate::sdo::abort::AbortCode;
-use crate::sdo::client::{ClientConfig, SdoClient, SdoError, Transfer};
+use crate::sdo::client::{ClientConfig, DownloadSource, SdoClient, SdoError, Transfer};
 use crate::sdo::server::{SdoServer, ServerConfig};
 use crate::sdo::{payload, Payload};
 use crate::types::{CanopenValue, TypeError};
@@ -152,7 +152,7 @@ pub fn serve_sdo(
 #[derive(Debug, thiserror::Error)]
 pub enum ClientError {
     /// The transfer failed on the protocol level.
-    #[error("SDO {index:04X}:{sub:02X} on node {node}: {source}")]
+    #[error("SDO {index:04X}:{sub:02X} on node {node}: {error}")]
     Sdo {
         /// Node-ID.
         node: u8,
@@ -160,12 +160,11 @@ pub enum ClientError {
         index: u16,
         /// Sub-index.
         sub: u8,
-        /// What went wrong.
-        #[source]
-        source: SdoError,
+        /// What went wrong (part of this error's message, so not chained as its source).
+        error: SdoError,
     },
     /// The value read does not fit the requested type.
-    #[error("SDO {index:04X}:{sub:02X} on node {node}: {source}")]
+    #[error("SDO {index:04X}:{sub:02X} on node {node}: {error}")]
     Type {
         /// Node-ID.
         node: u8,
@@ -173,9 +172,8 @@ pub enum ClientError {
         index: u16,
         /// Sub-index.
         sub: u8,
-        /// The mismatch.
-        #[source]
-        source: TypeError,
+        /// The mismatch (part of this error's message).
+        error: TypeError,
     },
     /// The bus failed.
     #[error(transparent)]
@@ -183,15 +181,19 @@ pub enum ClientError {
     /// The client's dispatcher is gone (the bus closed).
     #[error("SDO client closed")]
     Closed,
+    /// Writing uploaded data to the caller's sink failed (the transfer was aborted).
+    #[error("storing uploaded data failed: {0}")]
+    Sink(String),
 }
 
 impl ClientError {
     /// The CiA 301 abort code that describes the failure.
     pub fn abort_code(&self) -> AbortCode {
         match self {
-            ClientError::Sdo { source, .. } => source.abort_code(),
-            ClientError::Type { source, .. } => source.abort_code(),
+            ClientError::Sdo { error, .. } => error.abort_code(),
+            ClientError::Type { error, .. } => error.abort_code(),
             ClientError::Bus(_) | ClientError::Closed => AbortCode::GENERAL,
+            ClientError::Sink(_) => AbortCode::CANNOT_STORE,
         }
     }
 }
@@ -293,11 +295,14 @@ impl SdoClients {
             .clone()
     }
 
+    /// Run one transfer: a download from `source`, or an upload (into `sink` as it arrives, or
+    /// returned at the end).
     async fn transfer(
         &self,
         node: u8,
         (index, sub): (u16, u8),
-        download: Option<Vec<u8>>,
+        source: Option<Box<dyn DownloadSource>>,
+        mut sink: Option<&mut (dyn std::io::Write + Send)>,
         options: TransferOptions<'_>,
     ) -> Result<Vec<u8>, ClientError> {
         let lock = self.node_lock(node);
@@ -321,17 +326,29 @@ impl SdoClients {
         let mut client = SdoClient::new(self.inner.config.clone());
         let mut out = Vec::new();
         let now = Instant::now();
-        let started = match download {
-            Some(data) => client.start_download(index, sub, data, options.how, now, &mut out),
-            None => client.start_upload(index, sub, options.how, now, &mut out),
-        };
-        let wrap = |source| ClientError::Sdo {
+        let wrap = |error| ClientError::Sdo {
             node,
             index,
             sub,
-            source,
+            error,
         };
-        started.map_err(wrap)?;
+        match source {
+            Some(source) => {
+                client.start_download_from(index, sub, source, options.how, now, &mut out)
+            }
+            None => client.start_upload(index, sub, options.how, now, &mut out),
+        }
+        .map_err(wrap)?;
+        let streaming = sink.is_some();
+        let mut drain =
+            |client: &mut SdoClient, rest: Option<Vec<u8>>| -> Result<(), ClientError> {
+                if let Some(sink) = sink.as_mut() {
+                    let chunk = rest.unwrap_or_else(|| client.take_received());
+                    sink.write_all(&chunk)
+                        .map_err(|e| ClientError::Sink(e.to_string()))?;
+                }
+                Ok(())
+            };
         loop {
             for p in out.drain(..) {
                 self.inner.sender.send(frame(request_id, &p)).await?;
@@ -350,18 +367,74 @@ impl SdoClients {
                 let (done, total) = client.progress();
                 progress(done, total);
             }
-            if let Some(outcome) = outcome {
-                for p in out.drain(..) {
-                    self.inner.sender.send(frame(request_id, &p)).await?;
+            match outcome {
+                None => {
+                    if let Err(e) = drain(&mut client, None) {
+                        client.abort(AbortCode::CANNOT_STORE, &mut out);
+                        for p in out.drain(..) {
+                            self.inner.sender.send(frame(request_id, &p)).await?;
+                        }
+                        return Err(e);
+                    }
                 }
-                return outcome.map_err(wrap);
+                Some(outcome) => {
+                    for p in out.drain(..) {
+                        self.inner.sender.send(frame(request_id, &p)).await?;
+                    }
+                    let data = outcome.map_err(wrap)?;
+                    if streaming {
+                        drain(&mut client, Some(data))?;
+                        return Ok(Vec::new());
+                    }
+                    return Ok(data);
+                }
             }
         }
     }
 
+    /// Read a value of any size into `sink` as it arrives (a large DOMAIN never sits in
+    /// memory); returns the bytes written.
+    pub async fn read_to(
+        &self,
+        node: u8,
+        index: u16,
+        sub: u8,
+        sink: &mut (dyn std::io::Write + Send),
+        options: TransferOptions<'_>,
+    ) -> Result<u64, ClientError> {
+        let mut counter = CountingWriter {
+            inner: sink,
+            count: 0,
+        };
+        self.transfer(node, (index, sub), None, Some(&mut counter), options)
+            .await?;
+        Ok(counter.count)
+    }
+
+    /// Write the bytes of `source` (e.g. a [`crate::sdo::client::FileSource`]), reading them as
+    /// the transfer advances.
+    pub async fn write_from(
+        &self,
+        node: u8,
+        index: u16,
+        sub: u8,
+        source: Box<dyn DownloadSource>,
+        options: TransferOptions<'_>,
+    ) -> Result<(), ClientError> {
+        self.transfer(node, (index, sub), Some(source), None, options)
+            .await
+            .map(drop)
+    }
+
+    /// Wait until every frame of finished transfers has left this process (see
+    /// [`canbus::BusSender::flush`]): call it before exiting.
+    pub async fn flush(&self) -> Result<(), ClientError> {
+        Ok(self.inner.sender.flush().await?)
+    }
+
     /// Read raw bytes from `node`.
     pub async fn read_raw(&self, node: u8, index: u16, sub: u8) -> Result<Vec<u8>, ClientError> {
-        self.transfer(node, (index, sub), None, TransferOptions::default())
+        self.transfer(node, (index, sub), None, None, TransferOptions::default())
             .await
     }
 
@@ -373,7 +446,7 @@ impl SdoClients {
         sub: u8,
         options: TransferOptions<'_>,
     ) -> Result<Vec<u8>, ClientError> {
-        self.transfer(node, (index, sub), None, options).await
+        self.transfer(node, (index, sub), None, None, options).await
     }
 
     /// Read a typed value: `read::<u32>(1, 0x1000, 0)`.
@@ -384,11 +457,11 @@ impl SdoClients {
         sub: u8,
     ) -> Result<T, ClientError> {
         let bytes = self.read_raw(node, index, sub).await?;
-        T::from_bytes(&bytes).map_err(|source| ClientError::Type {
+        T::from_bytes(&bytes).map_err(|error| ClientError::Type {
             node,
             index,
             sub,
-            source,
+            error,
         })
     }
 
@@ -403,7 +476,8 @@ impl SdoClients {
         self.transfer(
             node,
             (index, sub),
-            Some(data.to_vec()),
+            Some(Box::new(data.to_vec())),
+            None,
             TransferOptions::default(),
         )
         .await
@@ -419,7 +493,7 @@ impl SdoClients {
         data: Vec<u8>,
         options: TransferOptions<'_>,
     ) -> Result<(), ClientError> {
-        self.transfer(node, (index, sub), Some(data), options)
+        self.transfer(node, (index, sub), Some(Box::new(data)), None, options)
             .await
             .map(drop)
     }
@@ -433,6 +507,23 @@ impl SdoClients {
         value: T,
     ) -> Result<(), ClientError> {
         self.write_raw(node, index, sub, &value.to_bytes()).await
+    }
+}
+
+/// Counts what passes through to the caller's sink.
+struct CountingWriter<'a> {
+    inner: &'a mut (dyn std::io::Write + Send),
+    count: u64,
+}
+
+impl std::io::Write for CountingWriter<'_> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.inner.write(buf)?;
+        self.count += n as u64;
+        Ok(n)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush()
     }
 }
 
@@ -457,6 +548,7 @@ mod tests {
     use super::*;
     use crate::od::{Access, Object, Variable};
     use crate::types::{DataType, Value};
+    use canbus::BusOptions;
 
     fn node_dictionary(serial: u32) -> SharedDictionary {
         let mut od = ObjectDictionary::new();
@@ -593,6 +685,146 @@ mod tests {
         .map(|f| f.id())
         .collect();
         assert_eq!(ids, vec![CanId::Standard(0x640), CanId::Standard(0x5C0)]);
+        server.abort();
+    }
+
+    /// One MiB of a pattern, generated on demand (never held in memory).
+    const BIG: u64 = 1 << 20;
+    fn pattern_byte(i: u64) -> u8 {
+        (i.wrapping_mul(2_654_435_761) >> 7) as u8
+    }
+
+    struct Generated;
+    impl DownloadSource for Generated {
+        fn len(&self) -> u64 {
+            BIG
+        }
+        fn read_at(&mut self, offset: u64, buf: &mut [u8]) -> std::io::Result<()> {
+            for (i, b) in buf.iter_mut().enumerate() {
+                *b = pattern_byte(offset + i as u64);
+            }
+            Ok(())
+        }
+    }
+
+    /// A server-side DOMAIN that checks what is written and produces the pattern on reads.
+    #[derive(Default)]
+    struct Checked {
+        written: std::sync::atomic::AtomicU64,
+        errors: std::sync::atomic::AtomicU64,
+    }
+    impl crate::od::DomainStream for Checked {
+        fn size(&self) -> Option<u64> {
+            Some(BIG)
+        }
+        fn read_at(&self, offset: u64, buf: &mut [u8]) -> Result<usize, AbortCode> {
+            let n = buf.len().min((BIG - offset.min(BIG)) as usize);
+            for (i, b) in buf[..n].iter_mut().enumerate() {
+                *b = pattern_byte(offset + i as u64);
+            }
+            Ok(n)
+        }
+        fn begin_write(&self, _: Option<u64>) -> Result<(), AbortCode> {
+            self.written.store(0, std::sync::atomic::Ordering::Relaxed);
+            Ok(())
+        }
+        fn write_chunk(&self, offset: u64, data: &[u8]) -> Result<(), AbortCode> {
+            let bad = data
+                .iter()
+                .enumerate()
+                .filter(|(i, b)| **b != pattern_byte(offset + *i as u64))
+                .count();
+            self.errors
+                .fetch_add(bad as u64, std::sync::atomic::Ordering::Relaxed);
+            self.written
+                .fetch_add(data.len() as u64, std::sync::atomic::Ordering::Relaxed);
+            Ok(())
+        }
+        fn end_write(&self, _: u64) -> Result<(), AbortCode> {
+            Ok(())
+        }
+    }
+
+    /// Verifies uploaded bytes as they arrive instead of keeping them.
+    struct Verifier {
+        pos: u64,
+        errors: u64,
+        largest_chunk: usize,
+    }
+    impl std::io::Write for Verifier {
+        fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+            for b in buf {
+                self.errors += u64::from(*b != pattern_byte(self.pos));
+                self.pos += 1;
+            }
+            self.largest_chunk = self.largest_chunk.max(buf.len());
+            Ok(buf.len())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn large_domains_stream_both_ways() {
+        let url = "mem://driver-stream";
+        let stream = Arc::new(Checked::default());
+        let mut od = ObjectDictionary::new();
+        od.insert(Object::var(
+            0x2100,
+            Variable::new("Image", DataType::Domain, Access::Rw).with_stream(stream.clone()),
+        ));
+        let server = serve_sdo(
+            Bus::open(url).await.unwrap(),
+            Arc::new(Mutex::new(od)),
+            3,
+            ServerConfig::default(),
+        );
+        let options = BusOptions {
+            rx_queue: 1 << 16,
+            ..BusOptions::default()
+        };
+        let sdo = SdoClients::new(
+            Bus::open_with(url, options).await.unwrap(),
+            ClientConfig::default(),
+        );
+        // Segmented streaming shares the sink path; 1 MiB of it would cost seconds of test time.
+        for how in [Transfer::Block] {
+            let options = TransferOptions {
+                how,
+                progress: None,
+            };
+            sdo.write_from(3, 0x2100, 0, Box::new(Generated), options)
+                .await
+                .unwrap();
+            assert_eq!(
+                stream.written.load(std::sync::atomic::Ordering::Relaxed),
+                BIG,
+                "{how:?}"
+            );
+            assert_eq!(
+                stream.errors.load(std::sync::atomic::Ordering::Relaxed),
+                0,
+                "{how:?}"
+            );
+            let mut verifier = Verifier {
+                pos: 0,
+                errors: 0,
+                largest_chunk: 0,
+            };
+            assert_eq!(
+                sdo.read_to(3, 0x2100, 0, &mut verifier, options)
+                    .await
+                    .unwrap(),
+                BIG
+            );
+            assert_eq!((verifier.pos, verifier.errors), (BIG, 0), "{how:?}");
+            assert!(
+                verifier.largest_chunk < 64 * 1024,
+                "{how:?}: data was buffered ({} bytes at once)",
+                verifier.largest_chunk
+            );
+        }
         server.abort();
     }
 

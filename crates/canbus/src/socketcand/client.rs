@@ -14,7 +14,7 @@ use std::time::{Duration, Instant, SystemTime};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
 use tokio::net::TcpStream;
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, oneshot};
 
 use super::codec::{self, DecodeError, Decoder, Message};
 use crate::backoff::Backoff;
@@ -35,10 +35,16 @@ struct Link {
     online: AtomicBool,
 }
 
+/// What the writer task takes: frames, and requests to confirm everything before is written.
+enum Tx {
+    Frame(Frame),
+    Flush(oneshot::Sender<()>),
+}
+
 /// The sending side of a `socketcand://` endpoint.
 #[derive(Clone)]
 pub(crate) struct ClientSender {
-    tx: mpsc::Sender<Frame>,
+    tx: mpsc::Sender<Tx>,
     link: Arc<Link>,
     loopback: Option<RxFeed>,
 }
@@ -55,11 +61,26 @@ impl ClientSender {
                 link: self.link.name.clone(),
             });
         }
-        self.tx.send(frame).await.map_err(|_| BusError::Closed)?;
+        self.tx
+            .send(Tx::Frame(frame))
+            .await
+            .map_err(|_| BusError::Closed)?;
         if let Some(feed) = &self.loopback {
             feed.push(BusEvent::Frame(frame.with_timestamp(SystemTime::now())));
         }
         Ok(())
+    }
+
+    /// Wait until every frame queued so far is written to the socket.
+    pub(crate) async fn flush(&self) -> Result<(), BusError> {
+        let (done, written) = oneshot::channel();
+        self.tx
+            .send(Tx::Flush(done))
+            .await
+            .map_err(|_| BusError::Closed)?;
+        written.await.map_err(|_| BusError::Offline {
+            link: self.link.name.clone(),
+        })
     }
 }
 
@@ -172,7 +193,7 @@ async fn supervise(
     mut conn: Connection,
     (host, port, channel): (String, u16, String),
     link: Arc<Link>,
-    mut frames: mpsc::Receiver<Frame>,
+    mut frames: mpsc::Receiver<Tx>,
     feed: RxFeed,
 ) {
     let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(10));
@@ -212,7 +233,7 @@ async fn supervise(
     }
 }
 
-async fn run(conn: Connection, frames: &mut mpsc::Receiver<Frame>, feed: &RxFeed) -> End {
+async fn run(conn: Connection, frames: &mut mpsc::Receiver<Tx>, feed: &RxFeed) -> End {
     let Connection {
         mut reader,
         writer,
@@ -255,10 +276,11 @@ async fn read_loop(reader: &mut OwnedReadHalf, decoder: &mut Decoder, feed: &RxF
 
 async fn write_loop(
     mut writer: OwnedWriteHalf,
-    frames: &mut mpsc::Receiver<Frame>,
+    frames: &mut mpsc::Receiver<Tx>,
     feed: &RxFeed,
 ) -> End {
     let mut text = String::with_capacity(TX_BATCH * 48);
+    let mut flushed = Vec::new();
     loop {
         let Some(first) = frames.recv().await else {
             // Every sender is gone: keep receiving until the receiver is gone too.
@@ -266,15 +288,23 @@ async fn write_loop(
             return End::Shutdown;
         };
         text.clear();
-        codec::encode_send(&first, &mut text);
-        for _ in 1..TX_BATCH {
-            match frames.try_recv() {
-                Ok(frame) => codec::encode_send(&frame, &mut text),
-                Err(_) => break,
+        let mut next = Some(first);
+        let mut batched = 0;
+        while let Some(item) = next.take() {
+            match item {
+                Tx::Frame(frame) => codec::encode_send(&frame, &mut text),
+                Tx::Flush(done) => flushed.push(done),
+            }
+            batched += 1;
+            if batched < TX_BATCH {
+                next = frames.try_recv().ok();
             }
         }
         if let Err(e) = writer.write_all(text.as_bytes()).await {
             return End::Lost(format!("write failed: {e}"));
+        }
+        for done in flushed.drain(..) {
+            let _ = done.send(());
         }
     }
 }

@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context};
 use canbus::Bus;
 use canopen::driver::{SdoClients, TransferOptions};
-use canopen::sdo::client::{ClientConfig, Transfer};
+use canopen::sdo::client::{ClientConfig, DownloadSource, FileSource, Transfer};
 use canopen::types::{self, DataType};
 
 /// Command-line arguments of `canlift sdo`.
@@ -180,13 +180,19 @@ pub async fn run(args: SdoArgs) -> anyhow::Result<()> {
                 .map(parse_type)
                 .transpose()?
                 .unwrap_or(DataType::Domain);
-            let bytes = sdo.read_with(node, index, sub, options).await;
-            progress.finish();
-            let bytes = bytes?;
             match file {
-                Some(path) => std::fs::write(&path, &bytes)
-                    .with_context(|| format!("writing {}", path.display()))?,
+                Some(path) => {
+                    // Streamed to the file as it arrives: large DOMAINs never sit in memory.
+                    let mut out = std::fs::File::create(&path)
+                        .with_context(|| format!("creating {}", path.display()))?;
+                    let result = sdo.read_to(node, index, sub, &mut out, options).await;
+                    progress.finish();
+                    result?;
+                }
                 None => {
+                    let bytes = sdo.read_with(node, index, sub, options).await;
+                    progress.finish();
+                    let bytes = bytes?;
                     let value = types::decode(ty, &bytes)
                         .with_context(|| format!("{index:04X}:{sub:02X} as {ty}"))?;
                     println!("{}", types::to_text(ty, &value));
@@ -205,22 +211,25 @@ pub async fn run(args: SdoArgs) -> anyhow::Result<()> {
                 parse_number::<u16>("index", &index)?,
                 parse_number::<u8>("sub-index", &sub)?,
             );
-            let bytes = match (file, ty, value) {
-                (Some(path), _, _) => {
-                    std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?
-                }
+            let source: Box<dyn DownloadSource> = match (file, ty, value) {
+                (Some(path), _, _) => Box::new(
+                    FileSource::open(&path)
+                        .with_context(|| format!("reading {}", path.display()))?,
+                ),
                 (None, Some(ty), Some(value)) => {
                     let ty = parse_type(&ty)?;
                     let v = types::from_text(ty, &value)?;
-                    types::encode(ty, &v)?
+                    Box::new(types::encode(ty, &v)?)
                 }
                 _ => bail!("give TYPE and VALUE, or --file"),
             };
-            let result = sdo.write_with(node, index, sub, bytes, options).await;
+            let result = sdo.write_from(node, index, sub, source, options).await;
             progress.finish();
             result?;
         }
     }
+    // The transfer's last frame (an acknowledgement) may still be queued for the bus.
+    sdo.flush().await?;
     Ok(())
 }
 

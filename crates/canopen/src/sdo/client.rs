@@ -76,34 +76,83 @@ pub enum Transfer {
     Block,
 }
 
-/// What a finished transfer gives: the uploaded bytes (empty for a download) or the failure.
+/// What a finished transfer gives: the uploaded bytes not yet taken with
+/// [`SdoClient::take_received`] (empty for a download), or the failure.
 pub type Outcome = Result<Vec<u8>, SdoError>;
+
+/// Where a download's data comes from. The client reads it segment by segment as the transfer
+/// advances (and again for segments a block transfer must repeat), so a large DOMAIN never has
+/// to be in memory at once.
+pub trait DownloadSource: Send {
+    /// Total bytes (sent as the size indication; at most 4 GiB − 1).
+    fn len(&self) -> u64;
+    /// Whether there are no bytes at all.
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// Fill `buf` with the bytes at `offset`.
+    fn read_at(&mut self, offset: u64, buf: &mut [u8]) -> std::io::Result<()>;
+}
+
+impl DownloadSource for Vec<u8> {
+    fn len(&self) -> u64 {
+        self.as_slice().len() as u64
+    }
+    fn read_at(&mut self, offset: u64, buf: &mut [u8]) -> std::io::Result<()> {
+        let start = usize::try_from(offset).map_err(std::io::Error::other)?;
+        let slice = self
+            .get(start..start + buf.len())
+            .ok_or_else(|| std::io::Error::from(std::io::ErrorKind::UnexpectedEof))?;
+        buf.copy_from_slice(slice);
+        Ok(())
+    }
+}
+
+/// A file as a download source.
+pub struct FileSource {
+    file: std::fs::File,
+    len: u64,
+}
+
+impl FileSource {
+    /// Open `path` for a download.
+    pub fn open(path: &std::path::Path) -> std::io::Result<Self> {
+        let file = std::fs::File::open(path)?;
+        let len = file.metadata()?.len();
+        Ok(FileSource { file, len })
+    }
+}
+
+impl DownloadSource for FileSource {
+    fn len(&self) -> u64 {
+        self.len
+    }
+    fn read_at(&mut self, offset: u64, buf: &mut [u8]) -> std::io::Result<()> {
+        use std::io::{Read, Seek, SeekFrom};
+        self.file.seek(SeekFrom::Start(offset))?;
+        self.file.read_exact(buf)
+    }
+}
 
 enum State {
     Idle,
     DownloadInit {
-        data: Vec<u8>,
         expedited: bool,
     },
     DownloadSegment {
-        data: Vec<u8>,
-        pos: usize,
+        pos: u64,
         toggle: bool,
         last: bool,
     },
     UploadInit,
     UploadSegment {
-        buf: Vec<u8>,
         toggle: bool,
         size: Option<u64>,
     },
-    BlockDownloadInit {
-        data: Vec<u8>,
-    },
+    BlockDownloadInit,
     BlockDownloadSub {
-        data: Vec<u8>,
-        block_start: usize,
-        sent: usize,
+        block_start: u64,
+        sent: u64,
         crc: bool,
     },
     BlockDownloadEnd,
@@ -113,7 +162,6 @@ enum State {
 }
 
 struct BlockUpload {
-    buf: Vec<u8>,
     size: Option<u64>,
     crc: bool,
     expected: u8,
@@ -128,6 +176,14 @@ pub struct SdoClient {
     deadline: Option<Instant>,
     done: u64,
     total: Option<u64>,
+    /// Download data.
+    source: Option<Box<dyn DownloadSource>>,
+    /// Uploaded bytes not yet taken.
+    received: Vec<u8>,
+    /// CRC over everything sent (block download) or received (block upload) so far.
+    crc: Crc16,
+    /// How far `crc` covers the download (segments repeated after a loss are not counted twice).
+    crc_pos: u64,
 }
 
 impl SdoClient {
@@ -140,7 +196,16 @@ impl SdoClient {
             deadline: None,
             done: 0,
             total: None,
+            source: None,
+            received: Vec::new(),
+            crc: Crc16::new(),
+            crc_pos: 0,
         }
+    }
+
+    /// Take the uploaded bytes received so far (for streaming a large upload elsewhere).
+    pub fn take_received(&mut self) -> Vec<u8> {
+        std::mem::take(&mut self.received)
     }
 
     /// Whether a transfer is in progress.
@@ -166,6 +231,10 @@ impl SdoClient {
         self.deadline = Some(now + self.config.timeout);
         self.done = 0;
         self.total = None;
+        self.source = None;
+        self.received.clear();
+        self.crc = Crc16::new();
+        self.crc_pos = 0;
         Ok(())
     }
 
@@ -206,34 +275,46 @@ impl SdoClient {
         now: Instant,
         out: &mut Vec<Payload>,
     ) -> Result<(), SdoError> {
-        self.begin(index, sub, now)?;
-        let len = u32::try_from(data.len())
+        self.start_download_from(index, sub, Box::new(data), how, now, out)
+    }
+
+    /// Write the bytes of `source` to `index`/`sub`, reading them as the transfer advances.
+    pub fn start_download_from(
+        &mut self,
+        index: u16,
+        sub: u8,
+        mut source: Box<dyn DownloadSource>,
+        how: Transfer,
+        now: Instant,
+        out: &mut Vec<Payload>,
+    ) -> Result<(), SdoError> {
+        let len = u32::try_from(source.len())
             .map_err(|_| SdoError::Protocol(AbortCode::LENGTH_TOO_HIGH))?;
+        let expedited = how == Transfer::Normal && (1..=4).contains(&len);
+        let mut d = [0u8; 4];
+        if expedited {
+            source
+                .read_at(0, &mut d[..len as usize])
+                .map_err(|_| SdoError::Protocol(AbortCode::GENERAL))?;
+        }
+        self.begin(index, sub, now)?;
         self.total = Some(len.into());
         match how {
-            Transfer::Normal if (1..=4).contains(&data.len()) => {
-                let n = (4 - data.len()) as u8;
-                let mut d = [0u8; 4];
-                d[..data.len()].copy_from_slice(&data);
-                out.push(with_mux(0x23 | n << 2, index, sub, d));
-                self.state = State::DownloadInit {
-                    data,
-                    expedited: true,
-                };
+            _ if expedited => {
+                out.push(with_mux(0x23 | ((4 - len) as u8) << 2, index, sub, d));
+                self.state = State::DownloadInit { expedited: true };
             }
             Transfer::Block => {
                 let cc = if self.config.crc { 4 } else { 0 };
                 out.push(with_mux(0xC2 | cc, index, sub, len.to_le_bytes()));
-                self.state = State::BlockDownloadInit { data };
+                self.state = State::BlockDownloadInit;
             }
             _ => {
                 out.push(with_mux(0x21, index, sub, len.to_le_bytes()));
-                self.state = State::DownloadInit {
-                    data,
-                    expedited: false,
-                };
+                self.state = State::DownloadInit { expedited: false };
             }
         }
+        self.source = Some(source);
         Ok(())
     }
 
@@ -309,71 +390,59 @@ impl SdoClient {
         out: &mut Vec<Payload>,
     ) -> Result<Option<Vec<u8>>, AbortCode> {
         let scs = resp[0] >> 5;
+        let len = self.total.unwrap_or(0);
         match state {
-            State::DownloadInit { data, expedited } if scs == 3 => {
+            State::DownloadInit { expedited } if scs == 3 => {
                 self.check_mux(resp)?;
                 if expedited {
-                    self.done = data.len() as u64;
+                    self.done = len;
                     return Ok(Some(Vec::new()));
                 }
-                self.send_download_segment(data, 0, false, out);
+                self.send_download_segment(0, false, out)?;
                 Ok(None)
             }
-            State::DownloadSegment {
-                data,
-                pos,
-                toggle,
-                last,
-            } if scs == 1 => {
+            State::DownloadSegment { pos, toggle, last } if scs == 1 => {
                 if (resp[0] & 0x10 != 0) != toggle {
                     return Err(AbortCode::TOGGLE);
                 }
+                self.done = pos;
                 if last {
                     return Ok(Some(Vec::new()));
                 }
-                self.send_download_segment(data, pos, !toggle, out);
+                self.send_download_segment(pos, !toggle, out)?;
                 Ok(None)
             }
-            State::UploadInit if scs == 2 => self.upload_initiated(resp, out),
-            State::BlockUploadInit if scs == 2 => self.upload_initiated(resp, out),
-            State::UploadSegment {
-                mut buf,
-                toggle,
-                size,
-            } if scs == 0 => {
+            State::UploadInit | State::BlockUploadInit if scs == 2 => {
+                self.upload_initiated(resp, out)
+            }
+            State::UploadSegment { toggle, size } if scs == 0 => {
                 if (resp[0] & 0x10 != 0) != toggle {
                     return Err(AbortCode::TOGGLE);
                 }
                 let n = usize::from((resp[0] >> 1) & 7);
-                buf.extend_from_slice(&resp[1..8 - n]);
-                self.done = buf.len() as u64;
-                if size.is_some_and(|s| buf.len() as u64 > s) {
-                    return Err(AbortCode::LENGTH_TOO_HIGH);
-                }
+                self.receive(&resp[1..8 - n], size)?;
                 if resp[0] & 1 == 1 {
-                    if size.is_some_and(|s| buf.len() as u64 != s) {
+                    if size.is_some_and(|s| self.done != s) {
                         return Err(AbortCode::LENGTH_MISMATCH);
                     }
-                    return Ok(Some(buf));
+                    return Ok(Some(self.take_received()));
                 }
                 out.push([0x60 | if toggle { 0 } else { 0x10 }, 0, 0, 0, 0, 0, 0, 0]);
                 self.state = State::UploadSegment {
-                    buf,
                     toggle: !toggle,
                     size,
                 };
                 Ok(None)
             }
-            State::BlockDownloadInit { data } if scs == 5 && resp[0] & 3 == 0 => {
+            State::BlockDownloadInit if scs == 5 && resp[0] & 3 == 0 => {
                 self.check_mux(resp)?;
                 let blksize = resp[4];
                 if !(1..=MAX_BLOCK_SIZE).contains(&blksize) {
                     return Err(AbortCode::BLOCK_SIZE);
                 }
                 let crc = resp[0] & 4 != 0 && self.config.crc;
-                let sent = self.send_sub_block(&data, 0, blksize, out);
+                let sent = self.send_sub_block(0, blksize, out)?;
                 self.state = State::BlockDownloadSub {
-                    data,
                     block_start: 0,
                     sent,
                     crc,
@@ -381,42 +450,32 @@ impl SdoClient {
                 Ok(None)
             }
             State::BlockDownloadSub {
-                data,
                 block_start,
                 sent,
                 crc,
             } if scs == 5 && resp[0] & 3 == 2 => {
-                let ackseq = usize::from(resp[1]);
+                let ackseq = u64::from(resp[1]);
                 let blksize = resp[2];
-                let segments_sent = sent.div_ceil(SEGMENT_DATA).max(1);
+                let segments_sent = sent.div_ceil(SEGMENT_DATA as u64).max(1);
                 if ackseq > segments_sent {
                     return Err(AbortCode::SEQUENCE);
                 }
                 if !(1..=MAX_BLOCK_SIZE).contains(&blksize) {
                     return Err(AbortCode::BLOCK_SIZE);
                 }
-                let acked_end = (block_start + ackseq * SEGMENT_DATA).min(data.len());
-                self.done = acked_end as u64;
-                let all_sent = block_start + sent >= data.len();
-                if all_sent && ackseq == segments_sent {
-                    let last_len = data.len() - (block_start + (segments_sent - 1) * SEGMENT_DATA);
-                    let n = (SEGMENT_DATA - last_len) as u8;
-                    let crc = if crc {
-                        let mut c = Crc16::new();
-                        c.update(&data);
-                        c.value()
-                    } else {
-                        0
-                    };
-                    let c = crc.to_le_bytes();
+                let acked_end = (block_start + ackseq * SEGMENT_DATA as u64).min(len);
+                self.done = acked_end;
+                if block_start + sent >= len && ackseq == segments_sent {
+                    let last_len = len - (block_start + (segments_sent - 1) * SEGMENT_DATA as u64);
+                    let n = (SEGMENT_DATA as u64 - last_len) as u8;
+                    let c = if crc { self.crc.value() } else { 0 }.to_le_bytes();
                     out.push([0xC1 | n << 2, c[0], c[1], 0, 0, 0, 0, 0]);
                     self.state = State::BlockDownloadEnd;
                     return Ok(None);
                 }
-                // Resume after the last acknowledged segment (retransmitting what was lost).
-                let sent = self.send_sub_block(&data, acked_end, blksize, out);
+                // Resume after the last acknowledged segment (repeating what was lost).
+                let sent = self.send_sub_block(acked_end, blksize, out)?;
                 self.state = State::BlockDownloadSub {
-                    data,
                     block_start: acked_end,
                     sent,
                     crc,
@@ -431,7 +490,6 @@ impl SdoClient {
                 self.total = size;
                 out.push([0xA3, 0, 0, 0, 0, 0, 0, 0]);
                 self.state = State::BlockUploadSub(BlockUpload {
-                    buf: Vec::with_capacity(size.unwrap_or(0).min(1 << 20) as usize),
                     size,
                     crc: resp[0] & 4 != 0 && self.config.crc,
                     expected: 1,
@@ -441,26 +499,31 @@ impl SdoClient {
             }
             State::BlockUploadSub(b) => self.block_upload_segment(b, resp, out),
             State::BlockUploadEnd(b) if scs == 6 && resp[0] & 1 == 1 => {
-                let mut b = b;
                 let n = usize::from((resp[0] >> 2) & 7);
                 let held = b.last.unwrap_or([0; SEGMENT_DATA]);
-                b.buf.extend_from_slice(&held[..SEGMENT_DATA - n]);
-                self.done = b.buf.len() as u64;
-                if b.size.is_some_and(|s| s != b.buf.len() as u64) {
+                self.receive(&held[..SEGMENT_DATA - n], b.size)?;
+                if b.size.is_some_and(|s| s != self.done) {
                     return Err(AbortCode::LENGTH_MISMATCH);
                 }
-                if b.crc {
-                    let mut c = Crc16::new();
-                    c.update(&b.buf);
-                    if c.value() != u16::from_le_bytes([resp[1], resp[2]]) {
-                        return Err(AbortCode::CRC);
-                    }
+                if b.crc && self.crc.value() != u16::from_le_bytes([resp[1], resp[2]]) {
+                    return Err(AbortCode::CRC);
                 }
                 out.push([0xA1, 0, 0, 0, 0, 0, 0, 0]);
-                Ok(Some(b.buf))
+                Ok(Some(self.take_received()))
             }
             _ => Err(AbortCode::COMMAND),
         }
+    }
+
+    /// Take uploaded bytes: count them, check them against the indicated size, run the CRC.
+    fn receive(&mut self, data: &[u8], size: Option<u64>) -> Result<(), AbortCode> {
+        self.done += data.len() as u64;
+        if size.is_some_and(|s| self.done > s) {
+            return Err(AbortCode::LENGTH_TOO_HIGH);
+        }
+        self.crc.update(data);
+        self.received.extend_from_slice(data);
+        Ok(())
     }
 
     fn upload_initiated(
@@ -477,66 +540,80 @@ impl SdoClient {
             } else {
                 0
             };
-            let data = resp[4..8 - n].to_vec();
-            self.done = data.len() as u64;
-            return Ok(Some(data));
+            self.receive(&resp[4..8 - n], None)?;
+            return Ok(Some(self.take_received()));
         }
         let size =
             sized.then(|| u64::from(u32::from_le_bytes([resp[4], resp[5], resp[6], resp[7]])));
         self.total = size;
         out.push([0x60, 0, 0, 0, 0, 0, 0, 0]);
         self.state = State::UploadSegment {
-            buf: Vec::with_capacity(size.unwrap_or(0).min(1 << 20) as usize),
             toggle: false,
             size,
         };
         Ok(None)
     }
 
+    /// Read `buf.len()` download bytes at `pos`, keeping the CRC over first-time bytes.
+    fn read_source(&mut self, pos: u64, buf: &mut [u8]) -> Result<(), AbortCode> {
+        let source = self.source.as_mut().ok_or(AbortCode::GENERAL)?;
+        if let Err(e) = source.read_at(pos, buf) {
+            tracing::warn!(error = %e, "reading SDO download data failed");
+            return Err(AbortCode::GENERAL);
+        }
+        let end = pos + buf.len() as u64;
+        if end > self.crc_pos {
+            let skip = (self.crc_pos.saturating_sub(pos)) as usize;
+            self.crc.update(&buf[skip..]);
+            self.crc_pos = end;
+        }
+        Ok(())
+    }
+
     fn send_download_segment(
         &mut self,
-        data: Vec<u8>,
-        pos: usize,
+        pos: u64,
         toggle: bool,
         out: &mut Vec<Payload>,
-    ) {
-        let end = (pos + SEGMENT_DATA).min(data.len());
-        let chunk = &data[pos..end];
-        let last = end == data.len();
+    ) -> Result<(), AbortCode> {
+        let len = self.total.unwrap_or(0);
+        let end = (pos + SEGMENT_DATA as u64).min(len);
+        let n = (end - pos) as usize;
         let mut p = [0u8; 8];
-        p[0] = if toggle { 0x10 } else { 0 }
-            | ((SEGMENT_DATA - chunk.len()) as u8) << 1
-            | u8::from(last);
-        p[1..1 + chunk.len()].copy_from_slice(chunk);
+        self.read_source(pos, &mut p[1..1 + n])?;
+        let last = end == len;
+        p[0] = if toggle { 0x10 } else { 0 } | ((SEGMENT_DATA - n) as u8) << 1 | u8::from(last);
         out.push(p);
-        self.done = pos as u64;
         self.state = State::DownloadSegment {
-            data,
             pos: end,
             toggle,
             last,
         };
+        Ok(())
     }
 
-    /// Send up to `blksize` segments of `data` from `start`; returns the bytes covered.
+    /// Send up to `blksize` segments from `start`; returns the bytes covered.
     fn send_sub_block(
         &mut self,
-        data: &[u8],
-        start: usize,
+        start: u64,
         blksize: u8,
         out: &mut Vec<Payload>,
-    ) -> usize {
+    ) -> Result<u64, AbortCode> {
+        let len = self.total.unwrap_or(0);
         let mut pos = start;
         for seq in 1..=blksize {
-            let end = (pos + SEGMENT_DATA).min(data.len());
-            let last = end == data.len();
-            out.push(block_segment(seq, last, &data[pos..end]));
+            let end = (pos + SEGMENT_DATA as u64).min(len);
+            let mut chunk = [0u8; SEGMENT_DATA];
+            let n = (end - pos) as usize;
+            self.read_source(pos, &mut chunk[..n])?;
+            let last = end == len;
+            out.push(block_segment(seq, last, &chunk[..n]));
             pos = end;
             if last {
                 break;
             }
         }
-        pos - start
+        Ok(pos - start)
     }
 
     fn block_upload_segment(
@@ -556,11 +633,7 @@ impl SdoClient {
                 held.copy_from_slice(&resp[1..8]);
                 b.last = Some(held);
             } else {
-                b.buf.extend_from_slice(&resp[1..8]);
-                self.done = b.buf.len() as u64;
-                if b.size.is_some_and(|s| b.buf.len() as u64 > s) {
-                    return Err(AbortCode::LENGTH_TOO_HIGH);
-                }
+                self.receive(&resp[1..8], b.size)?;
             }
             b.expected += 1;
         }
