@@ -11,6 +11,7 @@ use canbus::{CanId, Frame, FrameKind};
 
 use crate::cob::{classify, Function};
 use crate::sdo::abort::AbortCode;
+use crate::types::{civil_from_days, CANOPEN_EPOCH_DAYS};
 
 /// The CANopen meaning of one frame.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -333,23 +334,6 @@ pub fn nmt_state_name(state: u8) -> &'static str {
         _ => "unknown state",
     }
 }
-
-/// Civil date from days since 1970-01-01 (Howard Hinnant's `civil_from_days`).
-fn civil_from_days(days: i64) -> (i64, u32, u32) {
-    let z = days + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z.rem_euclid(146_097);
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let day = (doy - (153 * mp + 2) / 5 + 1) as u32;
-    let month = if mp < 10 { mp + 3 } else { mp - 9 } as u32;
-    let year = yoe + era * 400 + i64::from(month <= 2);
-    (year, month, day)
-}
-
-/// Days from 1970-01-01 to the CANopen epoch 1984-01-01.
-const CANOPEN_EPOCH_DAYS: i64 = 5113;
 
 fn hex(data: &[u8]) -> String {
     data.iter()

@@ -9,7 +9,8 @@ use std::time::{Duration, Instant};
 use super::abort::AbortCode;
 use super::crc::Crc16;
 use super::{
-    abort_code, abort_payload, block_segment, mux, with_mux, Payload, MAX_BLOCK_SIZE, SEGMENT_DATA,
+    abort_code, abort_payload, block_segment, mux, with_mux, Payload, SubBlockReceiver,
+    MAX_BLOCK_SIZE, SEGMENT_DATA,
 };
 
 /// How a transfer fails.
@@ -164,8 +165,7 @@ enum State {
 struct BlockUpload {
     size: Option<u64>,
     crc: bool,
-    expected: u8,
-    last: Option<[u8; SEGMENT_DATA]>,
+    receiver: SubBlockReceiver,
 }
 
 /// One SDO client channel.
@@ -492,16 +492,13 @@ impl SdoClient {
                 self.state = State::BlockUploadSub(BlockUpload {
                     size,
                     crc: resp[0] & 4 != 0 && self.config.crc,
-                    expected: 1,
-                    last: None,
+                    receiver: SubBlockReceiver::new(self.config.block_size),
                 });
                 Ok(None)
             }
             State::BlockUploadSub(b) => self.block_upload_segment(b, resp, out),
             State::BlockUploadEnd(b) if scs == 6 && resp[0] & 1 == 1 => {
-                let n = usize::from((resp[0] >> 2) & 7);
-                let held = b.last.unwrap_or([0; SEGMENT_DATA]);
-                self.receive(&held[..SEGMENT_DATA - n], b.size)?;
+                self.receive(&b.receiver.tail(resp[0]), b.size)?;
                 if b.size.is_some_and(|s| s != self.done) {
                     return Err(AbortCode::LENGTH_MISMATCH);
                 }
@@ -622,30 +619,16 @@ impl SdoClient {
         resp: &Payload,
         out: &mut Vec<Payload>,
     ) -> Result<Option<Vec<u8>>, AbortCode> {
-        let seq = resp[0] & 0x7F;
-        let is_last = resp[0] & 0x80 != 0;
-        if seq == 0 {
-            return Err(AbortCode::SEQUENCE);
+        let received = b.receiver.segment(resp)?;
+        if let Some(data) = received.data {
+            self.receive(data, b.size)?;
         }
-        if seq == b.expected {
-            if is_last {
-                let mut held = [0u8; SEGMENT_DATA];
-                held.copy_from_slice(&resp[1..8]);
-                b.last = Some(held);
-            } else {
-                self.receive(&resp[1..8], b.size)?;
-            }
-            b.expected += 1;
-        }
-        if seq >= self.config.block_size || is_last {
-            out.push([0xA2, b.expected - 1, self.config.block_size, 0, 0, 0, 0, 0]);
-            b.expected = 1;
-            if b.last.is_some() {
-                self.state = State::BlockUploadEnd(b);
-                return Ok(None);
-            }
-        }
-        self.state = State::BlockUploadSub(b);
+        out.extend(received.ack);
+        self.state = if received.complete {
+            State::BlockUploadEnd(b)
+        } else {
+            State::BlockUploadSub(b)
+        };
         Ok(None)
     }
 }

@@ -65,6 +65,85 @@ pub(crate) fn block_segment(seq: u8, last: bool, data: &[u8]) -> Payload {
     p
 }
 
+/// The receiving side of block-transfer sub-blocks: the server in a block download, the client
+/// in a block upload (CiA 301 §7.2.4.3.13–14). It takes segments in sequence, ignores the rest
+/// of a sub-block after a gap, and acknowledges the last in-sequence segment when the sub-block
+/// ends, so the sender repeats from there.
+pub(crate) struct SubBlockReceiver {
+    blksize: u8,
+    expected: u8,
+    /// The segment flagged last, held until the end frame says how much of it is data.
+    last: Option<[u8; SEGMENT_DATA]>,
+}
+
+/// What one received segment means.
+pub(crate) struct Received<'a> {
+    /// In-sequence data to take now (the last segment's data waits for [`SubBlockReceiver::tail`]).
+    pub(crate) data: Option<&'a [u8]>,
+    /// The acknowledgement to send, when the sub-block ended.
+    pub(crate) ack: Option<Payload>,
+    /// The last segment has arrived in sequence: the end frame comes next.
+    pub(crate) complete: bool,
+}
+
+impl SubBlockReceiver {
+    pub(crate) fn new(blksize: u8) -> Self {
+        SubBlockReceiver {
+            blksize,
+            expected: 1,
+            last: None,
+        }
+    }
+
+    /// Take one segment frame.
+    pub(crate) fn segment<'a>(&mut self, p: &'a Payload) -> Result<Received<'a>, AbortCode> {
+        let seq = p[0] & 0x7F;
+        let is_last = p[0] & 0x80 != 0;
+        if seq == 0 {
+            return Err(AbortCode::SEQUENCE);
+        }
+        let mut data = None;
+        if seq == self.expected {
+            if is_last {
+                let mut held = [0u8; SEGMENT_DATA];
+                held.copy_from_slice(&p[1..8]);
+                self.last = Some(held);
+            } else {
+                data = Some(&p[1..8]);
+            }
+            self.expected += 1;
+        }
+        let mut ack = None;
+        if seq >= self.blksize || is_last {
+            ack = Some([0xA2, self.expected - 1, self.blksize, 0, 0, 0, 0, 0]);
+            self.expected = 1;
+        }
+        Ok(Received {
+            data,
+            ack,
+            complete: ack.is_some() && self.last.is_some(),
+        })
+    }
+
+    /// The data of the last segment, given the end frame's command byte (n = unused bytes).
+    pub(crate) fn tail(&self, end_command: u8) -> Vec<u8> {
+        let n = usize::from((end_command >> 2) & 7);
+        let held = self.last.unwrap_or([0; SEGMENT_DATA]);
+        held[..SEGMENT_DATA - n].to_vec()
+    }
+}
+
+/// The size field and its flag for an upload response: `(s flag set, bytes)`.
+pub(crate) fn size_indication(size: Option<u64>) -> Result<(bool, [u8; 4]), AbortCode> {
+    match size {
+        Some(s) => {
+            let s = u32::try_from(s).map_err(|_| AbortCode::LENGTH_TOO_HIGH)?;
+            Ok((true, s.to_le_bytes()))
+        }
+        None => Ok((false, [0; 4])),
+    }
+}
+
 /// Convert a received frame to a payload; SDO frames are always 8 bytes.
 pub fn payload(data: &[u8]) -> Option<Payload> {
     data.try_into().ok()

@@ -10,7 +10,8 @@ use std::time::{Duration, Instant};
 use super::abort::AbortCode;
 use super::crc::Crc16;
 use super::{
-    abort_code, abort_payload, block_segment, mux, with_mux, Payload, MAX_BLOCK_SIZE, SEGMENT_DATA,
+    abort_code, abort_payload, block_segment, mux, size_indication, with_mux, Payload,
+    SubBlockReceiver, MAX_BLOCK_SIZE, SEGMENT_DATA,
 };
 use crate::od::{ObjectDictionary, Reader, Writer};
 
@@ -59,10 +60,7 @@ struct BlockDownload {
     writer: Writer,
     size: Option<u64>,
     crc: Option<Crc16>,
-    blksize: u8,
-    expected: u8,
-    /// The segment flagged last, held until the end frame says how much of it is data.
-    last: Option<[u8; SEGMENT_DATA]>,
+    receiver: SubBlockReceiver,
 }
 
 #[derive(Clone, Copy, PartialEq, Eq)]
@@ -301,13 +299,8 @@ impl SdoServer {
             out.push(with_mux(0x43 | ((4 - n) as u8) << 2, index, sub, data));
             return Ok(());
         }
-        match size {
-            Some(s) => {
-                let s = u32::try_from(s).map_err(|_| AbortCode::LENGTH_TOO_HIGH)?;
-                out.push(with_mux(0x41, index, sub, s.to_le_bytes()));
-            }
-            None => out.push(with_mux(0x40, index, sub, [0; 4])),
-        }
+        let (sized, field) = size_indication(size)?;
+        out.push(with_mux(0x40 | u8::from(sized), index, sub, field));
         self.state = State::Upload(Upload {
             reader,
             toggle: false,
@@ -367,9 +360,7 @@ impl SdoServer {
             writer,
             size,
             crc: (client_crc && self.config.crc).then(Crc16::new),
-            blksize,
-            expected: 1,
-            last: None,
+            receiver: SubBlockReceiver::new(blksize),
         });
         Ok(())
     }
@@ -380,35 +371,19 @@ impl SdoServer {
         req: &Payload,
         out: &mut Vec<Payload>,
     ) -> Result<(), AbortCode> {
-        let seq = req[0] & 0x7F;
-        let is_last = req[0] & 0x80 != 0;
-        if seq == 0 {
-            return Err(AbortCode::SEQUENCE);
-        }
-        if seq == b.expected {
-            if is_last {
-                let mut held = [0u8; SEGMENT_DATA];
-                held.copy_from_slice(&req[1..8]);
-                b.last = Some(held);
-            } else {
-                b.writer.write(&req[1..8])?;
-                if let Some(crc) = &mut b.crc {
-                    crc.update(&req[1..8]);
-                }
-            }
-            b.expected += 1;
-        }
-        // After a lost segment `expected` stays behind: the rest of the sub-block is ignored
-        // and the acknowledgement tells the client where to resume (CiA 301 §7.2.4.3.13).
-        if seq >= b.blksize || is_last {
-            out.push([0xA2, b.expected - 1, b.blksize, 0, 0, 0, 0, 0]);
-            b.expected = 1;
-            if b.last.is_some() {
-                self.state = State::BlockDownloadEnd(b);
-                return Ok(());
+        let received = b.receiver.segment(req)?;
+        if let Some(data) = received.data {
+            b.writer.write(data)?;
+            if let Some(crc) = &mut b.crc {
+                crc.update(data);
             }
         }
-        self.state = State::BlockDownload(b);
+        out.extend(received.ack);
+        self.state = if received.complete {
+            State::BlockDownloadEnd(b)
+        } else {
+            State::BlockDownload(b)
+        };
         Ok(())
     }
 
@@ -418,12 +393,10 @@ impl SdoServer {
         req: &Payload,
         out: &mut Vec<Payload>,
     ) -> Result<(), AbortCode> {
-        let n = usize::from((req[0] >> 2) & 7);
-        let held = b.last.unwrap_or([0; SEGMENT_DATA]);
-        let tail = &held[..SEGMENT_DATA - n];
-        b.writer.write(tail)?;
+        let tail = b.receiver.tail(req[0]);
+        b.writer.write(&tail)?;
         if let Some(mut crc) = b.crc {
-            crc.update(tail);
+            crc.update(&tail);
             if crc.value() != u16::from_le_bytes([req[1], req[2]]) {
                 return Err(AbortCode::CRC);
             }
@@ -454,13 +427,13 @@ impl SdoServer {
             return self.initiate_upload(od, out);
         }
         let sc = if self.config.crc { 4 } else { 0 };
-        match size {
-            Some(s) => {
-                let s = u32::try_from(s).map_err(|_| AbortCode::LENGTH_TOO_HIGH)?;
-                out.push(with_mux(0xC2 | sc, index, sub, s.to_le_bytes()));
-            }
-            None => out.push(with_mux(0xC0 | sc, index, sub, [0; 4])),
-        }
+        let (sized, field) = size_indication(size)?;
+        out.push(with_mux(
+            0xC0 | sc | u8::from(sized) << 1,
+            index,
+            sub,
+            field,
+        ));
         self.state = State::BlockUpload(BlockUpload {
             reader,
             crc: (req[0] & 4 != 0 && self.config.crc).then(Crc16::new),
