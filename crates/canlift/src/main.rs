@@ -23,6 +23,8 @@ enum Command {
     Hub(cmd::hub::HubArgs),
     /// Print frames from a bus like candump, with their CANopen meaning.
     Dump(cmd::dump::DumpArgs),
+    /// Send an NMT command (start, stop, preop, reset, reset-comm) to a node or all.
+    Nmt(cmd::nmt::NmtArgs),
     /// Read or write an object of a node by SDO.
     Sdo(cmd::sdo::SdoArgs),
     /// Measure canlift's components.
@@ -43,6 +45,7 @@ fn main() -> std::process::ExitCode {
         match cli.command {
             Command::Hub(args) => cmd::hub::run(args).await,
             Command::Dump(args) => cmd::dump::run(args).await,
+            Command::Nmt(args) => cmd::nmt::run(args).await,
             Command::Sdo(args) => cmd::sdo::run(args).await,
             Command::Bench(args) => cmd::bench::run(args).await,
         }

@@ -1,14 +1,21 @@
 //! CiA 301 CANopen, sans-IO.
 //!
-//! So far: the pre-defined connection set ([`cob`]), SDO abort codes ([`sdo::abort`]) and the
-//! frame decoder for bus monitors ([`monitor`]). The object dictionary, SDO, NMT, heartbeat,
-//! EMCY, SYNC, TIME, PDO and LSS services follow the layout of DESIGN.md §2.
+//! One module per service, each a sans-IO state machine driven by frames and explicit time:
+//! data types ([`types`]), the object dictionary ([`od`]), CiA 306 files ([`eds`]), SDO
+//! ([`sdo`]), NMT ([`nmt`]), heartbeat ([`heartbeat`]), EMCY ([`emcy`]), SYNC ([`sync`]) and TIME
+//! ([`time`]); the pre-defined connection set ([`cob`]) and the frame decoder for bus monitors
+//! ([`monitor`]). The tokio edge is [`driver`] (feature `tokio`, on by default).
 
 pub mod cob;
 #[cfg(feature = "tokio")]
 pub mod driver;
 pub mod eds;
+pub mod emcy;
+pub mod heartbeat;
 pub mod monitor;
+pub mod nmt;
 pub mod od;
 pub mod sdo;
+pub mod sync;
+pub mod time;
 pub mod types;

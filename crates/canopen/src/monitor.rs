@@ -10,7 +10,9 @@ use std::fmt;
 use canbus::{CanId, Frame, FrameKind};
 
 use crate::cob::{classify, Function};
+use crate::emcy::EmcyMessage;
 use crate::sdo::abort::AbortCode;
+use crate::time::TimeOfDay;
 use crate::types::{civil_from_days, CANOPEN_EPOCH_DAYS};
 
 /// The CANopen meaning of one frame.
@@ -273,15 +275,21 @@ pub fn decode(frame: &Frame) -> Meaning {
             node: d[1],
         },
         Function::Sync if d.len() <= 1 => Meaning::Sync(d.first().copied()),
-        Function::Emcy(node) if d.len() == 8 => Meaning::Emcy {
-            node,
-            code: u16_at(d, 0),
-            register: d[2],
-            manufacturer: [d[3], d[4], d[5], d[6], d[7]],
+        Function::Emcy(node) => match EmcyMessage::parse(d) {
+            Some(m) => Meaning::Emcy {
+                node,
+                code: m.code,
+                register: m.register,
+                manufacturer: m.manufacturer,
+            },
+            None => Meaning::Unknown,
         },
-        Function::Time if d.len() == 6 => Meaning::Time {
-            ms: u32_at(d, 0) & 0x0FFF_FFFF,
-            days: u16_at(d, 4),
+        Function::Time => match TimeOfDay::parse(d) {
+            Some(t) => Meaning::Time {
+                ms: t.ms,
+                days: t.days,
+            },
+            None => Meaning::Unknown,
         },
         Function::Tpdo(number, node) => Meaning::Pdo {
             transmit: true,

@@ -3,4 +3,5 @@
 pub mod bench;
 pub mod dump;
 pub mod hub;
+pub mod nmt;
 pub mod sdo;
