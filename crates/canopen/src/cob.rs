@@ -1,5 +1,20 @@
 //! The pre-defined connection set (CiA 301 §7.3.5): which COB-ID carries which service.
 
+use canbus::CanId;
+
+/// The identifier in a COB-ID parameter value (0x1005, 0x1014, 0x1200…, 0x1400…): bit 31 set
+/// means not valid (`None`), bit 29 selects a 29-bit identifier; bit 30 (RTR / producer flag)
+/// is the caller's business.
+pub fn id_from_parameter(value: u32) -> Option<CanId> {
+    if value & 0x8000_0000 != 0 {
+        None
+    } else if value & 0x2000_0000 != 0 {
+        CanId::extended(value & 0x1FFF_FFFF).ok()
+    } else {
+        CanId::standard((value & 0x7FF) as u16).ok()
+    }
+}
+
 /// A function code: the upper four bits of an 11-bit COB-ID in the pre-defined connection set.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum Function {
@@ -58,6 +73,18 @@ pub fn classify(cob_id: u16) -> Function {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn cob_id_parameters() {
+        assert_eq!(id_from_parameter(0x0000_0181), Some(CanId::Standard(0x181)));
+        assert_eq!(
+            id_from_parameter(0x4000_0080),
+            Some(CanId::Standard(0x80)),
+            "producer bit ignored"
+        );
+        assert_eq!(id_from_parameter(0x2000_0181), Some(CanId::Extended(0x181)));
+        assert_eq!(id_from_parameter(0x8000_0181), None);
+    }
 
     #[test]
     fn predefined_connection_set() {

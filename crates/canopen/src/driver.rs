@@ -12,45 +12,12 @@ use tokio::task::JoinHandle;
 use crate::od::ObjectDictionary;
 use crate::sdo::abort::AbortCode;
 use crate::sdo::client::{ClientConfig, DownloadSource, SdoClient, SdoError, Transfer};
-use crate::sdo::server::{SdoServer, ServerConfig};
+use crate::sdo::server::{default_channel, server_channels, ServerChannels, ServerConfig};
 use crate::sdo::{payload, Payload};
 use crate::types::{CanopenValue, TypeError};
 
 /// A dictionary shared between the protocol tasks and the application.
 pub type SharedDictionary = Arc<Mutex<ObjectDictionary>>;
-
-/// COB-ID bit 31: the channel is not valid (CiA 301 §7.4.8.8).
-const COB_INVALID: u32 = 0x8000_0000;
-/// COB-ID bit 29: 29-bit identifier.
-const COB_EXTENDED: u32 = 0x2000_0000;
-
-fn cob_to_id(cob: u32) -> Option<CanId> {
-    if cob & COB_INVALID != 0 {
-        return None;
-    }
-    if cob & COB_EXTENDED != 0 {
-        CanId::extended(cob & 0x1FFF_FFFF).ok()
-    } else {
-        u16::try_from(cob & 0x7FF).ok().map(CanId::Standard)
-    }
-}
-
-/// The server channels of a node: the default channel 0x600/0x580 + node-ID (0x1200, always
-/// present per CiA 301) and (request COB-ID, response COB-ID) of every further valid SDO server
-/// parameter object 0x1201–0x127F.
-pub fn server_channels(od: &ObjectDictionary, node_id: u8) -> Vec<(CanId, CanId)> {
-    let mut channels = vec![default_channel(node_id)];
-    for index in 0x1201..=0x127F {
-        let cob = |sub| match od.get_value(index, sub) {
-            Ok(crate::types::Value::Uint(v)) => u32::try_from(v).ok().and_then(cob_to_id),
-            _ => None,
-        };
-        if let (Some(rx), Some(tx)) = (cob(1), cob(2)) {
-            channels.push((rx, tx));
-        }
-    }
-    channels
-}
 
 /// The SDO client channels of a dictionary: (server node-ID, request COB-ID, response COB-ID) of
 /// every valid SDO client parameter object 0x1280–0x12FF (sub-indices 1, 2 and 3).
@@ -62,21 +29,16 @@ pub fn client_channels(od: &ObjectDictionary) -> Vec<(u8, CanId, CanId)> {
             _ => None,
         };
         if let (Some(tx), Some(rx), Some(node)) = (number(1), number(2), number(3)) {
-            if let (Some(tx), Some(rx), Ok(node)) =
-                (cob_to_id(tx), cob_to_id(rx), u8::try_from(node))
-            {
+            if let (Some(tx), Some(rx), Ok(node)) = (
+                crate::cob::id_from_parameter(tx),
+                crate::cob::id_from_parameter(rx),
+                u8::try_from(node),
+            ) {
                 channels.push((node, tx, rx));
             }
         }
     }
     channels
-}
-
-fn default_channel(node_id: u8) -> (CanId, CanId) {
-    (
-        CanId::Standard(0x600 + u16::from(node_id)),
-        CanId::Standard(0x580 + u16::from(node_id)),
-    )
 }
 
 fn frame(id: CanId, p: &Payload) -> Frame {
@@ -91,61 +53,44 @@ pub fn serve_sdo(
     config: ServerConfig,
 ) -> JoinHandle<()> {
     let (sender, mut receiver) = bus.split();
-    let channels = server_channels(&od.lock().unwrap_or_else(PoisonError::into_inner), node_id);
-    let filters: Vec<Filter> = channels
-        .iter()
-        .map(|(rx, _)| match rx {
-            CanId::Standard(id) => Filter::standard(*id, 0x7FF),
-            CanId::Extended(id) => Filter::extended(*id, 0x1FFF_FFFF),
-        })
-        .collect();
-    receiver.set_filters(&filters);
+    let mut servers = ServerChannels::new(
+        server_channels(&od.lock().unwrap_or_else(PoisonError::into_inner), node_id),
+        &config,
+    );
+    receiver.set_filters(&servers.filters());
     tokio::spawn(async move {
-        let mut servers: Vec<(CanId, CanId, SdoServer)> = channels
-            .into_iter()
-            .map(|(rx, tx)| (rx, tx, SdoServer::new(config.clone())))
-            .collect();
         let mut out = Vec::new();
         loop {
-            let deadline = servers
-                .iter()
-                .filter_map(|(_, _, s)| s.poll_timeout())
-                .min();
-            let sleep = async {
-                match deadline {
-                    Some(d) => tokio::time::sleep_until(d.into()).await,
-                    None => std::future::pending().await,
-                }
-            };
             let received = tokio::select! {
                 f = receiver.recv_frame() => match f {
                     Some(f) => Some(f),
                     None => return,
                 },
-                _ = sleep => None,
+                _ = sleep_until(servers.poll_timeout()) => None,
             };
             let now = Instant::now();
-            for (rx, tx, server) in &mut servers {
-                out.clear();
-                match &received {
-                    Some(f) if f.id() == *rx => {
-                        let Some(p) = payload(f.data()) else {
-                            tracing::debug!(frame = %f, "SDO request without 8 bytes ignored");
-                            continue;
-                        };
-                        let mut od = od.lock().unwrap_or_else(PoisonError::into_inner);
-                        server.handle(&mut od, &p, now, &mut out);
-                    }
-                    _ => server.handle_timeout(now, &mut out),
+            match &received {
+                Some(f) => {
+                    let mut od = od.lock().unwrap_or_else(PoisonError::into_inner);
+                    servers.handle(&mut od, f, now, &mut out);
                 }
-                for p in &out {
-                    if sender.send(frame(*tx, p)).await.is_err() {
-                        return;
-                    }
+                None => servers.handle_timeout(now, &mut out),
+            }
+            for f in out.drain(..) {
+                if sender.send(f).await.is_err() {
+                    return;
                 }
             }
         }
     })
+}
+
+/// Sleep until `deadline`, or forever without one.
+pub(crate) async fn sleep_until(deadline: Option<Instant>) {
+    match deadline {
+        Some(d) => tokio::time::sleep_until(d.into()).await,
+        None => std::future::pending().await,
+    }
 }
 
 /// Why an SDO operation failed, from the caller's point of view.

@@ -95,13 +95,7 @@ impl EmcyProducer {
 
     /// Apply 0x1014 (bit 31 set: EMCY not sent; bit 29: 29-bit identifier).
     pub fn set_cob_id(&mut self, value: u32) {
-        self.cob_id = if value & 0x8000_0000 != 0 {
-            None
-        } else if value & 0x2000_0000 != 0 {
-            CanId::extended(value & 0x1FFF_FFFF).ok()
-        } else {
-            CanId::standard((value & 0x7FF) as u16).ok()
-        };
+        self.cob_id = crate::cob::id_from_parameter(value);
     }
 
     /// Apply 0x1015 (multiples of 100 µs).

@@ -12,8 +12,12 @@ pub mod driver;
 pub mod eds;
 pub mod emcy;
 pub mod heartbeat;
+#[cfg(feature = "tokio")]
+pub mod master;
 pub mod monitor;
 pub mod nmt;
+#[cfg(feature = "tokio")]
+pub mod node;
 pub mod od;
 pub mod sdo;
 pub mod sync;

@@ -31,11 +31,8 @@ impl Default for SyncConfig {
 
 impl SyncConfig {
     fn id(&self) -> Option<CanId> {
-        if self.cob_id & 0x2000_0000 != 0 {
-            CanId::extended(self.cob_id & 0x1FFF_FFFF).ok()
-        } else {
-            CanId::standard((self.cob_id & 0x7FF) as u16).ok()
-        }
+        // Bit 31 of 0x1005 is "don't care" for SYNC; only bit 29 selects the format.
+        crate::cob::id_from_parameter(self.cob_id & 0x7FFF_FFFF)
     }
 
     /// Whether this node is the SYNC producer.

@@ -14,6 +14,8 @@ use super::{
     SubBlockReceiver, MAX_BLOCK_SIZE, SEGMENT_DATA,
 };
 use crate::od::{ObjectDictionary, Reader, Writer};
+use crate::types::Value;
+use canbus::{CanId, Filter, Frame};
 
 /// How a server channel behaves.
 #[derive(Debug, Clone)]
@@ -553,5 +555,105 @@ impl BlockUpload {
             return Ok(());
         }
         self.send_block(out)
+    }
+}
+
+/// The default SDO channel of a node: requests on 0x600 + node-ID, responses on 0x580 + node-ID.
+pub fn default_channel(node_id: u8) -> (CanId, CanId) {
+    (
+        CanId::Standard(0x600 + u16::from(node_id & 0x7F)),
+        CanId::Standard(0x580 + u16::from(node_id & 0x7F)),
+    )
+}
+
+/// The server channels of a node: the default channel (0x1200, always present per CiA 301) and
+/// (request COB-ID, response COB-ID) of every further valid SDO server parameter object
+/// 0x1201–0x127F.
+pub fn server_channels(od: &ObjectDictionary, node_id: u8) -> Vec<(CanId, CanId)> {
+    let mut channels = vec![default_channel(node_id)];
+    for index in 0x1201..=0x127F {
+        let cob = |sub| match od.get_value(index, sub) {
+            Ok(Value::Uint(v)) => u32::try_from(v)
+                .ok()
+                .and_then(crate::cob::id_from_parameter),
+            _ => None,
+        };
+        if let (Some(rx), Some(tx)) = (cob(1), cob(2)) {
+            channels.push((rx, tx));
+        }
+    }
+    channels
+}
+
+/// Every SDO server channel of a node, with requests dispatched by COB-ID.
+pub struct ServerChannels {
+    channels: Vec<(CanId, CanId, SdoServer)>,
+    payloads: Vec<Payload>,
+}
+
+impl ServerChannels {
+    /// Servers for `channels` (request COB-ID, response COB-ID).
+    pub fn new(channels: Vec<(CanId, CanId)>, config: &ServerConfig) -> Self {
+        ServerChannels {
+            channels: channels
+                .into_iter()
+                .map(|(rx, tx)| (rx, tx, SdoServer::new(config.clone())))
+                .collect(),
+            payloads: Vec::new(),
+        }
+    }
+
+    /// Acceptance filters for the request COB-IDs.
+    pub fn filters(&self) -> Vec<Filter> {
+        self.channels
+            .iter()
+            .map(|(rx, _, _)| match rx {
+                CanId::Standard(id) => Filter::standard(*id, 0x7FF),
+                CanId::Extended(id) => Filter::extended(*id, 0x1FFF_FFFF),
+            })
+            .collect()
+    }
+
+    /// Handle `frame` if it is a request on one of the channels; responses go to `out`.
+    /// Returns whether the frame was an SDO request for this node.
+    pub fn handle(
+        &mut self,
+        od: &mut ObjectDictionary,
+        frame: &Frame,
+        now: Instant,
+        out: &mut Vec<Frame>,
+    ) -> bool {
+        let Some((_, tx, server)) = self
+            .channels
+            .iter_mut()
+            .find(|(rx, _, _)| *rx == frame.id())
+        else {
+            return false;
+        };
+        let Some(p) = super::payload(frame.data()) else {
+            tracing::debug!(frame = %frame, "SDO request without 8 bytes ignored");
+            return true;
+        };
+        self.payloads.clear();
+        server.handle(od, &p, now, &mut self.payloads);
+        out.extend(self.payloads.iter().filter_map(|p| Frame::new(*tx, p).ok()));
+        true
+    }
+
+    /// The earliest transfer timeout of any channel.
+    pub fn poll_timeout(&self) -> Option<Instant> {
+        self.channels
+            .iter()
+            .filter_map(|(_, _, s)| s.poll_timeout())
+            .min()
+    }
+
+    /// Abort transfers whose client went silent.
+    pub fn handle_timeout(&mut self, now: Instant, out: &mut Vec<Frame>) {
+        for (_, tx, server) in &mut self.channels {
+            self.payloads.clear();
+            server.handle_timeout(now, &mut self.payloads);
+            out.extend(self.payloads.iter().filter_map(|p| Frame::new(*tx, p).ok()));
+        }
     }
 }

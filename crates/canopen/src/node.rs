@@ -1,0 +1,648 @@
+//! [`LocalNode`]: a CANopen device on a bus. One task owns the sans-IO machines (NMT, SDO
+//! server channels, heartbeat producer and consumer, EMCY, SYNC) and drives them from bus frames,
+//! dictionary changes and application commands, sleeping until the earliest deadline (never
+//! polling: an idle node costs nothing).
+//!
+//! ```no_run
+//! # async fn demo() -> Result<(), Box<dyn std::error::Error>> {
+//! use canopen::node::{LocalNode, NodeConfig};
+//! use canopen::od::ObjectDictionary;
+//!
+//! let bus = canbus::Bus::open("socketcand://127.0.0.1:29536/can0").await?;
+//! let config = NodeConfig { heartbeat_ms: 1000, software_version: "01.23.10".into(), ..NodeConfig::new(1) };
+//! let node = LocalNode::start(bus, ObjectDictionary::new(), config);
+//! node.set_error(0x5000, [0; 5]); // EMCY, error register, 0x1003 history
+//! let mut events = node.events();
+//! while let Ok(event) = events.recv().await {
+//!     println!("{event:?}");
+//! }
+//! # Ok(()) }
+//! ```
+
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::{Duration, Instant};
+
+use canbus::{Bus, BusSender, Frame};
+use tokio::sync::{broadcast, mpsc, watch};
+use tokio::task::JoinHandle;
+
+use crate::driver::{sleep_until, SharedDictionary};
+use crate::emcy::{EmcyMessage, EmcyProducer};
+use crate::heartbeat::{timeout_emcy, HeartbeatConsumer, HeartbeatEvent, HeartbeatProducer};
+use crate::nmt::{NmtAction, NmtCommand, NmtSlave, NmtState};
+use crate::od::{Access, Object, ObjectCode, ObjectDictionary, Variable, VariableHook};
+use crate::sdo::abort::AbortCode;
+use crate::sdo::server::{server_channels, ServerChannels, ServerConfig};
+use crate::sync::{SyncConfig, SyncEvent, SyncProducer};
+use crate::types::{DataType, Value};
+
+/// How a node starts.
+#[derive(Debug, Clone)]
+pub struct NodeConfig {
+    /// Node-ID 1–127.
+    pub node_id: u8,
+    /// 0x1000 device type (CiA 417 lift controllers: 0x000001A1 with their profile bits).
+    pub device_type: u32,
+    /// 0x1018 vendor-ID, product code, revision number, serial number.
+    pub identity: [u32; 4],
+    /// 0x100A manufacturer software version.
+    pub software_version: String,
+    /// 0x1017 producer heartbeat time at start (ms, 0 = off).
+    pub heartbeat_ms: u16,
+    /// Entries of 0x1016 (consumer heartbeat times).
+    pub consumer_entries: u8,
+    /// SDO server behaviour.
+    pub sdo: ServerConfig,
+}
+
+impl NodeConfig {
+    /// Defaults for `node_id`.
+    pub fn new(node_id: u8) -> Self {
+        NodeConfig {
+            node_id,
+            device_type: 0,
+            identity: [0; 4],
+            software_version: String::new(),
+            heartbeat_ms: 0,
+            consumer_entries: 8,
+            sdo: ServerConfig::default(),
+        }
+    }
+}
+
+/// What happens on and around a node.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum NodeEvent {
+    /// This node's NMT state changed.
+    Nmt(NmtState),
+    /// The heartbeat consumer noticed something about another node.
+    Heartbeat(HeartbeatEvent),
+    /// An EMCY from another node.
+    Emcy {
+        /// Producer.
+        node: u8,
+        /// The message.
+        message: EmcyMessage,
+    },
+    /// A SYNC was received.
+    Sync(SyncEvent),
+}
+
+enum Command {
+    SetError(u16, [u8; 5]),
+    ClearError(u16),
+    Nmt(NmtCommand),
+}
+
+/// 0x1003 sub 0 accepts only 0 (clear the history) from the network (CiA 301 §7.5.2.4).
+struct HistoryCount;
+
+impl VariableHook for HistoryCount {
+    fn on_write(&self, _: u16, _: u8, data: &[u8]) -> Result<(), AbortCode> {
+        if data == [0] {
+            Ok(())
+        } else {
+            Err(AbortCode::INVALID_VALUE)
+        }
+    }
+}
+
+fn u32_var(name: &str, access: Access, value: u32) -> Variable {
+    Variable::new(name, DataType::Unsigned32, access).with_value(Value::Uint(value.into()))
+}
+
+/// Add the communication objects a node needs, where the dictionary does not define them.
+pub fn add_communication_objects(od: &mut ObjectDictionary, config: &NodeConfig) {
+    let id = u32::from(config.node_id);
+    let mut defaults = vec![
+        Object::var(
+            0x1000,
+            u32_var("Device type", Access::Ro, config.device_type),
+        ),
+        Object::var(
+            0x1001,
+            Variable::new("Error register", DataType::Unsigned8, Access::Ro).mappable(),
+        ),
+        Object::var(0x1005, u32_var("COB-ID SYNC", Access::Rw, 0x80)),
+        Object::var(0x1006, u32_var("Communication cycle period", Access::Rw, 0)),
+        Object::var(0x1007, u32_var("Synchronous window length", Access::Rw, 0)),
+        Object::var(
+            0x100A,
+            Variable::new(
+                "Manufacturer software version",
+                DataType::VisibleString,
+                Access::Const,
+            )
+            .with_value(Value::Text(config.software_version.clone())),
+        ),
+        Object::var(0x1014, u32_var("COB-ID EMCY", Access::Rw, 0x80 + id)),
+        Object::var(
+            0x1015,
+            Variable::new("Inhibit time EMCY", DataType::Unsigned16, Access::Rw),
+        ),
+        Object::var(
+            0x1017,
+            Variable::new("Producer heartbeat time", DataType::Unsigned16, Access::Rw)
+                .with_value(Value::Uint(config.heartbeat_ms.into())),
+        ),
+        Object::var(
+            0x1019,
+            Variable::new(
+                "Synchronous counter overflow value",
+                DataType::Unsigned8,
+                Access::Rw,
+            ),
+        ),
+        Object::composite(
+            0x1018,
+            "Identity object",
+            ObjectCode::Record,
+            [
+                "Vendor-ID",
+                "Product code",
+                "Revision number",
+                "Serial number",
+            ]
+            .iter()
+            .zip(config.identity)
+            .enumerate()
+            .map(|(i, (name, v))| (i as u8 + 1, u32_var(name, Access::Ro, v))),
+        ),
+        Object::composite(
+            0x1016,
+            "Consumer heartbeat time",
+            ObjectCode::Array,
+            (1..=config.consumer_entries.max(1)).map(|i| {
+                (
+                    i,
+                    u32_var(&format!("Consumer heartbeat time {i}"), Access::Rw, 0),
+                )
+            }),
+        ),
+        Object::composite(
+            0x1200,
+            "SDO server parameter",
+            ObjectCode::Record,
+            [
+                (
+                    1,
+                    u32_var("COB-ID client to server", Access::Ro, 0x600 + id),
+                ),
+                (
+                    2,
+                    u32_var("COB-ID server to client", Access::Ro, 0x580 + id),
+                ),
+            ],
+        ),
+    ];
+    let mut history = Object::composite(
+        0x1003,
+        "Pre-defined error field",
+        ObjectCode::Array,
+        (1..=8u8).map(|i| {
+            (
+                i,
+                u32_var(&format!("Standard error field {i}"), Access::Ro, 0),
+            )
+        }),
+    );
+    if let Some(count) = history.subs.get_mut(&0) {
+        *count = Variable::new("Number of errors", DataType::Unsigned8, Access::Rw)
+            .with_hook(Arc::new(HistoryCount));
+    }
+    defaults.push(history);
+    for object in defaults {
+        if od.object(object.index).is_none() {
+            od.insert(object);
+        }
+    }
+}
+
+/// A CANopen device running on a bus.
+pub struct LocalNode {
+    od: SharedDictionary,
+    commands: mpsc::UnboundedSender<Command>,
+    state: watch::Receiver<NmtState>,
+    events: broadcast::Sender<NodeEvent>,
+    task: JoinHandle<()>,
+    node_id: u8,
+}
+
+impl LocalNode {
+    /// Add the communication objects to `od`, start the node on `bus` and send its boot-up
+    /// message; it enters pre-operational.
+    pub fn start(bus: Bus, mut od: ObjectDictionary, config: NodeConfig) -> LocalNode {
+        add_communication_objects(&mut od, &config);
+        let (change_tx, change_rx) = mpsc::unbounded_channel();
+        od.watch(Arc::new(move |index, sub| {
+            // Only communication parameters steer the node; application data changes are for
+            // PDOs and subscribers, not this task.
+            if (0x1000..0x2000).contains(&index) {
+                let _ = change_tx.send((index, sub));
+            }
+        }));
+        let initial = od.clone();
+        let od = Arc::new(Mutex::new(od));
+        let (commands, command_rx) = mpsc::unbounded_channel();
+        let (state_tx, state) = watch::channel(NmtState::Initialising);
+        let (events, _) = broadcast::channel(1024);
+        let driver = Driver::new(&config, od.clone(), initial, events.clone(), state_tx);
+        let task = tokio::spawn(driver.run(bus, command_rx, change_rx));
+        LocalNode {
+            od,
+            commands,
+            state,
+            events,
+            task,
+            node_id: config.node_id,
+        }
+    }
+
+    /// The node-ID.
+    pub fn node_id(&self) -> u8 {
+        self.node_id
+    }
+
+    /// The object dictionary, shared with the node task (lock it briefly).
+    pub fn od(&self) -> &SharedDictionary {
+        &self.od
+    }
+
+    /// Set a value as the application (no access check); watchers and the node see it.
+    pub fn set_value(&self, index: u16, sub: u8, value: &Value) -> Result<(), AbortCode> {
+        self.od
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .set_value(index, sub, value)
+    }
+
+    /// Read a value as the application.
+    pub fn value(&self, index: u16, sub: u8) -> Result<Value, AbortCode> {
+        self.od
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get_value(index, sub)
+    }
+
+    /// The node's NMT state.
+    pub fn nmt_state(&self) -> NmtState {
+        *self.state.borrow()
+    }
+
+    /// Wait until the node is in `state`.
+    pub async fn wait_for_state(&self, state: NmtState) {
+        let mut rx = self.state.clone();
+        let _ = rx.wait_for(|s| *s == state).await;
+    }
+
+    /// Change the node's own NMT state as if commanded (e.g. a device that starts itself).
+    pub fn nmt(&self, command: NmtCommand) {
+        let _ = self.commands.send(Command::Nmt(command));
+    }
+
+    /// Raise an error: EMCY, error register 0x1001 and history 0x1003.
+    pub fn set_error(&self, code: u16, manufacturer: [u8; 5]) {
+        let _ = self.commands.send(Command::SetError(code, manufacturer));
+    }
+
+    /// Clear an error (an error-reset EMCY follows when none is left).
+    pub fn clear_error(&self, code: u16) {
+        let _ = self.commands.send(Command::ClearError(code));
+    }
+
+    /// Subscribe to the node's events.
+    pub fn events(&self) -> broadcast::Receiver<NodeEvent> {
+        self.events.subscribe()
+    }
+
+    /// Stop the node task.
+    pub async fn stop(self) {
+        self.task.abort();
+        let _ = self.task.await;
+    }
+}
+
+struct Driver {
+    node_id: u8,
+    sdo_config: ServerConfig,
+    od: SharedDictionary,
+    initial: ObjectDictionary,
+    events: broadcast::Sender<NodeEvent>,
+    state: watch::Sender<NmtState>,
+    nmt: NmtSlave,
+    sdo: ServerChannels,
+    producer: HeartbeatProducer,
+    consumer: HeartbeatConsumer,
+    emcy: EmcyProducer,
+    sync_config: SyncConfig,
+    sync: SyncProducer,
+    out: Vec<Frame>,
+}
+
+fn u32_value(od: &ObjectDictionary, index: u16, sub: u8) -> u32 {
+    match od.get_value(index, sub) {
+        Ok(Value::Uint(v)) => u32::try_from(v).unwrap_or(0),
+        _ => 0,
+    }
+}
+
+impl Driver {
+    fn new(
+        config: &NodeConfig,
+        od: SharedDictionary,
+        initial: ObjectDictionary,
+        events: broadcast::Sender<NodeEvent>,
+        state: watch::Sender<NmtState>,
+    ) -> Self {
+        let now = Instant::now();
+        let sdo = {
+            let guard = od.lock().unwrap_or_else(PoisonError::into_inner);
+            ServerChannels::new(server_channels(&guard, config.node_id), &config.sdo)
+        };
+        let mut driver = Driver {
+            node_id: config.node_id,
+            sdo_config: config.sdo.clone(),
+            od,
+            initial,
+            events,
+            state,
+            nmt: NmtSlave::new(config.node_id),
+            sdo,
+            producer: HeartbeatProducer::new(config.node_id),
+            consumer: HeartbeatConsumer::new(),
+            emcy: EmcyProducer::new(config.node_id),
+            sync_config: SyncConfig::default(),
+            sync: SyncProducer::new(SyncConfig::default(), now),
+            out: Vec::new(),
+        };
+        driver.load_communication(now);
+        driver
+    }
+
+    /// (Re)read every communication parameter from the dictionary.
+    fn load_communication(&mut self, now: Instant) {
+        for index in [0x1005, 0x1014, 0x1015, 0x1016, 0x1017] {
+            self.apply(index, 0, now);
+        }
+        let od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
+        self.sdo = ServerChannels::new(server_channels(&od, self.node_id), &self.sdo_config);
+    }
+
+    /// React to a change of a communication parameter.
+    fn apply(&mut self, index: u16, sub: u8, now: Instant) {
+        let od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
+        match index {
+            // Writing 0 to 0x1003 sub 0 clears the history (our own mirror writes never
+            // write 0 while a history exists).
+            0x1003
+                if sub == 0
+                    && od.get_value(0x1003, 0) == Ok(Value::Uint(0))
+                    && self.emcy.history().next().is_some() =>
+            {
+                self.emcy.clear_history();
+                drop(od);
+                self.write_history();
+            }
+            0x1005 | 0x1006 | 0x1007 | 0x1019 => {
+                self.sync_config = SyncConfig {
+                    cob_id: u32_value(&od, 0x1005, 0),
+                    period_us: u32_value(&od, 0x1006, 0),
+                    window_us: u32_value(&od, 0x1007, 0),
+                    counter_overflow: u32_value(&od, 0x1019, 0) as u8,
+                };
+                self.sync.reconfigure(self.sync_config, now);
+            }
+            0x1014 => self.emcy.set_cob_id(u32_value(&od, 0x1014, 0)),
+            0x1015 => self
+                .emcy
+                .set_inhibit_100us(u32_value(&od, 0x1015, 0) as u16),
+            0x1016 => {
+                // Re-target monitoring; the table keeps what it knows about every node.
+                let known: Vec<u8> = self.consumer.table().map(|(n, _)| n).collect();
+                for node in known {
+                    self.consumer.monitor(node, None);
+                }
+                let entries = od.object(0x1016).map(|o| o.subs.len()).unwrap_or(0);
+                for s in 1..entries as u8 {
+                    self.consumer.monitor_entry(u32_value(&od, 0x1016, s));
+                }
+            }
+            0x1017 => self
+                .producer
+                .set_period_ms(u32_value(&od, 0x1017, 0) as u16, now),
+            _ => {}
+        }
+    }
+
+    /// Mirror the EMCY producer's register and history into 0x1001 and 0x1003.
+    fn write_history(&mut self) {
+        let mut od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
+        let _ = od.set(0x1001, 0, &[self.emcy.error_register()]);
+        let slots = od
+            .object(0x1003)
+            .map(|o| o.subs.len().saturating_sub(1))
+            .unwrap_or(0);
+        let history: Vec<u32> = self.emcy.history().take(slots).collect();
+        for s in 1..=slots {
+            let v = history.get(s - 1).copied().unwrap_or(0);
+            let _ = od.set(0x1003, s as u8, &v.to_le_bytes());
+        }
+        let _ = od.set(0x1003, 0, &[history.len() as u8]);
+    }
+
+    fn enter(&mut self, state: NmtState) {
+        let _ = self.state.send(state);
+        let _ = self.events.send(NodeEvent::Nmt(state));
+    }
+
+    fn boot(&mut self, now: Instant) {
+        let frame = self.nmt.boot();
+        self.out.push(frame);
+        self.load_communication(now);
+        self.enter(NmtState::PreOperational);
+    }
+
+    /// Reset: restore the values of `range` from the start-up dictionary, then boot again.
+    fn reset(&mut self, range: std::ops::RangeInclusive<u16>, now: Instant) {
+        {
+            let mut od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
+            for object in self.initial.objects().filter(|o| range.contains(&o.index)) {
+                for (sub, var) in &object.subs {
+                    if let Some(bytes) = var.value_bytes() {
+                        let _ = od.set(object.index, *sub, bytes);
+                    }
+                }
+            }
+        }
+        self.emcy = EmcyProducer::new(self.node_id);
+        self.enter(NmtState::Initialising);
+        self.boot(now);
+    }
+
+    fn nmt_action(&mut self, action: NmtAction, now: Instant) {
+        match action {
+            NmtAction::Entered(state) => self.enter(state),
+            NmtAction::ResetCommunication => self.reset(0x1000..=0x1FFF, now),
+            NmtAction::ResetNode => self.reset(0x0000..=0xFFFF, now),
+        }
+    }
+
+    fn frame(&mut self, frame: &Frame, now: Instant) {
+        if let Some(action) = self.nmt.handle(frame) {
+            self.nmt_action(action, now);
+            return;
+        }
+        let state = self.nmt.state();
+        if state.allows_sdo() {
+            let mut od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
+            if self.sdo.handle(&mut od, frame, now, &mut self.out) {
+                return;
+            }
+        }
+        let mut heartbeat = Vec::new();
+        self.consumer.handle(frame, now, &mut heartbeat);
+        self.heartbeat_events(heartbeat);
+        if let Some((node, message)) = EmcyMessage::from_frame(frame) {
+            if node != self.node_id {
+                let _ = self.events.send(NodeEvent::Emcy { node, message });
+            }
+        }
+        if state.allows_sdo() {
+            if let Some(event) = crate::sync::receive(&self.sync_config, frame, now) {
+                let _ = self.events.send(NodeEvent::Sync(event));
+            }
+        }
+    }
+
+    fn heartbeat_events(&mut self, events: Vec<HeartbeatEvent>) {
+        let mut history_changed = false;
+        for event in events {
+            match event {
+                HeartbeatEvent::Timeout { node } => {
+                    let (code, data) = timeout_emcy(node);
+                    // One 0x8130 per node: the node-ID is in the manufacturer field.
+                    self.emcy.set_error(code, data);
+                    history_changed = true;
+                }
+                HeartbeatEvent::Recovered { .. } => {
+                    self.emcy.clear_error(0x8130);
+                    history_changed = true;
+                }
+                HeartbeatEvent::StateChanged { .. } => {}
+            }
+            let _ = self.events.send(NodeEvent::Heartbeat(event));
+        }
+        if history_changed {
+            self.write_history();
+        }
+    }
+
+    fn deadline(&self) -> Option<Instant> {
+        [
+            self.producer.poll_timeout(),
+            self.consumer.poll_timeout(),
+            self.emcy.poll_timeout(),
+            self.sync.poll_timeout(),
+            self.sdo.poll_timeout(),
+        ]
+        .into_iter()
+        .flatten()
+        .min()
+    }
+
+    fn timers(&mut self, now: Instant) {
+        let state = self.nmt.state();
+        if state != NmtState::Initialising {
+            if let Some(f) = self.producer.handle_timeout(now, state) {
+                self.out.push(f);
+            }
+        }
+        let mut heartbeat = Vec::new();
+        self.consumer.handle_timeout(now, &mut heartbeat);
+        self.heartbeat_events(heartbeat);
+        self.sdo.handle_timeout(now, &mut self.out);
+        if state.allows_sdo() {
+            while let Some(f) = self.emcy.poll_transmit(now) {
+                self.out.push(f);
+            }
+            if let Some(f) = self.sync.handle_timeout(now) {
+                self.out.push(f);
+            }
+        } else if self.sync.poll_timeout().is_some_and(|d| d <= now) {
+            // SYNC is not produced while stopped; keep the schedule moving.
+            let _ = self.sync.handle_timeout(now);
+        }
+    }
+
+    async fn flush(&mut self, sender: &BusSender) -> bool {
+        for f in self.out.drain(..) {
+            match sender.send(f).await {
+                Ok(()) => {}
+                Err(canbus::BusError::Offline { .. }) => {}
+                Err(_) => return false,
+            }
+        }
+        true
+    }
+
+    async fn run(
+        mut self,
+        bus: Bus,
+        mut commands: mpsc::UnboundedReceiver<Command>,
+        mut changes: mpsc::UnboundedReceiver<(u16, u8)>,
+    ) {
+        let (sender, mut receiver) = bus.split();
+        self.boot(Instant::now());
+        loop {
+            if !self.flush(&sender).await {
+                return;
+            }
+            // Time-driven work first so that a busy bus never starves the timers.
+            let deadline = self.deadline();
+            tokio::select! {
+                biased;
+                _ = sleep_until(deadline) => self.timers(Instant::now()),
+                event = receiver.recv() => match event {
+                    Some(canbus::BusEvent::Frame(f)) => self.frame(&f, Instant::now()),
+                    Some(_) => {}
+                    None => return,
+                },
+                Some((index, sub)) = changes.recv() => self.apply(index, sub, Instant::now()),
+                Some(command) = commands.recv() => {
+                    match command {
+                        Command::SetError(code, data) => self.emcy.set_error(code, data),
+                        Command::ClearError(code) => self.emcy.clear_error(code),
+                        Command::Nmt(c) => {
+                            if let Some(action) = self.nmt.handle(&c.frame(self.node_id)) {
+                                self.nmt_action(action, Instant::now());
+                            }
+                        }
+                    }
+                    self.write_history();
+                }
+            }
+            // Zero-delay work (EMCY ready to go, SDO responses) goes out on this turn.
+            self.timers(Instant::now());
+        }
+    }
+}
+
+/// Wait for a node's next event matching `pred`, up to `limit`.
+pub async fn wait_event(
+    events: &mut broadcast::Receiver<NodeEvent>,
+    limit: Duration,
+    pred: impl Fn(&NodeEvent) -> bool,
+) -> Option<NodeEvent> {
+    tokio::time::timeout(limit, async {
+        loop {
+            match events.recv().await {
+                Ok(e) if pred(&e) => return Some(e),
+                Ok(_) | Err(broadcast::error::RecvError::Lagged(_)) => {}
+                Err(broadcast::error::RecvError::Closed) => return None,
+            }
+        }
+    })
+    .await
+    .ok()
+    .flatten()
+}

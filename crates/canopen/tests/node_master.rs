@@ -1,0 +1,294 @@
+//! `LocalNode` and `Master` together on an in-process bus.
+
+use std::time::Duration;
+
+use canbus::{Bus, CanId};
+use canopen::heartbeat::{HeartbeatEvent, NodeState};
+use canopen::master::{Master, MasterEvent};
+use canopen::nmt::{NmtCommand, NmtState};
+use canopen::node::{wait_event, LocalNode, NodeConfig, NodeEvent};
+use canopen::od::ObjectDictionary;
+use canopen::sdo::abort::AbortCode;
+use canopen::sdo::client::ClientConfig;
+use canopen::types::Value;
+use tokio::sync::broadcast;
+
+const WAIT: Duration = Duration::from_secs(3);
+
+async fn master_event(
+    events: &mut broadcast::Receiver<MasterEvent>,
+    pred: impl Fn(&MasterEvent) -> bool,
+) -> MasterEvent {
+    tokio::time::timeout(WAIT, async {
+        loop {
+            if let Ok(e) = events.recv().await {
+                if pred(&e) {
+                    return e;
+                }
+            }
+        }
+    })
+    .await
+    .expect("event in time")
+}
+
+fn client_config() -> ClientConfig {
+    ClientConfig {
+        timeout: Duration::from_millis(300),
+        ..ClientConfig::default()
+    }
+}
+
+async fn setup(url: &str, node_id: u8) -> (Master, broadcast::Receiver<MasterEvent>, LocalNode) {
+    let master = Master::open(url, client_config()).await.unwrap();
+    let events = master.events();
+    let config = NodeConfig {
+        heartbeat_ms: 50,
+        software_version: "01.23.10".into(),
+        identity: [0x41A, 0x1000, 1, 0x0001_0203],
+        ..NodeConfig::new(node_id)
+    };
+    let node = LocalNode::start(
+        Bus::open(url).await.unwrap(),
+        ObjectDictionary::new(),
+        config,
+    );
+    (master, events, node)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn boot_nmt_heartbeat_and_sdo_gating() {
+    let (master, mut events, node) = setup("mem://node-nmt", 1).await;
+    master_event(&mut events, |e| {
+        matches!(
+            e,
+            MasterEvent::Heartbeat(HeartbeatEvent::StateChanged {
+                node: 1,
+                new: NodeState::BootUp,
+                ..
+            })
+        )
+    })
+    .await;
+    node.wait_for_state(NmtState::PreOperational).await;
+    let sdo = master.sdo();
+    assert_eq!(sdo.read::<String>(1, 0x100A, 0).await.unwrap(), "01.23.10");
+    assert_eq!(sdo.read::<u32>(1, 0x1018, 4).await.unwrap(), 0x0001_0203);
+    assert_eq!(sdo.read::<u32>(1, 0x1200, 1).await.unwrap(), 0x601);
+
+    master.nmt(NmtCommand::Start, 1).await.unwrap();
+    master_event(&mut events, |e| {
+        matches!(
+            e,
+            MasterEvent::Heartbeat(HeartbeatEvent::StateChanged {
+                node: 1,
+                new: NodeState::Operational,
+                ..
+            })
+        )
+    })
+    .await;
+    assert_eq!(node.nmt_state(), NmtState::Operational);
+
+    // Stopped: SDO is not served (the client times out), heartbeat goes on.
+    master.nmt(NmtCommand::Stop, 0).await.unwrap();
+    node.wait_for_state(NmtState::Stopped).await;
+    let err = sdo.read_raw(1, 0x1000, 0).await.unwrap_err();
+    assert_eq!(err.abort_code(), AbortCode::TIMEOUT);
+    master_event(&mut events, |e| {
+        matches!(
+            e,
+            MasterEvent::Heartbeat(HeartbeatEvent::StateChanged {
+                node: 1,
+                new: NodeState::Stopped,
+                ..
+            })
+        )
+    })
+    .await;
+
+    // Reset communication restores 0x1017 and boots again.
+    master
+        .nmt(NmtCommand::EnterPreOperational, 1)
+        .await
+        .unwrap();
+    node.wait_for_state(NmtState::PreOperational).await;
+    sdo.write(1, 0x1017, 0, 20u16).await.unwrap();
+    master.nmt(NmtCommand::ResetCommunication, 1).await.unwrap();
+    master_event(&mut events, |e| {
+        matches!(
+            e,
+            MasterEvent::Heartbeat(HeartbeatEvent::StateChanged {
+                node: 1,
+                new: NodeState::BootUp,
+                ..
+            })
+        )
+    })
+    .await;
+    node.wait_for_state(NmtState::PreOperational).await;
+    assert_eq!(sdo.read::<u16>(1, 0x1017, 0).await.unwrap(), 50);
+
+    // Heartbeat monitoring: the node disappears, the master notices within its timeout.
+    master.monitor(1, Duration::from_millis(200));
+    node.stop().await;
+    master_event(&mut events, |e| {
+        matches!(
+            e,
+            MasterEvent::Heartbeat(HeartbeatEvent::Timeout { node: 1 })
+        )
+    })
+    .await;
+    assert_eq!(master.node_state(1), NodeState::Offline);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn emcy_register_and_history() {
+    let (master, mut events, node) = setup("mem://node-emcy", 2).await;
+    node.wait_for_state(NmtState::PreOperational).await;
+    node.set_error(0x4210, [1, 2, 3, 4, 5]);
+    let e = master_event(&mut events, |e| {
+        matches!(e, MasterEvent::Emcy { node: 2, .. })
+    })
+    .await;
+    let MasterEvent::Emcy { message, .. } = e else {
+        unreachable!()
+    };
+    assert_eq!(
+        (message.code, message.register, message.manufacturer),
+        (0x4210, 0x09, [1, 2, 3, 4, 5])
+    );
+    let sdo = master.sdo();
+    assert_eq!(sdo.read::<u8>(2, 0x1001, 0).await.unwrap(), 0x09);
+    assert_eq!(sdo.read::<u8>(2, 0x1003, 0).await.unwrap(), 1);
+    assert_eq!(sdo.read::<u32>(2, 0x1003, 1).await.unwrap(), 0x0201_4210);
+    node.clear_error(0x4210);
+    let e = master_event(&mut events, |e| {
+        matches!(e, MasterEvent::Emcy { node: 2, .. })
+    })
+    .await;
+    let MasterEvent::Emcy { message, .. } = e else {
+        unreachable!()
+    };
+    assert_eq!((message.code, message.register), (0, 0), "error reset");
+    assert_eq!(sdo.read::<u8>(2, 0x1001, 0).await.unwrap(), 0);
+    // The history stays until cleared by writing 0; other values are refused.
+    assert_eq!(sdo.read::<u8>(2, 0x1003, 0).await.unwrap(), 1);
+    let err = sdo.write(2, 0x1003, 0, 1u8).await.unwrap_err();
+    assert_eq!(err.abort_code(), AbortCode::INVALID_VALUE);
+    sdo.write(2, 0x1003, 0, 0u8).await.unwrap();
+    tokio::time::sleep(Duration::from_millis(50)).await;
+    assert_eq!(sdo.read::<u32>(2, 0x1003, 1).await.unwrap(), 0);
+    // Inhibit time from 0x1015: two errors 100 ms apart at least.
+    sdo.write(2, 0x1015, 0, 1000u16).await.unwrap();
+    let mut raw = Bus::open("mem://node-emcy").await.unwrap();
+    raw.receiver
+        .set_filters(&[canbus::Filter::standard(0x82, 0x7FF)]);
+    node.set_error(0x1000, [0; 5]);
+    node.set_error(0x2000, [0; 5]);
+    let first = raw.receiver.recv_frame().await.unwrap();
+    let second = raw.receiver.recv_frame().await.unwrap();
+    let gap = second
+        .timestamp()
+        .unwrap()
+        .duration_since(first.timestamp().unwrap())
+        .unwrap();
+    assert!(
+        gap >= Duration::from_millis(95),
+        "inhibit time respected: {gap:?}"
+    );
+    node.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn node_consumes_heartbeats_and_raises_8130() {
+    let url = "mem://node-consumer";
+    let (master, mut events, watcher) = setup(url, 3).await;
+    let mut watcher_events = watcher.events();
+    watcher.wait_for_state(NmtState::PreOperational).await;
+    // Node 3 monitors node 7 with 150 ms through 0x1016 sub 1.
+    master
+        .sdo()
+        .write(3, 0x1016, 1, 0x0007_0096u32)
+        .await
+        .unwrap();
+    let config = NodeConfig {
+        heartbeat_ms: 50,
+        ..NodeConfig::new(7)
+    };
+    let seven = LocalNode::start(
+        Bus::open(url).await.unwrap(),
+        ObjectDictionary::new(),
+        config,
+    );
+    wait_event(&mut watcher_events, WAIT, |e| {
+        matches!(
+            e,
+            NodeEvent::Heartbeat(HeartbeatEvent::StateChanged {
+                node: 7,
+                new: NodeState::PreOperational,
+                ..
+            })
+        )
+    })
+    .await
+    .expect("node 7 seen");
+    seven.stop().await;
+    let e = master_event(&mut events, |e| {
+        matches!(e, MasterEvent::Emcy { node: 3, .. })
+    })
+    .await;
+    let MasterEvent::Emcy { message, .. } = e else {
+        unreachable!()
+    };
+    assert_eq!(
+        (message.code, message.manufacturer),
+        (0x8130, [0, 7, 0, 0, 0])
+    );
+    assert_eq!(watcher.value(0x1001, 0).unwrap(), Value::Uint(0x11));
+    // Node 7 comes back: the error is cleared.
+    let seven = LocalNode::start(
+        Bus::open(url).await.unwrap(),
+        ObjectDictionary::new(),
+        NodeConfig {
+            heartbeat_ms: 50,
+            ..NodeConfig::new(7)
+        },
+    );
+    let e = master_event(&mut events, |e| {
+        matches!(e, MasterEvent::Emcy { node: 3, .. })
+    })
+    .await;
+    let MasterEvent::Emcy { message, .. } = e else {
+        unreachable!()
+    };
+    assert_eq!(message.code, 0, "error reset when node 7 is heard again");
+    seven.stop().await;
+    watcher.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sync_producer_configured_by_sdo() {
+    let url = "mem://node-sync";
+    let (master, _events, node) = setup(url, 4).await;
+    node.wait_for_state(NmtState::PreOperational).await;
+    let mut raw = Bus::open(url).await.unwrap();
+    raw.receiver
+        .set_filters(&[canbus::Filter::standard(0x80, 0x7FF)]);
+    let sdo = master.sdo();
+    sdo.write(4, 0x1019, 0, 3u8).await.unwrap();
+    sdo.write(4, 0x1006, 0, 20_000u32).await.unwrap();
+    sdo.write(4, 0x1005, 0, 0x4000_0080u32).await.unwrap();
+    let mut counters = Vec::new();
+    for _ in 0..5 {
+        let f = tokio::time::timeout(WAIT, raw.receiver.recv_frame())
+            .await
+            .unwrap()
+            .unwrap();
+        assert_eq!(f.id(), CanId::Standard(0x80));
+        counters.push(f.data()[0]);
+    }
+    // Production starts with the 0x1005 write; the counter runs 1..=3 and wraps.
+    assert_eq!(counters, vec![1, 2, 3, 1, 2]);
+    node.stop().await;
+}
