@@ -3,7 +3,8 @@
 usage: local_node.py HOST PORT NODE
 Objects: 0x1008 VISIBLE_STRING ro "python-canopen", 0x1017 UNSIGNED16 rw (heartbeat 100 ms,
 running), 0x2000 DOMAIN rw, 0x2001 UNSIGNED32 rw, 0x2002 INTEGER16 rw. The node follows NMT
-commands. Prints READY, serves until standard input closes.
+commands. Prints READY, serves until standard input closes; a line "emcy CODE" on standard input
+makes it send that EMCY (register 0x01, data 01 02).
 """
 
 import logging
@@ -38,7 +39,10 @@ def main():
     node.nmt.state = "PRE-OPERATIONAL"
     node.nmt.start_heartbeat(100)
     print("READY", flush=True)
-    sys.stdin.read()
+    for line in sys.stdin:
+        words = line.split()
+        if words[:1] == ["emcy"]:
+            node.emcy.send(int(words[1], 16), 0x01, b"\x01\x02")
     network.disconnect()
 
 

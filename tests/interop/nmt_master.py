@@ -1,0 +1,41 @@
+"""python-canopen as NMT master and EMCY consumer of a canlift LocalNode
+(crates/canopen/tests/python_nmt.rs).
+
+usage: nmt_master.py HOST PORT NODE
+Prints READY once connected; then waits for the node's boot-up, commands it through
+operational, stopped and pre-operational (reading the state back from its heartbeat each time),
+prints WAIT-EMCY and waits for EMCY 0x4210.
+"""
+
+import logging
+import sys
+
+import canopen
+
+logging.getLogger("can").setLevel(logging.ERROR)
+
+
+def main():
+    host, port, node_id = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+    network = canopen.Network()
+    network.connect(interface="socketcand", host=host, port=port, channel="can0", tcp_tune=True)
+    node = canopen.RemoteNode(node_id, canopen.ObjectDictionary())
+    network.add_node(node)
+    print("READY", flush=True)
+    node.nmt.wait_for_bootup(10)
+    print("BOOTUP", flush=True)
+    for state in ["OPERATIONAL", "STOPPED", "PRE-OPERATIONAL"]:
+        node.nmt.state = state
+        node.nmt.wait_for_heartbeat(2)  # may still carry the old state
+        print("HEARTBEAT", node.nmt.wait_for_heartbeat(2), flush=True)
+    print("WAIT-EMCY", flush=True)
+    error = node.emcy.wait(0x4210, timeout=5)
+    if error is None:
+        sys.exit("FAIL: no EMCY 0x4210")
+    print(f"EMCY {error.code:04X} {error.register:02X} {bytes(error.data).hex()}", flush=True)
+    network.disconnect()
+    print("OK", flush=True)
+
+
+if __name__ == "__main__":
+    main()
