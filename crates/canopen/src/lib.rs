@@ -19,6 +19,7 @@ pub mod nmt;
 #[cfg(feature = "tokio")]
 pub mod node;
 pub mod od;
+pub mod pdo;
 pub mod sdo;
 pub mod sync;
 pub mod time;

@@ -361,6 +361,19 @@ impl Object {
 /// Called with (index, sub-index) after every successful write or set.
 pub type Watcher = Arc<dyn Fn(u16, u8) + Send + Sync>;
 
+/// A rule over several objects that network writes must satisfy (e.g. the PDO mapping
+/// procedure of CiA 301 §7.5.2.35–38). It sees the whole dictionary before a value is stored.
+pub trait WriteGuard: Send + Sync {
+    /// Refuse the write of `data` to `index`/`sub` with an abort code, or allow it.
+    fn check(
+        &self,
+        od: &ObjectDictionary,
+        index: u16,
+        sub: u8,
+        data: &[u8],
+    ) -> Result<(), AbortCode>;
+}
+
 /// Largest DOMAIN a download may buffer in memory (bigger ones need a [`DomainStream`]).
 pub const MAX_BUFFERED_DOMAIN: usize = 16 << 20;
 
@@ -369,6 +382,7 @@ pub const MAX_BUFFERED_DOMAIN: usize = 16 << 20;
 pub struct ObjectDictionary {
     objects: BTreeMap<u16, Object>,
     watchers: Vec<Watcher>,
+    guards: Vec<Arc<dyn WriteGuard>>,
 }
 
 impl fmt::Debug for ObjectDictionary {
@@ -530,6 +544,11 @@ impl ObjectDictionary {
         self.watchers.push(watcher);
     }
 
+    /// Add a rule that every network write must pass.
+    pub fn guard(&mut self, guard: Arc<dyn WriteGuard>) {
+        self.guards.push(guard);
+    }
+
     fn notify(&self, index: u16, sub: u8) {
         for w in &self.watchers {
             w(index, sub);
@@ -643,6 +662,9 @@ impl ObjectDictionary {
             if data.first().is_some_and(|&n| n > highest) {
                 return Err(AbortCode::VALUE_TOO_HIGH);
             }
+        }
+        for guard in &self.guards {
+            guard.check(self, index, sub, data)?;
         }
         if let Some(hook) = &var.hook {
             hook.on_write(index, sub, data)?;
