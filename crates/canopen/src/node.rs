@@ -31,6 +31,7 @@ use crate::emcy::{EmcyMessage, EmcyProducer};
 use crate::heartbeat::{timeout_emcy, HeartbeatConsumer, HeartbeatEvent, HeartbeatProducer};
 use crate::nmt::{NmtAction, NmtCommand, NmtSlave, NmtState};
 use crate::od::{Access, Object, ObjectCode, ObjectDictionary, Variable, VariableHook};
+use crate::pdo::{PdoEngine, PdoEvent};
 use crate::sdo::abort::AbortCode;
 use crate::sdo::server::{server_channels, ServerChannels, ServerConfig};
 use crate::sync::{SyncConfig, SyncEvent, SyncProducer};
@@ -51,6 +52,8 @@ pub struct NodeConfig {
     pub heartbeat_ms: u16,
     /// Entries of 0x1016 (consumer heartbeat times).
     pub consumer_entries: u8,
+    /// RPDOs and TPDOs the node offers (communication and mapping objects are added).
+    pub pdos: (u16, u16),
     /// SDO server behaviour.
     pub sdo: ServerConfig,
 }
@@ -65,6 +68,7 @@ impl NodeConfig {
             software_version: String::new(),
             heartbeat_ms: 0,
             consumer_entries: 8,
+            pdos: (4, 4),
             sdo: ServerConfig::default(),
         }
     }
@@ -92,6 +96,7 @@ enum Command {
     SetError(u16, [u8; 5]),
     ClearError(u16),
     Nmt(NmtCommand),
+    SendPdo(u16),
 }
 
 /// 0x1003 sub 0 accepts only 0 (clear the history) from the network (CiA 301 §7.5.2.4).
@@ -216,6 +221,28 @@ pub fn add_communication_objects(od: &mut ObjectDictionary, config: &NodeConfig)
             od.insert(object);
         }
     }
+    crate::pdo::add_pdo_objects(od, config.node_id, config.pdos.0, config.pdos.1);
+    od.guard(Arc::new(crate::pdo::PdoGuard));
+}
+
+/// A PDO set up by the application in one call (the PLC style: identifier, objects in byte
+/// order, transmission type, inhibit and event time).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PdoSetup {
+    /// Transmit (true) or receive PDO.
+    pub transmit: bool,
+    /// PDO number from 1.
+    pub number: u16,
+    /// COB-ID value (bit 29 for a 29-bit identifier; bit 31 set disables the PDO).
+    pub cob_id: u32,
+    /// Mapped objects in byte order: index and sub-index (lengths come from their types).
+    pub objects: Vec<(u16, u8)>,
+    /// Transmission type (0, 1–240, 254, 255).
+    pub transmission_type: u8,
+    /// Inhibit time in 100 µs (TPDO).
+    pub inhibit_100us: u16,
+    /// Event timer in ms (TPDO) or receive timeout in ms (RPDO).
+    pub event_ms: u16,
 }
 
 /// A CANopen device running on a bus.
@@ -235,11 +262,8 @@ impl LocalNode {
         add_communication_objects(&mut od, &config);
         let (change_tx, change_rx) = mpsc::unbounded_channel();
         od.watch(Arc::new(move |index, sub| {
-            // Only communication parameters steer the node; application data changes are for
-            // PDOs and subscribers, not this task.
-            if (0x1000..0x2000).contains(&index) {
-                let _ = change_tx.send((index, sub));
-            }
+            // Communication parameters steer the node; every other change may trigger a TPDO.
+            let _ = change_tx.send((index, sub));
         }));
         let initial = od.clone();
         let od = Arc::new(Mutex::new(od));
@@ -310,6 +334,46 @@ impl LocalNode {
         let _ = self.commands.send(Command::ClearError(code));
     }
 
+    /// Configure a PDO with the CiA 301 procedure (as an SDO client would, so the same checks
+    /// apply): invalidate, parameters, mapping, validate.
+    pub fn configure_pdo(&self, setup: &PdoSetup) -> Result<(), AbortCode> {
+        use crate::pdo::{MapEntry, RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP};
+        let n = setup.number.checked_sub(1).ok_or(AbortCode::NO_OBJECT)?;
+        let (comm, map) = if setup.transmit {
+            (TPDO_COMM + n, TPDO_MAP + n)
+        } else {
+            (RPDO_COMM + n, RPDO_MAP + n)
+        };
+        let mut od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
+        let current = match od.get_value(comm, 1)? {
+            Value::Uint(v) => v as u32,
+            _ => return Err(AbortCode::GENERAL),
+        };
+        od.write(comm, 1, &(current | 0x8000_0000).to_le_bytes())?;
+        od.write(comm, 2, &[setup.transmission_type])?;
+        if setup.transmit {
+            od.write(comm, 3, &setup.inhibit_100us.to_le_bytes())?;
+        }
+        od.write(comm, 5, &setup.event_ms.to_le_bytes())?;
+        od.write(map, 0, &[0])?;
+        for (i, (index, sub)) in setup.objects.iter().enumerate() {
+            let bits = od.variable(*index, *sub)?.data_type.size().unwrap_or(0) * 8;
+            let entry = MapEntry {
+                index: *index,
+                sub: *sub,
+                bits: bits as u8,
+            };
+            od.write(map, i as u8 + 1, &entry.to_u32().to_le_bytes())?;
+        }
+        od.write(map, 0, &[setup.objects.len() as u8])?;
+        od.write(comm, 1, &setup.cob_id.to_le_bytes())
+    }
+
+    /// Send TPDO `number` now (subject to its inhibit time; types 0–240 at the next SYNC).
+    pub fn send_pdo(&self, number: u16) {
+        let _ = self.commands.send(Command::SendPdo(number));
+    }
+
     /// Subscribe to the node's events.
     pub fn events(&self) -> broadcast::Receiver<NodeEvent> {
         self.events.subscribe()
@@ -336,6 +400,7 @@ struct Driver {
     emcy: EmcyProducer,
     sync_config: SyncConfig,
     sync: SyncProducer,
+    pdo: PdoEngine,
     out: Vec<Frame>,
 }
 
@@ -373,6 +438,7 @@ impl Driver {
             emcy: EmcyProducer::new(config.node_id),
             sync_config: SyncConfig::default(),
             sync: SyncProducer::new(SyncConfig::default(), now),
+            pdo: PdoEngine::default(),
             out: Vec::new(),
         };
         driver.load_communication(now);
@@ -386,6 +452,7 @@ impl Driver {
         }
         let od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
         self.sdo = ServerChannels::new(server_channels(&od, self.node_id), &self.sdo_config);
+        self.pdo = PdoEngine::configure(&od, now);
     }
 
     /// React to a change of a communication parameter.
@@ -430,7 +497,8 @@ impl Driver {
             0x1017 => self
                 .producer
                 .set_period_ms(u32_value(&od, 0x1017, 0) as u16, now),
-            _ => {}
+            _ if PdoEngine::is_config(index) => self.pdo = PdoEngine::configure(&od, now),
+            _ => self.pdo.on_change(index, sub, now),
         }
     }
 
@@ -451,6 +519,10 @@ impl Driver {
     }
 
     fn enter(&mut self, state: NmtState) {
+        if state == NmtState::Operational {
+            // Event-driven TPDOs announce their current values on entering operational.
+            self.pdo.trigger_all(Instant::now());
+        }
         let _ = self.state.send(state);
         let _ = self.events.send(NodeEvent::Nmt(state));
     }
@@ -507,11 +579,54 @@ impl Driver {
                 let _ = self.events.send(NodeEvent::Emcy { node, message });
             }
         }
+        if state.allows_pdo() {
+            let mut pdo_events = Vec::new();
+            let mut od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
+            let was_pdo = self.pdo.handle_frame(&mut od, frame, now, &mut pdo_events);
+            drop(od);
+            if was_pdo && pdo_events.is_empty() {
+                // A correct RPDO ends the length and timeout errors it may have raised.
+                let active = [0x8210, 0x8220, 0x8250]
+                    .into_iter()
+                    .filter(|c| self.emcy.is_active(*c));
+                let cleared: Vec<u16> = active.collect();
+                for code in &cleared {
+                    self.emcy.clear_error(*code);
+                }
+                if !cleared.is_empty() {
+                    self.write_history();
+                }
+            }
+            self.pdo_events(pdo_events);
+            if was_pdo {
+                return;
+            }
+        }
         if state.allows_sdo() {
             if let Some(event) = crate::sync::receive(&self.sync_config, frame, now) {
+                if state.allows_pdo() {
+                    let mut od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
+                    self.pdo.on_sync(&mut od, event.counter, now, &mut self.out);
+                }
                 let _ = self.events.send(NodeEvent::Sync(event));
             }
         }
+    }
+
+    fn pdo_events(&mut self, events: Vec<PdoEvent>) {
+        if events.is_empty() {
+            return;
+        }
+        for e in events {
+            let number = match e {
+                PdoEvent::LengthError { rpdo }
+                | PdoEvent::LengthExceeded { rpdo }
+                | PdoEvent::Timeout { rpdo } => rpdo,
+            };
+            let n = number.to_le_bytes();
+            self.emcy.set_error(e.emcy_code(), [n[0], n[1], 0, 0, 0]);
+        }
+        self.write_history();
     }
 
     fn heartbeat_events(&mut self, events: Vec<HeartbeatEvent>) {
@@ -544,6 +659,9 @@ impl Driver {
             self.emcy.poll_timeout(),
             self.sync.poll_timeout(),
             self.sdo.poll_timeout(),
+            self.pdo
+                .poll_timeout()
+                .filter(|_| self.nmt.state().allows_pdo()),
         ]
         .into_iter()
         .flatten()
@@ -566,9 +684,26 @@ impl Driver {
                 self.out.push(f);
             }
             if let Some(f) = self.sync.handle_timeout(now) {
-                self.out.push(f);
+                // This node's own SYNC drives its synchronous PDOs too.
+                if state.allows_pdo() {
+                    let counter = f.data().first().copied();
+                    let mut od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
+                    self.out.push(f);
+                    self.pdo.on_sync(&mut od, counter, now, &mut self.out);
+                } else {
+                    self.out.push(f);
+                }
             }
-        } else if self.sync.poll_timeout().is_some_and(|d| d <= now) {
+        }
+        if state.allows_pdo() {
+            let mut pdo_events = Vec::new();
+            let od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
+            self.pdo
+                .handle_timeout(&od, now, &mut self.out, &mut pdo_events);
+            drop(od);
+            self.pdo_events(pdo_events);
+        }
+        if !state.allows_sdo() && self.sync.poll_timeout().is_some_and(|d| d <= now) {
             // SYNC is not produced while stopped; keep the schedule moving.
             let _ = self.sync.handle_timeout(now);
         }
@@ -617,6 +752,7 @@ impl Driver {
                                 self.nmt_action(action, Instant::now());
                             }
                         }
+                        Command::SendPdo(n) => self.pdo.request(n, Instant::now()),
                     }
                     self.write_history();
                 }

@@ -171,7 +171,7 @@ fn classify(index: u16) -> Option<(bool, u16, bool)> {
 
 /// Check that `entry` may be mapped into a PDO of the given direction.
 pub fn check_entry(od: &ObjectDictionary, entry: MapEntry, receive: bool) -> Result<(), AbortCode> {
-    if entry.bits == 0 || entry.bits % 8 != 0 {
+    if entry.bits == 0 || !entry.bits.is_multiple_of(8) {
         return Err(AbortCode::NOT_MAPPABLE);
     }
     if entry.is_dummy() {

@@ -292,3 +292,75 @@ async fn sync_producer_configured_by_sdo() {
     assert_eq!(counters, vec![1, 2, 3, 1, 2]);
     node.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn configured_pdos_carry_dictionary_changes() {
+    use canopen::node::PdoSetup;
+    use canopen::od::{Access, Object, Variable};
+    use canopen::types::DataType;
+    let url = "mem://node-pdo";
+    let mut od = ObjectDictionary::new();
+    od.insert(Object::var(
+        0x2000,
+        Variable::new("Car position", DataType::Unsigned16, Access::Rw).mappable(),
+    ));
+    od.insert(Object::var(
+        0x2100,
+        Variable::new("Setpoint", DataType::Unsigned32, Access::Rw).mappable(),
+    ));
+    let node = LocalNode::start(Bus::open(url).await.unwrap(), od, NodeConfig::new(6));
+    node.wait_for_state(NmtState::PreOperational).await;
+    node.configure_pdo(&PdoSetup {
+        transmit: true,
+        number: 1,
+        cob_id: 0x186,
+        objects: vec![(0x2000, 0)],
+        transmission_type: 254,
+        inhibit_100us: 0,
+        event_ms: 0,
+    })
+    .unwrap();
+    node.configure_pdo(&PdoSetup {
+        transmit: false,
+        number: 1,
+        cob_id: 0x206,
+        objects: vec![(0x2100, 0)],
+        transmission_type: 255,
+        inhibit_100us: 0,
+        event_ms: 0,
+    })
+    .unwrap();
+    let mut peer = Bus::open(url).await.unwrap();
+    peer.receiver
+        .set_filters(&[canbus::Filter::standard(0x186, 0x7FF)]);
+    node.nmt(NmtCommand::Start);
+    node.wait_for_state(NmtState::Operational).await;
+    let first = tokio::time::timeout(WAIT, peer.receiver.recv_frame())
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!(
+        first.data(),
+        &[0, 0],
+        "current value on entering operational"
+    );
+    node.set_value(0x2000, 0, &Value::Uint(1234)).unwrap();
+    let f = tokio::time::timeout(WAIT, peer.receiver.recv_frame())
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!(f.data(), &1234u16.to_le_bytes());
+    peer.send(canbus::Frame::standard(0x206, &4321u32.to_le_bytes()).unwrap())
+        .await
+        .unwrap();
+    let mut stored = Value::Uint(0);
+    for _ in 0..50 {
+        stored = node.value(0x2100, 0).unwrap();
+        if stored == Value::Uint(4321) {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    assert_eq!(stored, Value::Uint(4321));
+    node.stop().await;
+}
