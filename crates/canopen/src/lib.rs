@@ -21,6 +21,7 @@ pub mod node;
 pub mod od;
 pub mod pdo;
 pub mod sdo;
+pub mod storage;
 pub mod sync;
 pub mod time;
 pub mod types;

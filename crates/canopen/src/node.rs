@@ -54,6 +54,8 @@ pub struct NodeConfig {
     pub consumer_entries: u8,
     /// RPDOs and TPDOs the node offers (communication and mapping objects are added).
     pub pdos: (u16, u16),
+    /// Where "store parameters" (0x1010) keeps values; `None`: 0x1010/0x1011 are not offered.
+    pub storage: Option<std::path::PathBuf>,
     /// SDO server behaviour.
     pub sdo: ServerConfig,
 }
@@ -69,6 +71,7 @@ impl NodeConfig {
             heartbeat_ms: 0,
             consumer_entries: 8,
             pdos: (4, 4),
+            storage: None,
             sdo: ServerConfig::default(),
         }
     }
@@ -260,12 +263,19 @@ impl LocalNode {
     /// message; it enters pre-operational.
     pub fn start(bus: Bus, mut od: ObjectDictionary, config: NodeConfig) -> LocalNode {
         add_communication_objects(&mut od, &config);
+        if let Some(path) = &config.storage {
+            crate::storage::add_storage_objects(&mut od, path.clone());
+        }
         let (change_tx, change_rx) = mpsc::unbounded_channel();
         od.watch(Arc::new(move |index, sub| {
             // Communication parameters steer the node; every other change may trigger a TPDO.
             let _ = change_tx.send((index, sub));
         }));
+        // The defaults, for resets; stored values come on top of them.
         let initial = od.clone();
+        if let Some(path) = &config.storage {
+            apply_stored(&mut od, path, 0x0000..=0xFFFF);
+        }
         let od = Arc::new(Mutex::new(od));
         let (commands, command_rx) = mpsc::unbounded_channel();
         let (state_tx, state) = watch::channel(NmtState::Initialising);
@@ -386,8 +396,28 @@ impl LocalNode {
     }
 }
 
+/// Put the stored values of `range` from `path` into `od`; a damaged file is reported and
+/// ignored (the node starts with its defaults rather than not at all).
+fn apply_stored(
+    od: &mut ObjectDictionary,
+    path: &std::path::Path,
+    range: std::ops::RangeInclusive<u16>,
+) {
+    match crate::storage::load(path) {
+        Ok(entries) => {
+            let entries: Vec<_> = entries
+                .into_iter()
+                .filter(|(i, _, _)| range.contains(i))
+                .collect();
+            crate::storage::apply(od, &entries);
+        }
+        Err(e) => tracing::error!(error = %e, "stored parameters not loaded"),
+    }
+}
+
 struct Driver {
     node_id: u8,
+    storage: Option<std::path::PathBuf>,
     sdo_config: ServerConfig,
     od: SharedDictionary,
     initial: ObjectDictionary,
@@ -426,6 +456,7 @@ impl Driver {
         };
         let mut driver = Driver {
             node_id: config.node_id,
+            storage: config.storage.clone(),
             sdo_config: config.sdo.clone(),
             od,
             initial,
@@ -544,6 +575,9 @@ impl Driver {
                         let _ = od.set(object.index, *sub, bytes);
                     }
                 }
+            }
+            if let Some(path) = &self.storage {
+                apply_stored(&mut od, path, range);
             }
         }
         self.emcy = EmcyProducer::new(self.node_id);

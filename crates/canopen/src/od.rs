@@ -154,6 +154,9 @@ pub struct Variable {
     pub max_len: Option<usize>,
     /// DCF `Denotation`.
     pub denotation: Option<String>,
+    /// Kept by "store parameters" (0x1010) although not writable over the network, e.g. a trip
+    /// counter that must survive restarts. Writable variables are always kept.
+    pub persist: bool,
     storage: Storage,
     hook: Option<Arc<dyn VariableHook>>,
 }
@@ -201,6 +204,7 @@ impl Variable {
             high: None,
             max_len: None,
             denotation: None,
+            persist: false,
             storage: Storage::Value(vec![0; data_type.size().unwrap_or(0)]),
             hook: None,
         }
@@ -225,6 +229,12 @@ impl Variable {
     /// Mappable into PDOs.
     pub fn mappable(mut self) -> Self {
         self.pdo_mappable = true;
+        self
+    }
+
+    /// Kept by "store parameters" even though read-only (counters and the like).
+    pub fn persistent(mut self) -> Self {
+        self.persist = true;
         self
     }
 

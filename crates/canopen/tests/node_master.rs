@@ -364,3 +364,60 @@ async fn configured_pdos_carry_dictionary_changes() {
     assert_eq!(stored, Value::Uint(4321));
     node.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stored_parameters_survive_restarts_and_resets() {
+    use canopen::od::{Access, Object, Variable};
+    use canopen::types::DataType;
+    let url = "mem://node-storage";
+    let dir = std::env::temp_dir().join(format!("canlift-node-storage-{}", std::process::id()));
+    let path = dir.join("node8.params");
+    let make = || {
+        let mut od = ObjectDictionary::new();
+        od.insert(Object::var(
+            0x2000,
+            Variable::new("Trip counter", DataType::Unsigned32, Access::Ro).persistent(),
+        ));
+        let config = NodeConfig {
+            storage: Some(path.clone()),
+            ..NodeConfig::new(8)
+        };
+        (od, config)
+    };
+    let master = Master::open(url, client_config()).await.unwrap();
+    let (od, config) = make();
+    let node = LocalNode::start(Bus::open(url).await.unwrap(), od, config);
+    node.wait_for_state(NmtState::PreOperational).await;
+    node.set_value(0x2000, 0, &Value::Uint(1001)).unwrap();
+    master.sdo().write(8, 0x1017, 0, 250u16).await.unwrap();
+    let err = master
+        .sdo()
+        .write(8, 0x1010, 1, 0x1234u32)
+        .await
+        .unwrap_err();
+    assert_eq!(err.abort_code(), AbortCode::CANNOT_STORE, "wrong signature");
+    master.sdo().write_raw(8, 0x1010, 1, b"save").await.unwrap();
+    assert_eq!(master.sdo().read::<u32>(8, 0x1010, 1).await.unwrap(), 1);
+    node.stop().await;
+
+    // Restart: the stored values are back.
+    let (od, config) = make();
+    let node = LocalNode::start(Bus::open(url).await.unwrap(), od, config);
+    node.wait_for_state(NmtState::PreOperational).await;
+    assert_eq!(node.value(0x2000, 0).unwrap(), Value::Uint(1001));
+    assert_eq!(master.sdo().read::<u16>(8, 0x1017, 0).await.unwrap(), 250);
+    // Reset node returns to the stored values, not to what was changed since.
+    master.sdo().write(8, 0x1017, 0, 100u16).await.unwrap();
+    master.nmt(NmtCommand::ResetNode, 8).await.unwrap();
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    node.wait_for_state(NmtState::PreOperational).await;
+    assert_eq!(master.sdo().read::<u16>(8, 0x1017, 0).await.unwrap(), 250);
+    // Restore defaults of the communication parameters; they apply at the next reset.
+    master.sdo().write_raw(8, 0x1011, 2, b"load").await.unwrap();
+    master.nmt(NmtCommand::ResetCommunication, 8).await.unwrap();
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    assert_eq!(master.sdo().read::<u16>(8, 0x1017, 0).await.unwrap(), 0);
+    assert_eq!(node.value(0x2000, 0).unwrap(), Value::Uint(1001));
+    node.stop().await;
+    std::fs::remove_dir_all(&dir).unwrap();
+}
