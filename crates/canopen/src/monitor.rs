@@ -11,9 +11,10 @@ use canbus::{CanId, Frame, FrameKind};
 
 use crate::cob::{classify, Function};
 use crate::emcy::EmcyMessage;
+use crate::od::ObjectDictionary;
 use crate::sdo::abort::AbortCode;
 use crate::time::TimeOfDay;
-use crate::types::{civil_from_days, CANOPEN_EPOCH_DAYS};
+use crate::types::{civil_from_days, DataType, Value, CANOPEN_EPOCH_DAYS};
 
 /// The CANopen meaning of one frame.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -573,5 +574,521 @@ mod tests {
             text(0x601, &[0xE0, 0, 0, 0, 0, 0, 0, 0]),
             "SDO req  node 1: ? command specifier 7 (block data?)"
         );
+    }
+}
+
+/// A whole SDO transfer seen on the bus.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SdoTransfer {
+    /// The server's node-ID.
+    pub node: u8,
+    /// Upload (read) or download (write).
+    pub upload: bool,
+    /// Object index.
+    pub index: u16,
+    /// Sub-index.
+    pub sub: u8,
+    /// The data, or the abort code that ended the transfer.
+    pub result: Result<Vec<u8>, AbortCode>,
+    /// Expedited, segmented or block.
+    pub protocol: &'static str,
+}
+
+impl fmt::Display for SdoTransfer {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let dir = if self.upload { "read" } else { "write" };
+        write!(
+            f,
+            "SDO {dir} node {} {:04X}:{:02X} ({})",
+            self.node, self.index, self.sub, self.protocol
+        )?;
+        match &self.result {
+            Err(code) => write!(f, " ABORTED {code}"),
+            Ok(data) => {
+                write!(f, " {} bytes", data.len())?;
+                let shown = &data[..data.len().min(16)];
+                if !shown.is_empty() {
+                    write!(f, ": {}", hex(shown))?;
+                    if data.len() > shown.len() {
+                        write!(f, " …")?;
+                    }
+                }
+                if data.len() > 4 && data.iter().all(|b| (0x20..0x7F).contains(b)) {
+                    write!(f, " \"{}\"", String::from_utf8_lossy(data))?;
+                }
+                Ok(())
+            }
+        }
+    }
+}
+
+#[derive(Debug, Default)]
+struct Transfer {
+    upload: bool,
+    index: u16,
+    sub: u8,
+    data: Vec<u8>,
+    protocol: &'static str,
+    /// Block transfers: bytes received in the current sub-block, in sequence.
+    block_data: Vec<u8>,
+    expected_seq: u8,
+    /// Set when the data is complete; reported when the other side confirms.
+    complete: bool,
+}
+
+/// Reassembles whole SDO transfers from the frames of the default channels (0x600/0x580 +
+/// node-ID), for bus monitors. Feed every frame; complete and aborted transfers come out.
+#[derive(Debug, Default)]
+pub struct SdoTracker {
+    transfers: std::collections::HashMap<u8, Transfer>,
+}
+
+impl SdoTracker {
+    /// A tracker with nothing in progress.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Take one frame; returns a transfer that this frame finished.
+    pub fn feed(&mut self, frame: &Frame) -> Option<SdoTransfer> {
+        let (request, node) = match classify(match frame.id() {
+            CanId::Standard(id) => id,
+            CanId::Extended(_) => return None,
+        }) {
+            Function::SdoRequest(n) => (true, n),
+            Function::SdoResponse(n) => (false, n),
+            _ => return None,
+        };
+        let d: &[u8; 8] = frame.data().try_into().ok()?;
+        let finish = |t: Transfer, result: Result<Vec<u8>, AbortCode>| SdoTransfer {
+            node,
+            upload: t.upload,
+            index: t.index,
+            sub: t.sub,
+            result,
+            protocol: t.protocol,
+        };
+        // Inside a block sub-block, frames of the sending side are segments.
+        if let Some(t) = self.transfers.get_mut(&node) {
+            let sending_side = if t.upload { !request } else { request };
+            if t.protocol == "block" && sending_side && !t.complete && d[0] != 0x80 {
+                let seq = d[0] & 0x7F;
+                if seq == t.expected_seq {
+                    t.block_data.extend_from_slice(&d[1..8]);
+                    t.expected_seq += 1;
+                    if d[0] & 0x80 != 0 {
+                        t.complete = true;
+                    }
+                }
+                return None;
+            }
+        }
+        if d[0] == 0x80
+            || (d[0] >> 5 == 4
+                && !self
+                    .transfers
+                    .get(&node)
+                    .is_some_and(|t| t.protocol == "block" && !t.complete))
+        {
+            let t = self.transfers.remove(&node)?;
+            return Some(finish(t, Err(AbortCode(u32_at(d, 4)))));
+        }
+        let (index, sub) = (u16_at(d, 1), d[3]);
+        let cs = d[0] >> 5;
+        match (request, cs) {
+            // Initiate download.
+            (true, 1) => {
+                let expedited = d[0] & 2 != 0;
+                let n = if expedited && d[0] & 1 != 0 {
+                    usize::from((d[0] >> 2) & 3)
+                } else {
+                    0
+                };
+                let data = if expedited {
+                    d[4..8 - n].to_vec()
+                } else {
+                    Vec::new()
+                };
+                self.transfers.insert(
+                    node,
+                    Transfer {
+                        index,
+                        sub,
+                        data,
+                        complete: expedited,
+                        protocol: if expedited { "expedited" } else { "segmented" },
+                        ..Transfer::default()
+                    },
+                );
+            }
+            // Initiate upload / block upload.
+            (true, 2) => {
+                self.transfers.insert(
+                    node,
+                    Transfer {
+                        upload: true,
+                        index,
+                        sub,
+                        protocol: "segmented",
+                        ..Transfer::default()
+                    },
+                );
+            }
+            (true, 5) if d[0] & 3 == 0 => {
+                self.transfers.insert(
+                    node,
+                    Transfer {
+                        upload: true,
+                        index,
+                        sub,
+                        protocol: "block",
+                        expected_seq: 1,
+                        ..Transfer::default()
+                    },
+                );
+            }
+            (true, 6) if d[0] & 1 == 0 => {
+                self.transfers.insert(
+                    node,
+                    Transfer {
+                        index,
+                        sub,
+                        protocol: "block",
+                        expected_seq: 1,
+                        ..Transfer::default()
+                    },
+                );
+            }
+            // Server answers to an upload initiate.
+            (false, 2) => {
+                let t = self.transfers.get_mut(&node)?;
+                if d[0] & 2 != 0 {
+                    let n = if d[0] & 1 != 0 {
+                        usize::from((d[0] >> 2) & 3)
+                    } else {
+                        0
+                    };
+                    let mut t = self.transfers.remove(&node)?;
+                    t.protocol = "expedited";
+                    return Some(finish(t, Ok(d[4..8 - n].to_vec())));
+                }
+                t.protocol = "segmented";
+            }
+            // Download segments (client) and upload segments (server).
+            (true, 0) | (false, 0) => {
+                let t = self.transfers.get_mut(&node)?;
+                let n = usize::from((d[0] >> 1) & 7);
+                t.data.extend_from_slice(&d[1..8 - n]);
+                if d[0] & 1 != 0 {
+                    t.complete = true;
+                    if !request {
+                        let t = self.transfers.remove(&node)?;
+                        let data = t.data.clone();
+                        return Some(finish(t, Ok(data)));
+                    }
+                }
+            }
+            // Server confirms a download (initiate or segment).
+            (false, 3) | (false, 1) => {
+                if self
+                    .transfers
+                    .get(&node)
+                    .is_some_and(|t| t.complete && !t.upload)
+                {
+                    let t = self.transfers.remove(&node)?;
+                    let data = t.data.clone();
+                    return Some(finish(t, Ok(data)));
+                }
+            }
+            // Block acknowledgements: keep what was acknowledged, drop the rest of the sub-block.
+            (false, 5) | (true, 5) if d[0] & 3 == 2 => {
+                let t = self.transfers.get_mut(&node)?;
+                let keep = (usize::from(d[1]) * 7).min(t.block_data.len());
+                let acked: Vec<u8> = t.block_data.drain(..).take(keep).collect();
+                t.data.extend_from_slice(&acked);
+                if usize::from(d[1]) < usize::from(t.expected_seq - 1) {
+                    t.complete = false;
+                }
+                t.expected_seq = 1;
+            }
+            // Block end (download: client; upload: server) carries the unused byte count.
+            (true, 6) | (false, 6) if d[0] & 1 == 1 => {
+                let t = self.transfers.get_mut(&node)?;
+                let n = usize::from((d[0] >> 2) & 7);
+                let keep = t.data.len().saturating_sub(n);
+                t.data.truncate(keep);
+                t.complete = true;
+            }
+            // Block end confirmations.
+            (false, 5) | (true, 5) if d[0] & 3 == 1 => {
+                let t = self.transfers.remove(&node)?;
+                let data = t.data.clone();
+                return Some(finish(t, Ok(data)));
+            }
+            _ => {}
+        }
+        None
+    }
+}
+
+#[cfg(test)]
+mod tracker_tests {
+    use super::*;
+    use crate::od::{Access, Object, ObjectDictionary, Variable};
+    use crate::sdo::client::{ClientConfig, SdoClient, Transfer as How};
+    use crate::sdo::server::{SdoServer, ServerConfig};
+    use crate::types::{DataType, Value};
+    use std::time::Instant;
+
+    /// Run a real client/server transfer and feed every frame to the tracker.
+    fn observe(how: How, upload: bool, data: &[u8], lose: Option<usize>) -> Vec<SdoTransfer> {
+        let mut od = ObjectDictionary::new();
+        od.insert(Object::var(
+            0x2000,
+            Variable::new("Blob", DataType::Domain, Access::Rw),
+        ));
+        od.insert(Object::var(
+            0x1008,
+            Variable::new("Name", DataType::VisibleString, Access::Ro)
+                .with_value(Value::Text("x".into())),
+        ));
+        if upload {
+            od.write(0x2000, 0, data).unwrap();
+        }
+        let now = Instant::now();
+        let mut client = SdoClient::new(ClientConfig {
+            block_size: 4,
+            switch_threshold: 0,
+            ..Default::default()
+        });
+        let mut server = SdoServer::new(ServerConfig {
+            block_size: 4,
+            ..Default::default()
+        });
+        let mut tracker = SdoTracker::new();
+        let mut seen = Vec::new();
+        let mut to_server = Vec::new();
+        if upload {
+            client
+                .start_upload(0x2000, 0, how, now, &mut to_server)
+                .unwrap();
+        } else {
+            client
+                .start_download(0x2000, 0, data.to_vec(), how, now, &mut to_server)
+                .unwrap();
+        }
+        let mut count = 0;
+        for _ in 0..10_000 {
+            let mut to_client = Vec::new();
+            for p in to_server.drain(..) {
+                count += 1;
+                seen.extend(tracker.feed(&Frame::standard(0x605, &p).unwrap()));
+                if lose != Some(count) {
+                    server.handle(&mut od, &p, now, &mut to_client);
+                }
+            }
+            let mut done = false;
+            for p in to_client {
+                seen.extend(tracker.feed(&Frame::standard(0x585, &p).unwrap()));
+                done |= client.handle(&p, now, &mut to_server).is_some();
+            }
+            if done {
+                for p in to_server.drain(..) {
+                    seen.extend(tracker.feed(&Frame::standard(0x605, &p).unwrap()));
+                    server.handle(&mut od, &p, now, &mut Vec::new());
+                }
+                break;
+            }
+        }
+        seen
+    }
+
+    #[test]
+    fn whole_transfers_are_reassembled() {
+        let data: Vec<u8> = (0..100u8).collect();
+        for how in [How::Normal, How::Segmented, How::Block] {
+            for upload in [true, false] {
+                for len in [1usize, 4, 7, 13, 100] {
+                    let got = observe(how, upload, &data[..len], None);
+                    assert_eq!(got.len(), 1, "{how:?} upload={upload} {len}: {got:?}");
+                    assert_eq!(
+                        got[0].result,
+                        Ok(data[..len].to_vec()),
+                        "{how:?} upload={upload} {len}"
+                    );
+                    assert_eq!(
+                        (got[0].index, got[0].sub, got[0].upload, got[0].node),
+                        (0x2000, 0, upload, 5)
+                    );
+                }
+            }
+        }
+        // A lost segment in a block download is repeated: the tracker keeps only acknowledged data.
+        let got = observe(How::Block, false, &data, Some(3));
+        assert_eq!(got[0].result, Ok(data.clone()));
+        let text = got[0].to_string();
+        assert!(
+            text.starts_with("SDO write node 5 2000:00 (block) 100 bytes: 00 01 02"),
+            "{text}"
+        );
+    }
+
+    #[test]
+    fn aborts_are_reported() {
+        let mut tracker = SdoTracker::new();
+        assert_eq!(
+            tracker.feed(&Frame::standard(0x601, &[0x40, 0x00, 0x30, 0, 0, 0, 0, 0]).unwrap()),
+            None
+        );
+        let t = tracker
+            .feed(&Frame::standard(0x581, &[0x80, 0x00, 0x30, 0, 0, 0, 2, 6]).unwrap())
+            .unwrap();
+        assert_eq!(t.result, Err(AbortCode::NO_OBJECT));
+        assert!(t.to_string().contains("ABORTED 06020000"), "{t}");
+    }
+}
+
+/// What a PDO carries: its mapped objects in order, with types where known.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PdoLayout {
+    /// `TPDO1 node 1` and the like.
+    pub name: String,
+    /// Index, sub-index, length in bytes, and the data type when a dictionary tells it.
+    pub entries: Vec<(u16, u8, usize, Option<DataType>)>,
+}
+
+/// The layouts of the valid TPDOs and RPDOs configured in `od` (an EDS/DCF of node `node`, or
+/// a dictionary read back over SDO).
+pub fn pdo_layouts(od: &ObjectDictionary, node: u8) -> Vec<(CanId, PdoLayout)> {
+    let mut out = Vec::new();
+    for (comm, map, kind) in [
+        (crate::pdo::TPDO_COMM, crate::pdo::TPDO_MAP, "TPDO"),
+        (crate::pdo::RPDO_COMM, crate::pdo::RPDO_MAP, "RPDO"),
+    ] {
+        for n in 0..crate::pdo::MAX_PDOS {
+            let Ok(Value::Uint(cob)) = od.get_value(comm + n, 1) else {
+                continue;
+            };
+            let Some(id) = crate::cob::id_from_parameter(cob as u32) else {
+                continue;
+            };
+            let count = match od.get_value(map + n, 0) {
+                Ok(Value::Uint(c)) => c as u8,
+                _ => 0,
+            };
+            let entries: Vec<_> = (1..=count)
+                .filter_map(|s| match od.get_value(map + n, s) {
+                    Ok(Value::Uint(v)) => Some(crate::pdo::MapEntry::from_u32(v as u32)),
+                    _ => None,
+                })
+                .map(|e| {
+                    let ty = od.variable(e.index, e.sub).ok().map(|v| v.data_type);
+                    (e.index, e.sub, usize::from(e.bits / 8), ty)
+                })
+                .collect();
+            if !entries.is_empty() {
+                out.push((
+                    id,
+                    PdoLayout {
+                        name: format!("{kind}{} node {node}", n + 1),
+                        entries,
+                    },
+                ));
+            }
+        }
+    }
+    out
+}
+
+/// The values in a PDO's data, by its layout: `2000:00=1234 2001:00=7`.
+pub fn decode_pdo(layout: &PdoLayout, data: &[u8]) -> String {
+    let mut pos = 0;
+    let mut parts = Vec::new();
+    for (index, sub, len, ty) in &layout.entries {
+        let Some(bytes) = data.get(pos..pos + len) else {
+            parts.push(format!("{index:04X}:{sub:02X}=<missing>"));
+            break;
+        };
+        pos += len;
+        if (1..=7).contains(index) {
+            continue; // dummy entry
+        }
+        let text = match ty.and_then(|t| {
+            crate::types::decode(t, bytes)
+                .ok()
+                .map(|v| crate::types::to_text(t, &v))
+        }) {
+            Some(text) => text,
+            None if *len <= 8 => {
+                let mut wide = [0u8; 8];
+                wide[..*len].copy_from_slice(bytes);
+                u64::from_le_bytes(wide).to_string()
+            }
+            None => hex(bytes),
+        };
+        parts.push(format!("{index:04X}:{sub:02X}={text}"));
+    }
+    format!("{}: {}", layout.name, parts.join(" "))
+}
+
+#[cfg(test)]
+mod pdo_layout_tests {
+    use super::*;
+
+    #[test]
+    fn layouts_from_a_dictionary_decode_frames() {
+        let mut od = ObjectDictionary::new();
+        od.insert(crate::od::Object::var(
+            0x2000,
+            crate::od::Variable::new("Position", DataType::Integer16, crate::od::Access::Rw)
+                .mappable(),
+        ));
+        crate::pdo::add_pdo_objects(&mut od, 1, 1, 1);
+        od.set(
+            crate::pdo::TPDO_MAP,
+            1,
+            &crate::pdo::MapEntry {
+                index: 0x2000,
+                sub: 0,
+                bits: 16,
+            }
+            .to_u32()
+            .to_le_bytes(),
+        )
+        .unwrap();
+        od.set(
+            crate::pdo::TPDO_MAP,
+            2,
+            &crate::pdo::MapEntry {
+                index: 0x0005,
+                sub: 0,
+                bits: 8,
+            }
+            .to_u32()
+            .to_le_bytes(),
+        )
+        .unwrap();
+        od.set(
+            crate::pdo::TPDO_MAP,
+            3,
+            &crate::pdo::MapEntry {
+                index: 0x2100,
+                sub: 1,
+                bits: 32,
+            }
+            .to_u32()
+            .to_le_bytes(),
+        )
+        .unwrap();
+        od.set(crate::pdo::TPDO_MAP, 0, &[3]).unwrap();
+        let layouts = pdo_layouts(&od, 1);
+        assert_eq!(layouts.len(), 1, "the RPDO has no mapping");
+        let (id, layout) = &layouts[0];
+        assert_eq!(*id, CanId::Standard(0x181));
+        assert_eq!(
+            decode_pdo(layout, &[0xFE, 0xFF, 9, 1, 0, 0, 0]),
+            "TPDO1 node 1: 2000:00=-2 2100:01=1"
+        );
+        assert_eq!(decode_pdo(layout, &[1]), "TPDO1 node 1: 2000:00=<missing>");
     }
 }

@@ -1,0 +1,82 @@
+//! `canlift dump` watching a live node: whole SDO transfers and PDOs decoded by mappings it
+//! reads over SDO.
+
+use std::net::SocketAddr;
+use std::process::Stdio;
+use std::time::Duration;
+
+use canbus::hub::{Hub, HubConfig};
+use canbus::Bus;
+use canopen::driver::SdoClients;
+use canopen::nmt::{NmtCommand, NmtState};
+use canopen::node::{LocalNode, NodeConfig, PdoSetup};
+use canopen::od::{Access, Object, ObjectDictionary, Variable};
+use canopen::types::{DataType, Value};
+use tokio::io::AsyncReadExt;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn dump_shows_transfers_and_learned_pdos() {
+    let hub = Hub::bind(HubConfig {
+        listen: SocketAddr::from(([127, 0, 0, 1], 0)),
+        ..HubConfig::default()
+    })
+    .await
+    .unwrap()
+    .spawn()
+    .unwrap();
+    let url = format!("socketcand://{}/can0", hub.local_addr());
+    let mut dump = tokio::process::Command::new(env!("CARGO_BIN_EXE_canlift"))
+        .args(["dump", "--bus", &url, "--read-pdo-mappings"])
+        .stdout(Stdio::piped())
+        .kill_on_drop(true)
+        .spawn()
+        .unwrap();
+    tokio::time::sleep(Duration::from_millis(300)).await;
+
+    let mut od = ObjectDictionary::new();
+    od.insert(Object::var(
+        0x2000,
+        Variable::new("Car position", DataType::Unsigned16, Access::Rw).mappable(),
+    ));
+    let config = NodeConfig {
+        heartbeat_ms: 100,
+        software_version: "sim 1.0".into(),
+        ..NodeConfig::new(6)
+    };
+    let node = LocalNode::start(Bus::open(&url).await.unwrap(), od, config);
+    node.wait_for_state(NmtState::PreOperational).await;
+    node.configure_pdo(&PdoSetup {
+        transmit: true,
+        number: 1,
+        cob_id: 0x186,
+        objects: vec![(0x2000, 0)],
+        transmission_type: 254,
+        inhibit_100us: 0,
+        event_ms: 0,
+    })
+    .unwrap();
+    // Give dump time to see a heartbeat and read the mappings.
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let sdo = SdoClients::new(Bus::open(&url).await.unwrap(), Default::default());
+    assert_eq!(sdo.read::<String>(6, 0x100A, 0).await.unwrap(), "sim 1.0");
+    node.nmt(NmtCommand::Start);
+    node.wait_for_state(NmtState::Operational).await;
+    node.set_value(0x2000, 0, &Value::Uint(1234)).unwrap();
+    tokio::time::sleep(Duration::from_millis(300)).await;
+
+    let mut stdout = dump.stdout.take().unwrap();
+    dump.start_kill().unwrap();
+    let mut text = String::new();
+    let _ = tokio::time::timeout(Duration::from_secs(5), stdout.read_to_string(&mut text)).await;
+    assert!(text.contains("Boot-up node 6"), "{text}");
+    assert!(text.contains("Heartbeat node 6: pre-operational"), "{text}");
+    assert!(
+        text.contains(
+            "=> SDO read node 6 100A:00 (segmented) 7 bytes: 73 69 6D 20 31 2E 30 \"sim 1.0\""
+        ),
+        "{text}"
+    );
+    assert!(text.contains("TPDO1 node 6: 2000:00=1234"), "{text}");
+    node.stop().await;
+    hub.shutdown().await;
+}
