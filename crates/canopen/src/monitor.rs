@@ -789,16 +789,15 @@ impl SdoTracker {
                 }
             }
             // Server confirms a download (initiate or segment).
-            (false, 3) | (false, 1) => {
+            (false, 3) | (false, 1)
                 if self
                     .transfers
                     .get(&node)
-                    .is_some_and(|t| t.complete && !t.upload)
-                {
-                    let t = self.transfers.remove(&node)?;
-                    let data = t.data.clone();
-                    return Some(finish(t, Ok(data)));
-                }
+                    .is_some_and(|t| t.complete && !t.upload) =>
+            {
+                let t = self.transfers.remove(&node)?;
+                let data = t.data.clone();
+                return Some(finish(t, Ok(data)));
             }
             // Block acknowledgements: keep what was acknowledged, drop the rest of the sub-block.
             (false, 5) | (true, 5) if d[0] & 3 == 2 => {
