@@ -44,12 +44,7 @@ impl HeartbeatProducer {
         if now < next {
             return None;
         }
-        let mut following = next + period;
-        if following <= now {
-            // Far behind (the process was suspended): resume from now instead of bursting.
-            following = now + period;
-        }
-        self.next = Some(following);
+        self.next = Some(crate::tick::next_tick(next, period, now));
         Some(heartbeat_frame(self.node_id, state))
     }
 }

@@ -6,6 +6,8 @@
 //! ([`time`]); the pre-defined connection set ([`cob`]) and the frame decoder for bus monitors
 //! ([`monitor`]). The tokio edge is [`driver`] (feature `tokio`, on by default).
 
+#[cfg(feature = "tokio")]
+mod alarm;
 pub mod cob;
 #[cfg(feature = "tokio")]
 pub mod driver;
@@ -23,5 +25,6 @@ pub mod pdo;
 pub mod sdo;
 pub mod storage;
 pub mod sync;
+mod tick;
 pub mod time;
 pub mod types;

@@ -761,6 +761,8 @@ impl Driver {
         mut changes: mpsc::UnboundedReceiver<(u16, u8)>,
     ) {
         let (sender, mut receiver) = bus.split();
+        // Microsecond wake-ups for SYNC periods and inhibit times; tokio's timer as fallback.
+        let alarm = crate::alarm::Alarm::new(&format!("canopen-node-{}", self.node_id)).ok();
         self.boot(Instant::now());
         loop {
             if !self.flush(&sender).await {
@@ -768,9 +770,18 @@ impl Driver {
             }
             // Time-driven work first so that a busy bus never starves the timers.
             let deadline = self.deadline();
+            let wake = async {
+                match &alarm {
+                    Some(alarm) => {
+                        alarm.set(deadline);
+                        alarm.fired().await
+                    }
+                    None => sleep_until(deadline).await,
+                }
+            };
             tokio::select! {
                 biased;
-                _ = sleep_until(deadline) => self.timers(Instant::now()),
+                _ = wake => self.timers(Instant::now()),
                 event = receiver.recv() => match event {
                     Some(canbus::BusEvent::Frame(f)) => self.frame(&f, Instant::now()),
                     Some(_) => {}

@@ -83,11 +83,7 @@ impl SyncProducer {
             return None;
         }
         let period = Duration::from_micros(self.config.period_us.into());
-        let mut following = next + period;
-        if following <= now {
-            following = now + period;
-        }
-        self.next = Some(following);
+        self.next = Some(crate::tick::next_tick(next, period, now));
         let id = self.config.id()?;
         if self.config.counter_overflow >= 2 {
             let counter = self.counter;

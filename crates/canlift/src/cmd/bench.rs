@@ -10,7 +10,8 @@ use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
-use canbus::{Bus, BusOptions, CanId, Frame};
+use canbus::BusOptions;
+use canbus::{Bus, CanId, Frame};
 use tokio::io::{AsyncBufReadExt, BufReader};
 
 /// Command-line arguments of `canlift bench`.
@@ -26,6 +27,24 @@ enum BenchKind {
     Hub(HubBench),
     /// SDO transfer rates through the hub, canlift's client and python-canopen's on one server.
     Sdo(SdoBench),
+    /// A LocalNode through the hub: change→TPDO latency, PDO frames/s, SYNC jitter, idle CPU.
+    Node(NodeBench),
+}
+
+#[derive(Debug, Clone, clap::Args)]
+struct NodeBench {
+    /// Changes timed for the change→TPDO latency.
+    #[arg(long, default_value_t = 2000)]
+    changes: u32,
+    /// Seconds of PDO traffic for the frames/s figures.
+    #[arg(long, default_value_t = 2)]
+    seconds: u64,
+    /// SYNCs measured at a 1 ms period.
+    #[arg(long, default_value_t = 2000)]
+    syncs: u32,
+    /// Seconds the node idles for the CPU figure (0 skips it).
+    #[arg(long, default_value_t = 60)]
+    idle_seconds: u64,
 }
 
 #[derive(Debug, Clone, clap::Args)]
@@ -101,6 +120,231 @@ async fn start_hub(bitrate: Option<u32>) -> anyhow::Result<RunningHub> {
         addr,
         child: Some(child),
     })
+}
+
+/// Percentiles of durations in µs.
+fn micros(sorted: &[Duration], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    let rank = ((p / 100.0) * (sorted.len() - 1) as f64).round() as usize;
+    sorted[rank.min(sorted.len() - 1)].as_secs_f64() * 1e6
+}
+
+/// A started, operational node with TPDO1 = 0x2000 and RPDO1 = 0x2100 (both event-driven), and
+/// a counter of stored RPDO values.
+async fn pdo_node(
+    url: &str,
+) -> anyhow::Result<(
+    canopen::node::LocalNode,
+    std::sync::Arc<std::sync::atomic::AtomicU64>,
+)> {
+    use canopen::nmt::{NmtCommand, NmtState};
+    use canopen::node::{LocalNode, NodeConfig, PdoSetup};
+    use canopen::od::{Access, Object, ObjectDictionary, Variable};
+    use canopen::types::DataType;
+
+    let mut od = ObjectDictionary::new();
+    od.insert(Object::var(
+        0x2000,
+        Variable::new("Counter", DataType::Unsigned32, Access::Rw).mappable(),
+    ));
+    od.insert(Object::var(
+        0x2100,
+        Variable::new("Setpoint", DataType::Unsigned32, Access::Rw).mappable(),
+    ));
+    let updates = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+    {
+        let updates = updates.clone();
+        od.watch(std::sync::Arc::new(move |index, _| {
+            if index == 0x2100 {
+                updates.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            }
+        }));
+    }
+    let node = LocalNode::start(Bus::open(url).await?, od, NodeConfig::new(5));
+    node.wait_for_state(NmtState::PreOperational).await;
+    let setup = |transmit, cob_id, object| PdoSetup {
+        transmit,
+        number: 1,
+        cob_id,
+        objects: vec![(object, 0)],
+        transmission_type: 254,
+        inhibit_100us: 0,
+        event_ms: 0,
+    };
+    node.configure_pdo(&setup(true, 0x185, 0x2000))
+        .map_err(|c| anyhow::anyhow!("TPDO: {c}"))?;
+    node.configure_pdo(&setup(false, 0x205, 0x2100))
+        .map_err(|c| anyhow::anyhow!("RPDO: {c}"))?;
+    node.nmt(NmtCommand::Start);
+    node.wait_for_state(NmtState::Operational).await;
+    Ok((node, updates))
+}
+
+async fn run_node_bench(args: NodeBench) -> anyhow::Result<()> {
+    use canopen::types::Value;
+
+    let hub = start_hub(None).await?;
+    let url = format!("socketcand://{}/node", hub.addr);
+    let (node, _) = pdo_node(&url).await?;
+    let options = BusOptions {
+        rx_queue: 1 << 20,
+        ..Default::default()
+    };
+    let mut peer = Bus::open_with(&url, options.clone()).await?;
+    peer.receiver.set_filters(&[
+        canbus::Filter::standard(0x185, 0x7FF),
+        canbus::Filter::standard(0x080, 0x7FF),
+    ]);
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    while peer.receiver.try_recv().is_some() {}
+    println!("node bench: LocalNode (node 5) and a peer through canlift hub");
+
+    // 1. Change → TPDO latency, one change at a time.
+    let mut latencies = Vec::with_capacity(args.changes as usize);
+    for i in 1..=args.changes {
+        let start = Instant::now();
+        node.set_value(0x2000, 0, &Value::Uint(i.into()))
+            .map_err(|c| anyhow::anyhow!("{c}"))?;
+        loop {
+            let f = tokio::time::timeout(Duration::from_secs(2), peer.receiver.recv_frame())
+                .await
+                .context("TPDO did not arrive")?
+                .context("bus closed")?;
+            if f.data() == i.to_le_bytes() {
+                break;
+            }
+        }
+        latencies.push(start.elapsed());
+    }
+    latencies.sort_unstable();
+    println!(
+        "  OD change -> TPDO received: p50 {:.0} us, p99 {:.0} us ({} changes)",
+        micros(&latencies, 50.0),
+        micros(&latencies, 99.0),
+        args.changes
+    );
+
+    // 2./3. What the node itself produces and consumes, on the in-process bus (the hub's own
+    // capacity is `bench hub`; through it a flood makes slow readers be dropped by design).
+    let mem_url = format!("mem://bench-node-{}", std::process::id());
+    let (mem_node, updates) = pdo_node(&mem_url).await?;
+    let mut mem_peer = Bus::open_with(&mem_url, options).await?;
+    mem_peer
+        .receiver
+        .set_filters(&[canbus::Filter::standard(0x185, 0x7FF)]);
+    let until = Instant::now() + Duration::from_secs(args.seconds);
+    let counter = tokio::spawn(async move {
+        let (mut frames, mut lost) = (0u64, 0u64);
+        while let Ok(Some(event)) =
+            tokio::time::timeout(Duration::from_millis(500), mem_peer.recv()).await
+        {
+            match event {
+                canbus::BusEvent::Frame(_) => frames += 1,
+                canbus::BusEvent::Overrun { dropped } => lost += dropped,
+                _ => {}
+            }
+        }
+        (frames, lost)
+    });
+    let mut value = 1_000_000u32;
+    let started = Instant::now();
+    while Instant::now() < until {
+        for _ in 0..16 {
+            value += 1;
+            mem_node
+                .set_value(0x2000, 0, &Value::Uint(value.into()))
+                .map_err(|c| anyhow::anyhow!("{c}"))?;
+        }
+        tokio::task::yield_now().await;
+    }
+    let produce_time = started.elapsed().as_secs_f64();
+    let (produced, lost) = counter.await?;
+    println!(
+        "  TPDOs produced (in-process bus): {:.0} frames/s ({} changes; changes within one turn of the node share a TPDO; {lost} lost by the reader)",
+        (produced + lost) as f64 / produce_time,
+        value - 1_000_000,
+    );
+    let sender = Bus::open(&mem_url).await?;
+    let before = updates.load(std::sync::atomic::Ordering::Relaxed);
+    let started = Instant::now();
+    let mut sent = 0u64;
+    while started.elapsed() < Duration::from_secs(args.seconds) {
+        for _ in 0..64 {
+            sent += 1;
+            sender
+                .send(Frame::standard(0x205, &(sent as u32).to_le_bytes())?)
+                .await?;
+        }
+        tokio::task::yield_now().await;
+    }
+    let consume_time = started.elapsed().as_secs_f64();
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let stored = updates.load(std::sync::atomic::Ordering::Relaxed) - before;
+    println!(
+        "  RPDOs consumed (in-process bus): {:.0} frames/s stored into the dictionary ({stored} of {sent} sent; the rest overran the node's receive queue)",
+        stored as f64 / consume_time
+    );
+    mem_node.stop().await;
+
+    // 4. SYNC producer jitter at 1 ms.
+    let sdo = canopen::driver::SdoClients::new(Bus::open(&url).await?, Default::default());
+    sdo.write(5, 0x1006, 0, 1000u32).await?;
+    sdo.write(5, 0x1005, 0, 0x4000_0080u32).await?;
+    while peer.receiver.try_recv().is_some() {}
+    let mut last = None;
+    let mut jitter = Vec::with_capacity(args.syncs as usize);
+    let mut periods = Vec::with_capacity(args.syncs as usize);
+    while jitter.len() < args.syncs as usize {
+        let f = tokio::time::timeout(Duration::from_secs(2), peer.receiver.recv_frame())
+            .await
+            .context("SYNC did not arrive")?
+            .context("bus closed")?;
+        if f.id() != CanId::Standard(0x80) {
+            continue;
+        }
+        let now = Instant::now();
+        if let Some(prev) = last {
+            let period: Duration = now - prev;
+            periods.push(period);
+            jitter.push(if period > Duration::from_millis(1) {
+                period - Duration::from_millis(1)
+            } else {
+                Duration::from_millis(1) - period
+            });
+        }
+        last = Some(now);
+    }
+    sdo.write(5, 0x1005, 0, 0x80u32).await?;
+    let mean = periods.iter().sum::<Duration>() / periods.len().max(1) as u32;
+    jitter.sort_unstable();
+    println!(
+        "  SYNC at 1 ms (as received through the hub): mean period {:.1} us, jitter p50 {:.0} us, p99 {:.0} us",
+        mean.as_secs_f64() * 1e6,
+        micros(&jitter, 50.0),
+        micros(&jitter, 99.0)
+    );
+
+    // 5. Idle CPU: heartbeat at 1 s, nothing else.
+    if args.idle_seconds > 0 {
+        sdo.write(5, 0x1017, 0, 1000u16).await?;
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        let own = std::process::id();
+        let before = cpu_time(own);
+        tokio::time::sleep(Duration::from_secs(args.idle_seconds)).await;
+        match (before, cpu_time(own)) {
+            (Some(a), Some(b)) => println!(
+                "  idle node (heartbeat 1 s, bus client, runtime) over {} s: {:.1} ms CPU",
+                args.idle_seconds,
+                (b.saturating_sub(a)).as_secs_f64() * 1e3
+            ),
+            _ => println!("  idle CPU: not measured (no /proc)"),
+        }
+    }
+    node.stop().await;
+    drop(hub);
+    Ok(())
 }
 
 /// CPU time (user + system) of process `pid` so far, summed over its threads.
@@ -437,5 +681,6 @@ pub async fn run(args: BenchArgs) -> anyhow::Result<()> {
     match args.what {
         BenchKind::Hub(h) => run_hub_bench(h).await,
         BenchKind::Sdo(s) => run_sdo_bench(s).await,
+        BenchKind::Node(n) => run_node_bench(n).await,
     }
 }
