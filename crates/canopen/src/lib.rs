@@ -14,6 +14,7 @@ pub mod driver;
 pub mod eds;
 pub mod emcy;
 pub mod heartbeat;
+pub mod lss;
 #[cfg(feature = "tokio")]
 pub mod master;
 pub mod monitor;
