@@ -86,6 +86,11 @@ impl NodeState {
 /// A change the consumer noticed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum HeartbeatEvent {
+    /// A node sent its boot-up message: it (re)started, whatever the table knew before.
+    BootUp {
+        /// The node.
+        node: u8,
+    },
     /// A node's state changed.
     StateChanged {
         /// The node.
@@ -193,6 +198,9 @@ impl HeartbeatConsumer {
         if entry.state == NodeState::Offline {
             events.push(HeartbeatEvent::Recovered { node });
         }
+        if new == NodeState::BootUp {
+            events.push(HeartbeatEvent::BootUp { node });
+        }
         entry.last_seen = Some(now);
         entry.deadline = entry.consumer_time.map(|t| now + t);
         if entry.state != new {
@@ -283,6 +291,7 @@ mod tests {
         assert_eq!(
             ev,
             vec![
+                HeartbeatEvent::BootUp { node: 1 },
                 HeartbeatEvent::StateChanged {
                     node: 1,
                     old: NodeState::Unknown,

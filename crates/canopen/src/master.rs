@@ -47,9 +47,33 @@ pub enum MasterEvent {
     },
 }
 
+/// Why an LSS service failed.
+#[derive(Debug, thiserror::Error)]
+pub enum LssError {
+    /// The bus failed.
+    #[error(transparent)]
+    Bus(#[from] BusError),
+    /// No slave answered (none in configuration state, or none selected).
+    #[error("no LSS slave answered")]
+    NoResponse,
+    /// The slave refused with this CiA 305 error code (1: out of range / not supported).
+    #[error("LSS slave refused with error code {0}")]
+    Refused(u8),
+}
+
+/// How long an LSS slave has to answer.
+const LSS_TIMEOUT: Duration = Duration::from_millis(200);
+/// How long each Fastscan step listens. Every step waits this long: several slaves may answer
+/// the same step (on a real bus their identical frames merge; on a virtual one they do not), and
+/// a late duplicate must not be taken for the answer to the next step.
+const FASTSCAN_TIMEOUT: Duration = Duration::from_millis(20);
+
 /// The master of a CANopen network.
 pub struct Master {
     sender: BusSender,
+    /// Responses on 0x7E4 go here while an LSS service waits for one.
+    lss_route: Arc<Mutex<Option<tokio::sync::mpsc::UnboundedSender<canbus::Frame>>>>,
+    lss_turn: tokio::sync::Mutex<()>,
     sdo: SdoClients,
     table: Arc<Mutex<HeartbeatConsumer>>,
     wake: Arc<tokio::sync::Notify>,
@@ -65,8 +89,11 @@ impl Master {
         let table = Arc::new(Mutex::new(HeartbeatConsumer::new()));
         let wake = Arc::new(tokio::sync::Notify::new());
         let (events, _) = broadcast::channel(1024);
+        let lss_route: Arc<Mutex<Option<tokio::sync::mpsc::UnboundedSender<canbus::Frame>>>> =
+            Arc::default();
         let task = {
             let (table, wake, events) = (table.clone(), wake.clone(), events.clone());
+            let lss = lss_route.clone();
             tokio::spawn(async move {
                 let mut heartbeat = Vec::new();
                 loop {
@@ -84,6 +111,14 @@ impl Master {
                         _ = wake.notified() => continue,
                     };
                     let now = Instant::now();
+                    if let Some(f) = frame.as_ref().filter(|f| f.id() == crate::lss::SLAVE_ID) {
+                        if let Some(route) =
+                            lss.lock().unwrap_or_else(PoisonError::into_inner).as_ref()
+                        {
+                            let _ = route.send(*f);
+                        }
+                        continue;
+                    }
                     {
                         let mut table = table.lock().unwrap_or_else(PoisonError::into_inner);
                         match &frame {
@@ -103,6 +138,8 @@ impl Master {
         };
         Ok(Master {
             sender,
+            lss_route,
+            lss_turn: tokio::sync::Mutex::new(()),
             sdo,
             table,
             wake,
@@ -147,6 +184,211 @@ impl Master {
             .unwrap_or_else(PoisonError::into_inner)
             .table()
             .collect()
+    }
+
+    /// Send an LSS request and wait up to `timeout` for a response with command `expect`.
+    async fn lss_request(
+        &self,
+        request: canbus::Frame,
+        expect: Option<u8>,
+        timeout: Duration,
+    ) -> Result<Option<canbus::Frame>, BusError> {
+        let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
+        *self
+            .lss_route
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = Some(tx);
+        let sent = async {
+            self.sender.send(request).await?;
+            self.sender.flush().await
+        };
+        let result = match sent.await {
+            Err(e) => Err(e),
+            Ok(()) => match expect {
+                None => Ok(None),
+                Some(cs) => Ok(tokio::time::timeout(timeout, async {
+                    while let Some(f) = rx.recv().await {
+                        if f.data().first() == Some(&cs) {
+                            return Some(f);
+                        }
+                    }
+                    None
+                })
+                .await
+                .ok()
+                .flatten()),
+            },
+        };
+        *self
+            .lss_route
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = None;
+        result
+    }
+
+    /// Send a Fastscan step; whether any slave answered within the whole step time.
+    async fn fastscan_step(&self, request: canbus::Frame) -> Result<bool, BusError> {
+        let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
+        *self
+            .lss_route
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = Some(tx);
+        let sent = async {
+            self.sender.send(request).await?;
+            self.sender.flush().await
+        };
+        let result = sent.await;
+        tokio::time::sleep(FASTSCAN_TIMEOUT).await;
+        *self
+            .lss_route
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = None;
+        result?;
+        let mut answered = false;
+        while let Ok(f) = rx.try_recv() {
+            answered |= f.data().first() == Some(&crate::lss::cs::IDENTIFY_RESPONSE);
+        }
+        Ok(answered)
+    }
+
+    async fn lss_confirmed(
+        &self,
+        command: u8,
+        payload: [u8; 7],
+    ) -> Result<canbus::Frame, LssError> {
+        let _turn = self.lss_turn.lock().await;
+        self.lss_request(
+            crate::lss::request(command, payload),
+            Some(command),
+            LSS_TIMEOUT,
+        )
+        .await?
+        .ok_or(LssError::NoResponse)
+    }
+
+    async fn lss_checked(&self, command: u8, payload: [u8; 7]) -> Result<(), LssError> {
+        let f = self.lss_confirmed(command, payload).await?;
+        match f.data()[1] {
+            0 => Ok(()),
+            code => Err(LssError::Refused(code)),
+        }
+    }
+
+    /// Switch every LSS slave to configuration (`true`) or back to waiting.
+    pub async fn lss_switch_global(&self, configuration: bool) -> Result<(), BusError> {
+        let _turn = self.lss_turn.lock().await;
+        let payload = [u8::from(configuration), 0, 0, 0, 0, 0, 0];
+        self.lss_request(
+            crate::lss::request(crate::lss::cs::SWITCH_GLOBAL, payload),
+            None,
+            LSS_TIMEOUT,
+        )
+        .await
+        .map(drop)
+    }
+
+    /// Switch the slave with this LSS address (vendor, product, revision, serial) to
+    /// configuration; `false` when none answered.
+    pub async fn lss_switch_selective(&self, address: [u32; 4]) -> Result<bool, BusError> {
+        use crate::lss::cs;
+        let _turn = self.lss_turn.lock().await;
+        for (i, part) in address.iter().enumerate() {
+            let b = part.to_le_bytes();
+            let request = crate::lss::request(
+                cs::SWITCH_SELECTIVE_VENDOR + i as u8,
+                [b[0], b[1], b[2], b[3], 0, 0, 0],
+            );
+            let expect = (i == 3).then_some(cs::SWITCH_SELECTIVE_RESPONSE);
+            if let Some(reply) = self.lss_request(request, expect, LSS_TIMEOUT).await? {
+                return Ok(reply.data()[0] == cs::SWITCH_SELECTIVE_RESPONSE);
+            }
+        }
+        Ok(false)
+    }
+
+    /// Give the slave in configuration state a node-ID (1–127, or 0xFF for none).
+    pub async fn lss_configure_node_id(&self, node_id: u8) -> Result<(), LssError> {
+        self.lss_checked(
+            crate::lss::cs::CONFIGURE_NODE_ID,
+            [node_id, 0, 0, 0, 0, 0, 0],
+        )
+        .await
+    }
+
+    /// Set the bit timing (index into the CiA 305 table) of the slave in configuration.
+    pub async fn lss_configure_bit_timing(&self, index: u8) -> Result<(), LssError> {
+        self.lss_checked(
+            crate::lss::cs::CONFIGURE_BIT_TIMING,
+            [0, index, 0, 0, 0, 0, 0],
+        )
+        .await
+    }
+
+    /// Tell every slave in configuration to switch to its new bit timing after `delay_ms`.
+    pub async fn lss_activate_bit_timing(&self, delay_ms: u16) -> Result<(), BusError> {
+        let _turn = self.lss_turn.lock().await;
+        let d = delay_ms.to_le_bytes();
+        let request = crate::lss::request(
+            crate::lss::cs::ACTIVATE_BIT_TIMING,
+            [d[0], d[1], 0, 0, 0, 0, 0],
+        );
+        self.lss_request(request, None, LSS_TIMEOUT).await.map(drop)
+    }
+
+    /// Make the slave in configuration store its node-ID and bit timing.
+    pub async fn lss_store(&self) -> Result<(), LssError> {
+        self.lss_checked(crate::lss::cs::STORE, [0; 7]).await
+    }
+
+    /// The active node-ID of the slave in configuration.
+    pub async fn lss_inquire_node_id(&self) -> Result<u8, LssError> {
+        Ok(self
+            .lss_confirmed(crate::lss::cs::INQUIRE_NODE_ID, [0; 7])
+            .await?
+            .data()[1])
+    }
+
+    /// The LSS address (vendor, product, revision, serial) of the slave in configuration.
+    pub async fn lss_inquire_address(&self) -> Result<[u32; 4], LssError> {
+        let mut address = [0u32; 4];
+        for (i, part) in address.iter_mut().enumerate() {
+            let f = self
+                .lss_confirmed(crate::lss::cs::INQUIRE_VENDOR + i as u8, [0; 7])
+                .await?;
+            let d = f.data();
+            *part = u32::from_le_bytes([d[1], d[2], d[3], d[4]]);
+        }
+        Ok(address)
+    }
+
+    /// Fastscan (CiA 305 §6.7): find one slave without a node-ID, bit by bit, and leave it in
+    /// configuration state. `None` when no such slave answers.
+    pub async fn lss_fastscan(&self) -> Result<Option<[u32; 4]>, BusError> {
+        use crate::lss::fastscan_request;
+        let _turn = self.lss_turn.lock().await;
+        if !self.fastscan_step(fastscan_request(0, 0x80, 0, 0)).await? {
+            return Ok(None);
+        }
+        let mut address = [0u32; 4];
+        for sub in 0..4u8 {
+            let mut part = 0u32;
+            for bit in (0..32u8).rev() {
+                if !self
+                    .fastscan_step(fastscan_request(part, bit, sub, sub))
+                    .await?
+                {
+                    part |= 1 << bit;
+                }
+            }
+            address[usize::from(sub)] = part;
+            if !self
+                .fastscan_step(fastscan_request(part, 0, sub, (sub + 1) % 4))
+                .await?
+            {
+                return Ok(None);
+            }
+        }
+        Ok(Some(address))
     }
 
     /// Subscribe to heartbeat and EMCY events.

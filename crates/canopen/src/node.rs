@@ -261,7 +261,11 @@ pub struct LocalNode {
 impl LocalNode {
     /// Add the communication objects to `od`, start the node on `bus` and send its boot-up
     /// message; it enters pre-operational.
-    pub fn start(bus: Bus, mut od: ObjectDictionary, config: NodeConfig) -> LocalNode {
+    pub fn start(bus: Bus, mut od: ObjectDictionary, mut config: NodeConfig) -> LocalNode {
+        // A node-ID stored by LSS replaces the configured one.
+        if let Some(id) = config.storage.as_deref().and_then(stored_node_id) {
+            config.node_id = id;
+        }
         add_communication_objects(&mut od, &config);
         if let Some(path) = &config.storage {
             crate::storage::add_storage_objects(&mut od, path.clone());
@@ -396,6 +400,41 @@ impl LocalNode {
     }
 }
 
+/// Where LSS "store configuration" keeps the node-ID and bit timing: beside the parameters.
+fn lss_path(storage: &std::path::Path) -> std::path::PathBuf {
+    storage.with_extension("lss")
+}
+
+/// The node-ID stored by LSS, if any.
+fn stored_node_id(storage: &std::path::Path) -> Option<u8> {
+    let text = std::fs::read_to_string(lss_path(storage)).ok()?;
+    let id: u8 = text.split_whitespace().next()?.parse().ok()?;
+    (1..=127).contains(&id).then_some(id)
+}
+
+/// Move the default COB-IDs that derive from the node-ID (EMCY, SDO server, PDOs 1–4) from
+/// `old` to `new`; identifiers the application set to something else stay.
+fn renumber(od: &mut ObjectDictionary, old: u8, new: u8) {
+    let mut derived = vec![
+        (0x1014u16, 0u8, 0x80u32),
+        (0x1200, 1, 0x600),
+        (0x1200, 2, 0x580),
+    ];
+    for n in 0..4u16 {
+        derived.push((crate::pdo::RPDO_COMM + n, 1, 0x200 + 0x100 * u32::from(n)));
+        derived.push((crate::pdo::TPDO_COMM + n, 1, 0x180 + 0x100 * u32::from(n)));
+    }
+    for (index, sub, base) in derived {
+        if let Ok(Value::Uint(v)) = od.get_value(index, sub) {
+            let v = v as u32;
+            if v & 0x7FF == base + u32::from(old) {
+                let renumbered = (v & !0x7FF) | (base + u32::from(new));
+                let _ = od.set(index, sub, &renumbered.to_le_bytes());
+            }
+        }
+    }
+}
+
 /// Put the stored values of `range` from `path` into `od`; a damaged file is reported and
 /// ignored (the node starts with its defaults rather than not at all).
 fn apply_stored(
@@ -418,6 +457,7 @@ fn apply_stored(
 struct Driver {
     node_id: u8,
     storage: Option<std::path::PathBuf>,
+    lss: crate::lss::LssSlave,
     sdo_config: ServerConfig,
     od: SharedDictionary,
     initial: ObjectDictionary,
@@ -457,6 +497,7 @@ impl Driver {
         let mut driver = Driver {
             node_id: config.node_id,
             storage: config.storage.clone(),
+            lss: crate::lss::LssSlave::new(config.identity, config.node_id),
             sdo_config: config.sdo.clone(),
             od,
             initial,
@@ -565,8 +606,73 @@ impl Driver {
         self.enter(NmtState::PreOperational);
     }
 
+    /// Take the node-ID configured by LSS (CiA 305: at reset communication, or at once for a
+    /// node that had none).
+    fn change_node_id(&mut self, new: u8) {
+        let old = self.node_id;
+        tracing::info!(old, new, "node-ID changed by LSS");
+        renumber(&mut self.initial, old, new);
+        renumber(
+            &mut self.od.lock().unwrap_or_else(PoisonError::into_inner),
+            old,
+            new,
+        );
+        self.node_id = new;
+        self.nmt = NmtSlave::new(new);
+        self.producer = HeartbeatProducer::new(new);
+        self.emcy = EmcyProducer::new(new);
+        self.lss.set_active_node_id(new);
+    }
+
+    fn lss_frame(&mut self, frame: &Frame, now: Instant) {
+        use crate::lss::{LssAction, LssState, UNCONFIGURED};
+        let (reply, action) = self.lss.handle(frame);
+        self.out.extend(reply);
+        match action {
+            Some(LssAction::Store) => {
+                let result = match &self.storage {
+                    None => 1,
+                    Some(path) => {
+                        let text = format!(
+                            "{} {}\n",
+                            self.lss.pending_node_id(),
+                            self.lss
+                                .pending_bit_timing()
+                                .map_or(String::from("-"), |b| b.to_string())
+                        );
+                        match crate::storage::write_atomically(&lss_path(path), &text) {
+                            Ok(()) => 0,
+                            Err(e) => {
+                                tracing::error!(error = %e, "LSS store failed");
+                                2
+                            }
+                        }
+                    }
+                };
+                self.out.push(self.lss.store_result(result));
+            }
+            Some(LssAction::ActivateBitTiming { delay_ms }) => {
+                // A virtual bus has no bit timing to switch; a SocketCAN deployment does it
+                // with `ip link` outside this process.
+                tracing::info!(delay_ms, bit_timing = ?self.lss.pending_bit_timing(), "LSS activate bit timing");
+            }
+            Some(LssAction::StateChanged(LssState::Waiting)) => {
+                let pending = self.lss.pending_node_id();
+                if self.node_id == UNCONFIGURED && (1..=127).contains(&pending) {
+                    self.change_node_id(pending);
+                    self.boot(now);
+                }
+            }
+            Some(LssAction::StateChanged(LssState::Configuration)) | None => {}
+        }
+    }
+
     /// Reset: restore the values of `range` from the start-up dictionary, then boot again.
     fn reset(&mut self, range: std::ops::RangeInclusive<u16>, now: Instant) {
+        let pending = self.lss.pending_node_id();
+        if pending != self.node_id && (1..=127).contains(&pending) {
+            self.change_node_id(pending);
+        }
         {
             let mut od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
             for object in self.initial.objects().filter(|o| range.contains(&o.index)) {
@@ -594,6 +700,14 @@ impl Driver {
     }
 
     fn frame(&mut self, frame: &Frame, now: Instant) {
+        if frame.id() == crate::lss::MASTER_ID {
+            self.lss_frame(frame, now);
+            return;
+        }
+        if self.nmt.state() == NmtState::Initialising {
+            // No node-ID yet (waiting for LSS): nothing else is served.
+            return;
+        }
         if let Some(action) = self.nmt.handle(frame) {
             self.nmt_action(action, now);
             return;
@@ -677,7 +791,7 @@ impl Driver {
                     self.emcy.clear_error(0x8130);
                     history_changed = true;
                 }
-                HeartbeatEvent::StateChanged { .. } => {}
+                HeartbeatEvent::StateChanged { .. } | HeartbeatEvent::BootUp { .. } => {}
             }
             let _ = self.events.send(NodeEvent::Heartbeat(event));
         }
@@ -763,7 +877,9 @@ impl Driver {
         let (sender, mut receiver) = bus.split();
         // Microsecond wake-ups for SYNC periods and inhibit times; tokio's timer as fallback.
         let alarm = crate::alarm::Alarm::new(&format!("canopen-node-{}", self.node_id)).ok();
-        self.boot(Instant::now());
+        if self.node_id != crate::lss::UNCONFIGURED {
+            self.boot(Instant::now());
+        }
         loop {
             if !self.flush(&sender).await {
                 return;
