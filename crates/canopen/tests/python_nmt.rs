@@ -1,4 +1,4 @@
-//! NMT, heartbeat and EMCY interop with python-canopen through the hub, both directions.
+//! NMT, heartbeat, EMCY and LSS interop with python-canopen through the hub.
 
 use std::net::SocketAddr;
 use std::process::Stdio;
@@ -155,5 +155,62 @@ async fn canlift_master_hears_a_python_canopen_node() {
     let _ = child.wait().await;
     offline.await;
     assert_eq!(master.node_state(12), NodeState::Offline);
+    hub.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn python_canopen_lss_master_configures_a_canlift_node() {
+    let Some(python) = python() else { return };
+    let hub = hub().await;
+    let url = format!("socketcand://{}/can0", hub.local_addr());
+    let dir = std::env::temp_dir().join(format!("canlift-pylss-{}", std::process::id()));
+    let config = |serial: u32| NodeConfig {
+        identity: [0x41A, 0x1000, 2, serial],
+        storage: Some(dir.join(format!("{serial}.params"))),
+        ..NodeConfig::new(canopen::lss::UNCONFIGURED)
+    };
+    let master = Master::open(&url, Default::default()).await.unwrap();
+    let mut events = master.events();
+    let low = LocalNode::start(
+        Bus::open(&url).await.unwrap(),
+        ObjectDictionary::new(),
+        config(0x0300_0001),
+    );
+    let high = LocalNode::start(
+        Bus::open(&url).await.unwrap(),
+        ObjectDictionary::new(),
+        config(0x0300_0002),
+    );
+    let (mut child, mut lines) = spawn(&python, "lss_master.py", &hub, 33);
+    assert_eq!(line(&mut lines).await, "READY");
+    assert_eq!(
+        line(&mut lines).await,
+        "FOUND 0000041A 00001000 00000002 03000001"
+    );
+    assert_eq!(line(&mut lines).await, "OK");
+    let booted = tokio::time::timeout(Duration::from_secs(5), async {
+        loop {
+            if let Ok(MasterEvent::Heartbeat(HeartbeatEvent::BootUp { node: 33 })) =
+                events.recv().await
+            {
+                return;
+            }
+        }
+    });
+    booted.await.expect("node 33 booted");
+    assert_eq!(low.nmt_state(), NmtState::PreOperational);
+    assert_eq!(
+        high.nmt_state(),
+        NmtState::Initialising,
+        "the other one still waits"
+    );
+    assert_eq!(
+        master.sdo().read::<u32>(33, 0x1018, 4).await.unwrap(),
+        0x0300_0001
+    );
+    let _ = child.wait().await;
+    low.stop().await;
+    high.stop().await;
+    let _ = std::fs::remove_dir_all(&dir);
     hub.shutdown().await;
 }
