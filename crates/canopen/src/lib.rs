@@ -13,6 +13,7 @@ pub mod cob;
 pub mod driver;
 pub mod eds;
 pub mod emcy;
+pub mod guarding;
 pub mod heartbeat;
 pub mod lss;
 #[cfg(feature = "tokio")]

@@ -38,6 +38,8 @@ use crate::sdo::client::ClientConfig;
 pub enum MasterEvent {
     /// A node's heartbeat state changed, it timed out or came back.
     Heartbeat(HeartbeatEvent),
+    /// Node guarding noticed something (lost, recovered, state reported).
+    Guarding(crate::guarding::GuardEvent),
     /// An EMCY from a node.
     Emcy {
         /// Producer.
@@ -76,6 +78,7 @@ pub struct Master {
     lss_turn: tokio::sync::Mutex<()>,
     sdo: SdoClients,
     table: Arc<Mutex<HeartbeatConsumer>>,
+    guarding: Arc<Mutex<crate::guarding::GuardingMaster>>,
     wake: Arc<tokio::sync::Notify>,
     events: broadcast::Sender<MasterEvent>,
     task: JoinHandle<()>,
@@ -87,6 +90,7 @@ impl Master {
         let sdo = SdoClients::new(Bus::open(url).await?, config);
         let (sender, mut receiver) = Bus::open(url).await?.split();
         let table = Arc::new(Mutex::new(HeartbeatConsumer::new()));
+        let guarding = Arc::new(Mutex::new(crate::guarding::GuardingMaster::new()));
         let wake = Arc::new(tokio::sync::Notify::new());
         let (events, _) = broadcast::channel(1024);
         let lss_route: Arc<Mutex<Option<tokio::sync::mpsc::UnboundedSender<canbus::Frame>>>> =
@@ -94,13 +98,24 @@ impl Master {
         let task = {
             let (table, wake, events) = (table.clone(), wake.clone(), events.clone());
             let lss = lss_route.clone();
+            let (guarding, guard_sender) = (guarding.clone(), sender.clone());
             tokio::spawn(async move {
                 let mut heartbeat = Vec::new();
+                let (mut guard_frames, mut guard_events) = (Vec::new(), Vec::new());
                 loop {
-                    let deadline = table
-                        .lock()
-                        .unwrap_or_else(PoisonError::into_inner)
-                        .poll_timeout();
+                    let deadline = [
+                        table
+                            .lock()
+                            .unwrap_or_else(PoisonError::into_inner)
+                            .poll_timeout(),
+                        guarding
+                            .lock()
+                            .unwrap_or_else(PoisonError::into_inner)
+                            .poll_timeout(),
+                    ]
+                    .into_iter()
+                    .flatten()
+                    .min();
                     let frame = tokio::select! {
                         f = receiver.recv_frame() => match f {
                             Some(f) => Some(f),
@@ -121,10 +136,25 @@ impl Master {
                     }
                     {
                         let mut table = table.lock().unwrap_or_else(PoisonError::into_inner);
+                        let mut guard = guarding.lock().unwrap_or_else(PoisonError::into_inner);
                         match &frame {
-                            Some(f) => table.handle(f, now, &mut heartbeat),
-                            None => table.handle_timeout(now, &mut heartbeat),
+                            Some(f) => {
+                                table.handle(f, now, &mut heartbeat);
+                                guard.handle(f, &mut guard_events);
+                            }
+                            None => {
+                                table.handle_timeout(now, &mut heartbeat);
+                                guard.handle_timeout(now, &mut guard_frames, &mut guard_events);
+                            }
                         }
+                    }
+                    for f in guard_frames.drain(..) {
+                        if let Err(e) = guard_sender.send(f).await {
+                            tracing::warn!(error = %e, "guard request not sent");
+                        }
+                    }
+                    for e in guard_events.drain(..) {
+                        let _ = events.send(MasterEvent::Guarding(e));
                     }
                     for e in heartbeat.drain(..) {
                         let _ = events.send(MasterEvent::Heartbeat(e));
@@ -138,6 +168,7 @@ impl Master {
         };
         Ok(Master {
             sender,
+            guarding,
             lss_route,
             lss_turn: tokio::sync::Mutex::new(()),
             sdo,
@@ -166,6 +197,16 @@ impl Master {
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .monitor(node, Some(timeout));
+        self.wake.notify_one();
+    }
+
+    /// Guard `node` with remote frames every `guard_time`; lost after `factor` unanswered
+    /// requests (`factor` 0 stops guarding it). Needs remote frames: SocketCAN or `mem://`.
+    pub fn guard(&self, node: u8, guard_time: Duration, factor: u8) {
+        self.guarding
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .guard(node, guard_time, factor, Instant::now());
         self.wake.notify_one();
     }
 

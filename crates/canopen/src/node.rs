@@ -93,6 +93,8 @@ pub enum NodeEvent {
     },
     /// A SYNC was received.
     Sync(SyncEvent),
+    /// Life guarding lost or resumed (this node is guarded by a master).
+    Guarding(crate::guarding::GuardEvent),
 }
 
 enum Command {
@@ -142,6 +144,14 @@ pub fn add_communication_objects(od: &mut ObjectDictionary, config: &NodeConfig)
                 Access::Const,
             )
             .with_value(Value::Text(config.software_version.clone())),
+        ),
+        Object::var(
+            0x100C,
+            Variable::new("Guard time", DataType::Unsigned16, Access::Rw),
+        ),
+        Object::var(
+            0x100D,
+            Variable::new("Life time factor", DataType::Unsigned8, Access::Rw),
         ),
         Object::var(0x1014, u32_var("COB-ID EMCY", Access::Rw, 0x80 + id)),
         Object::var(
@@ -467,6 +477,7 @@ struct Driver {
     sdo: ServerChannels,
     producer: HeartbeatProducer,
     consumer: HeartbeatConsumer,
+    guarding: crate::guarding::GuardingSlave,
     emcy: EmcyProducer,
     sync_config: SyncConfig,
     sync: SyncProducer,
@@ -507,6 +518,7 @@ impl Driver {
             sdo,
             producer: HeartbeatProducer::new(config.node_id),
             consumer: HeartbeatConsumer::new(),
+            guarding: crate::guarding::GuardingSlave::new(config.node_id),
             emcy: EmcyProducer::new(config.node_id),
             sync_config: SyncConfig::default(),
             sync: SyncProducer::new(SyncConfig::default(), now),
@@ -519,7 +531,7 @@ impl Driver {
 
     /// (Re)read every communication parameter from the dictionary.
     fn load_communication(&mut self, now: Instant) {
-        for index in [0x1005, 0x1014, 0x1015, 0x1016, 0x1017] {
+        for index in [0x1005, 0x100C, 0x1014, 0x1015, 0x1016, 0x1017] {
             self.apply(index, 0, now);
         }
         let od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
@@ -551,6 +563,10 @@ impl Driver {
                 };
                 self.sync.reconfigure(self.sync_config, now);
             }
+            0x100C | 0x100D => self.guarding.configure(
+                u32_value(&od, 0x100C, 0) as u16,
+                u32_value(&od, 0x100D, 0) as u8,
+            ),
             0x1014 => self.emcy.set_cob_id(u32_value(&od, 0x1014, 0)),
             0x1015 => self
                 .emcy
@@ -620,6 +636,7 @@ impl Driver {
         self.node_id = new;
         self.nmt = NmtSlave::new(new);
         self.producer = HeartbeatProducer::new(new);
+        self.guarding = crate::guarding::GuardingSlave::new(new);
         self.emcy = EmcyProducer::new(new);
         self.lss.set_active_node_id(new);
     }
@@ -712,6 +729,17 @@ impl Driver {
             self.nmt_action(action, now);
             return;
         }
+        if frame.is_remote() {
+            let mut events = Vec::new();
+            if let Some(reply) = self
+                .guarding
+                .handle(frame, self.nmt.state(), now, &mut events)
+            {
+                self.out.push(reply);
+            }
+            self.guard_events(events);
+            return;
+        }
         let state = self.nmt.state();
         if state.allows_sdo() {
             let mut od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
@@ -777,6 +805,19 @@ impl Driver {
         self.write_history();
     }
 
+    fn guard_events(&mut self, events: Vec<crate::guarding::GuardEvent>) {
+        use crate::guarding::GuardEvent;
+        for event in events {
+            match event {
+                GuardEvent::LifeGuardingLost => self.emcy.set_error(0x8130, [0; 5]),
+                GuardEvent::LifeGuardingResumed => self.emcy.clear_error(0x8130),
+                _ => {}
+            }
+            self.write_history();
+            let _ = self.events.send(NodeEvent::Guarding(event));
+        }
+    }
+
     fn heartbeat_events(&mut self, events: Vec<HeartbeatEvent>) {
         let mut history_changed = false;
         for event in events {
@@ -804,6 +845,7 @@ impl Driver {
         [
             self.producer.poll_timeout(),
             self.consumer.poll_timeout(),
+            self.guarding.poll_timeout(),
             self.emcy.poll_timeout(),
             self.sync.poll_timeout(),
             self.sdo.poll_timeout(),
@@ -826,6 +868,9 @@ impl Driver {
         let mut heartbeat = Vec::new();
         self.consumer.handle_timeout(now, &mut heartbeat);
         self.heartbeat_events(heartbeat);
+        let mut guard = Vec::new();
+        self.guarding.handle_timeout(now, &mut guard);
+        self.guard_events(guard);
         self.sdo.handle_timeout(now, &mut self.out);
         if state.allows_sdo() {
             while let Some(f) = self.emcy.poll_transmit(now) {

@@ -544,3 +544,51 @@ async fn lss_fastscan_configures_unconfigured_nodes() {
     b.stop().await;
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn node_guarding_and_life_guarding() {
+    use canopen::guarding::GuardEvent;
+    let (master, mut events, node) = setup("mem://node-guarding", 9).await;
+    let mut node_events = node.events();
+    node.wait_for_state(NmtState::PreOperational).await;
+    master.sdo().write(9, 0x100C, 0, 50u16).await.unwrap();
+    master.sdo().write(9, 0x100D, 0, 3u8).await.unwrap();
+    master.guard(9, Duration::from_millis(50), 3);
+    master_event(&mut events, |e| {
+        matches!(
+            e,
+            MasterEvent::Guarding(GuardEvent::StateChanged {
+                node: 9,
+                state: NmtState::PreOperational
+            })
+        )
+    })
+    .await;
+    // The master stops guarding: the node's life guarding runs out (150 ms) and raises 0x8130.
+    master.guard(9, Duration::ZERO, 0);
+    wait_event(&mut node_events, WAIT, |e| {
+        matches!(e, NodeEvent::Guarding(GuardEvent::LifeGuardingLost))
+    })
+    .await
+    .expect("life guarding lost");
+    let e = master_event(&mut events, |e| {
+        matches!(e, MasterEvent::Emcy { node: 9, .. })
+    })
+    .await;
+    let MasterEvent::Emcy { message, .. } = e else {
+        unreachable!()
+    };
+    assert_eq!(message.code, 0x8130);
+    // Guarding again: resumed, error reset; then the node disappears and the master notices.
+    master.guard(9, Duration::from_millis(50), 3);
+    wait_event(&mut node_events, WAIT, |e| {
+        matches!(e, NodeEvent::Guarding(GuardEvent::LifeGuardingResumed))
+    })
+    .await
+    .expect("life guarding resumed");
+    node.stop().await;
+    master_event(&mut events, |e| {
+        matches!(e, MasterEvent::Guarding(GuardEvent::NodeLost { node: 9 }))
+    })
+    .await;
+}
