@@ -95,9 +95,12 @@ pub enum NodeEvent {
     Sync(SyncEvent),
     /// Life guarding lost or resumed (this node is guarded by a master).
     Guarding(crate::guarding::GuardEvent),
+    /// A TIME stamp was received (0x1012 bit 31 set: this node consumes TIME).
+    Time(std::time::SystemTime),
 }
 
 enum Command {
+    SendTime(std::time::SystemTime),
     SetError(u16, [u8; 5]),
     ClearError(u16),
     Nmt(NmtCommand),
@@ -152,6 +155,10 @@ pub fn add_communication_objects(od: &mut ObjectDictionary, config: &NodeConfig)
         Object::var(
             0x100D,
             Variable::new("Life time factor", DataType::Unsigned8, Access::Rw),
+        ),
+        Object::var(
+            0x1012,
+            u32_var("COB-ID time stamp object", Access::Rw, 0x100),
         ),
         Object::var(0x1014, u32_var("COB-ID EMCY", Access::Rw, 0x80 + id)),
         Object::var(
@@ -346,6 +353,11 @@ impl LocalNode {
     /// Change the node's own NMT state as if commanded (e.g. a device that starts itself).
     pub fn nmt(&self, command: NmtCommand) {
         let _ = self.commands.send(Command::Nmt(command));
+    }
+
+    /// Send a TIME stamp for `at`, if 0x1012 makes this node the TIME producer (bit 30).
+    pub fn send_time(&self, at: std::time::SystemTime) {
+        let _ = self.commands.send(Command::SendTime(at));
     }
 
     /// Raise an error: EMCY, error register 0x1001 and history 0x1003.
@@ -729,6 +741,14 @@ impl Driver {
             self.nmt_action(action, now);
             return;
         }
+        if frame.is_remote() && self.nmt.state().allows_pdo() {
+            let od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
+            let answered = self.pdo.handle_remote(&od, frame, now, &mut self.out);
+            drop(od);
+            if answered {
+                return;
+            }
+        }
         if frame.is_remote() {
             let mut events = Vec::new();
             if let Some(reply) = self
@@ -779,6 +799,13 @@ impl Driver {
             }
         }
         if state.allows_sdo() {
+            let (time_id, consumes, _) = self.time_config();
+            if consumes && Some(frame.id()) == time_id {
+                if let Some(stamp) = crate::time::TimeOfDay::parse(frame.data()) {
+                    let _ = self.events.send(NodeEvent::Time(stamp.to_system()));
+                }
+                return;
+            }
             if let Some(event) = crate::sync::receive(&self.sync_config, frame, now) {
                 if state.allows_pdo() {
                     let mut od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
@@ -803,6 +830,28 @@ impl Driver {
             self.emcy.set_error(e.emcy_code(), [n[0], n[1], 0, 0, 0]);
         }
         self.write_history();
+    }
+
+    /// The TIME COB-ID and whether this node consumes / produces TIME (0x1012 bits 31 / 30).
+    fn time_config(&self) -> (Option<canbus::CanId>, bool, bool) {
+        let value = u32_value(
+            &self.od.lock().unwrap_or_else(PoisonError::into_inner),
+            0x1012,
+            0,
+        );
+        let id = crate::cob::id_from_parameter(value & 0x3FFF_FFFF);
+        (id, value & 0x8000_0000 != 0, value & 0x4000_0000 != 0)
+    }
+
+    fn send_time(&mut self, at: std::time::SystemTime) {
+        let (id, _, produces) = self.time_config();
+        match (id, produces, crate::time::TimeOfDay::from_system(at)) {
+            (Some(id), true, Some(stamp)) if self.nmt.state().allows_sdo() => {
+                self.out.push(stamp.frame(id))
+            }
+            (_, false, _) => tracing::debug!("TIME not sent: 0x1012 bit 30 (producer) is clear"),
+            _ => tracing::debug!("TIME not sent: not representable or not allowed in this state"),
+        }
     }
 
     fn guard_events(&mut self, events: Vec<crate::guarding::GuardEvent>) {
@@ -959,6 +1008,7 @@ impl Driver {
                             }
                         }
                         Command::SendPdo(n) => self.pdo.request(n, Instant::now()),
+                        Command::SendTime(at) => self.send_time(at),
                     }
                     self.write_history();
                 }

@@ -7,9 +7,10 @@
 //! rebuilt from the dictionary whenever those objects change.
 //!
 //! Transmission types: 0 (synchronous, acyclic: on the SYNC after an event), 1–240 (every n-th
-//! SYNC, with the SYNC start value 0x1800 sub 6), 254/255 (on change, with inhibit time sub 3 and
-//! event timer sub 5). 252/253 (on remote request only) are accepted but such TPDOs are sent on
-//! request by the application only: socketcand cannot carry remote frames. RPDOs of types 0–240
+//! SYNC, with the SYNC start value 0x1800 sub 6), 252 (remote request, sampled at the next SYNC),
+//! 253 (remote request, at once), 254/255 (on change, with inhibit time sub 3 and event timer
+//! sub 5; they answer remote requests too). Remote requests need COB-ID bit 30 clear, and a bus
+//! that carries remote frames (SocketCAN, `mem://`; not socketcand). RPDOs of types 0–240
 //! are applied at the next SYNC, 254/255 at once; sub 5 of an RPDO is its receive timeout.
 //! Mapping granularity is 8 bits (like CANopenNode).
 
@@ -158,6 +159,13 @@ impl MapEntry {
     }
 }
 
+/// The 11-bit identifiers CiA 301 §7.3.5 reserves for NMT, SYNC/EMCY, TIME, SDO, LSS and
+/// error control. 0x180 is among them in CiA 301 but CiA 417 lets lift devices use it for a
+/// PDO, so it is allowed here.
+pub fn restricted(id: u16) -> bool {
+    matches!(id, 0x000..=0x07F | 0x101..=0x17F | 0x581..=0x5FF | 0x601..=0x67F | 0x6E0..=0x6FF | 0x701..=0x77F | 0x780..=0x7FF)
+}
+
 /// Which PDO an index belongs to: (receive, number from 0, is mapping object).
 fn classify(index: u16) -> Option<(bool, u16, bool)> {
     match index {
@@ -229,8 +237,14 @@ impl WriteGuard for PdoGuard {
                     if valid && new & COB_INVALID == 0 && (new ^ old) & 0x3FFF_FFFF != 0 {
                         return Err(AbortCode::INVALID_VALUE);
                     }
-                    if new & COB_INVALID == 0 && crate::cob::id_from_parameter(new).is_none() {
-                        return Err(AbortCode::INVALID_VALUE);
+                    if new & COB_INVALID == 0 {
+                        match crate::cob::id_from_parameter(new) {
+                            None => return Err(AbortCode::INVALID_VALUE),
+                            Some(CanId::Standard(id)) if restricted(id) => {
+                                return Err(AbortCode::INVALID_VALUE)
+                            }
+                            Some(_) => {}
+                        }
                     }
                     Ok(())
                 }
@@ -304,6 +318,8 @@ impl PdoEvent {
 struct Tpdo {
     number: u16,
     id: CanId,
+    /// COB-ID bit 30 clear: remote requests are answered.
+    rtr_allowed: bool,
     ttype: u8,
     inhibit: Duration,
     event_timer: Option<Duration>,
@@ -394,6 +410,7 @@ impl PdoEngine {
                     engine.tpdos.push(Tpdo {
                         number: n + 1,
                         id,
+                        rtr_allowed: cob & 0x4000_0000 == 0,
                         ttype,
                         inhibit: Duration::from_micros(
                             u64::from(u32_value(od, TPDO_COMM + n, 3).unwrap_or(0)) * 100,
@@ -494,6 +511,39 @@ impl PdoEngine {
         true
     }
 
+    /// A remote request for one of the TPDOs: type 253 (and event-driven ones) answer at once,
+    /// type 252 samples at the next SYNC. Returns whether the frame was such a request.
+    pub fn handle_remote(
+        &mut self,
+        od: &ObjectDictionary,
+        frame: &Frame,
+        now: Instant,
+        out: &mut Vec<Frame>,
+    ) -> bool {
+        if !frame.is_remote() {
+            return false;
+        }
+        let Some(t) = self.tpdos.iter_mut().find(|t| t.id == frame.id()) else {
+            return false;
+        };
+        if !t.rtr_allowed {
+            return true;
+        }
+        match t.ttype {
+            252 => {
+                t.pending.get_or_insert(now);
+            }
+            253..=255 => {
+                if let Some(f) = Self::build(od, t) {
+                    t.last_sent = Some(now);
+                    out.push(f);
+                }
+            }
+            _ => {}
+        }
+        true
+    }
+
     /// A SYNC: synchronous RPDOs take effect, synchronous TPDOs are sent.
     pub fn on_sync(
         &mut self,
@@ -509,7 +559,7 @@ impl PdoEngine {
         }
         for t in &mut self.tpdos {
             let send = match t.ttype {
-                0 => t.pending.take().is_some(),
+                0 | 252 => t.pending.take().is_some(),
                 n @ 1..=240 => {
                     if !t.started {
                         // With a start value and a counter, the first SYNC is the one whose

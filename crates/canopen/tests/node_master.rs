@@ -592,3 +592,35 @@ async fn node_guarding_and_life_guarding() {
     })
     .await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn time_producer_and_consumer() {
+    let url = "mem://node-time";
+    let (master, _events, producer) = setup(url, 11).await;
+    let consumer = LocalNode::start(
+        Bus::open(url).await.unwrap(),
+        ObjectDictionary::new(),
+        NodeConfig::new(12),
+    );
+    let mut consumed = consumer.events();
+    producer.wait_for_state(NmtState::PreOperational).await;
+    consumer.wait_for_state(NmtState::PreOperational).await;
+    master
+        .sdo()
+        .write(11, 0x1012, 0, 0x4000_0100u32)
+        .await
+        .unwrap(); // producer
+    master
+        .sdo()
+        .write(12, 0x1012, 0, 0x8000_0100u32)
+        .await
+        .unwrap(); // consumer
+    let at = std::time::UNIX_EPOCH + Duration::from_millis(1_704_112_496_789);
+    producer.send_time(at);
+    let e = wait_event(&mut consumed, WAIT, |e| matches!(e, NodeEvent::Time(_)))
+        .await
+        .unwrap();
+    assert_eq!(e, NodeEvent::Time(at));
+    producer.stop().await;
+    consumer.stop().await;
+}

@@ -290,3 +290,61 @@ fn rpdos_write_the_dictionary_buffer_for_sync_and_time_out() {
         &mut ev
     ));
 }
+
+#[test]
+fn restricted_identifiers_are_refused_except_0x180() {
+    let mut od = dictionary();
+    w32(&mut od, TPDO_COMM + 1, 1, 0x285 | COB_INVALID).unwrap();
+    for id in [
+        0x000, 0x07F, 0x101, 0x17F, 0x581, 0x601, 0x6E0, 0x705, 0x7E5,
+    ] {
+        assert_eq!(
+            w32(&mut od, TPDO_COMM + 1, 1, id),
+            Err(AbortCode::INVALID_VALUE),
+            "{id:X}"
+        );
+    }
+    w32(&mut od, TPDO_COMM + 1, 1, 0x180).unwrap();
+    w32(&mut od, TPDO_COMM + 1, 1, 0x180 | COB_INVALID).unwrap();
+    w32(&mut od, TPDO_COMM + 1, 1, 0x2000_0601).unwrap();
+    assert!(restricted(0x77F) && !restricted(0x180) && !restricted(0x181) && !restricted(0x580));
+    assert!(
+        !restricted(0x081) && !restricted(0x080) && !restricted(0x100),
+        "EMCY, SYNC and TIME are configurable"
+    );
+}
+
+#[test]
+fn remote_requests_for_types_252_and_253() {
+    let t0 = Instant::now();
+    let mut od = dictionary();
+    map_tpdo(&mut od, 0, &[entry(0x2000, 0, 16)], 253, 0, 0);
+    map_tpdo(&mut od, 1, &[entry(0x2000, 0, 16)], 252, 0, 0);
+    // TPDO3 refuses remote requests (bit 30 set).
+    map_tpdo(&mut od, 2, &[entry(0x2000, 0, 16)], 253, 0, 0);
+    w32(&mut od, TPDO_COMM + 2, 1, 0x385 | COB_INVALID).unwrap();
+    w32(&mut od, TPDO_COMM + 2, 1, 0x385 | 0x4000_0000).unwrap();
+    let mut pdo = PdoEngine::configure(&od, t0);
+    od.set(0x2000, 0, &7u16.to_le_bytes()).unwrap();
+    let mut out = Vec::new();
+    let rtr = |id| Frame::remote(CanId::Standard(id), 2).unwrap();
+    assert!(pdo.handle_remote(&od, &rtr(0x185), t0, &mut out));
+    assert_eq!(
+        out,
+        vec![Frame::standard(0x185, &[7, 0]).unwrap()],
+        "253: at once"
+    );
+    out.clear();
+    assert!(pdo.handle_remote(&od, &rtr(0x285), t0, &mut out));
+    assert!(out.is_empty(), "252: waits for SYNC");
+    od.set(0x2000, 0, &8u16.to_le_bytes()).unwrap();
+    pdo.on_sync(&mut od, None, t0, &mut out);
+    assert_eq!(out, vec![Frame::standard(0x285, &[8, 0]).unwrap()]);
+    out.clear();
+    assert!(pdo.handle_remote(&od, &rtr(0x385), t0, &mut out));
+    assert!(out.is_empty(), "remote requests not allowed");
+    assert!(
+        !pdo.handle_remote(&od, &rtr(0x485), t0, &mut out),
+        "not a TPDO of ours"
+    );
+}
