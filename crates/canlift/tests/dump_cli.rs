@@ -1,11 +1,9 @@
 //! `canlift dump` watching a live node: whole SDO transfers and PDOs decoded by mappings it
 //! reads over SDO.
 
-use std::net::SocketAddr;
 use std::process::Stdio;
 use std::time::Duration;
 
-use canbus::hub::{Hub, HubConfig};
 use canbus::Bus;
 use canopen::driver::SdoClients;
 use canopen::nmt::{NmtCommand, NmtState};
@@ -16,15 +14,8 @@ use tokio::io::AsyncReadExt;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn dump_shows_transfers_and_learned_pdos() {
-    let hub = Hub::bind(HubConfig {
-        listen: SocketAddr::from(([127, 0, 0, 1], 0)),
-        ..HubConfig::default()
-    })
-    .await
-    .unwrap()
-    .spawn()
-    .unwrap();
-    let url = format!("socketcand://{}/can0", hub.local_addr());
+    let hub = testkit::hub().await;
+    let url = testkit::hub_url(&hub, "can0");
     let mut dump = tokio::process::Command::new(env!("CARGO_BIN_EXE_canlift"))
         .args(["dump", "--bus", &url, "--read-pdo-mappings"])
         .stdout(Stdio::piped())

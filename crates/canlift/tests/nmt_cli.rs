@@ -1,24 +1,15 @@
 //! `canlift nmt` against an independent NMT slave: python-canopen's LocalNode, through the hub.
 
-use std::net::SocketAddr;
 use std::process::Stdio;
 use std::time::Duration;
 
-use canbus::hub::{Hub, HubConfig};
 use testkit::{interop_script, python};
 use tokio::io::{AsyncBufReadExt, BufReader};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn nmt_commands_reach_a_python_canopen_node() {
     let Some(python) = python() else { return };
-    let hub = Hub::bind(HubConfig {
-        listen: SocketAddr::from(([127, 0, 0, 1], 0)),
-        ..HubConfig::default()
-    })
-    .await
-    .unwrap()
-    .spawn()
-    .unwrap();
+    let hub = testkit::hub().await;
     let addr = hub.local_addr();
     let mut node = tokio::process::Command::new(python)
         .arg(interop_script("local_node.py"))
@@ -34,7 +25,7 @@ async fn nmt_commands_reach_a_python_canopen_node() {
         .unwrap()
         .unwrap();
     assert_eq!(ready.as_deref(), Some("READY"));
-    let url = format!("socketcand://{addr}/can0");
+    let url = testkit::hub_url(&hub, "can0");
     for (command, state) in [
         ("start", "Operational"),
         ("stop", "Stopped"),

@@ -1,10 +1,8 @@
 //! `canlift sdo` as a user runs it: the binary against a canlift SDO server on a hub.
 
-use std::net::SocketAddr;
 use std::process::Output;
 use std::sync::{Arc, Mutex};
 
-use canbus::hub::{Hub, HubConfig};
 use canbus::Bus;
 use canopen::driver::serve_sdo;
 use canopen::od::{Access, Object, ObjectDictionary, Variable};
@@ -21,15 +19,8 @@ async fn canlift(args: &[&str]) -> Output {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn read_and_write_from_the_command_line() {
-    let hub = Hub::bind(HubConfig {
-        listen: SocketAddr::from(([127, 0, 0, 1], 0)),
-        ..HubConfig::default()
-    })
-    .await
-    .unwrap()
-    .spawn()
-    .unwrap();
-    let url = format!("socketcand://{}/can0", hub.local_addr());
+    let hub = testkit::hub().await;
+    let url = testkit::hub_url(&hub, "can0");
     let mut od = ObjectDictionary::new();
     od.insert(Object::var(
         0x1017,

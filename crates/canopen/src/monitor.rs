@@ -1043,42 +1043,12 @@ mod pdo_layout_tests {
                 .mappable(),
         ));
         crate::pdo::add_pdo_objects(&mut od, 1, 1, 1);
-        od.set(
-            crate::pdo::TPDO_MAP,
-            1,
-            &crate::pdo::MapEntry {
-                index: 0x2000,
-                sub: 0,
-                bits: 16,
-            }
-            .to_u32()
-            .to_le_bytes(),
-        )
-        .unwrap();
-        od.set(
-            crate::pdo::TPDO_MAP,
-            2,
-            &crate::pdo::MapEntry {
-                index: 0x0005,
-                sub: 0,
-                bits: 8,
-            }
-            .to_u32()
-            .to_le_bytes(),
-        )
-        .unwrap();
-        od.set(
-            crate::pdo::TPDO_MAP,
-            3,
-            &crate::pdo::MapEntry {
-                index: 0x2100,
-                sub: 1,
-                bits: 32,
-            }
-            .to_u32()
-            .to_le_bytes(),
-        )
-        .unwrap();
+        let entries = [(0x2000, 0, 16), (0x0005, 0, 8), (0x2100, 1, 32)];
+        for (i, (index, sub, bits)) in entries.into_iter().enumerate() {
+            let entry = crate::pdo::MapEntry { index, sub, bits }.to_u32();
+            od.set(crate::pdo::TPDO_MAP, i as u8 + 1, &entry.to_le_bytes())
+                .unwrap();
+        }
         od.set(crate::pdo::TPDO_MAP, 0, &[3]).unwrap();
         let layouts = pdo_layouts(&od, 1);
         assert_eq!(layouts.len(), 1, "the RPDO has no mapping");

@@ -1,12 +1,11 @@
 //! SDO interop with python-canopen (an independent implementation) through the hub:
 //! its client against a canlift server, and canlift's client against its LocalNode.
 
-use std::net::SocketAddr;
 use std::process::Stdio;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use canbus::hub::{Hub, HubConfig, HubHandle};
+use canbus::hub::HubHandle;
 use canbus::Bus;
 use canopen::driver::{serve_sdo, SdoClients, TransferOptions};
 use canopen::od::{Access, Object, ObjectDictionary, Variable};
@@ -17,14 +16,6 @@ use canopen::types::{DataType, Value};
 use testkit::{interop_script, python};
 use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::Command;
-
-async fn hub() -> HubHandle {
-    let config = HubConfig {
-        listen: SocketAddr::from(([127, 0, 0, 1], 0)),
-        ..HubConfig::default()
-    };
-    Hub::bind(config).await.unwrap().spawn().unwrap()
-}
 
 fn script(python: &std::path::Path, name: &str, hub: &HubHandle, node: u8) -> Command {
     let addr = hub.local_addr();
@@ -45,7 +36,7 @@ fn script(python: &std::path::Path, name: &str, hub: &HubHandle, node: u8) -> Co
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn python_canopen_client_against_canlift_server() {
     let Some(python) = python() else { return };
-    let hub = hub().await;
+    let hub = testkit::hub().await;
     let mut od = ObjectDictionary::new();
     od.insert(Object::var(
         0x1000,
@@ -56,7 +47,7 @@ async fn python_canopen_client_against_canlift_server() {
         0x2000,
         Variable::new("Blob", DataType::Domain, Access::Rw),
     ));
-    let url = format!("socketcand://{}/can0", hub.local_addr());
+    let url = testkit::hub_url(&hub, "can0");
     let server = serve_sdo(
         Bus::open(&url).await.unwrap(),
         Arc::new(Mutex::new(od)),
@@ -85,7 +76,7 @@ async fn python_canopen_client_against_canlift_server() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn canlift_client_against_python_canopen_local_node() {
     let Some(python) = python() else { return };
-    let hub = hub().await;
+    let hub = testkit::hub().await;
     let mut child = script(&python, "local_node.py", &hub, 12).spawn().unwrap();
     let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
     let ready = tokio::time::timeout(Duration::from_secs(30), lines.next_line())
@@ -93,7 +84,7 @@ async fn canlift_client_against_python_canopen_local_node() {
         .unwrap()
         .unwrap();
     assert_eq!(ready.as_deref(), Some("READY"));
-    let url = format!("socketcand://{}/can0", hub.local_addr());
+    let url = testkit::hub_url(&hub, "can0");
     let config = ClientConfig {
         timeout: Duration::from_secs(2),
         ..ClientConfig::default()

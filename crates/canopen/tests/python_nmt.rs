@@ -1,10 +1,9 @@
 //! NMT, heartbeat, EMCY and LSS interop with python-canopen through the hub.
 
-use std::net::SocketAddr;
 use std::process::Stdio;
 use std::time::Duration;
 
-use canbus::hub::{Hub, HubConfig, HubHandle};
+use canbus::hub::HubHandle;
 use canbus::Bus;
 use canopen::heartbeat::{HeartbeatEvent, NodeState};
 use canopen::master::{Master, MasterEvent};
@@ -14,14 +13,6 @@ use canopen::od::ObjectDictionary;
 use testkit::{interop_script, python};
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader, Lines};
 use tokio::process::{Child, ChildStdout, Command};
-
-async fn hub() -> HubHandle {
-    let config = HubConfig {
-        listen: SocketAddr::from(([127, 0, 0, 1], 0)),
-        ..HubConfig::default()
-    };
-    Hub::bind(config).await.unwrap().spawn().unwrap()
-}
 
 fn spawn(
     python: &std::path::Path,
@@ -57,10 +48,10 @@ async fn line(lines: &mut Lines<BufReader<ChildStdout>>) -> String {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn python_canopen_master_commands_a_canlift_node() {
     let Some(python) = python() else { return };
-    let hub = hub().await;
+    let hub = testkit::hub().await;
     let (mut child, mut lines) = spawn(&python, "nmt_master.py", &hub, 21);
     assert_eq!(line(&mut lines).await, "READY");
-    let url = format!("socketcand://{}/can0", hub.local_addr());
+    let url = testkit::hub_url(&hub, "can0");
     let config = NodeConfig {
         heartbeat_ms: 50,
         ..NodeConfig::new(21)
@@ -87,8 +78,8 @@ async fn python_canopen_master_commands_a_canlift_node() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn canlift_master_hears_a_python_canopen_node() {
     let Some(python) = python() else { return };
-    let hub = hub().await;
-    let url = format!("socketcand://{}/can0", hub.local_addr());
+    let hub = testkit::hub().await;
+    let url = testkit::hub_url(&hub, "can0");
     let master = Master::open(&url, Default::default()).await.unwrap();
     let mut events = master.events();
     let (mut child, mut lines) = spawn(&python, "local_node.py", &hub, 12);
@@ -161,8 +152,8 @@ async fn canlift_master_hears_a_python_canopen_node() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn python_canopen_lss_master_configures_a_canlift_node() {
     let Some(python) = python() else { return };
-    let hub = hub().await;
-    let url = format!("socketcand://{}/can0", hub.local_addr());
+    let hub = testkit::hub().await;
+    let url = testkit::hub_url(&hub, "can0");
     let dir = std::env::temp_dir().join(format!("canlift-pylss-{}", std::process::id()));
     let config = |serial: u32| NodeConfig {
         identity: [0x41A, 0x1000, 2, serial],

@@ -1,11 +1,9 @@
 //! PDOs configured by python-canopen's PDO API (over SDO, from an EDS canlift exports) on a
 //! canlift LocalNode: it receives our TPDOs (event-driven and SYNC-driven), we consume its RPDO.
 
-use std::net::SocketAddr;
 use std::process::Stdio;
 use std::time::Duration;
 
-use canbus::hub::{Hub, HubConfig};
 use canbus::Bus;
 use canopen::eds::{export, DeviceDescription};
 use canopen::node::{LocalNode, NodeConfig};
@@ -17,16 +15,9 @@ use tokio::io::{AsyncBufReadExt, BufReader};
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn python_canopen_configures_and_uses_our_pdos() {
     let Some(python) = python() else { return };
-    let hub = Hub::bind(HubConfig {
-        listen: SocketAddr::from(([127, 0, 0, 1], 0)),
-        ..HubConfig::default()
-    })
-    .await
-    .unwrap()
-    .spawn()
-    .unwrap();
+    let hub = testkit::hub().await;
     let addr = hub.local_addr();
-    let url = format!("socketcand://{addr}/can0");
+    let url = testkit::hub_url(&hub, "can0");
     let mut od = ObjectDictionary::new();
     for (index, name, ty) in [
         (0x2000, "Car position", DataType::Unsigned16),

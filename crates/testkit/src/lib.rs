@@ -1,9 +1,35 @@
-//! Helpers shared by the integration tests of several crates: finding the interop Python and
-//! reporting skipped tests where CI logs show them.
+//! Helpers shared by the integration tests of several crates: a hub on a loopback port, finding
+//! the interop Python, and reporting skipped tests where CI logs show them.
 
 use std::io::Write;
+use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::{Command, Stdio};
+
+use canbus::hub::{Hub, HubConfig, HubHandle};
+
+/// A hub on an ephemeral loopback port with `config` (its `listen` is replaced).
+pub async fn hub_with(config: HubConfig) -> HubHandle {
+    let config = HubConfig {
+        listen: SocketAddr::from(([127, 0, 0, 1], 0)),
+        ..config
+    };
+    Hub::bind(config)
+        .await
+        .expect("bind a loopback port")
+        .spawn()
+        .expect("start the hub")
+}
+
+/// A default hub on an ephemeral loopback port.
+pub async fn hub() -> HubHandle {
+    hub_with(HubConfig::default()).await
+}
+
+/// `socketcand://ADDR/CHANNEL` for a hub.
+pub fn hub_url(hub: &HubHandle, channel: &str) -> String {
+    format!("socketcand://{}/{channel}", hub.local_addr())
+}
 
 /// The workspace root.
 pub fn workspace() -> PathBuf {

@@ -1,10 +1,9 @@
 //! Helpers shared by the integration tests.
 #![allow(dead_code)]
 
-use std::net::SocketAddr;
 use std::time::Duration;
 
-use canbus::hub::{Hub, HubConfig, HubHandle};
+use canbus::hub::HubHandle;
 use canbus::{CanId, Frame};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
@@ -30,18 +29,7 @@ pub fn same(a: &Frame, b: &Frame) -> bool {
     a.id() == b.id() && a.kind() == b.kind() && a.data() == b.data()
 }
 
-/// A hub on an ephemeral loopback port.
-pub async fn hub(config: HubConfig) -> HubHandle {
-    let config = HubConfig {
-        listen: SocketAddr::from(([127, 0, 0, 1], 0)),
-        ..config
-    };
-    Hub::bind(config).await.unwrap().spawn().unwrap()
-}
-
-pub fn url(hub: &HubHandle, channel: &str) -> String {
-    format!("socketcand://{}/{channel}", hub.local_addr())
-}
+pub use testkit::{hub_url as url, hub_with as hub};
 
 /// A hand-driven socketcand client, for feeding the hub bad input.
 pub struct RawClient {
