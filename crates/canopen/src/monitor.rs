@@ -1061,3 +1061,56 @@ mod pdo_layout_tests {
         assert_eq!(decode_pdo(layout, &[1]), "TPDO1 node 1: 2000:00=<missing>");
     }
 }
+
+#[cfg(test)]
+mod fuzz_tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn arb_frame() -> impl Strategy<Value = Frame> {
+        let id = prop_oneof![0x580u16..0x680, 0x700u16..0x800, 0u16..0x800];
+        (
+            id,
+            proptest::collection::vec(any::<u8>(), 0..=8),
+            any::<bool>(),
+        )
+            .prop_map(|(id, data, remote)| {
+                if remote {
+                    Frame::remote(CanId::Standard(id), data.len() as u8).unwrap()
+                } else {
+                    Frame::standard(id, &data).unwrap()
+                }
+            })
+    }
+
+    proptest! {
+        /// Frame-driven machines take anything the bus carries without panicking.
+        #[test]
+        fn random_frames_never_panic(frames in proptest::collection::vec(arb_frame(), 0..200)) {
+            let now = std::time::Instant::now();
+            let mut tracker = SdoTracker::new();
+            let mut lss = crate::lss::LssSlave::new([1, 2, 3, 4], crate::lss::UNCONFIGURED);
+            let mut guard = crate::guarding::GuardingSlave::new(5);
+            let mut master = crate::guarding::GuardingMaster::new();
+            master.guard(5, std::time::Duration::from_millis(1), 1, now);
+            let mut od = ObjectDictionary::new();
+            crate::pdo::add_pdo_objects(&mut od, 5, 4, 4);
+            let mut pdo = crate::pdo::PdoEngine::configure(&od, now);
+            let mut heartbeat = crate::heartbeat::HeartbeatConsumer::new();
+            let (mut ev, mut out, mut pev, mut hev) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+            for f in &frames {
+                let _ = decode(f).to_string();
+                if let Some(t) = tracker.feed(f) {
+                    let _ = t.to_string();
+                }
+                let _ = lss.handle(&crate::lss::request(f.data().first().copied().unwrap_or(0), [0; 7]));
+                let _ = lss.handle(f);
+                let _ = guard.handle(f, crate::nmt::NmtState::Operational, now, &mut ev);
+                master.handle(f, &mut ev);
+                let _ = pdo.handle_frame(&mut od, f, now, &mut pev);
+                let _ = pdo.handle_remote(&od, f, now, &mut out);
+                heartbeat.handle(f, now, &mut hev);
+            }
+        }
+    }
+}
