@@ -805,7 +805,7 @@ impl SdoTracker {
                 let keep = (usize::from(d[1]) * 7).min(t.block_data.len());
                 let acked: Vec<u8> = t.block_data.drain(..).take(keep).collect();
                 t.data.extend_from_slice(&acked);
-                if usize::from(d[1]) < usize::from(t.expected_seq - 1) {
+                if usize::from(d[1]) < usize::from(t.expected_seq.saturating_sub(1)) {
                     t.complete = false;
                 }
                 t.expected_seq = 1;
