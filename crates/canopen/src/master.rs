@@ -268,7 +268,11 @@ impl Master {
     }
 
     /// Send a Fastscan step; whether any slave answered within the whole step time.
-    async fn fastscan_step(&self, request: canbus::Frame) -> Result<bool, BusError> {
+    async fn fastscan_step(
+        &self,
+        request: canbus::Frame,
+        step: Duration,
+    ) -> Result<bool, BusError> {
         let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
         *self
             .lss_route
@@ -279,7 +283,7 @@ impl Master {
             self.sender.flush().await
         };
         let result = sent.await;
-        tokio::time::sleep(FASTSCAN_TIMEOUT).await;
+        tokio::time::sleep(step).await;
         *self
             .lss_route
             .lock()
@@ -405,9 +409,21 @@ impl Master {
     /// Fastscan (CiA 305 §6.7): find one slave without a node-ID, bit by bit, and leave it in
     /// configuration state. `None` when no such slave answers.
     pub async fn lss_fastscan(&self) -> Result<Option<[u32; 4]>, BusError> {
+        self.lss_fastscan_with_step(FASTSCAN_TIMEOUT).await
+    }
+
+    /// [`Self::lss_fastscan`] with another step time: longer for slow slaves or a loaded
+    /// machine (a scan takes 133 steps).
+    pub async fn lss_fastscan_with_step(
+        &self,
+        step: Duration,
+    ) -> Result<Option<[u32; 4]>, BusError> {
         use crate::lss::fastscan_request;
         let _turn = self.lss_turn.lock().await;
-        if !self.fastscan_step(fastscan_request(0, 0x80, 0, 0)).await? {
+        if !self
+            .fastscan_step(fastscan_request(0, 0x80, 0, 0), step)
+            .await?
+        {
             return Ok(None);
         }
         let mut address = [0u32; 4];
@@ -415,7 +431,7 @@ impl Master {
             let mut part = 0u32;
             for bit in (0..32u8).rev() {
                 if !self
-                    .fastscan_step(fastscan_request(part, bit, sub, sub))
+                    .fastscan_step(fastscan_request(part, bit, sub, sub), step)
                     .await?
                 {
                     part |= 1 << bit;
@@ -423,7 +439,7 @@ impl Master {
             }
             address[usize::from(sub)] = part;
             if !self
-                .fastscan_step(fastscan_request(part, 0, sub, (sub + 1) % 4))
+                .fastscan_step(fastscan_request(part, 0, sub, (sub + 1) % 4), step)
                 .await?
             {
                 return Ok(None);
