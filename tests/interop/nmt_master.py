@@ -9,6 +9,7 @@ prints WAIT-EMCY and waits for EMCY 0x4210.
 
 import logging
 import sys
+import threading
 
 import canopen
 
@@ -21,8 +22,18 @@ def main():
     network.connect(interface="socketcand", host=host, port=port, channel="can0", tcp_tune=True)
     node = canopen.RemoteNode(node_id, canopen.ObjectDictionary())
     network.add_node(node)
+    # Listen for the boot-up before announcing READY: the node starts as soon as we do, and
+    # wait_for_bootup() would miss a boot-up that arrives before it is called.
+    booted = threading.Event()
+
+    def on_error_control(can_id, data, timestamp):
+        if len(data) == 1 and data[0] == 0:
+            booted.set()
+
+    network.subscribe(0x700 + node_id, on_error_control)
     print("READY", flush=True)
-    node.nmt.wait_for_bootup(10)
+    if not booted.wait(10):
+        sys.exit("FAIL: no boot-up message")
     print("BOOTUP", flush=True)
     for state in ["OPERATIONAL", "STOPPED", "PRE-OPERATIONAL"]:
         node.nmt.state = state
