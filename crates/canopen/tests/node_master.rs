@@ -354,7 +354,7 @@ async fn configured_pdos_carry_dictionary_changes() {
         .await
         .unwrap();
     let mut stored = Value::Uint(0);
-    for _ in 0..50 {
+    for _ in 0..500 {
         stored = node.value(0x2100, 0).unwrap();
         if stored == Value::Uint(4321) {
             break;
