@@ -1,10 +1,17 @@
-//! CiA 301 CANopen, sans-IO.
+//! CiA 301 CANopen (with CiA 305 LSS and CiA 306 files), sans-IO at the core.
 //!
-//! One module per service, each a sans-IO state machine driven by frames and explicit time:
-//! data types ([`types`]), the object dictionary ([`od`]), CiA 306 files ([`eds`]), SDO
-//! ([`sdo`]), NMT ([`nmt`]), heartbeat ([`heartbeat`]), EMCY ([`emcy`]), SYNC ([`sync`]) and TIME
-//! ([`time`]); the pre-defined connection set ([`cob`]) and the frame decoder for bus monitors
-//! ([`monitor`]). The tokio edge is [`driver`] (feature `tokio`, on by default).
+//! One module per service, each a state machine driven by frames and explicit time that returns
+//! frames and its next deadline: data types ([`types`]), the object dictionary ([`od`]), CiA 306
+//! files ([`eds`]), SDO ([`sdo`]), NMT ([`nmt`]), heartbeat ([`heartbeat`]), node and life
+//! guarding ([`guarding`]), EMCY ([`emcy`]), SYNC ([`sync`]), TIME ([`time`]), PDO ([`pdo`]),
+//! LSS ([`lss`]) and parameter storage ([`storage`]); the pre-defined connection set ([`cob`])
+//! and bus-monitor decoding ([`monitor`]).
+//!
+//! The tokio edge (feature `tokio`, on by default): [`node::LocalNode`] runs a device,
+//! [`master::Master`] commands a network, [`driver::SdoClients`] and [`driver::serve_sdo`] do SDO
+//! alone.
+
+#![warn(missing_docs)]
 
 #[cfg(feature = "tokio")]
 mod alarm;
