@@ -1,4 +1,4 @@
-//! socketcand: the text protocol ([`codec`]) and the `socketcand://` client backend ([`client`]).
+//! socketcand: the text protocol ([`codec`]) and the `socketcand://` client backend.
 
 pub(crate) mod client;
 pub mod codec;

@@ -14,7 +14,7 @@ use crate::config;
 /// Command-line arguments of `canlift hub`.
 #[derive(Debug, clap::Args)]
 pub struct HubArgs {
-    /// Configuration file (TOML, section [hub]).
+    /// Configuration file (TOML, section `[hub]`).
     #[arg(long)]
     config: Option<PathBuf>,
     /// Address to listen on [default: 127.0.0.1:29536].
