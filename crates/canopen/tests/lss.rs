@@ -9,34 +9,10 @@ use canopen::master::{Master, MasterEvent};
 use canopen::nmt::{NmtCommand, NmtState};
 use canopen::node::{LocalNode, NodeConfig};
 use canopen::od::ObjectDictionary;
-use canopen::sdo::client::ClientConfig;
-use tokio::sync::broadcast;
 
-const WAIT: Duration = Duration::from_secs(3);
+mod common;
 
-async fn master_event(
-    events: &mut broadcast::Receiver<MasterEvent>,
-    pred: impl Fn(&MasterEvent) -> bool,
-) -> MasterEvent {
-    tokio::time::timeout(WAIT, async {
-        loop {
-            if let Ok(e) = events.recv().await {
-                if pred(&e) {
-                    return e;
-                }
-            }
-        }
-    })
-    .await
-    .expect("event in time")
-}
-
-fn client_config() -> ClientConfig {
-    ClientConfig {
-        timeout: Duration::from_millis(300),
-        ..ClientConfig::default()
-    }
-}
+use common::{client_config, master_event};
 
 /// Fastscan step time for the test (a real bus answers in well under a millisecond).
 const STEP: Duration = Duration::from_millis(40);

@@ -9,35 +9,12 @@ use canopen::nmt::{NmtCommand, NmtState};
 use canopen::node::{wait_event, LocalNode, NodeConfig, NodeEvent};
 use canopen::od::ObjectDictionary;
 use canopen::sdo::abort::AbortCode;
-use canopen::sdo::client::ClientConfig;
 use canopen::types::Value;
 use tokio::sync::broadcast;
 
-const WAIT: Duration = Duration::from_secs(3);
+mod common;
 
-async fn master_event(
-    events: &mut broadcast::Receiver<MasterEvent>,
-    pred: impl Fn(&MasterEvent) -> bool,
-) -> MasterEvent {
-    tokio::time::timeout(WAIT, async {
-        loop {
-            if let Ok(e) = events.recv().await {
-                if pred(&e) {
-                    return e;
-                }
-            }
-        }
-    })
-    .await
-    .expect("event in time")
-}
-
-fn client_config() -> ClientConfig {
-    ClientConfig {
-        timeout: Duration::from_millis(300),
-        ..ClientConfig::default()
-    }
-}
+use common::{client_config, master_event, WAIT};
 
 async fn setup(url: &str, node_id: u8) -> (Master, broadcast::Receiver<MasterEvent>, LocalNode) {
     let master = Master::open(url, client_config()).await.unwrap();
