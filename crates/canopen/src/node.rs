@@ -493,6 +493,8 @@ struct Driver {
     emcy: EmcyProducer,
     sync_config: SyncConfig,
     sync: SyncProducer,
+    /// 0x1012: the TIME COB-ID, consumer (bit 31) and producer (bit 30).
+    time: (Option<canbus::CanId>, bool, bool),
     pdo: PdoEngine,
     out: Vec<Frame>,
 }
@@ -534,6 +536,7 @@ impl Driver {
             emcy: EmcyProducer::new(config.node_id),
             sync_config: SyncConfig::default(),
             sync: SyncProducer::new(SyncConfig::default(), now),
+            time: (None, false, false),
             pdo: PdoEngine::default(),
             out: Vec::new(),
         };
@@ -543,7 +546,7 @@ impl Driver {
 
     /// (Re)read every communication parameter from the dictionary.
     fn load_communication(&mut self, now: Instant) {
-        for index in [0x1005, 0x100C, 0x1014, 0x1015, 0x1016, 0x1017] {
+        for index in [0x1005, 0x100C, 0x1012, 0x1014, 0x1015, 0x1016, 0x1017] {
             self.apply(index, 0, now);
         }
         let od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
@@ -579,6 +582,11 @@ impl Driver {
                 u32_value(&od, 0x100C, 0) as u16,
                 u32_value(&od, 0x100D, 0) as u8,
             ),
+            0x1012 => {
+                let value = u32_value(&od, 0x1012, 0);
+                let id = crate::cob::id_from_parameter(value & 0x3FFF_FFFF);
+                self.time = (id, value & 0x8000_0000 != 0, value & 0x4000_0000 != 0);
+            }
             0x1014 => self.emcy.set_cob_id(u32_value(&od, 0x1014, 0)),
             0x1015 => self
                 .emcy
@@ -799,7 +807,7 @@ impl Driver {
             }
         }
         if state.allows_sdo() {
-            let (time_id, consumes, _) = self.time_config();
+            let (time_id, consumes, _) = self.time;
             if consumes && Some(frame.id()) == time_id {
                 if let Some(stamp) = crate::time::TimeOfDay::parse(frame.data()) {
                     let _ = self.events.send(NodeEvent::Time(stamp.to_system()));
@@ -832,19 +840,8 @@ impl Driver {
         self.write_history();
     }
 
-    /// The TIME COB-ID and whether this node consumes / produces TIME (0x1012 bits 31 / 30).
-    fn time_config(&self) -> (Option<canbus::CanId>, bool, bool) {
-        let value = u32_value(
-            &self.od.lock().unwrap_or_else(PoisonError::into_inner),
-            0x1012,
-            0,
-        );
-        let id = crate::cob::id_from_parameter(value & 0x3FFF_FFFF);
-        (id, value & 0x8000_0000 != 0, value & 0x4000_0000 != 0)
-    }
-
     fn send_time(&mut self, at: std::time::SystemTime) {
-        let (id, _, produces) = self.time_config();
+        let (id, _, produces) = self.time;
         match (id, produces, crate::time::TimeOfDay::from_system(at)) {
             (Some(id), true, Some(stamp)) if self.nmt.state().allows_sdo() => {
                 self.out.push(stamp.frame(id))
