@@ -769,11 +769,10 @@ impl Driver {
             return;
         }
         let state = self.nmt.state();
-        if state.allows_sdo() {
+        if state.allows_sdo() && self.sdo.serves(frame.id()) {
             let mut od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
-            if self.sdo.handle(&mut od, frame, now, &mut self.out) {
-                return;
-            }
+            self.sdo.handle(&mut od, frame, now, &mut self.out);
+            return;
         }
         let mut heartbeat = Vec::new();
         self.consumer.handle(frame, now, &mut heartbeat);
@@ -783,7 +782,7 @@ impl Driver {
                 let _ = self.events.send(NodeEvent::Emcy { node, message });
             }
         }
-        if state.allows_pdo() {
+        if state.allows_pdo() && self.pdo.is_rpdo(frame.id()) {
             let mut pdo_events = Vec::new();
             let mut od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
             let was_pdo = self.pdo.handle_frame(&mut od, frame, now, &mut pdo_events);

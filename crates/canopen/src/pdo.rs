@@ -440,6 +440,11 @@ impl PdoEngine {
         self.rpdos.iter().map(|r| r.id).collect()
     }
 
+    /// Whether `id` is one of the RPDOs.
+    pub fn is_rpdo(&self, id: CanId) -> bool {
+        self.rpdos.iter().any(|r| r.id == id)
+    }
+
     /// Mark every event-driven TPDO pending (e.g. on entering operational).
     pub fn trigger_all(&mut self, now: Instant) {
         for t in self.tpdos.iter_mut().filter(|t| t.ttype >= 254) {

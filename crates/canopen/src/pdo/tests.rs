@@ -234,6 +234,7 @@ fn rpdos_write_the_dictionary_buffer_for_sync_and_time_out() {
         pdo.rpdo_ids(),
         vec![CanId::Standard(0x205), CanId::Standard(0x305)]
     );
+    assert!(pdo.is_rpdo(CanId::Standard(0x305)) && !pdo.is_rpdo(CanId::Standard(0x405)));
     seen.lock().unwrap().clear();
     let mut ev = Vec::new();
     let f = Frame::standard(0x205, &[0x10, 0x27, 0xFF, 1, 0, 0, 0]).unwrap();

@@ -614,6 +614,11 @@ impl ServerChannels {
             .collect()
     }
 
+    /// Whether `id` is the request identifier of one of the channels.
+    pub fn serves(&self, id: CanId) -> bool {
+        self.channels.iter().any(|(rx, _, _)| *rx == id)
+    }
+
     /// Handle `frame` if it is a request on one of the channels; responses go to `out`.
     /// Returns whether the frame was an SDO request for this node.
     pub fn handle(
