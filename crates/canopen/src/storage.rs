@@ -42,7 +42,7 @@ pub fn group(sub: u8) -> Option<&'static [std::ops::RangeInclusive<u16>]> {
 /// One stored value.
 pub type Entry = (u16, u8, Vec<u8>);
 
-/// Why a storage file could not be read.
+/// Why a storage file could not be read or written.
 #[derive(Debug, thiserror::Error)]
 pub enum StorageError {
     /// The file could not be read.
@@ -194,15 +194,35 @@ pub struct StorageGuard {
     path: PathBuf,
 }
 
+/// Replace the values of `fresh` in the file at `path`, keeping every other stored value.
+fn merge(path: &Path, fresh: Vec<Entry>) -> Result<(), StorageError> {
+    let mut kept = load(path)?;
+    kept.retain(|(i, s, _)| !fresh.iter().any(|(fi, fs, _)| fi == i && fs == s));
+    kept.extend(fresh);
+    kept.sort_by_key(|(i, s, _)| (*i, *s));
+    write_atomically(path, &encode(&kept)).map_err(|source| StorageError::Io {
+        path: path.display().to_string(),
+        source,
+    })
+}
+
+/// Store the read-only persistent values (counters such as a trip counter) of `od` into the
+/// file at `path` without touching stored parameters: a device keeps its counters in
+/// non-volatile memory by itself, while parameters are kept only by "store parameters".
+pub fn store_counters(od: &ObjectDictionary, path: &Path) -> Result<(), StorageError> {
+    let counters = od
+        .objects()
+        .flat_map(|o| o.subs.iter().map(move |(s, v)| (o.index, *s, v)))
+        .filter(|(_, _, v)| v.persist && !v.access.writable())
+        .filter_map(|(i, s, v)| v.value_bytes().map(|b| (i, s, b.to_vec())))
+        .collect();
+    merge(path, counters)
+}
+
 impl StorageGuard {
     fn store(&self, od: &ObjectDictionary, sub: u8) -> Result<(), AbortCode> {
-        let mut kept = load(&self.path).map_err(|_| AbortCode::CANNOT_STORE)?;
-        let fresh = snapshot(od, sub);
-        kept.retain(|(i, s, _)| !fresh.iter().any(|(fi, fs, _)| fi == i && fs == s));
-        kept.extend(fresh);
-        kept.sort_by_key(|(i, s, _)| (*i, *s));
-        write_atomically(&self.path, &encode(&kept)).map_err(|e| {
-            tracing::error!(path = %self.path.display(), error = %e, "storing parameters failed");
+        merge(&self.path, snapshot(od, sub)).map_err(|e| {
+            tracing::error!(error = %e, "storing parameters failed");
             AbortCode::CANNOT_STORE
         })
     }

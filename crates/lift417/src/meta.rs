@@ -238,6 +238,11 @@ impl Access {
         }
     }
 
+    /// Whether the network may write it.
+    pub fn writable(self) -> bool {
+        matches!(self, Access::Rw | Access::Wo)
+    }
+
     /// Parse "rw", "wo", "ro" or "const" (case-insensitive).
     pub fn parse(text: &str) -> Result<Self, UnknownCode> {
         Self::ALL

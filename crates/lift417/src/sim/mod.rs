@@ -1,0 +1,3 @@
+//! The simulated lift: [`model`] is the lift (sans-IO).
+
+pub mod model;
