@@ -635,7 +635,7 @@ impl Catalog {
         }
         for o in self.objects.values() {
             let at = |sub: Option<u8>| match sub {
-                Some(s) => format!("{}", Entry::mplex(o.index, s)),
+                Some(s) => Entry::mplex(o.index, s),
                 None => format!("{:04X}h", o.index),
             };
             self.check_texts(&o.name, &at(None), "name", &mut problems);
@@ -738,10 +738,9 @@ fn check_entry(e: &Entry, code: ObjectCode, here: &str, problems: &mut Vec<Strin
                     ));
                 }
             }
-            FormType::Bits => {
-                if e.list.len() > width as usize {
-                    problem(format!("{} bit names for {width} bits", e.list.len()));
-                }
+            FormType::Bits if e.list.len() > width as usize => {
+                problem(format!("{} bit names for {width} bits", e.list.len()));
+            }
             }
             _ => {}
         }

@@ -4,12 +4,15 @@ fn lift() -> Lift {
     Lift::new(Params::with_floors(8), Counters::default(), 7)
 }
 
+/// (time s, position mm, speed mm/s, acceleration mm/s²).
+type Sample = (f64, f64, f64, f64);
+
 /// Run until `done` holds, recording (time, position, speed, acceleration) every step.
 fn run_until(
     lift: &mut Lift,
     limit_s: f64,
     mut done: impl FnMut(&Lift, &[Event]) -> bool,
-) -> (Vec<(f64, f64, f64, f64)>, Vec<Event>) {
+) -> (Vec<Sample>, Vec<Event>) {
     let mut trace = Vec::new();
     let mut events = Vec::new();
     let mut t = 0.0;
