@@ -741,7 +741,6 @@ fn check_entry(e: &Entry, code: ObjectCode, here: &str, problems: &mut Vec<Strin
             FormType::Bits if e.list.len() > width as usize => {
                 problem(format!("{} bit names for {width} bits", e.list.len()));
             }
-            }
             _ => {}
         }
     } else if e.min.is_some() != e.max.is_some() {
