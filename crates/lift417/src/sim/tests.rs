@@ -1,0 +1,94 @@
+use super::*;
+
+#[test]
+fn virtual_inputs_round_trip() {
+    for floor in 1..=32 {
+        for kind in [CallKind::Car, CallKind::HallUp, CallKind::HallDown] {
+            for lift in 1..=8 {
+                let pressed = virtual_input(lift, floor, kind, true);
+                assert_eq!(
+                    decode_virtual_input(pressed),
+                    Some((1 << (lift - 1), floor, kind))
+                );
+                assert_eq!(
+                    decode_virtual_input(virtual_input(lift, floor, kind, false)),
+                    None
+                );
+            }
+        }
+    }
+    // CiA 417-4 §4.3.1 layout: hall call up at floor 3 for lift 1, door 1, call request.
+    assert_eq!(
+        virtual_input(1, 3, CallKind::HallUp, true),
+        0x01_10_03_01_01_02
+    );
+    // Defect (10b) and not installed (11b) are no requests; nor is a generic input.
+    assert_eq!(decode_virtual_input(0x02_10_03_01_01_02), None);
+    assert_eq!(decode_virtual_input(0x01_10_03_01_01_01), None);
+}
+
+#[test]
+fn buttons_fill_eight_per_group() {
+    assert_eq!(button(1, CallKind::HallUp), (0x6100, 1));
+    assert_eq!(button(9, CallKind::HallDown), (0x6101, 1));
+    assert_eq!(button(32, CallKind::Car), (0x6107, 8));
+}
+
+#[test]
+fn settings_are_checked() {
+    let ok = SimConfig::default();
+    assert!(ok.check().is_ok());
+    for bad in [
+        SimConfig {
+            floors: 1,
+            ..ok.clone()
+        },
+        SimConfig {
+            floors: 33,
+            ..ok.clone()
+        },
+        SimConfig {
+            lifts: 9,
+            ..ok.clone()
+        },
+        SimConfig {
+            speed: 0.0,
+            ..ok.clone()
+        },
+        SimConfig {
+            io_node: Some(1),
+            ..ok.clone()
+        },
+        SimConfig {
+            node_id: 0,
+            ..ok.clone()
+        },
+    ] {
+        assert!(bad.check().is_err(), "{bad:?}");
+    }
+    let no_io = SimConfig {
+        io_node: None,
+        floors: 100,
+        ..ok
+    };
+    assert!(no_io.check().is_ok());
+}
+
+#[test]
+fn the_exported_eds_describes_the_running_dictionary() {
+    let config = SimConfig {
+        lifts: 2,
+        ..SimConfig::default()
+    };
+    let text = export_eds(&config, Device::Controller).unwrap();
+    let imported = canopen::eds::import("sim.eds", &text, Some(1)).unwrap();
+    let od = imported.od;
+    assert_eq!(od.get_value(0x1000, 0), Ok(Value::Uint(0x0001_01A1)));
+    assert_eq!(od.get_value(0x4010, 4), Ok(Value::Int(11_500)));
+    assert!(od.object(0x6D20).is_some(), "lift 2 trip counter");
+    assert_eq!(od.variable(0x6520, 1).unwrap().name, "Trip counter [trips]");
+    let io = export_eds(&config, Device::Io).unwrap();
+    let io = canopen::eds::import("io.eds", &io, Some(12)).unwrap().od;
+    assert_eq!(io.get_value(0x1000, 0), Ok(Value::Uint(0x0008_01A1)));
+    assert!(io.object(0x2000).is_some());
+}
