@@ -27,6 +27,8 @@ enum Command {
     Nmt(cmd::nmt::NmtArgs),
     /// Read or write an object of a node by SDO.
     Sdo(cmd::sdo::SdoArgs),
+    /// Simulated CiA 417 lift controller (and I/O node) on a bus.
+    Sim(cmd::sim::SimArgs),
     /// Measure canlift's components.
     Bench(cmd::bench::BenchArgs),
 }
@@ -48,6 +50,7 @@ fn main() -> std::process::ExitCode {
             Command::Nmt(args) => cmd::nmt::run(args).await,
             Command::Sdo(args) => cmd::sdo::run(args).await,
             Command::Bench(args) => cmd::bench::run(args).await,
+            Command::Sim(args) => cmd::sim::run(args).await,
         }
     });
     match result {

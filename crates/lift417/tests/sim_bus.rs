@@ -245,3 +245,29 @@ async fn counters_survive_a_restart() {
     sim.stop().await;
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fault_given_at_start_is_reported_in_the_error_history() {
+    let url = "mem://sim-start-fault";
+    let config = SimConfig {
+        faults: 2,
+        ..config()
+    };
+    let sim = Simulator::start(url, config).await.unwrap();
+    let master = Master::open(url, ClientConfig::default()).await.unwrap();
+    until(&master, 0x5024, 0, |state| state == 4).await;
+    assert_eq!(master.sdo().read::<u8>(1, 0x5030, 0).await.unwrap(), 2);
+    until(&master, 0x1003, 1, |code| code & 0xFFFF == 0xFF04).await;
+    // Manufacturer-specific class: bits 0 and 7 of the error register.
+    assert_eq!(master.sdo().read::<u8>(1, 0x1001, 0).await.unwrap(), 0x81);
+    assert!(
+        read_uint(&master, 1, 0x6480, 1).await > 1000,
+        "load above the overload limit"
+    );
+    assert_eq!(
+        read_uint(&master, 1, 0x6482, 1).await,
+        0b1000,
+        "overload signalled"
+    );
+    sim.stop().await;
+}

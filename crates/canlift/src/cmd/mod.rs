@@ -5,3 +5,4 @@ pub mod dump;
 pub mod hub;
 pub mod nmt;
 pub mod sdo;
+pub mod sim;

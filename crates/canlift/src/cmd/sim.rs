@@ -1,0 +1,127 @@
+//! `canlift sim`: a simulated CiA 417 lift controller and I/O node on a bus (DESIGN.md §3).
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::Context;
+use lift417::catalog::Device;
+use lift417::sim::{export_eds, SimConfig, Simulator};
+
+/// Command-line arguments of `canlift sim`.
+#[derive(Debug, clap::Args)]
+pub struct SimArgs {
+    /// The bus to join.
+    #[arg(long, default_value = "socketcand://127.0.0.1:29536/can0")]
+    bus: String,
+    /// Node-ID of the lift controller.
+    #[arg(long, default_value_t = 1)]
+    node: u8,
+    /// Node-ID of the I/O node with the hall and car buttons; 0 for none.
+    #[arg(long, default_value_t = 12)]
+    io_node: u8,
+    /// Floors per lift (2–32 with an I/O node, 2–254 without).
+    #[arg(long, default_value_t = 8)]
+    floors: u8,
+    /// Lifts the controller serves (1–8, at the CiA 417 offsets).
+    #[arg(long, default_value_t = 1)]
+    lifts: u8,
+    /// Run simulated time this many times faster than the clock.
+    #[arg(long, default_value_t = 1.0)]
+    speed: f64,
+    /// Heartbeat producer time (ms).
+    #[arg(long, default_value_t = 1000)]
+    heartbeat_ms: u16,
+    /// Directory for stored parameters and counters (kept across restarts).
+    #[arg(long)]
+    state: Option<PathBuf>,
+    /// Start lift 1 with faults: door-blocked, overload, drive (comma-separated).
+    #[arg(long, value_delimiter = ',')]
+    fault: Vec<FaultArg>,
+    /// Simulated passengers press a button about every this many simulated seconds.
+    #[arg(long)]
+    passengers: Option<f64>,
+    /// Stay pre-operational until an NMT master starts the nodes.
+    #[arg(long)]
+    no_autostart: bool,
+    /// Write the controller's EDS to this file (and the I/O node's beside it) and exit.
+    #[arg(long)]
+    export_eds: Option<PathBuf>,
+}
+
+/// A fault to start with.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum FaultArg {
+    /// The light barrier stays interrupted.
+    DoorBlocked,
+    /// The car is overloaded.
+    Overload,
+    /// The drive has failed.
+    Drive,
+}
+
+impl SimArgs {
+    fn config(&self) -> anyhow::Result<SimConfig> {
+        let faults = self.fault.iter().fold(0, |bits, f| {
+            bits | match f {
+                FaultArg::DoorBlocked => 1,
+                FaultArg::Overload => 2,
+                FaultArg::Drive => 4,
+            }
+        });
+        let passengers = match self.passengers {
+            Some(s) if s.is_finite() && s > 0.0 => Some(Duration::from_secs_f64(s)),
+            Some(s) => anyhow::bail!("--passengers {s}: a positive number of seconds"),
+            None => None,
+        };
+        Ok(SimConfig {
+            node_id: self.node,
+            io_node: (self.io_node != 0).then_some(self.io_node),
+            floors: self.floors,
+            lifts: self.lifts,
+            speed: self.speed,
+            heartbeat_ms: self.heartbeat_ms,
+            state_dir: self.state.clone(),
+            faults,
+            passengers,
+            autostart: !self.no_autostart,
+            ..SimConfig::default()
+        })
+    }
+}
+
+/// Run `canlift sim` until Ctrl-C or SIGTERM.
+pub async fn run(args: SimArgs) -> anyhow::Result<()> {
+    let config = args.config()?;
+    if let Some(path) = &args.export_eds {
+        let text = export_eds(&config, Device::Controller)?;
+        std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))?;
+        println!("{}", path.display());
+        if let Some(io) = config.io_node {
+            let io_path = path.with_file_name(format!("io-node-{io}.eds"));
+            std::fs::write(&io_path, export_eds(&config, Device::Io)?)
+                .with_context(|| format!("writing {}", io_path.display()))?;
+            println!("{}", io_path.display());
+        }
+        return Ok(());
+    }
+    if let Some(dir) = &config.state_dir {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let sim = Simulator::start(&args.bus, config.clone())
+        .await
+        .with_context(|| format!("starting the simulator on {}", args.bus))?;
+    tracing::info!(
+        bus = %args.bus,
+        node = config.node_id,
+        io_node = ?config.io_node,
+        floors = config.floors,
+        lifts = config.lifts,
+        speed = config.speed,
+        "simulated lift running; call the car with: canlift sdo write {} 0x5022 0 u32 FLOOR",
+        config.node_id
+    );
+    crate::logging::shutdown_signal().await;
+    sim.stop().await;
+    tracing::info!("simulated lift stopped, counters stored");
+    Ok(())
+}
