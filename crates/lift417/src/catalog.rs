@@ -57,6 +57,11 @@ impl Texts {
             .map(|(_, t)| t.as_str())
     }
 
+    /// A text in English only (names from an EDS).
+    pub fn english(text: &str) -> Texts {
+        Texts(BTreeMap::from([("en".to_owned(), text.to_owned())]))
+    }
+
     /// The languages present.
     pub fn languages(&self) -> impl Iterator<Item = &str> {
         self.0.keys().map(String::as_str)

@@ -1,0 +1,643 @@
+use super::*;
+
+const SERNUM: &str = "180917010200000102";
+/// SHA-1 of "service" and "setup".
+const SERVICE_SHA1: &str = "4cf5bc59bee9e1c44c6254b5f84e7f066bd8e5fe";
+const SETUP_SHA1: &str = "80437a44a661d141174209119d54125a59a64b2a";
+
+fn settings() -> Settings {
+    Settings {
+        identity: Identity {
+            sernum: SERNUM.into(),
+            vendorid: 1050,
+            productcode: 4096,
+            liftnum: "40/7289/20399-126".into(),
+            hardware: "Thor @ NX-T2".into(),
+            software: "01.23.10".into(),
+            boardhash: "2354A687AF6DC79B203E754E8E426A87FE188A62983B7AC48F9D5E195B728112".into(),
+            domaintoken: "MAS".into(),
+            api: 1,
+        },
+        service_sha1: Some(SERVICE_SHA1.into()),
+        setup_sha1: Some(SETUP_SHA1.to_uppercase()),
+        privilege_duration: Duration::from_secs(300),
+        max_in_flight: 2,
+        max_queued: 2,
+        max_subscriptions: 4,
+        heartbeat: Duration::from_secs(300),
+        connect_timeout: Duration::from_secs(10),
+        lift_controller: 1,
+        nets: vec![1],
+    }
+}
+
+fn metadata() -> Box<dyn Metadata> {
+    Box::new(BusMetadata {
+        controller: Some(Target { net: 1, node: 1 }),
+        nodes: HashMap::new(),
+    })
+}
+
+struct Portal {
+    session: Session,
+    now: Instant,
+}
+
+impl Portal {
+    fn connected() -> Portal {
+        let now = Instant::now();
+        let mut session = Session::new(settings(), metadata(), None, now);
+        assert!(session
+            .text(
+                r#"{"jsonrpc":"2.0","id":1,"result":"CONNACK","api":1}"#,
+                now
+            )
+            .is_empty());
+        assert_eq!(session.phase(), Phase::Connected(1));
+        Portal { session, now }
+    }
+
+    fn send(&mut self, text: &str) -> Vec<Output> {
+        self.session.text(text, self.now)
+    }
+
+    /// Send a request and answer its jobs from `values` (bytes per job) or with `done`.
+    fn ask(&mut self, text: &str, values: &[&[u8]]) -> Value {
+        let mut out = self.send(text);
+        let mut values = values.iter();
+        loop {
+            let job = out.iter().find_map(|o| match o {
+                Output::Start(id, job) => Some((*id, job.clone())),
+                _ => None,
+            });
+            if let Some(text) = out.iter().find_map(|o| match o {
+                Output::Send(t) => Some(t.clone()),
+                _ => None,
+            }) {
+                return serde_json::from_str(&text).unwrap();
+            }
+            let (id, job) = job.expect("an answer or a job");
+            let result = match job {
+                Job::Read { .. } => JobResult::Read(vec![values.next().unwrap().to_vec()]),
+                Job::ReadArray { .. } => {
+                    JobResult::Read(values.by_ref().map(|v| v.to_vec()).collect())
+                }
+                Job::Write { .. } | Job::StoreToken(_) => JobResult::Done,
+            };
+            out = self.session.complete(id, result, self.now);
+        }
+    }
+
+    fn later(&mut self, d: Duration) -> Vec<Output> {
+        self.now += d;
+        self.session.timeout(self.now)
+    }
+}
+
+fn sent(out: &[Output]) -> Vec<Value> {
+    out.iter()
+        .filter_map(|o| match o {
+            Output::Send(t) => Some(serde_json::from_str(t).unwrap()),
+            _ => None,
+        })
+        .collect()
+}
+
+#[test]
+fn connect_carries_the_identity_and_the_token_only_when_stored() {
+    let now = Instant::now();
+    let Output::Send(text) = Session::new(settings(), metadata(), None, now).connect() else {
+        panic!()
+    };
+    let v: Value = serde_json::from_str(&text).unwrap();
+    assert_eq!(v["method"], "CONNECT");
+    assert_eq!(v["params"]["domaintoken"], "MAS");
+    let identity = &v["params"]["identity"];
+    assert_eq!(identity["sernum"], SERNUM);
+    assert_eq!(identity["vendorid"], 1050);
+    assert_eq!(identity["productcode"], 4096);
+    assert_eq!(identity["api"], 1);
+    assert!(identity.get("cloudtoken").is_none());
+    let Output::Send(text) =
+        Session::new(settings(), metadata(), Some("2A98765DE230176C".into()), now).connect()
+    else {
+        panic!()
+    };
+    let v: Value = serde_json::from_str(&text).unwrap();
+    assert_eq!(v["params"]["identity"]["cloudtoken"], "2A98765DE230176C");
+}
+
+#[test]
+fn connack_forms_and_api_negotiation() {
+    let now = Instant::now();
+    let mut s = settings();
+    s.identity.api = 3;
+    for (answer, api) in [
+        (r#"{"jsonrpc":"2.0","id":1,"result":"CONNACK","api":2}"#, 2),
+        (
+            r#"{"jsonrpc":"2.0","id":1,"result":{"connack":true,"api":5}}"#,
+            3,
+        ),
+        (r#"{"jsonrpc":"2.0","id":1,"result":"CONNACK"}"#, 1),
+    ] {
+        let mut session = Session::new(s.clone(), metadata(), None, now);
+        session.text(answer, now);
+        assert_eq!(session.phase(), Phase::Connected(api), "{answer}");
+    }
+    let mut refused = Session::new(s.clone(), metadata(), None, now);
+    let out = refused.text(
+        r#"{"jsonrpc":"2.0","id":1,"error":{"code":1,"message":"no"}}"#,
+        now,
+    );
+    assert!(matches!(&out[..], [Output::Close(c)] if c.contains("refused")));
+    let mut silent = Session::new(s, metadata(), None, now);
+    assert_eq!(silent.poll_timeout(), Some(now + Duration::from_secs(10)));
+    let out = silent.timeout(now + Duration::from_secs(10));
+    assert!(matches!(&out[..], [Output::Close(c)] if c.contains("CONNACK")));
+}
+
+#[test]
+fn heartbeat_answers_at_once_even_when_the_bus_is_busy() {
+    let mut p = Portal::connected();
+    for i in 0..4 {
+        p.send(&format!(
+            r#"{{"jsonrpc":"2.0","id":{i},"method":"get_canopen_object","params":{{"object":{{"mplex":"0x652001"}}}}}}"#
+        ));
+    }
+    let out = p.send(r#"{"jsonrpc":"2.0","id":"hb","method":"get_heartbeat"}"#);
+    assert_eq!(
+        sent(&out),
+        [json!({"jsonrpc":"2.0","id":"hb","result":{"done":0}})]
+    );
+    // Two in flight, two queued: the fifth is refused as busy, not buffered without end.
+    let out = p.send(r#"{"jsonrpc":"2.0","id":9,"method":"get_canopen_object","params":{"object":{"mplex":"0x652001"}}}"#);
+    assert_eq!(sent(&out)[0]["error"]["code"], rpc_codes::BUSY);
+}
+
+const GET_TRIP: &str = r#"{
+  "jsonrpc": "2.0", "id": "<ID>", "method": "get_canopen_object",
+  "params": { "lang": { "preferred_language": "en", "alternate_language": "de" },
+    "object": { "mplex": "0x652001", "compact": false, "stripped": false, "naked": false } } }"#;
+
+#[test]
+fn get_full_stripped_and_naked_match_the_samples() {
+    let mut p = Portal::connected();
+    let trips = 2510u32.to_le_bytes();
+    let full = p.ask(GET_TRIP, &[&trips]);
+    assert_eq!(
+        full,
+        json!({"jsonrpc":"2.0","id":"<ID>","result":{
+            "lang":{"language":"en"},
+            "object":{"mplex":"0x652001","objcode":8,"datatype":7,"formtype":10,"physunit":26,
+                "access":"ro","privilege":0,"name":"Trip counter [trips]",
+                "hint":"This object represents the internal trip counter of the lift controller.",
+                "value":["2510"],"min":0,"max":4294967295u64,"zero":false,"list":[]},
+            "hints":{"show_off_at_zero":false,"show_unlimited_at_max":false,"show_undefined_at_max":false}}})
+    );
+    let stripped = p.ask(
+        &GET_TRIP.replace(r#""stripped": false"#, r#""stripped": true"#),
+        &[&trips],
+    );
+    assert_eq!(
+        stripped["result"],
+        json!({"object":{"mplex":"0x652001","objcode":8,"datatype":7,"formtype":10,"physunit":26,
+            "access":"ro","privilege":0,"value":["2510"],"min":0,"max":4294967295u64,"zero":false}})
+    );
+    let naked = p.ask(
+        &GET_TRIP.replace(r#""naked": false"#, r#""naked": true"#),
+        &[&trips],
+    );
+    assert_eq!(
+        naked["result"],
+        json!({"object":{"mplex":"0x652001","value":["2510"]}})
+    );
+    // German first: name and hint in German, the language says so.
+    let de = p.ask(
+        &GET_TRIP.replace(
+            r#""preferred_language": "en""#,
+            r#""preferred_language": "de""#,
+        ),
+        &[&trips],
+    );
+    assert_eq!(de["result"]["lang"]["language"], "de");
+    assert_eq!(de["result"]["object"]["name"], "Fahrtenzähler [Fahrten]");
+}
+
+#[test]
+fn list_and_compact_array_match_the_samples() {
+    let mut p = Portal::connected();
+    let list = p.ask(
+        r#"{"jsonrpc":"2.0","id":"1234","method":"get_canopen_object","params":{"lang":{"preferred_language":"en","alternate_language":"de"},"object":{"mplex":"0x411200"}}}"#,
+        &[&[0]],
+    );
+    let object = &list["result"]["object"];
+    assert_eq!(
+        (
+            &object["objcode"],
+            &object["datatype"],
+            &object["formtype"],
+            &object["access"],
+            &object["privilege"]
+        ),
+        (&json!(7), &json!(5), &json!(15), &json!("rw"), &json!(1))
+    );
+    assert_eq!(object["name"], "Hall lantern options");
+    assert_eq!(object["list"].as_array().unwrap().len(), 4);
+    assert_eq!(object["list"][3], "off");
+    assert_eq!((&object["min"], &object["max"]), (&json!(0), &json!(3)));
+    let levels: Vec<Vec<u8>> = [1000i32, 4500, 8000, 11500, 15000, 18500, 22000, 25500]
+        .iter()
+        .map(|v| v.to_le_bytes().to_vec())
+        .collect();
+    let refs: Vec<&[u8]> = levels.iter().map(Vec::as_slice).collect();
+    let compact = p.ask(
+        r#"{"jsonrpc":"2.0","id":"<ID>","method":"get_canopen_object","params":{"lang":{"preferred_language":"en","alternate_language":"de"},"object":{"mplex":"0x401001","compact":true}}}"#,
+        &refs,
+    );
+    let object = &compact["result"]["object"];
+    assert_eq!(
+        object["value"],
+        json!(["1000", "4500", "8000", "11500", "15000", "18500", "22000", "25500"])
+    );
+    assert_eq!(
+        (
+            &object["objcode"],
+            &object["datatype"],
+            &object["formtype"],
+            &object["physunit"],
+            &object["privilege"]
+        ),
+        (&json!(8), &json!(4), &json!(26), &json!(15), &json!(1))
+    );
+    assert_eq!(object["name"], "Floor level positions");
+    assert_eq!(object["max"], 2147483647);
+}
+
+fn put(mplex: &str, datatype: u32, physunit: u32, value: &str) -> String {
+    format!(
+        r#"{{"jsonrpc":"2.0","method":"put_canopen_object","id":"p","params":{{"sernum":"{SERNUM}","object":{{"mplex":"{mplex}","datatype":{datatype},"physunit":{physunit},"value":"{value}"}}}}}}"#
+    )
+}
+
+fn code(v: &Value) -> u64 {
+    v["error"]["code"].as_u64().unwrap_or(0)
+}
+
+#[test]
+fn put_checks_everything_before_writing() {
+    let mut p = Portal::connected();
+    // The sample: a passenger call to floor 4.
+    let out = p.send(&put("0x502200", 7, 0, "4"));
+    assert!(
+        matches!(&out[..], [Output::Start(_, Job::Write { target: Target { net: 1, node: 1 }, index: 0x5022, sub: 0, data })] if data == &[4, 0, 0, 0])
+    );
+    let Output::Start(id, _) = out[0] else {
+        panic!()
+    };
+    let answer = sent(&p.session.complete(id, JobResult::Done, p.now));
+    assert_eq!(
+        answer,
+        [json!({"jsonrpc":"2.0","id":"p","result":{"object":{"mplex":"0x502200"}}})]
+    );
+    assert_eq!(
+        code(&p.ask(&put("0x652001", 7, 26, "1"), &[])),
+        0x0601_0002,
+        "read-only"
+    );
+    assert_eq!(
+        code(&p.ask(&put("0x411200", 5, 0, "1"), &[])),
+        0x0800_0021,
+        "needs service"
+    );
+    assert_eq!(
+        code(&p.ask(&put("0x502200", 6, 0, "4"), &[])),
+        0x0607_0010,
+        "datatype"
+    );
+    assert_eq!(
+        code(&p.ask(&put("0x502200", 7, 15, "4"), &[])),
+        0x0607_0010,
+        "physunit"
+    );
+    assert_eq!(
+        code(&p.ask(&put("0x502200", 7, 0, "four"), &[])),
+        0x0609_0030
+    );
+    assert_eq!(
+        code(&p.ask(&put("0x502200", 7, 0, "0"), &[])),
+        0x0609_0032,
+        "below min 1"
+    );
+    assert_eq!(
+        code(&p.ask(&put("0x502200", 7, 0, "255"), &[])),
+        0x0609_0031,
+        "above max 254"
+    );
+    assert_eq!(code(&p.ask(&put("0x502299", 7, 0, "1"), &[])), 0x0609_0011);
+    assert_eq!(code(&p.ask(&put("0x5FFF00", 7, 0, "1"), &[])), 0x0602_0000);
+    let wrong = put("0x502200", 7, 0, "4").replace(SERNUM, "1");
+    let e = p.ask(&wrong, &[]);
+    assert_eq!(
+        (code(&e), &e["error"]["message"]),
+        (0x0800_0020, &json!("The serial number does not match."))
+    );
+    // German messages when German was asked for.
+    let de = put("0x652001", 7, 26, "1").replace(
+        r#""params":{"#,
+        r#""params":{"lang":{"preferred_language":"de"},"#,
+    );
+    assert_eq!(
+        p.ask(&de, &[])["error"]["message"],
+        "Versuch, ein nur lesbares Objekt zu schreiben."
+    );
+    // A refusal from the device comes back with its abort code.
+    let out = p.send(&put("0x502200", 7, 0, "4"));
+    let Output::Start(id, _) = out[0] else {
+        panic!()
+    };
+    let e = sent(
+        &p.session
+            .complete(id, JobResult::Failed(AbortCode::TIMEOUT), p.now),
+    );
+    assert_eq!(
+        (code(&e[0]), &e[0]["error"]["data"]),
+        (0x0504_0000, &json!("0x502200"))
+    );
+}
+
+fn elevate(level: u8, hash: &str) -> String {
+    format!(
+        r#"{{"jsonrpc":"2.0","method":"elevate_privilege","id":"e","params":{{"sernum":"{SERNUM}","privilege":{level},"passhash":"{hash}"}}}}"#
+    )
+}
+
+#[test]
+fn privileges_are_granted_expire_and_lock_out() {
+    let mut p = Portal::connected();
+    let e = p.ask(&elevate(1, "00"), &[]);
+    assert_eq!((code(&e), &e["error"]["data"]), (0x0800_0020, &json!("1")));
+    assert_eq!(e["error"]["message"], "The password hash does not match.");
+    let ok = p.ask(&elevate(1, &SERVICE_SHA1.to_uppercase()), &[]);
+    assert_eq!(ok["result"], json!({"duration": 300}));
+    assert!(p
+        .ask(&put("0x411200", 5, 0, "2"), &[])
+        .get("result")
+        .is_some());
+    assert_eq!(
+        code(&p.ask(&put("0x640A00", 7, 19, "1200"), &[])),
+        0x0800_0021,
+        "engineer on site"
+    );
+    // Setup rights include service rights; engineer on site is never granted.
+    assert!(p.ask(&elevate(2, SETUP_SHA1), &[]).get("result").is_some());
+    assert!(p
+        .ask(&put("0x411200", 5, 0, "1"), &[])
+        .get("result")
+        .is_some());
+    assert_eq!(
+        code(&p.ask(&put("0x640A00", 7, 19, "1200"), &[])),
+        0x0800_0021
+    );
+    assert_eq!(code(&p.ask(&elevate(3, SETUP_SHA1), &[])), 0x0800_0021);
+    // The grant ends after its duration.
+    p.now += Duration::from_secs(301);
+    p.session.activity(p.now);
+    assert_eq!(
+        code(&p.ask(&put("0x411200", 5, 0, "1"), &[])),
+        0x0800_0021,
+        "expired"
+    );
+    // Three wrong hashes lock elevation out, even for the right one.
+    for _ in 0..3 {
+        assert_eq!(code(&p.ask(&elevate(1, "bad"), &[])), 0x0800_0020);
+    }
+    let locked = p.ask(&elevate(1, SERVICE_SHA1), &[]);
+    assert!(
+        locked["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("locked for 30 s"),
+        "{locked}"
+    );
+    p.now += Duration::from_secs(31);
+    assert!(p
+        .ask(&elevate(1, SERVICE_SHA1), &[])
+        .get("result")
+        .is_some());
+}
+
+#[test]
+fn other_nodes_need_their_datatype_and_setup_rights_to_write() {
+    let mut p = Portal::connected();
+    let get = r#"{"jsonrpc":"2.0","id":"<ID>","method":"get_canopen_object","params":{"lang":{"preferred_language":"en","alternate_language":"de"},"node":{"id":12,"net":1,"datatype":25},"object":{"mplex":"0x610001","compact":false}}}"#;
+    let out = p.send(get);
+    assert!(matches!(
+        &out[..],
+        [Output::Start(
+            _,
+            Job::Read {
+                target: Target { net: 1, node: 12 },
+                index: 0x6100,
+                sub: 1
+            }
+        )]
+    ));
+    let answer = p.ask(get, &[&[2, 1, 1, 6, 0x10, 0]]);
+    assert_eq!(answer["result"]["object"]["value"], json!(["68820205826"]));
+    assert_eq!(answer["result"]["object"]["datatype"], 25);
+    let put12 = format!(
+        r#"{{"jsonrpc":"2.0","method":"put_canopen_object","id":"<ID>","params":{{"sernum":"{SERNUM}","node":{{"id":12,"net":1}},"object":{{"mplex":"0x502200","datatype":7,"physunit":0,"value":"4"}}}}}}"#
+    );
+    assert_eq!(
+        code(&p.ask(&put12, &[])),
+        0x0800_0021,
+        "setup rights needed"
+    );
+    p.ask(&elevate(2, SETUP_SHA1), &[]);
+    assert!(p.ask(&put12, &[]).get("result").is_some());
+    let net2 = put12.replace(r#""net":1"#, r#""net":2"#);
+    assert_eq!(
+        p.ask(&net2, &[])["error"]["code"],
+        rpc_codes::INVALID_PARAMS
+    );
+}
+
+#[test]
+fn subscriptions_register_all_or_none_and_respect_inhibit_and_threshold() {
+    let mut p = Portal::connected();
+    let bad = r#"{"jsonrpc":"2.0","method":"reg_canopen_object","id":"r","params":{"mplex":["0x652001","0x652099"],"inhibit":1000,"threshold":1}}"#;
+    let e = p.ask(bad, &[]);
+    assert_eq!(
+        e["error"],
+        json!({"code":101253137u64,"message":"Sub-index does not exist.","data":"0x652099"})
+    );
+    let missing = bad.replace("0x652099", "0x5FFF01");
+    assert_eq!(
+        p.ask(&missing, &[])["error"],
+        json!({"code":100794368,"message":"Object does not exist in the object dictionary.","data":"0x5FFF01"})
+    );
+    assert_eq!(p.session.subscription_count(), 0, "none registered");
+    let good = r#"{"jsonrpc":"2.0","method":"reg_canopen_object","id":"r","params":{"mplex":["0x652001","0x652002"],"inhibit":1000,"threshold":5}}"#;
+    let out = p.send(good);
+    assert_eq!(
+        sent(&out),
+        [json!({"jsonrpc":"2.0","id":"r","result":{"done":0}})]
+    );
+    assert!(out.contains(&Output::Watch(Target { net: 1, node: 1 }, 0x6520, 1)));
+    // The baseline read is the first push.
+    let baseline = out.iter().find_map(|o| match o {
+        Output::Start(id, Job::Read { sub: 1, .. }) => Some(*id),
+        _ => None,
+    });
+    let pushed = sent(&p.session.complete(
+        baseline.unwrap(),
+        JobResult::Read(vec![100u32.to_le_bytes().to_vec()]),
+        p.now,
+    ));
+    assert_eq!(
+        pushed,
+        [
+            json!({"jsonrpc":"2.0","method":"canopen_object","result":{"mplex":"0x652001","value":"100"}})
+        ]
+    );
+    let t = Target { net: 1, node: 1 };
+    let value = |p: &mut Portal, v: u32| sent(&p.session.value(t, 0x6520, 1, v.to_string(), p.now));
+    // Below the threshold: nothing.
+    assert!(value(&mut p, 104).is_empty());
+    // Inside the inhibit gap: held back, the latest value goes out when the gap ends.
+    p.now += Duration::from_millis(200);
+    assert!(value(&mut p, 110).is_empty());
+    assert!(value(&mut p, 120).is_empty());
+    assert_eq!(
+        p.session.poll_timeout(),
+        Some(p.now + Duration::from_millis(800))
+    );
+    assert!(p.later(Duration::from_millis(799)).is_empty());
+    let late = sent(&p.later(Duration::from_millis(1)));
+    assert_eq!(late[0]["result"]["value"], "120");
+    // After the gap a change beyond the threshold goes out at once.
+    p.now += Duration::from_millis(1000);
+    assert_eq!(value(&mut p, 126)[0]["result"]["value"], "126");
+    // A change that returns within the threshold cancels the pending push.
+    p.now += Duration::from_millis(100);
+    assert!(value(&mut p, 140).is_empty());
+    assert!(value(&mut p, 127).is_empty());
+    assert!(p.later(Duration::from_secs(2)).is_empty());
+    let unreg = r#"{"jsonrpc":"2.0","method":"unreg_canopen_object","id":"12345","params":{"mplex":["0x652001","0x652002"]}}"#;
+    let out = p.send(unreg);
+    assert_eq!(
+        sent(&out),
+        [json!({"jsonrpc":"2.0","id":"12345","result":{"done":0}})]
+    );
+    assert!(out.contains(&Output::Unwatch(t, 0x6520, 1)));
+    assert!(value(&mut p, 1000).is_empty());
+    // At most max_subscriptions (4).
+    let many = r#"{"jsonrpc":"2.0","method":"reg_canopen_object","id":"m","params":{"mplex":["0x638301","0x639001","0x639101","0x630101","0x630201"]}}"#;
+    assert_eq!(code(&p.ask(many, &[])), 0x0504_0005);
+}
+
+#[test]
+fn the_token_is_stored_before_it_is_confirmed() {
+    let mut p = Portal::connected();
+    let req = format!(
+        r#"{{"jsonrpc":"2.0","method":"update_unique_token","id":"t","params":{{"sernum":"{SERNUM}","token":"A token string that is maximum 128 characters long."}}}}"#
+    );
+    let out = p.send(&req);
+    let [Output::Start(id, Job::StoreToken(token))] = &out[..] else {
+        panic!("{out:?}")
+    };
+    assert_eq!(token, "A token string that is maximum 128 characters long.");
+    assert_eq!(
+        sent(&p.session.complete(*id, JobResult::Done, p.now)),
+        [json!({"jsonrpc":"2.0","id":"t","result":{"done":0}})]
+    );
+    let long = req.replace("A token string", &"x".repeat(120));
+    assert_eq!(code(&p.ask(&long, &[])), 0x0607_0012);
+    let wrong = req.replace(SERNUM, "000");
+    assert_eq!(
+        p.ask(&wrong, &[])["error"]["message"],
+        "The serial number does not match."
+    );
+    let out = p.send(&req);
+    let [Output::Start(id, _)] = &out[..] else {
+        panic!()
+    };
+    let failed = sent(
+        &p.session
+            .complete(*id, JobResult::Failed(AbortCode::CANNOT_STORE), p.now),
+    );
+    assert_eq!(code(&failed[0]), 0x0800_0020);
+}
+
+#[test]
+fn bad_input_gets_json_rpc_errors_and_the_connection_stays() {
+    let mut p = Portal::connected();
+    let cases = [
+        ("{", rpc_codes::PARSE),
+        ("[1,2]", rpc_codes::INVALID_REQUEST),
+        (
+            r#"{"jsonrpc":"2.0","id":1,"method":"reboot"}"#,
+            rpc_codes::METHOD_NOT_FOUND,
+        ),
+        (
+            r#"{"jsonrpc":"2.0","id":1,"method":"get_canopen_object"}"#,
+            rpc_codes::INVALID_PARAMS,
+        ),
+        (
+            r#"{"jsonrpc":"2.0","id":1,"method":"get_canopen_object","params":{"object":{"mplex":"652001"}}}"#,
+            rpc_codes::INVALID_PARAMS,
+        ),
+        (
+            r#"{"jsonrpc":"2.0","id":1,"method":"reg_canopen_object","params":{"mplex":"0x652001"}}"#,
+            rpc_codes::INVALID_PARAMS,
+        ),
+        (
+            r#"{"jsonrpc":"2.0","id":1,"method":"elevate_privilege","params":{"sernum":"180917010200000102","privilege":"1"}}"#,
+            rpc_codes::INVALID_PARAMS,
+        ),
+        (
+            r#"{"jsonrpc":"2.0","id":1,"method":"put_canopen_object","params":{"sernum":"180917010200000102","object":{"mplex":"0x502200","value":4}}}"#,
+            rpc_codes::INVALID_PARAMS,
+        ),
+    ];
+    for (text, expected) in cases {
+        let out = sent(&p.send(text));
+        assert_eq!(out.len(), 1, "{text}");
+        assert_eq!(out[0]["error"]["code"], expected, "{text}");
+    }
+    assert_eq!(p.session.phase(), Phase::Connected(1));
+    // A notification from the portal needs no answer.
+    assert!(p.send(r#"{"jsonrpc":"2.0","method":"hello"}"#).is_empty());
+}
+
+#[test]
+fn a_silent_connection_is_dropped() {
+    let mut p = Portal::connected();
+    let limit = Duration::from_secs(630);
+    assert_eq!(p.session.poll_timeout(), Some(p.now + limit));
+    p.now += Duration::from_secs(300);
+    p.session.activity(p.now);
+    assert!(p.later(Duration::from_secs(629)).is_empty());
+    let out = p.later(Duration::from_secs(1));
+    assert!(matches!(&out[..], [Output::Close(c)] if c.contains("silent")));
+    assert_eq!(p.session.phase(), Phase::Closed);
+}
+
+#[test]
+fn never_panics_on_any_text() {
+    use proptest::prelude::*;
+    let p = std::cell::RefCell::new(Portal::connected());
+    proptest!(|(text in ".{0,200}")| {
+        let _ = p.borrow_mut().send(&text);
+    });
+    let methods = [
+        "get_canopen_object",
+        "put_canopen_object",
+        "reg_canopen_object",
+        "elevate_privilege",
+        "update_unique_token",
+    ];
+    proptest!(|(m in 0usize..5, params in "[\\[\\]{}\",:0-9a-z ]{0,80}")| {
+        let _ = p.borrow_mut().send(&format!(r#"{{"jsonrpc":"2.0","id":1,"method":"{}","params":{params}}}"#, methods[m]));
+    });
+}
