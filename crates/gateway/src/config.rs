@@ -1,0 +1,296 @@
+//! The gateway's configuration (issue 6; DESIGN.md §3): sections `[identity]`, `[cloud]`,
+//! `[state]`, `[bus]` (with `[[bus.nodes]]`), `[[networks]]`, `[privileges]`, `[limits]`.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use nxg::gateway::{Identity, Settings};
+use serde::{Deserialize, Serialize};
+
+/// `[identity]`: what CONNECT says (NXg SW003 §5.2.1).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct IdentitySection {
+    /// Serial number, unique per vendor.
+    pub sernum: String,
+    /// CiA vendor-ID.
+    pub vendorid: u32,
+    /// Product code.
+    pub productcode: u32,
+    /// The owner's lift number.
+    pub liftnum: String,
+    /// Hardware description.
+    pub hardware: String,
+    /// Software version.
+    pub software: String,
+    /// Board hash.
+    pub boardhash: String,
+    /// Account the unit belongs to.
+    pub domaintoken: String,
+    /// Highest API version offered.
+    pub api: u32,
+}
+
+impl Default for IdentitySection {
+    fn default() -> Self {
+        IdentitySection {
+            sernum: String::new(),
+            vendorid: 0,
+            productcode: 0,
+            liftnum: String::new(),
+            hardware: String::new(),
+            software: format!("canlift {}", env!("CARGO_PKG_VERSION")),
+            boardhash: String::new(),
+            domaintoken: String::new(),
+            api: 1,
+        }
+    }
+}
+
+/// `[cloud]`: where and how to connect.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CloudSection {
+    /// `wss://HOST:PORT/ws` (TLS only).
+    pub url: String,
+    /// PEM file with the CA certificates to trust; absent: the system's roots.
+    pub ca_file: Option<PathBuf>,
+    /// PEM client certificate chain for mutual TLS.
+    pub client_cert: Option<PathBuf>,
+    /// PEM private key of the client certificate.
+    pub client_key: Option<PathBuf>,
+    /// `Origin` header of the upgrade request.
+    pub origin: Option<String>,
+    /// The portal's heartbeat interval (s); silence for 2 × this + 30 s drops the connection.
+    pub heartbeat_s: u64,
+    /// Seconds to wait for TCP, TLS, the upgrade and CONNACK each.
+    pub connect_timeout_s: u64,
+    /// Seconds between WebSocket pings.
+    pub ping_s: u64,
+}
+
+impl Default for CloudSection {
+    fn default() -> Self {
+        CloudSection {
+            url: String::new(),
+            ca_file: None,
+            client_cert: None,
+            client_key: None,
+            origin: None,
+            heartbeat_s: 300,
+            connect_timeout_s: 10,
+            ping_s: 60,
+        }
+    }
+}
+
+/// `[state]`: durable state (the cloud token).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct StateSection {
+    /// Directory for the cloud token.
+    pub dir: PathBuf,
+}
+
+impl Default for StateSection {
+    fn default() -> Self {
+        StateSection { dir: "state".into() }
+    }
+}
+
+/// `[[bus.nodes]]` / `[[networks.nodes]]`: metadata of a node from its EDS.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NodeSection {
+    /// Node-ID.
+    pub id: u8,
+    /// EDS or DCF file.
+    pub eds: PathBuf,
+}
+
+/// `[bus]`: network 1, where the gateway is a node.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct BusSection {
+    /// Bus URL.
+    pub url: String,
+    /// The gateway's own node-ID.
+    pub node_id: u8,
+    /// Node-ID of the lift controller.
+    pub lift_controller: u8,
+    /// SDO response timeout (ms).
+    pub sdo_timeout_ms: u64,
+    /// How often subscribed objects that no PDO carries are read (ms).
+    pub poll_ms: u64,
+    /// Nodes with an EDS.
+    pub nodes: Vec<NodeSection>,
+}
+
+impl Default for BusSection {
+    fn default() -> Self {
+        BusSection {
+            url: "socketcand://127.0.0.1:29536/can0".into(),
+            node_id: 9,
+            lift_controller: 1,
+            sdo_timeout_ms: 1000,
+            poll_ms: 500,
+            nodes: Vec::new(),
+        }
+    }
+}
+
+/// `[[networks]]`: further CAN networks reached through the gateway.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NetworkSection {
+    /// The `net` number requests use (2–255).
+    pub net: u8,
+    /// Bus URL.
+    pub url: String,
+    /// Nodes with an EDS.
+    #[serde(default)]
+    pub nodes: Vec<NodeSection>,
+}
+
+/// `[privileges]`: the passwords (as SHA-1 hex) elevation compares against.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PrivilegesSection {
+    /// SHA-1 hex of the service password; absent: service rights cannot be granted.
+    pub service_sha1: Option<String>,
+    /// SHA-1 hex of the setup password.
+    pub setup_sha1: Option<String>,
+    /// Seconds a grant lasts.
+    pub duration_s: u64,
+}
+
+impl Default for PrivilegesSection {
+    fn default() -> Self {
+        PrivilegesSection {
+            service_sha1: None,
+            setup_sha1: None,
+            duration_s: 300,
+        }
+    }
+}
+
+/// `[limits]`: what one connection may use.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LimitsSection {
+    /// Largest WebSocket message accepted (bytes); larger ones close the connection.
+    pub max_message_bytes: usize,
+    /// Requests running on the bus at once.
+    pub max_in_flight: usize,
+    /// Requests waiting behind them before new ones are refused as busy.
+    pub max_queued: usize,
+    /// Subscriptions per connection.
+    pub max_subscriptions: usize,
+}
+
+impl Default for LimitsSection {
+    fn default() -> Self {
+        LimitsSection {
+            max_message_bytes: 65536,
+            max_in_flight: 16,
+            max_queued: 256,
+            max_subscriptions: 1024,
+        }
+    }
+}
+
+/// The whole configuration.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Config {
+    /// `[identity]`.
+    pub identity: IdentitySection,
+    /// `[cloud]`.
+    pub cloud: CloudSection,
+    /// `[state]`.
+    pub state: StateSection,
+    /// `[bus]`.
+    pub bus: BusSection,
+    /// `[[networks]]`.
+    pub networks: Vec<NetworkSection>,
+    /// `[privileges]`.
+    pub privileges: PrivilegesSection,
+    /// `[limits]`.
+    pub limits: LimitsSection,
+}
+
+/// A configuration that cannot work.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("configuration: {0}")]
+pub struct ConfigError(pub String);
+
+fn sha1_hex(name: &str, value: &Option<String>) -> Result<(), ConfigError> {
+    match value {
+        Some(v) if v.len() != 40 || !v.bytes().all(|b| b.is_ascii_hexdigit()) => Err(ConfigError(
+            format!("privileges.{name} must be 40 hex digits (a SHA-1)"),
+        )),
+        _ => Ok(()),
+    }
+}
+
+impl Config {
+    /// Check what can be checked before connecting.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let err = |m: &str| Err(ConfigError(m.into()));
+        if self.identity.sernum.is_empty() {
+            return err("identity.sernum is required");
+        }
+        if !self.cloud.url.starts_with("wss://") {
+            return err("cloud.url must be wss://HOST:PORT/PATH (the connector is TLS only)");
+        }
+        if self.cloud.client_cert.is_some() != self.cloud.client_key.is_some() {
+            return err("cloud.client_cert and cloud.client_key come together");
+        }
+        sha1_hex("service_sha1", &self.privileges.service_sha1)?;
+        sha1_hex("setup_sha1", &self.privileges.setup_sha1)?;
+        if !(1..=127).contains(&self.bus.node_id) || !(1..=127).contains(&self.bus.lift_controller) {
+            return err("bus.node_id and bus.lift_controller are node-IDs 1–127");
+        }
+        let mut nets = vec![1u8];
+        for n in &self.networks {
+            if nets.contains(&n.net) {
+                return err("each [[networks]] has its own net number (1 is [bus])");
+            }
+            nets.push(n.net);
+        }
+        if self.limits.max_in_flight == 0 || self.limits.max_message_bytes < 1024 {
+            return err("limits.max_in_flight ≥ 1 and limits.max_message_bytes ≥ 1024");
+        }
+        Ok(())
+    }
+
+    /// The session settings.
+    pub fn settings(&self) -> Settings {
+        let i = &self.identity;
+        let mut nets = vec![1];
+        nets.extend(self.networks.iter().map(|n| n.net));
+        Settings {
+            identity: Identity {
+                sernum: i.sernum.clone(),
+                vendorid: i.vendorid,
+                productcode: i.productcode,
+                liftnum: i.liftnum.clone(),
+                hardware: i.hardware.clone(),
+                software: i.software.clone(),
+                boardhash: i.boardhash.clone(),
+                domaintoken: i.domaintoken.clone(),
+                api: i.api.max(1),
+            },
+            service_sha1: self.privileges.service_sha1.clone(),
+            setup_sha1: self.privileges.setup_sha1.clone(),
+            privilege_duration: Duration::from_secs(self.privileges.duration_s),
+            max_in_flight: self.limits.max_in_flight,
+            max_queued: self.limits.max_queued,
+            max_subscriptions: self.limits.max_subscriptions,
+            heartbeat: Duration::from_secs(self.cloud.heartbeat_s.max(1)),
+            connect_timeout: Duration::from_secs(self.cloud.connect_timeout_s.max(1)),
+            lift_controller: self.bus.lift_controller,
+            nets,
+        }
+    }
+}

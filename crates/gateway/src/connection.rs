@@ -1,0 +1,235 @@
+//! One connection to the portal: TCP, TLS, the WebSocket upgrade with the `cloud, lift`
+//! subprotocols (NXg SW003 §5.1), then the [`Session`] driven by messages, job results,
+//! subscription values, pings and its own timer.
+
+use std::time::{Duration, Instant};
+
+use futures_util::{SinkExt, StreamExt};
+use nxg::gateway::{Job, JobId, JobResult, Output, Phase, Session};
+use tokio::net::TcpStream;
+use tokio::sync::mpsc;
+use tokio_rustls::TlsConnector;
+use tokio_tungstenite::tungstenite::client::IntoClientRequest;
+use tokio_tungstenite::tungstenite::http::HeaderValue;
+use tokio_tungstenite::tungstenite::protocol::frame::coding::CloseCode;
+use tokio_tungstenite::tungstenite::protocol::{CloseFrame, WebSocketConfig};
+use tokio_tungstenite::tungstenite::Message;
+
+use crate::feed::{Feed, Update};
+use crate::Shared;
+
+/// The subprotocols the gateway offers; the portal must select one of them.
+pub const SUBPROTOCOLS: [&str; 2] = ["cloud", "lift"];
+
+/// How a connection ended.
+#[derive(Debug)]
+pub struct Ended {
+    /// Whether CONNACK had come (the connection was in service).
+    pub served: bool,
+    /// Why it ended.
+    pub cause: String,
+    /// The gateway is shutting down.
+    pub shutdown: bool,
+}
+
+fn ended(served: bool, cause: impl Into<String>) -> Ended {
+    Ended {
+        served,
+        cause: cause.into(),
+        shutdown: false,
+    }
+}
+
+/// Connect once and serve until the connection ends.
+pub async fn run(shared: &Shared, shutdown: &mut tokio::sync::watch::Receiver<bool>) -> Ended {
+    let cloud = &shared.config.cloud;
+    let timeout = Duration::from_secs(cloud.connect_timeout_s.max(1));
+    let mut request = match cloud.url.as_str().into_client_request() {
+        Ok(r) => r,
+        Err(e) => return ended(false, format!("cloud.url: {e}")),
+    };
+    let uri = request.uri().clone();
+    let Some(host) = uri.host().map(|h| h.trim_matches(['[', ']']).to_owned()) else {
+        return ended(false, "cloud.url has no host");
+    };
+    let port = uri.port_u16().unwrap_or(443);
+    request.headers_mut().insert(
+        "Sec-WebSocket-Protocol",
+        HeaderValue::from_static("cloud, lift"),
+    );
+    if let Some(origin) = &cloud.origin {
+        match HeaderValue::from_str(origin) {
+            Ok(v) => {
+                request.headers_mut().insert("Origin", v);
+            }
+            Err(_) => return ended(false, "cloud.origin is not a valid header value"),
+        }
+    }
+    let tcp = match tokio::time::timeout(timeout, TcpStream::connect((host.as_str(), port))).await {
+        Ok(Ok(s)) => s,
+        Ok(Err(e)) => return ended(false, format!("TCP {host}:{port}: {e}")),
+        Err(_) => return ended(false, format!("TCP {host}:{port}: no answer in {timeout:?}")),
+    };
+    let _ = tcp.set_nodelay(true);
+    let server_name = match rustls::pki_types::ServerName::try_from(host.clone()) {
+        Ok(n) => n,
+        Err(e) => return ended(false, format!("{host}: {e}")),
+    };
+    let tls = TlsConnector::from(shared.tls.clone());
+    let tls = match tokio::time::timeout(timeout, tls.connect(server_name, tcp)).await {
+        Ok(Ok(s)) => s,
+        Ok(Err(e)) => return ended(false, format!("TLS with {host}: {e}")),
+        Err(_) => return ended(false, format!("TLS with {host}: no handshake in {timeout:?}")),
+    };
+    let ws_config = WebSocketConfig::default()
+        .max_message_size(Some(shared.config.limits.max_message_bytes))
+        .max_frame_size(Some(shared.config.limits.max_message_bytes))
+        .read_buffer_size(8 * 1024)
+        .write_buffer_size(0);
+    let handshake = tokio_tungstenite::client_async_with_config(request, tls, Some(ws_config));
+    let (mut ws, response) = match tokio::time::timeout(timeout, handshake).await {
+        Ok(Ok(pair)) => pair,
+        Ok(Err(e)) => return ended(false, format!("WebSocket upgrade refused: {e}")),
+        Err(_) => return ended(false, "WebSocket upgrade: no answer in time"),
+    };
+    let selected = response
+        .headers()
+        .get("Sec-WebSocket-Protocol")
+        .and_then(|v| v.to_str().ok())
+        .map(str::trim)
+        .unwrap_or("");
+    if !SUBPROTOCOLS.contains(&selected) {
+        let _ = ws.close(None).await;
+        return ended(false, format!("the portal selected neither cloud nor lift ({selected:?})"));
+    }
+    tracing::info!(url = %cloud.url, subprotocol = selected, "connected; sending CONNECT");
+    serve(shared, ws, shutdown).await
+}
+
+async fn serve<S>(
+    shared: &Shared,
+    mut ws: tokio_tungstenite::WebSocketStream<S>,
+    shutdown: &mut tokio::sync::watch::Receiver<bool>,
+) -> Ended
+where
+    S: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin,
+{
+    let now = Instant::now();
+    let mut session = Session::new(
+        shared.config.settings(),
+        shared.metadata.clone(),
+        shared.token.load(),
+        now,
+    );
+    let (job_tx, mut job_rx) = mpsc::unbounded_channel::<(JobId, JobResult)>();
+    let (feed_tx, mut feed_rx) = mpsc::channel::<Update>(1024);
+    let feed: Feed = shared.feed(feed_tx).await;
+    let mut ping = tokio::time::interval(Duration::from_secs(shared.config.cloud.ping_s.max(1)));
+    ping.tick().await;
+    let mut outputs = vec![session.connect()];
+    let mut served = false;
+    loop {
+        for output in outputs.drain(..) {
+            match output {
+                Output::Send(text) => {
+                    if let Err(e) = ws.send(Message::Text(text.into())).await {
+                        return ended(served, format!("sending failed: {e}"));
+                    }
+                }
+                Output::Close(cause) => {
+                    let _ = ws.close(None).await;
+                    return ended(served, cause);
+                }
+                Output::Start(id, job) => start_job(shared, id, job, job_tx.clone()),
+                Output::Watch(target, index, sub) => feed.watch(target, index, sub),
+                Output::Unwatch(target, index, sub) => feed.unwatch(target, index, sub),
+            }
+        }
+        if !served {
+            if let Phase::Connected(api) = session.phase() {
+                served = true;
+                tracing::info!(api, "CONNACK: serving the portal");
+            }
+        }
+        let deadline = session.poll_timeout().map(tokio::time::Instant::from_std);
+        let timer = async {
+            match deadline {
+                Some(d) => tokio::time::sleep_until(d).await,
+                None => std::future::pending().await,
+            }
+        };
+        outputs = tokio::select! {
+            message = ws.next() => {
+                let now = Instant::now();
+                match message {
+                    Some(Ok(Message::Text(text))) => session.text(text.as_str(), now),
+                    Some(Ok(Message::Ping(_) | Message::Pong(_))) => {
+                        session.activity(now);
+                        Vec::new()
+                    }
+                    Some(Ok(Message::Binary(_))) => {
+                        session.activity(now);
+                        tracing::warn!("binary message ignored: the connector speaks JSON text");
+                        Vec::new()
+                    }
+                    Some(Ok(Message::Close(frame))) => {
+                        let why = frame.map(|f| format!("{} {}", u16::from(f.code), f.reason)).unwrap_or_default();
+                        return ended(served, format!("portal closed the connection {why}"));
+                    }
+                    Some(Ok(Message::Frame(_))) => Vec::new(),
+                    Some(Err(e)) => {
+                        let cause = format!("connection failed: {e}");
+                        if matches!(e, tokio_tungstenite::tungstenite::Error::Capacity(_)) {
+                            let frame = CloseFrame { code: CloseCode::Size, reason: "message too big".into() };
+                            let _ = ws.close(Some(frame)).await;
+                        }
+                        return ended(served, cause);
+                    }
+                    None => return ended(served, "portal went away"),
+                }
+            }
+            Some((id, result)) = job_rx.recv() => session.complete(id, result, Instant::now()),
+            Some((target, index, sub, bytes)) = feed_rx.recv() => session.bytes(target, index, sub, &bytes, Instant::now()),
+            _ = timer => session.timeout(Instant::now()),
+            _ = ping.tick() => {
+                if let Err(e) = ws.send(Message::Ping(Vec::new().into())).await {
+                    return ended(served, format!("ping failed: {e}"));
+                }
+                Vec::new()
+            }
+            _ = shutdown.changed() => {
+                let frame = CloseFrame { code: CloseCode::Away, reason: "gateway shutting down".into() };
+                let _ = ws.close(Some(frame)).await;
+                return Ended { served, cause: "shutdown".into(), shutdown: true };
+            }
+        };
+    }
+}
+
+fn start_job(shared: &Shared, id: JobId, job: Job, tx: mpsc::UnboundedSender<(JobId, JobResult)>) {
+    match job {
+        Job::StoreToken(token) => {
+            let store = shared.token.clone();
+            tokio::task::spawn_blocking(move || {
+                let result = match store.store(&token) {
+                    Ok(()) => {
+                        tracing::info!(path = %store.path().display(), "cloud token stored");
+                        JobResult::Done
+                    }
+                    Err(e) => {
+                        tracing::error!(path = %store.path().display(), error = %e, "cloud token not stored");
+                        JobResult::Failed(canopen::sdo::abort::AbortCode::CANNOT_STORE)
+                    }
+                };
+                let _ = tx.send((id, result));
+            });
+        }
+        job => {
+            let backend = shared.backend.clone();
+            tokio::spawn(async move {
+                let result = backend.run(job).await;
+                let _ = tx.send((id, result));
+            });
+        }
+    }
+}

@@ -1,0 +1,237 @@
+//! The elevator gateway: the device side of the NXg CANopen-Lift Connector (NXg SW003 §5–§7,
+//! DESIGN.md §4). It dials out to the portal over TLS WebSocket, answers its JSON-RPC requests
+//! from the lift's object dictionaries and pushes subscribed changes; when the connection ends it
+//! comes back with capped, fully jittered backoff.
+//!
+//! Two modes, one engine ([`nxg::gateway::Session`]):
+//! - *bus-node mode* ([`Gateway::bus_node`]): the gateway is a node (9 by default) on the
+//!   CANopen-Lift bus and reaches the lift controller and other nodes by SDO; subscriptions are
+//!   fed by the controller's TPDOs and by SDO polling;
+//! - *embedded mode* ([`Gateway::embedded`]): a controller written in Rust hands the gateway its
+//!   own dictionary; reads and writes are local, changes notify at once.
+
+#![warn(missing_docs)]
+
+pub mod access;
+pub mod config;
+pub mod connection;
+pub mod feed;
+pub mod tls;
+pub mod token;
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use canbus::backoff::Backoff;
+use canbus::Bus;
+use canopen::driver::{SdoClients, SharedDictionary};
+use canopen::node::{LocalNode, NodeConfig};
+use canopen::od::ObjectDictionary;
+use canopen::sdo::client::ClientConfig;
+use nxg::gateway::{BusMetadata, Metadata, Target};
+use tokio::sync::{mpsc, watch};
+
+use crate::access::Backend;
+use crate::config::{Config, NodeSection};
+use crate::feed::{Feed, LocalChanges, Update};
+use crate::token::TokenStore;
+
+/// Why the gateway cannot start.
+#[derive(Debug, thiserror::Error)]
+pub enum GatewayError {
+    /// The configuration is inconsistent.
+    #[error(transparent)]
+    Config(#[from] config::ConfigError),
+    /// TLS could not be set up.
+    #[error(transparent)]
+    Tls(#[from] tls::TlsError),
+    /// A bus could not be opened.
+    #[error("bus {url}: {error}")]
+    Bus {
+        /// The URL.
+        url: String,
+        /// Why.
+        error: canbus::BusError,
+    },
+    /// An EDS could not be read.
+    #[error(transparent)]
+    Eds(#[from] canopen::eds::EdsError),
+}
+
+enum Mode {
+    Bus {
+        sdo: SdoClients,
+        url: String,
+    },
+    Local {
+        od: SharedDictionary,
+        changes: LocalChanges,
+    },
+}
+
+/// What every connection of a gateway shares.
+pub struct Shared {
+    config: Config,
+    tls: Arc<rustls::ClientConfig>,
+    token: TokenStore,
+    metadata: Arc<dyn Metadata>,
+    backend: Backend,
+    mode: Mode,
+}
+
+impl Shared {
+    fn controller(&self) -> Target {
+        Target {
+            net: 1,
+            node: self.config.bus.lift_controller,
+        }
+    }
+
+    async fn feed(&self, tx: mpsc::Sender<Update>) -> Feed {
+        match &self.mode {
+            Mode::Bus { sdo, url } => {
+                Feed::bus(
+                    self.backend.clone(),
+                    Some(sdo.clone()),
+                    Some(url.clone()),
+                    self.controller(),
+                    Duration::from_millis(self.config.bus.poll_ms.max(50)),
+                    tx,
+                )
+                .await
+            }
+            Mode::Local { od, changes } => Feed::local(changes, od.clone(), self.controller(), tx),
+        }
+    }
+}
+
+/// A configured gateway.
+pub struct Gateway {
+    shared: Arc<Shared>,
+    node: Option<LocalNode>,
+}
+
+fn load_eds(net: u8, nodes: &[NodeSection], into: &mut HashMap<Target, ObjectDictionary>) -> Result<(), GatewayError> {
+    for n in nodes {
+        let description = canopen::eds::import_file(&n.eds, Some(n.id))?;
+        into.insert(Target { net, node: n.id }, description.od);
+    }
+    Ok(())
+}
+
+async fn open(url: &str) -> Result<Bus, GatewayError> {
+    Bus::open(url).await.map_err(|error| GatewayError::Bus {
+        url: url.to_owned(),
+        error,
+    })
+}
+
+impl Gateway {
+    /// Bus-node mode: join `[bus]` as node `bus.node_id` (heartbeat, identity) and reach the
+    /// nodes of every network by SDO.
+    pub async fn bus_node(config: Config) -> Result<Gateway, GatewayError> {
+        config.validate()?;
+        let tls = tls::client_config(&config.cloud)?;
+        let client = ClientConfig {
+            timeout: Duration::from_millis(config.bus.sdo_timeout_ms.max(10)),
+            ..ClientConfig::default()
+        };
+        let mut nets = HashMap::new();
+        let sdo = SdoClients::new(open(&config.bus.url).await?, client.clone());
+        nets.insert(1, sdo.clone());
+        for n in &config.networks {
+            nets.insert(n.net, SdoClients::new(open(&n.url).await?, client.clone()));
+        }
+        let mut eds = HashMap::new();
+        load_eds(1, &config.bus.nodes, &mut eds)?;
+        for n in &config.networks {
+            load_eds(n.net, &n.nodes, &mut eds)?;
+        }
+        let metadata = BusMetadata {
+            controller: Some(Target {
+                net: 1,
+                node: config.bus.lift_controller,
+            }),
+            nodes: eds,
+        };
+        let node_config = NodeConfig {
+            device_type: 417,
+            identity: [config.identity.vendorid, config.identity.productcode, 1, 0],
+            software_version: config.identity.software.clone(),
+            heartbeat_ms: 1000,
+            pdos: (0, 0),
+            ..NodeConfig::new(config.bus.node_id)
+        };
+        let node = LocalNode::start(open(&config.bus.url).await?, ObjectDictionary::new(), node_config);
+        node.nmt(canopen::nmt::NmtCommand::Start);
+        let url = config.bus.url.clone();
+        Ok(Gateway {
+            shared: Arc::new(Shared {
+                token: TokenStore::new(&config.state.dir),
+                config,
+                tls,
+                metadata: Arc::new(metadata),
+                backend: Backend::Bus(nets),
+                mode: Mode::Bus { sdo, url },
+            }),
+            node: Some(node),
+        })
+    }
+
+    /// Embedded mode: serve `od`, the dictionary of the controller the gateway is linked into
+    /// (node `bus.lift_controller`); metadata comes from the catalog.
+    pub fn embedded(config: Config, od: SharedDictionary) -> Result<Gateway, GatewayError> {
+        config.validate()?;
+        let tls = tls::client_config(&config.cloud)?;
+        let changes = LocalChanges::install(&od);
+        let metadata = BusMetadata {
+            controller: Some(Target {
+                net: 1,
+                node: config.bus.lift_controller,
+            }),
+            nodes: HashMap::new(),
+        };
+        let node = config.bus.lift_controller;
+        Ok(Gateway {
+            shared: Arc::new(Shared {
+                token: TokenStore::new(&config.state.dir),
+                config,
+                tls,
+                metadata: Arc::new(metadata),
+                backend: Backend::Local { od: od.clone(), node },
+                mode: Mode::Local { od, changes },
+            }),
+            node: None,
+        })
+    }
+
+    /// Connect, serve, and reconnect until `shutdown` turns true.
+    pub async fn run(self, mut shutdown: watch::Receiver<bool>) {
+        // DESIGN.md §4: 1 s growing to 5 min, full jitter, reset after a stable minute.
+        let mut backoff = Backoff::new(Duration::from_secs(1), Duration::from_secs(300));
+        loop {
+            if *shutdown.borrow() {
+                break;
+            }
+            let started = Instant::now();
+            let ended = connection::run(&self.shared, &mut shutdown).await;
+            if ended.shutdown {
+                break;
+            }
+            if ended.served && started.elapsed() >= Duration::from_secs(60) {
+                backoff.reset();
+            }
+            let delay = backoff.next_delay();
+            tracing::warn!(cause = %ended.cause, retry_in_ms = delay.as_millis() as u64, "connection ended");
+            tokio::select! {
+                _ = tokio::time::sleep(delay) => {}
+                _ = shutdown.changed() => break,
+            }
+        }
+        if let Some(node) = self.node {
+            node.stop().await;
+        }
+        tracing::info!("gateway stopped");
+    }
+}

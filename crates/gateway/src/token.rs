@@ -1,0 +1,68 @@
+//! The cloud token, kept durably (DESIGN.md §4): written to a temporary file, fsynced and renamed
+//! over the old one, so a crash leaves the old or the new token, never a broken one.
+
+use std::path::{Path, PathBuf};
+
+/// Where the token lives.
+#[derive(Debug, Clone)]
+pub struct TokenStore {
+    path: PathBuf,
+}
+
+impl TokenStore {
+    /// The token file in `dir`.
+    pub fn new(dir: &Path) -> TokenStore {
+        TokenStore {
+            path: dir.join("cloudtoken"),
+        }
+    }
+
+    /// The file.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// The stored token, if any (an unreadable or empty file counts as none, and is logged).
+    pub fn load(&self) -> Option<String> {
+        match std::fs::read_to_string(&self.path) {
+            Ok(text) => {
+                let token = text.trim_end_matches('\n');
+                (!token.is_empty() && token.chars().count() <= 128).then(|| token.to_owned())
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+            Err(e) => {
+                tracing::error!(path = %self.path.display(), error = %e, "cloud token unreadable");
+                None
+            }
+        }
+    }
+
+    /// Store `token` atomically.
+    pub fn store(&self, token: &str) -> std::io::Result<()> {
+        if let Some(dir) = self.path.parent() {
+            std::fs::create_dir_all(dir)?;
+        }
+        canopen::storage::write_atomically(&self.path, &format!("{token}\n"))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stores_and_loads() {
+        let dir = std::env::temp_dir().join(format!("canlift-token-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let store = TokenStore::new(&dir);
+        assert_eq!(store.load(), None);
+        store.store("2A98765DE230176C").unwrap();
+        assert_eq!(store.load().as_deref(), Some("2A98765DE230176C"));
+        store.store("second").unwrap();
+        assert_eq!(store.load().as_deref(), Some("second"));
+        // No temporary file is left behind.
+        let files: Vec<_> = std::fs::read_dir(&dir).unwrap().collect();
+        assert_eq!(files.len(), 1);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
