@@ -32,6 +32,32 @@ pub fn load<T: DeserializeOwned + Serialize + Default>(
         .with_context(|| format!("invalid [{section}] configuration"))
 }
 
+/// Load a whole multi-section document (a daemon with several sections, like the gateway) into
+/// `T`, applying environment overrides to each of `sections`.
+pub fn load_document<T: DeserializeOwned>(
+    file: Option<&Path>,
+    sections: &[&str],
+) -> anyhow::Result<T> {
+    let mut doc: toml::Table = match file {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("reading {}", path.display()))?;
+            toml::from_str(&text).with_context(|| format!("parsing {}", path.display()))?
+        }
+        None => toml::Table::new(),
+    };
+    for section in sections {
+        let entry = doc
+            .entry(section.to_string())
+            .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+        let toml::Value::Table(table) = entry else {
+            bail!("[{section}] must be a table");
+        };
+        apply_env(table, section, std::env::vars())?;
+    }
+    T::deserialize(toml::Value::Table(doc)).context("invalid configuration")
+}
+
 /// Apply `CANLIFT_<SECTION>_<KEY>=VALUE` overrides. A value is read as TOML (numbers, booleans,
 /// arrays) and, failing that, as a plain string.
 fn apply_env(

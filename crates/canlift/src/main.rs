@@ -27,6 +27,8 @@ enum Command {
     Nmt(cmd::nmt::NmtArgs),
     /// Read or write an object of a node by SDO.
     Sdo(cmd::sdo::SdoArgs),
+    /// The elevator gateway: connects the lift to a cloud portal (NXg connector).
+    Gateway(cmd::gateway::GatewayArgs),
     /// Simulated CiA 417 lift controller (and I/O node) on a bus.
     Sim(cmd::sim::SimArgs),
     /// Measure canlift's components.
@@ -51,6 +53,7 @@ fn main() -> std::process::ExitCode {
             Command::Sdo(args) => cmd::sdo::run(args).await,
             Command::Bench(args) => cmd::bench::run(args).await,
             Command::Sim(args) => cmd::sim::run(args).await,
+            Command::Gateway(args) => cmd::gateway::run(args).await,
         }
     });
     match result {

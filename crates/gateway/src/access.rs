@@ -70,12 +70,20 @@ impl Backend {
                 if target.node != *node || target.net != 1 {
                     return Err(AbortCode::NO_OBJECT);
                 }
-                od.lock().unwrap_or_else(PoisonError::into_inner).read(index, sub)
+                od.lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .read(index, sub)
             }
         }
     }
 
-    async fn write(&self, target: Target, index: u16, sub: u8, data: &[u8]) -> Result<(), AbortCode> {
+    async fn write(
+        &self,
+        target: Target,
+        index: u16,
+        sub: u8,
+        data: &[u8],
+    ) -> Result<(), AbortCode> {
         match self {
             Backend::Bus(nets) => {
                 let sdo = nets.get(&target.net).ok_or(AbortCode::NO_OBJECT)?;

@@ -94,7 +94,9 @@ pub struct StateSection {
 
 impl Default for StateSection {
     fn default() -> Self {
-        StateSection { dir: "state".into() }
+        StateSection {
+            dir: "state".into(),
+        }
     }
 }
 
@@ -248,7 +250,8 @@ impl Config {
         }
         sha1_hex("service_sha1", &self.privileges.service_sha1)?;
         sha1_hex("setup_sha1", &self.privileges.setup_sha1)?;
-        if !(1..=127).contains(&self.bus.node_id) || !(1..=127).contains(&self.bus.lift_controller) {
+        if !(1..=127).contains(&self.bus.node_id) || !(1..=127).contains(&self.bus.lift_controller)
+        {
             return err("bus.node_id and bus.lift_controller are node-IDs 1–127");
         }
         let mut nets = vec![1u8];

@@ -68,7 +68,12 @@ pub async fn run(shared: &Shared, shutdown: &mut tokio::sync::watch::Receiver<bo
     let tcp = match tokio::time::timeout(timeout, TcpStream::connect((host.as_str(), port))).await {
         Ok(Ok(s)) => s,
         Ok(Err(e)) => return ended(false, format!("TCP {host}:{port}: {e}")),
-        Err(_) => return ended(false, format!("TCP {host}:{port}: no answer in {timeout:?}")),
+        Err(_) => {
+            return ended(
+                false,
+                format!("TCP {host}:{port}: no answer in {timeout:?}"),
+            )
+        }
     };
     let _ = tcp.set_nodelay(true);
     let server_name = match rustls::pki_types::ServerName::try_from(host.clone()) {
@@ -79,7 +84,12 @@ pub async fn run(shared: &Shared, shutdown: &mut tokio::sync::watch::Receiver<bo
     let tls = match tokio::time::timeout(timeout, tls.connect(server_name, tcp)).await {
         Ok(Ok(s)) => s,
         Ok(Err(e)) => return ended(false, format!("TLS with {host}: {e}")),
-        Err(_) => return ended(false, format!("TLS with {host}: no handshake in {timeout:?}")),
+        Err(_) => {
+            return ended(
+                false,
+                format!("TLS with {host}: no handshake in {timeout:?}"),
+            )
+        }
     };
     let ws_config = WebSocketConfig::default()
         .max_message_size(Some(shared.config.limits.max_message_bytes))
@@ -100,7 +110,10 @@ pub async fn run(shared: &Shared, shutdown: &mut tokio::sync::watch::Receiver<bo
         .unwrap_or("");
     if !SUBPROTOCOLS.contains(&selected) {
         let _ = ws.close(None).await;
-        return ended(false, format!("the portal selected neither cloud nor lift ({selected:?})"));
+        return ended(
+            false,
+            format!("the portal selected neither cloud nor lift ({selected:?})"),
+        );
     }
     tracing::info!(url = %cloud.url, subprotocol = selected, "connected; sending CONNECT");
     serve(shared, ws, shutdown).await

@@ -75,17 +75,29 @@ pub async fn read_layouts(sdo: &SdoClients, node: u8) -> HashMap<CanId, Layout> 
 impl Feed {
     /// Changes of `od` (embedded mode). The watcher is installed once per dictionary by
     /// [`LocalChanges::install`].
-    pub fn local(changes: &LocalChanges, od: SharedDictionary, target: Target, tx: mpsc::Sender<Update>) -> Feed {
+    pub fn local(
+        changes: &LocalChanges,
+        od: SharedDictionary,
+        target: Target,
+        tx: mpsc::Sender<Update>,
+    ) -> Feed {
         let watched: Watched = Arc::default();
         let mut rx = changes.subscribe();
         let w = watched.clone();
         let task = tokio::spawn(async move {
             while let Some((index, sub)) = rx.recv().await {
                 let key = (target, index, sub);
-                if !w.lock().unwrap_or_else(PoisonError::into_inner).contains(&key) {
+                if !w
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .contains(&key)
+                {
                     continue;
                 }
-                let bytes = od.lock().unwrap_or_else(PoisonError::into_inner).read(index, sub);
+                let bytes = od
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .read(index, sub);
                 if let Ok(bytes) = bytes {
                     if tx.send((target, index, sub, bytes)).await.is_err() {
                         return;
@@ -123,10 +135,17 @@ impl Feed {
             tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
             loop {
                 tick.tick().await;
-                let keys: Vec<_> = w.lock().unwrap_or_else(PoisonError::into_inner).iter().copied().collect();
+                let keys: Vec<_> = w
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .iter()
+                    .copied()
+                    .collect();
                 for (target, index, sub) in keys {
                     let by_pdo = target == controller
-                        && c.lock().unwrap_or_else(PoisonError::into_inner).contains(&(index, sub));
+                        && c.lock()
+                            .unwrap_or_else(PoisonError::into_inner)
+                            .contains(&(index, sub));
                     if by_pdo {
                         continue;
                     }
@@ -174,7 +193,11 @@ async fn pdo_listener(
     let learn = |layouts: &HashMap<CanId, Layout>| {
         let mut c = covered.lock().unwrap_or_else(PoisonError::into_inner);
         c.clear();
-        c.extend(layouts.values().flat_map(|l| l.entries.iter().map(|e| (e.0, e.1))));
+        c.extend(
+            layouts
+                .values()
+                .flat_map(|l| l.entries.iter().map(|e| (e.0, e.1))),
+        );
     };
     let mut layouts = read_layouts(&sdo, controller.node).await;
     learn(&layouts);
@@ -191,11 +214,19 @@ async fn pdo_listener(
         };
         for &(index, sub, offset, len) in &layout.entries {
             let key = (controller, index, sub);
-            if !watched.lock().unwrap_or_else(PoisonError::into_inner).contains(&key) {
+            if !watched
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .contains(&key)
+            {
                 continue;
             }
             if let Some(bytes) = frame.data().get(offset..offset + len) {
-                if tx.send((controller, index, sub, bytes.to_vec())).await.is_err() {
+                if tx
+                    .send((controller, index, sub, bytes.to_vec()))
+                    .await
+                    .is_err()
+                {
                     return;
                 }
             }

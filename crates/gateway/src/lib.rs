@@ -112,7 +112,11 @@ pub struct Gateway {
     node: Option<LocalNode>,
 }
 
-fn load_eds(net: u8, nodes: &[NodeSection], into: &mut HashMap<Target, ObjectDictionary>) -> Result<(), GatewayError> {
+fn load_eds(
+    net: u8,
+    nodes: &[NodeSection],
+    into: &mut HashMap<Target, ObjectDictionary>,
+) -> Result<(), GatewayError> {
     for n in nodes {
         let description = canopen::eds::import_file(&n.eds, Some(n.id))?;
         into.insert(Target { net, node: n.id }, description.od);
@@ -163,7 +167,11 @@ impl Gateway {
             pdos: (0, 0),
             ..NodeConfig::new(config.bus.node_id)
         };
-        let node = LocalNode::start(open(&config.bus.url).await?, ObjectDictionary::new(), node_config);
+        let node = LocalNode::start(
+            open(&config.bus.url).await?,
+            ObjectDictionary::new(),
+            node_config,
+        );
         node.nmt(canopen::nmt::NmtCommand::Start);
         let url = config.bus.url.clone();
         Ok(Gateway {
@@ -199,7 +207,10 @@ impl Gateway {
                 config,
                 tls,
                 metadata: Arc::new(metadata),
-                backend: Backend::Local { od: od.clone(), node },
+                backend: Backend::Local {
+                    od: od.clone(),
+                    node,
+                },
                 mode: Mode::Local { od, changes },
             }),
             node: None,

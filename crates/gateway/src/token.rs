@@ -65,4 +65,20 @@ mod tests {
         assert_eq!(files.len(), 1);
         let _ = std::fs::remove_dir_all(&dir);
     }
+
+    #[test]
+    fn a_crash_between_write_and_rename_leaves_the_old_token() {
+        let dir = std::env::temp_dir().join(format!("canlift-token-crash-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let store = TokenStore::new(&dir);
+        store.store("old-token").unwrap();
+        // What a kill during `store` leaves: a half-written temporary file beside the token.
+        std::fs::write(dir.join(".cloudtoken.tmp"), "new-to").unwrap();
+        assert_eq!(store.load().as_deref(), Some("old-token"));
+        // The next store replaces the leftover and the token.
+        store.store("new-token").unwrap();
+        assert_eq!(store.load().as_deref(), Some("new-token"));
+        assert!(!dir.join(".cloudtoken.tmp").exists());
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

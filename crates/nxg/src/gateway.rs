@@ -241,7 +241,7 @@ struct Grant {
 /// One connection's protocol state.
 pub struct Session {
     settings: Settings,
-    metadata: Box<dyn Metadata>,
+    metadata: std::sync::Arc<dyn Metadata>,
     token: Option<String>,
     phase: Phase,
     started: Instant,
@@ -260,7 +260,7 @@ impl Session {
     /// A session that will CONNECT with `token` (the stored cloud token, if any).
     pub fn new(
         settings: Settings,
-        metadata: Box<dyn Metadata>,
+        metadata: std::sync::Arc<dyn Metadata>,
         token: Option<String>,
         now: Instant,
     ) -> Self {

@@ -2,6 +2,7 @@
 
 pub mod bench;
 pub mod dump;
+pub mod gateway;
 pub mod hub;
 pub mod nmt;
 pub mod sdo;

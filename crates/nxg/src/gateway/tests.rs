@@ -31,8 +31,8 @@ fn settings() -> Settings {
     }
 }
 
-fn metadata() -> Box<dyn Metadata> {
-    Box::new(BusMetadata {
+fn metadata() -> std::sync::Arc<dyn Metadata> {
+    std::sync::Arc::new(BusMetadata {
         controller: Some(Target { net: 1, node: 1 }),
         nodes: HashMap::new(),
     })

@@ -1,0 +1,47 @@
+//! `canlift gateway --config FILE`: the elevator gateway (issue 6, DESIGN.md §3).
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use gateway::config::Config;
+use gateway::Gateway;
+
+/// Command-line arguments of `canlift gateway`.
+#[derive(Debug, clap::Args)]
+pub struct GatewayArgs {
+    /// Configuration file (TOML: [identity], [cloud], [state], [bus], [[networks]],
+    /// [privileges], [limits]).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Print the effective configuration and exit.
+    #[arg(long)]
+    print_config: bool,
+}
+
+/// The sections that take `CANLIFT_<SECTION>_<KEY>` overrides.
+const SECTIONS: [&str; 6] = ["identity", "cloud", "state", "bus", "privileges", "limits"];
+
+/// Run the gateway until Ctrl-C or SIGTERM.
+pub async fn run(args: GatewayArgs) -> anyhow::Result<()> {
+    let config: Config = crate::config::load_document(args.config.as_deref(), &SECTIONS)?;
+    if args.print_config {
+        print!("{}", toml::to_string_pretty(&config)?);
+        return Ok(());
+    }
+    let gateway = Gateway::bus_node(config.clone())
+        .await
+        .context("starting the gateway")?;
+    tracing::info!(
+        portal = %config.cloud.url,
+        bus = %config.bus.url,
+        node = config.bus.node_id,
+        lift_controller = config.bus.lift_controller,
+        "gateway running"
+    );
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let task = tokio::spawn(gateway.run(stopped));
+    crate::logging::shutdown_signal().await;
+    let _ = stop.send(true);
+    let _ = task.await;
+    Ok(())
+}
