@@ -2,6 +2,7 @@
 
 mod cmd;
 mod config;
+mod devpki;
 mod logging;
 
 use clap::{Parser, Subcommand};

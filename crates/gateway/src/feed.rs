@@ -20,9 +20,14 @@ pub type Update = (Target, u16, u8, Vec<u8>);
 
 type Watched = Arc<Mutex<BTreeSet<(Target, u16, u8)>>>;
 
+enum Watching {
+    Bus(Watched),
+    Local(Target, Arc<LocalSubscriber>),
+}
+
 /// The sources of one connection's subscriptions.
 pub struct Feed {
-    watched: Watched,
+    watched: Watching,
     tasks: Vec<JoinHandle<()>>,
 }
 
@@ -74,39 +79,36 @@ pub async fn read_layouts(sdo: &SdoClients, node: u8) -> HashMap<CanId, Layout> 
 
 impl Feed {
     /// Changes of `od` (embedded mode). The watcher is installed once per dictionary by
-    /// [`LocalChanges::install`].
+    /// [`LocalChanges::install`]; changes coalesce per sub-object, so a controller that changes
+    /// values faster than the portal takes them costs no memory, and the latest value wins.
     pub fn local(
         changes: &LocalChanges,
         od: SharedDictionary,
         target: Target,
         tx: mpsc::Sender<Update>,
     ) -> Feed {
-        let watched: Watched = Arc::default();
-        let mut rx = changes.subscribe();
-        let w = watched.clone();
+        let local = changes.subscribe();
+        let sub = local.clone();
         let task = tokio::spawn(async move {
-            while let Some((index, sub)) = rx.recv().await {
-                let key = (target, index, sub);
-                if !w
-                    .lock()
-                    .unwrap_or_else(PoisonError::into_inner)
-                    .contains(&key)
-                {
-                    continue;
-                }
-                let bytes = od
-                    .lock()
-                    .unwrap_or_else(PoisonError::into_inner)
-                    .read(index, sub);
-                if let Ok(bytes) = bytes {
-                    if tx.send((target, index, sub, bytes)).await.is_err() {
-                        return;
+            loop {
+                sub.notify.notified().await;
+                let keys =
+                    std::mem::take(&mut *sub.dirty.lock().unwrap_or_else(PoisonError::into_inner));
+                for (index, s) in keys {
+                    let bytes = od
+                        .lock()
+                        .unwrap_or_else(PoisonError::into_inner)
+                        .read(index, s);
+                    if let Ok(bytes) = bytes {
+                        if tx.send((target, index, s, bytes)).await.is_err() {
+                            return;
+                        }
                     }
                 }
             }
         });
         Feed {
-            watched,
+            watched: Watching::Local(target, local),
             tasks: vec![task],
         }
     }
@@ -157,23 +159,45 @@ impl Feed {
                 }
             }
         }));
-        Feed { watched, tasks }
+        Feed {
+            watched: Watching::Bus(watched),
+            tasks,
+        }
     }
 
     /// Start feeding this sub-object.
     pub fn watch(&self, target: Target, index: u16, sub: u8) {
-        self.watched
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .insert((target, index, sub));
+        match &self.watched {
+            Watching::Bus(w) => {
+                w.lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .insert((target, index, sub));
+            }
+            Watching::Local(local, s) if *local == target => {
+                s.watched
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .insert((index, sub));
+            }
+            Watching::Local(..) => {}
+        }
     }
 
     /// Stop feeding it.
     pub fn unwatch(&self, target: Target, index: u16, sub: u8) {
-        self.watched
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .remove(&(target, index, sub));
+        match &self.watched {
+            Watching::Bus(w) => {
+                w.lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .remove(&(target, index, sub));
+            }
+            Watching::Local(_, s) => {
+                s.watched
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .remove(&(index, sub));
+            }
+        }
     }
 }
 
@@ -234,7 +258,16 @@ async fn pdo_listener(
     }
 }
 
-type Subscribers = Arc<Mutex<Vec<mpsc::UnboundedSender<(u16, u8)>>>>;
+/// One connection's view of a local dictionary: what it watches and what changed since it last
+/// looked.
+#[derive(Default)]
+pub struct LocalSubscriber {
+    watched: Mutex<BTreeSet<(u16, u8)>>,
+    dirty: Mutex<BTreeSet<(u16, u8)>>,
+    notify: tokio::sync::Notify,
+}
+
+type Subscribers = Arc<Mutex<Vec<std::sync::Weak<LocalSubscriber>>>>;
 
 /// Changes of a local dictionary, fanned out to connections.
 #[derive(Clone)]
@@ -254,17 +287,34 @@ impl LocalChanges {
             .watch(Arc::new(move |index, sub| {
                 subs.lock()
                     .unwrap_or_else(PoisonError::into_inner)
-                    .retain(|s| s.send((index, sub)).is_ok());
+                    .retain(|weak| {
+                        let Some(s) = weak.upgrade() else {
+                            return false;
+                        };
+                        let watched = s
+                            .watched
+                            .lock()
+                            .unwrap_or_else(PoisonError::into_inner)
+                            .contains(&(index, sub));
+                        if watched {
+                            s.dirty
+                                .lock()
+                                .unwrap_or_else(PoisonError::into_inner)
+                                .insert((index, sub));
+                            s.notify.notify_one();
+                        }
+                        true
+                    });
             }));
         changes
     }
 
-    fn subscribe(&self) -> mpsc::UnboundedReceiver<(u16, u8)> {
-        let (tx, rx) = mpsc::unbounded_channel();
+    fn subscribe(&self) -> Arc<LocalSubscriber> {
+        let s = Arc::new(LocalSubscriber::default());
         self.subscribers
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
-            .push(tx);
-        rx
+            .push(Arc::downgrade(&s));
+        s
     }
 }

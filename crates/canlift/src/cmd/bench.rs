@@ -29,6 +29,8 @@ enum BenchKind {
     Sdo(SdoBench),
     /// A LocalNode through the hub: change→TPDO latency, PDO frames/s, SYNC jitter, idle CPU.
     Node(NodeBench),
+    /// The elevator gateway from a portal's seat: get latency and rate, notifications/s, RSS.
+    Gateway(super::bench_gateway::GatewayBench),
 }
 
 #[derive(Debug, Clone, clap::Args)]
@@ -685,5 +687,6 @@ pub async fn run(args: BenchArgs) -> anyhow::Result<()> {
         BenchKind::Hub(h) => run_hub_bench(h).await,
         BenchKind::Sdo(s) => run_sdo_bench(s).await,
         BenchKind::Node(n) => run_node_bench(n).await,
+        BenchKind::Gateway(g) => super::bench_gateway::run(g).await,
     }
 }

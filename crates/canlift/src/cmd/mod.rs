@@ -1,6 +1,7 @@
 //! The subcommands of `canlift`.
 
 pub mod bench;
+pub mod bench_gateway;
 pub mod dump;
 pub mod gateway;
 pub mod hub;

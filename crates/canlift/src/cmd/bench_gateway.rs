@@ -1,0 +1,357 @@
+//! `canlift bench gateway`: the elevator gateway measured from a portal's seat — request latency
+//! and rate for naked, stripped and full gets (on a local dictionary, and by SDO through the hub
+//! to the simulated lift), notifications per second, the resident memory of a gateway process
+//! idle and with many subscriptions, and the size of the stripped binary.
+
+use std::path::{Path, PathBuf};
+use std::process::Stdio;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context};
+use futures_util::{SinkExt, StreamExt};
+use gateway::config::Config;
+use gateway::Gateway;
+use lift417::catalog::{Catalog, Device};
+use lift417::sim::{SimConfig, Simulator};
+use serde_json::{json, Value};
+use tokio::net::{TcpListener, TcpStream};
+use tokio_rustls::server::TlsStream;
+use tokio_tungstenite::tungstenite::handshake::server::{Request, Response};
+use tokio_tungstenite::tungstenite::http::HeaderValue;
+use tokio_tungstenite::tungstenite::Message;
+use tokio_tungstenite::WebSocketStream;
+
+use crate::devpki::{self, DevPki};
+
+/// Arguments of `canlift bench gateway`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct GatewayBench {
+    /// Requests per form for the latency and rate figures.
+    #[arg(long, default_value_t = 2000)]
+    requests: usize,
+    /// Requests kept outstanding for the rate figures.
+    #[arg(long, default_value_t = 16)]
+    window: usize,
+    /// Seconds of value changes for the notification figure.
+    #[arg(long, default_value_t = 2)]
+    seconds: u64,
+    /// Subscriptions for the memory figure.
+    #[arg(long, default_value_t = 1000)]
+    subscriptions: usize,
+}
+
+type Ws = WebSocketStream<TlsStream<TcpStream>>;
+
+struct Portal {
+    listener: TcpListener,
+    acceptor: tokio_rustls::TlsAcceptor,
+}
+
+impl Portal {
+    async fn start(pki: &DevPki) -> anyhow::Result<Portal> {
+        let certs = gateway::tls::certificates(&pki.cert)?;
+        let key = gateway::tls::private_key(&pki.key)?;
+        let config = rustls::ServerConfig::builder_with_provider(gateway::tls::provider())
+            .with_safe_default_protocol_versions()?
+            .with_no_client_auth()
+            .with_single_cert(certs, key)?;
+        Ok(Portal {
+            listener: TcpListener::bind("127.0.0.1:0").await?,
+            acceptor: tokio_rustls::TlsAcceptor::from(Arc::new(config)),
+        })
+    }
+
+    fn url(&self) -> anyhow::Result<String> {
+        Ok(format!(
+            "wss://localhost:{}/ws",
+            self.listener.local_addr()?.port()
+        ))
+    }
+
+    /// Accept a gateway and answer its CONNECT.
+    async fn accept(&self) -> anyhow::Result<Ws> {
+        let (tcp, _) = tokio::time::timeout(Duration::from_secs(20), self.listener.accept())
+            .await
+            .context("no gateway connected")??;
+        let _ = tcp.set_nodelay(true);
+        let tls = self.acceptor.accept(tcp).await?;
+        #[allow(clippy::result_large_err)] // the callback's error type is tungstenite's
+        let select = |_: &Request, mut resp: Response| {
+            resp.headers_mut()
+                .insert("Sec-WebSocket-Protocol", HeaderValue::from_static("cloud"));
+            Ok(resp)
+        };
+        let mut ws = tokio_tungstenite::accept_hdr_async(tls, select).await?;
+        let connect = recv(&mut ws).await?;
+        let answer = json!({"jsonrpc": "2.0", "id": connect["id"], "result": "CONNACK", "api": 1});
+        ws.send(Message::Text(answer.to_string().into())).await?;
+        Ok(ws)
+    }
+}
+
+async fn recv(ws: &mut Ws) -> anyhow::Result<Value> {
+    loop {
+        match tokio::time::timeout(Duration::from_secs(20), ws.next()).await {
+            Ok(Some(Ok(Message::Text(t)))) => return Ok(serde_json::from_str(t.as_str())?),
+            Ok(Some(Ok(Message::Ping(_) | Message::Pong(_)))) => continue,
+            Ok(other) => bail!("the gateway sent {other:?}"),
+            Err(_) => bail!("no message from the gateway in 20 s"),
+        }
+    }
+}
+
+fn config(url: &str, pki: &DevPki, bus: &str, state: &Path) -> Config {
+    let mut c = Config::default();
+    c.identity.sernum = "bench".into();
+    c.identity.vendorid = 1050;
+    c.identity.productcode = 4096;
+    c.cloud.url = url.into();
+    c.cloud.ca_file = Some(pki.ca.clone());
+    c.state.dir = state.to_path_buf();
+    c.bus.url = bus.into();
+    c.limits.max_in_flight = 64;
+    c.limits.max_subscriptions = 4096;
+    c
+}
+
+fn get(id: usize, mplex: &str, form: &str) -> String {
+    let flag = match form {
+        "naked" => r#","naked":true"#,
+        "stripped" => r#","stripped":true"#,
+        _ => "",
+    };
+    format!(
+        r#"{{"jsonrpc":"2.0","id":{id},"method":"get_canopen_object","params":{{"lang":{{"preferred_language":"en","alternate_language":"de"}},"object":{{"mplex":"{mplex}"{flag}}}}}}}"#
+    )
+}
+
+fn percentile(sorted: &[Duration], p: f64) -> f64 {
+    let rank = ((p / 100.0) * (sorted.len().max(1) - 1) as f64).round() as usize;
+    sorted.get(rank).map_or(0.0, |d| d.as_secs_f64() * 1e6)
+}
+
+/// Sequential requests (latency), then `window` outstanding (rate), for each form.
+async fn requests(ws: &mut Ws, what: &str, args: &GatewayBench) -> anyhow::Result<()> {
+    for form in ["naked", "stripped", "full"] {
+        let mut times = Vec::with_capacity(args.requests);
+        for id in 0..args.requests {
+            let started = Instant::now();
+            ws.send(Message::Text(get(id, "0x652001", form).into()))
+                .await?;
+            let answer = recv(ws).await?;
+            if answer.get("result").is_none() {
+                bail!("{form} get failed: {answer}");
+            }
+            times.push(started.elapsed());
+        }
+        times.sort();
+        let started = Instant::now();
+        let (mut sent, mut done) = (0, 0);
+        while done < args.requests {
+            while sent < args.requests && sent - done < args.window {
+                ws.send(Message::Text(get(sent, "0x652001", form).into()))
+                    .await?;
+                sent += 1;
+            }
+            if recv(ws).await?.get("result").is_some() {
+                done += 1;
+            }
+        }
+        let rate = args.requests as f64 / started.elapsed().as_secs_f64();
+        println!(
+            "{what:<22} {form:<9} p50 {:>8.0} µs   p99 {:>8.0} µs   {rate:>8.0} requests/s (window {})",
+            percentile(&times, 50.0),
+            percentile(&times, 99.0),
+            args.window
+        );
+    }
+    Ok(())
+}
+
+async fn notifications(
+    ws: &mut Ws,
+    od: canopen::driver::SharedDictionary,
+    seconds: u64,
+) -> anyhow::Result<()> {
+    let reg = r#"{"jsonrpc":"2.0","id":"r","method":"reg_canopen_object","params":{"mplex":["0x652001"],"inhibit":0,"threshold":0}}"#;
+    ws.send(Message::Text(reg.into())).await?;
+    let period = Duration::from_secs(seconds.max(1));
+    let changer = tokio::task::spawn_blocking(move || {
+        let started = Instant::now();
+        let mut n: u64 = 0;
+        while started.elapsed() < period {
+            n += 1;
+            let value = canopen::types::Value::Uint(n);
+            let _ = od.lock().map(|mut od| od.set_value(0x6520, 1, &value));
+            if n.is_multiple_of(64) {
+                std::thread::yield_now();
+            }
+        }
+        n
+    });
+    let started = Instant::now();
+    let mut pushed = 0u64;
+    while started.elapsed() < period {
+        if let Ok(Ok(v)) = tokio::time::timeout(Duration::from_millis(200), recv(ws)).await {
+            if v["method"] == "canopen_object" {
+                pushed += 1;
+            }
+        }
+    }
+    let changes = changer.await?;
+    let secs = period.as_secs_f64();
+    println!(
+        "{:<22} {:.0} notifications/s while the controller changed the value {:.0} times/s (changes coalesce; the latest value is always sent)",
+        "local dictionary",
+        pushed as f64 / secs,
+        changes as f64 / secs
+    );
+    Ok(())
+}
+
+fn rss_kib(pid: u32) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+}
+
+/// Readable entries of the simulated controller, for subscriptions.
+fn subscribable(n: usize) -> Vec<String> {
+    let mut out = Vec::new();
+    for o in Catalog::builtin()
+        .objects()
+        .filter(|o| o.devices.contains(&Device::Controller) && !o.per_floor)
+    {
+        for e in o.entries.values().filter(|e| e.sub > 0) {
+            if e.access != lift417::meta::Access::Wo {
+                out.push(format!("0x{:04X}{:02X}", o.index, e.sub));
+            }
+        }
+    }
+    out.truncate(n);
+    out
+}
+
+async fn memory(args: &GatewayBench, pki: &DevPki, bus: &str, dir: &Path) -> anyhow::Result<()> {
+    let portal = Portal::start(pki).await?;
+    let config = config(&portal.url()?, pki, bus, &dir.join("process"));
+    let path = dir.join("gateway.toml");
+    std::fs::write(&path, toml::to_string_pretty(&config)?)?;
+    let exe = std::env::current_exe()?;
+    let mut child = tokio::process::Command::new(&exe)
+        .args(["gateway", "--config"])
+        .arg(&path)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .kill_on_drop(true)
+        .spawn()?;
+    let pid = child.id().context("gateway process")?;
+    let mut ws = portal.accept().await?;
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let idle = rss_kib(pid).unwrap_or(0);
+    let mplexes = subscribable(args.subscriptions);
+    for (i, chunk) in mplexes.chunks(100).enumerate() {
+        let reg = json!({"jsonrpc": "2.0", "id": i, "method": "reg_canopen_object",
+            "params": {"mplex": chunk, "inhibit": 1000, "threshold": 1}});
+        ws.send(Message::Text(reg.to_string().into())).await?;
+        loop {
+            let v = recv(&mut ws).await?;
+            if v["id"] == json!(i) {
+                if v.get("error").is_some() {
+                    bail!("registration failed: {v}");
+                }
+                break;
+            }
+        }
+    }
+    let settle = Instant::now();
+    while settle.elapsed() < Duration::from_secs(3) {
+        let _ = tokio::time::timeout(Duration::from_millis(100), recv(&mut ws)).await;
+    }
+    let subscribed = rss_kib(pid).unwrap_or(0);
+    println!(
+        "{:<22} RSS idle {:.1} MiB, with {} subscriptions {:.1} MiB (goal ≤ 10 MB)",
+        "gateway process",
+        idle as f64 / 1024.0,
+        mplexes.len(),
+        subscribed as f64 / 1024.0
+    );
+    let _ = std::process::Command::new("kill")
+        .args(["-INT", &pid.to_string()])
+        .status();
+    let _ = tokio::time::timeout(Duration::from_secs(5), child.wait()).await;
+    Ok(())
+}
+
+fn binary_size(dir: &Path) -> anyhow::Result<()> {
+    let exe = std::env::current_exe()?;
+    let copy: PathBuf = dir.join("canlift-stripped");
+    std::fs::copy(&exe, &copy)?;
+    let stripped = std::process::Command::new("strip").arg(&copy).status();
+    let size = std::fs::metadata(&copy)?.len();
+    match stripped {
+        Ok(s) if s.success() => println!(
+            "{:<22} {:.1} MiB stripped (whole canlift binary)",
+            "binary",
+            size as f64 / (1024.0 * 1024.0)
+        ),
+        _ => println!(
+            "{:<22} {:.1} MiB (strip not available)",
+            "binary",
+            size as f64 / (1024.0 * 1024.0)
+        ),
+    }
+    Ok(())
+}
+
+/// Run every gateway measurement.
+pub async fn run(args: GatewayBench) -> anyhow::Result<()> {
+    let dir = std::env::temp_dir().join(format!("canlift-bench-gateway-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let pki = devpki::ensure(&dir)?;
+    let result = measure(&args, &pki, &dir).await;
+    let _ = std::fs::remove_dir_all(&dir);
+    result
+}
+
+async fn measure(args: &GatewayBench, pki: &DevPki, dir: &Path) -> anyhow::Result<()> {
+    // On a local dictionary (embedded mode).
+    let portal = Portal::start(pki).await?;
+    let od = Catalog::builtin().dictionary(Device::Controller, 1, 8)?;
+    let od = Arc::new(Mutex::new(od));
+    let gateway = Gateway::embedded(
+        config(&portal.url()?, pki, "mem://unused", &dir.join("local")),
+        od.clone(),
+    )?;
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let task = tokio::spawn(gateway.run(stopped));
+    let mut ws = portal.accept().await?;
+    requests(&mut ws, "local dictionary", args).await?;
+    notifications(&mut ws, od, args.seconds).await?;
+    let _ = stop.send(true);
+    let _ = task.await;
+    // By SDO through the hub to the simulated lift (bus-node mode).
+    let hub = canbus::hub::Hub::bind(canbus::hub::HubConfig {
+        listen: std::net::SocketAddr::from(([127, 0, 0, 1], 0)),
+        ..canbus::hub::HubConfig::default()
+    })
+    .await?
+    .spawn()?;
+    let bus = format!("socketcand://{}/can0", hub.local_addr());
+    let sim = Simulator::start(&bus, SimConfig::default()).await?;
+    let portal = Portal::start(pki).await?;
+    let gateway = Gateway::bus_node(config(&portal.url()?, pki, &bus, &dir.join("bus"))).await?;
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let task = tokio::spawn(gateway.run(stopped));
+    let mut ws = portal.accept().await?;
+    requests(&mut ws, "SDO via hub to sim", args).await?;
+    let _ = stop.send(true);
+    let _ = task.await;
+    memory(args, pki, &bus, dir).await?;
+    sim.stop().await;
+    hub.shutdown().await;
+    binary_size(dir)
+}
