@@ -140,6 +140,9 @@ where
     let mut ping = tokio::time::interval(Duration::from_secs(shared.config.cloud.ping_s.max(1)));
     ping.tick().await;
     let mut outputs = vec![session.connect()];
+    let max_jobs = shared.config.limits.max_in_flight.max(1);
+    let mut jobs = std::collections::VecDeque::new();
+    let mut running = 0usize;
     let mut served = false;
     loop {
         for output in outputs.drain(..) {
@@ -153,10 +156,19 @@ where
                     let _ = ws.close(None).await;
                     return ended(served, cause);
                 }
-                Output::Start(id, job) => start_job(shared, id, job, job_tx.clone()),
+                Output::Start(id, job) => jobs.push_back((id, job)),
                 Output::Watch(target, index, sub) => feed.watch(target, index, sub),
                 Output::Unwatch(target, index, sub) => feed.unwatch(target, index, sub),
             }
+        }
+        // Jobs run at most `max_in_flight` at once (with the subscriptions' first reads there
+        // can be more jobs than requests); the rest wait here as small values, not as tasks.
+        while running < max_jobs {
+            let Some((id, job)) = jobs.pop_front() else {
+                break;
+            };
+            running += 1;
+            start_job(shared, id, job, job_tx.clone());
         }
         if !served {
             if let Phase::Connected(api) = session.phase() {
@@ -201,7 +213,10 @@ where
                     None => return ended(served, "portal went away"),
                 }
             }
-            Some((id, result)) = job_rx.recv() => session.complete(id, result, Instant::now()),
+            Some((id, result)) = job_rx.recv() => {
+                running -= 1;
+                session.complete(id, result, Instant::now())
+            }
             Some((target, index, sub, bytes)) = feed_rx.recv() => session.bytes(target, index, sub, &bytes, Instant::now()),
             _ = timer => session.timeout(Instant::now()),
             _ = ping.tick() => {

@@ -9,6 +9,7 @@
 //! [`Catalog::lookup`] answers for any lift, [`Catalog::dictionary`] builds a device's object
 //! dictionary for any number of lifts.
 
+use std::borrow::Cow;
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::{Arc, OnceLock};
 
@@ -43,10 +44,17 @@ pub enum CatalogError {
     },
 }
 
-/// Texts by language tag (`en`, `de`, …).
+/// Texts by language tag (`en`, `de`, …). Shared, not copied, between the entries that use the
+/// same texts (an object's hint serves all its sub-indices), which keeps the catalog small.
 #[derive(Debug, Clone, Default, PartialEq, Eq, Deserialize)]
-#[serde(transparent)]
-pub struct Texts(BTreeMap<String, String>);
+#[serde(from = "BTreeMap<String, String>")]
+pub struct Texts(Arc<BTreeMap<String, String>>);
+
+impl From<BTreeMap<String, String>> for Texts {
+    fn from(map: BTreeMap<String, String>) -> Texts {
+        Texts(Arc::new(map))
+    }
+}
 
 impl Texts {
     /// The text in `lang` (case-insensitive), if the catalog has it.
@@ -59,7 +67,7 @@ impl Texts {
 
     /// A text in English only (names from an EDS).
     pub fn english(text: &str) -> Texts {
-        Texts(BTreeMap::from([("en".to_owned(), text.to_owned())]))
+        Texts(Arc::new(BTreeMap::from([("en".to_owned(), text.to_owned())])))
     }
 
     /// The languages present.
@@ -67,18 +75,21 @@ impl Texts {
         self.0.keys().map(String::as_str)
     }
 
-    fn expand(&self, n: u16, i: u8) -> Texts {
-        Texts(
+    /// The texts with `key` (`{n}`, `{i}`) replaced by `value`; shared when there is none.
+    fn fill(&self, key: &str, value: u16) -> Texts {
+        if !self.0.values().any(|t| t.contains(key)) {
+            return self.clone();
+        }
+        Texts(Arc::new(
             self.0
                 .iter()
-                .map(|(l, t)| {
-                    let text = t
-                        .replace("{n}", &n.to_string())
-                        .replace("{i}", &i.to_string());
-                    (l.clone(), text)
-                })
+                .map(|(l, t)| (l.clone(), t.replace(key, &value.to_string())))
                 .collect(),
-        )
+        ))
+    }
+
+    fn expand(&self, n: u16, i: u8) -> Texts {
+        self.fill("{n}", n).fill("{i}", i.into())
     }
 }
 
@@ -210,15 +221,43 @@ pub struct CatalogObject {
     pub per_lift: bool,
     /// An array with one element per floor (the device sizes it by its number of floors).
     pub per_floor: bool,
-    /// Entries by sub-index.
-    pub entries: BTreeMap<u8, Entry>,
+    /// Sub-index 0 and the entries that differ from `element`.
+    listed: BTreeMap<u8, Entry>,
+    /// The uniform elements 1..=`last` of an ARRAY, as one entry whose name still holds `{i}`.
+    element: Option<Entry>,
+    /// The highest sub-index.
+    last: u8,
+}
+
+impl CatalogObject {
+    /// The entry at `sub`.
+    pub fn entry(&self, sub: u8) -> Option<Cow<'_, Entry>> {
+        if let Some(e) = self.listed.get(&sub) {
+            return Some(Cow::Borrowed(e));
+        }
+        let template = self.element.as_ref().filter(|_| (1..=self.last).contains(&sub))?;
+        let mut e = template.clone();
+        e.sub = sub;
+        e.name = e.name.fill("{i}", sub.into());
+        Some(Cow::Owned(e))
+    }
+
+    /// Every entry, by sub-index.
+    pub fn entries(&self) -> impl Iterator<Item = Cow<'_, Entry>> + '_ {
+        (0..=self.last).filter_map(|sub| self.entry(sub))
+    }
+
+    /// The highest sub-index (0 for a VAR).
+    pub fn last_sub(&self) -> u8 {
+        self.last
+    }
 }
 
 /// An entry as found for a concrete index: the lift-1 metadata and the lift it belongs to.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct Located<'a> {
     /// The metadata (indices are lift 1's).
-    pub entry: &'a Entry,
+    pub entry: Cow<'a, Entry>,
     /// The object.
     pub object: &'a CatalogObject,
     /// The lift (1 for objects that are not per lift).
@@ -416,6 +455,8 @@ impl RawObject {
             let name = self.name.expand(n, 0);
             let hint = self.hint.expand(n, 0);
             let mut entries = BTreeMap::new();
+            let mut element = None;
+            let mut highest = 0;
             let overrides: BTreeMap<u8, &RawSub> = self.sub.iter().map(|s| (s.sub, s)).collect();
             if overrides.len() != self.sub.len() {
                 return Err(object_error(index, "a sub-index is listed twice"));
@@ -442,7 +483,17 @@ impl RawObject {
                     let last = *subs
                         .last()
                         .ok_or_else(|| object_error(index, "no entries"))?;
-                    for &sub in &subs {
+                    // Elements without an override share one template entry.
+                    let uniform = |sub: &u8| code == ObjectCode::Array && !overrides.contains_key(sub);
+                    if subs.iter().any(uniform) {
+                        let template_name = self
+                            .item
+                            .clone()
+                            .ok_or_else(|| object_error(index, "an ARRAY needs item names"))?
+                            .fill("{n}", n);
+                        element = Some(entry_from(index, 1, code, template_name, hint.clone(), &self.attrs)?);
+                    }
+                    for &sub in subs.iter().filter(|s| !uniform(s)) {
                         let over = overrides.get(&sub);
                         let attrs = over.map_or(self.attrs.clone(), |o| o.attrs.or(&self.attrs));
                         let sub_name = over
@@ -474,6 +525,7 @@ impl RawObject {
                         &count,
                     )?;
                     entries.insert(0, e);
+                    highest = last;
                 }
                 _ => return Err(object_error(index, "only var, array and record")),
             }
@@ -485,7 +537,9 @@ impl RawObject {
                 devices: devices.clone(),
                 per_lift: self.per_lift,
                 per_floor: self.per_floor,
-                entries,
+                listed: entries,
+                element,
+                last: highest,
             });
         }
         Ok(out)
@@ -561,7 +615,7 @@ impl Catalog {
     /// The metadata of (`index`, `sub`) for any lift.
     pub fn lookup(&self, index: u16, sub: u8) -> Option<Located<'_>> {
         let (lift, object) = self.object_for(index)?;
-        let entry = object.entries.get(&sub)?;
+        let entry = object.entry(sub)?;
         Some(Located {
             entry,
             object,
@@ -651,14 +705,14 @@ impl Catalog {
             if o.per_floor && o.code != ObjectCode::Array {
                 problems.push(format!("{}: per_floor needs an ARRAY", at(None)));
             }
-            for e in o.entries.values() {
+            for e in o.entries() {
                 let here = at(Some(e.sub));
                 self.check_texts(&e.name, &here, "name", &mut problems);
                 self.check_texts(&e.hint, &here, "hint", &mut problems);
                 for t in &e.list {
                     self.check_texts(t, &here, "list", &mut problems);
                 }
-                check_entry(e, o.code, &here, &mut problems);
+                check_entry(&e, o.code, &here, &mut problems);
             }
         }
         problems
@@ -883,11 +937,11 @@ fn build_object(
     let last = if o.per_floor {
         floors.max(1)
     } else {
-        o.entries.keys().next_back().copied().unwrap_or(0)
+        o.last
     };
     let mut entries = Vec::new();
-    for e in o.entries.values().filter(|e| e.sub <= last) {
-        let mut var = build_variable(e, english(&e.name))?;
+    for e in o.entries().filter(|e| e.sub <= last) {
+        let mut var = build_variable(&e, english(&e.name))?;
         if e.sub == 0 && o.code != ObjectCode::Var {
             var = var.with_value(Value::Uint(last.into()));
         }

@@ -1226,7 +1226,7 @@ impl CatalogMetadata {
         let catalog = Catalog::builtin();
         match catalog.lookup(index, sub) {
             Some(found) => {
-                let mut entry = found.entry.clone();
+                let mut entry = found.entry.into_owned();
                 entry.index = index;
                 Lookup::Entry(Box::new(entry))
             }

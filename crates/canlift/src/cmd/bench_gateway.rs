@@ -112,6 +112,7 @@ fn config(url: &str, pki: &DevPki, bus: &str, state: &Path) -> Config {
     c.bus.url = bus.into();
     c.limits.max_in_flight = 64;
     c.limits.max_subscriptions = 4096;
+    c.bus.poll_ms = 3_600_000;
     c
 }
 
@@ -225,7 +226,7 @@ fn subscribable(n: usize) -> Vec<String> {
         .objects()
         .filter(|o| o.devices.contains(&Device::Controller) && !o.per_floor)
     {
-        for e in o.entries.values().filter(|e| e.sub > 0) {
+        for e in o.entries().filter(|e| e.sub > 0) {
             if e.access != lift417::meta::Access::Wo {
                 out.push(format!("0x{:04X}{:02X}", o.index, e.sub));
             }
@@ -241,7 +242,8 @@ async fn memory(args: &GatewayBench, pki: &DevPki, bus: &str, dir: &Path) -> any
     let path = dir.join("gateway.toml");
     std::fs::write(&path, toml::to_string_pretty(&config)?)?;
     let exe = std::env::current_exe()?;
-    let mut child = tokio::process::Command::new(&exe)
+    let mut child = if let Ok(w) = std::env::var("DBG_WRAP") { let mut c = tokio::process::Command::new(w.split(' ').next().unwrap()); c.args(w.split(' ').skip(1)); c.arg(&exe); c } else { tokio::process::Command::new(&exe) };
+    let mut child = child
         .args(["gateway", "--config"])
         .arg(&path)
         .env("RUST_LOG", "warn")
@@ -252,6 +254,8 @@ async fn memory(args: &GatewayBench, pki: &DevPki, bus: &str, dir: &Path) -> any
     let mut ws = portal.accept().await?;
     tokio::time::sleep(Duration::from_secs(2)).await;
     let idle = rss_kib(pid).unwrap_or(0);
+    eprintln!("DBG smaps idle {}", std::fs::read_to_string(format!("/proc/{pid}/smaps_rollup")).unwrap_or_default());
+    eprintln!("DBG threads {}", std::fs::read_dir(format!("/proc/{pid}/task")).map(|d| d.count()).unwrap_or(0));
     let mplexes = subscribable(args.subscriptions);
     for (i, chunk) in mplexes.chunks(100).enumerate() {
         let reg = json!({"jsonrpc": "2.0", "id": i, "method": "reg_canopen_object",
@@ -271,7 +275,9 @@ async fn memory(args: &GatewayBench, pki: &DevPki, bus: &str, dir: &Path) -> any
     while settle.elapsed() < Duration::from_secs(3) {
         let _ = tokio::time::timeout(Duration::from_millis(100), recv(&mut ws)).await;
     }
+    for _ in 0..8 { let t = Instant::now(); while t.elapsed() < Duration::from_secs(1) { let _ = tokio::time::timeout(Duration::from_millis(100), recv(&mut ws)).await; } eprintln!("DBG rss {:?}", rss_kib(pid)); }
     let subscribed = rss_kib(pid).unwrap_or(0);
+    eprintln!("DBG smaps subs {}", std::fs::read_to_string(format!("/proc/{pid}/smaps_rollup")).unwrap_or_default());
     println!(
         "{:<22} RSS idle {:.1} MiB, with {} subscriptions {:.1} MiB (goal ≤ 10 MB)",
         "gateway process",
