@@ -67,7 +67,10 @@ impl Texts {
 
     /// A text in English only (names from an EDS).
     pub fn english(text: &str) -> Texts {
-        Texts(Arc::new(BTreeMap::from([("en".to_owned(), text.to_owned())])))
+        Texts(Arc::new(BTreeMap::from([(
+            "en".to_owned(),
+            text.to_owned(),
+        )])))
     }
 
     /// The languages present.
@@ -235,7 +238,10 @@ impl CatalogObject {
         if let Some(e) = self.listed.get(&sub) {
             return Some(Cow::Borrowed(e));
         }
-        let template = self.element.as_ref().filter(|_| (1..=self.last).contains(&sub))?;
+        let template = self
+            .element
+            .as_ref()
+            .filter(|_| (1..=self.last).contains(&sub))?;
         let mut e = template.clone();
         e.sub = sub;
         e.name = e.name.fill("{i}", sub.into());
@@ -484,14 +490,22 @@ impl RawObject {
                         .last()
                         .ok_or_else(|| object_error(index, "no entries"))?;
                     // Elements without an override share one template entry.
-                    let uniform = |sub: &u8| code == ObjectCode::Array && !overrides.contains_key(sub);
+                    let uniform =
+                        |sub: &u8| code == ObjectCode::Array && !overrides.contains_key(sub);
                     if subs.iter().any(uniform) {
                         let template_name = self
                             .item
                             .clone()
                             .ok_or_else(|| object_error(index, "an ARRAY needs item names"))?
                             .fill("{n}", n);
-                        element = Some(entry_from(index, 1, code, template_name, hint.clone(), &self.attrs)?);
+                        element = Some(entry_from(
+                            index,
+                            1,
+                            code,
+                            template_name,
+                            hint.clone(),
+                            &self.attrs,
+                        )?);
                     }
                     for &sub in subs.iter().filter(|s| !uniform(s)) {
                         let over = overrides.get(&sub);
@@ -934,11 +948,7 @@ fn build_object(
         String::new()
     };
     let english = |t: &Texts| format!("{}{suffix}", t.get("en").unwrap_or_default());
-    let last = if o.per_floor {
-        floors.max(1)
-    } else {
-        o.last
-    };
+    let last = if o.per_floor { floors.max(1) } else { o.last };
     let mut entries = Vec::new();
     for e in o.entries().filter(|e| e.sub <= last) {
         let mut var = build_variable(&e, english(&e.name))?;

@@ -112,7 +112,6 @@ fn config(url: &str, pki: &DevPki, bus: &str, state: &Path) -> Config {
     c.bus.url = bus.into();
     c.limits.max_in_flight = 64;
     c.limits.max_subscriptions = 4096;
-    c.bus.poll_ms = 3_600_000;
     c
 }
 
@@ -211,12 +210,22 @@ async fn notifications(
     Ok(())
 }
 
-fn rss_kib(pid: u32) -> Option<u64> {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmRSS:"))
-        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+/// RSS, PSS and anonymous memory of a process in KiB (`/proc/PID/smaps_rollup`): RSS counts the
+/// binary's pages shared with other canlift processes in full, PSS shares them out, anonymous is
+/// the process's own heap and stacks.
+fn memory_kib(pid: u32) -> Option<[u64; 3]> {
+    let rollup = std::fs::read_to_string(format!("/proc/{pid}/smaps_rollup")).ok()?;
+    let field = |name: &str| {
+        rollup
+            .lines()
+            .find_map(|l| l.strip_prefix(name))
+            .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+    };
+    Some([field("Rss:")?, field("Pss:")?, field("Anonymous:")?])
+}
+
+fn mib(kib: u64) -> f64 {
+    kib as f64 / 1024.0
 }
 
 /// Readable entries of the simulated controller, for subscriptions.
@@ -242,8 +251,7 @@ async fn memory(args: &GatewayBench, pki: &DevPki, bus: &str, dir: &Path) -> any
     let path = dir.join("gateway.toml");
     std::fs::write(&path, toml::to_string_pretty(&config)?)?;
     let exe = std::env::current_exe()?;
-    let mut child = if let Ok(w) = std::env::var("DBG_WRAP") { let mut c = tokio::process::Command::new(w.split(' ').next().unwrap()); c.args(w.split(' ').skip(1)); c.arg(&exe); c } else { tokio::process::Command::new(&exe) };
-    let mut child = child
+    let mut child = tokio::process::Command::new(&exe)
         .args(["gateway", "--config"])
         .arg(&path)
         .env("RUST_LOG", "warn")
@@ -253,9 +261,7 @@ async fn memory(args: &GatewayBench, pki: &DevPki, bus: &str, dir: &Path) -> any
     let pid = child.id().context("gateway process")?;
     let mut ws = portal.accept().await?;
     tokio::time::sleep(Duration::from_secs(2)).await;
-    let idle = rss_kib(pid).unwrap_or(0);
-    eprintln!("DBG smaps idle {}", std::fs::read_to_string(format!("/proc/{pid}/smaps_rollup")).unwrap_or_default());
-    eprintln!("DBG threads {}", std::fs::read_dir(format!("/proc/{pid}/task")).map(|d| d.count()).unwrap_or(0));
+    let idle = memory_kib(pid).unwrap_or_default();
     let mplexes = subscribable(args.subscriptions);
     for (i, chunk) in mplexes.chunks(100).enumerate() {
         let reg = json!({"jsonrpc": "2.0", "id": i, "method": "reg_canopen_object",
@@ -275,16 +281,20 @@ async fn memory(args: &GatewayBench, pki: &DevPki, bus: &str, dir: &Path) -> any
     while settle.elapsed() < Duration::from_secs(3) {
         let _ = tokio::time::timeout(Duration::from_millis(100), recv(&mut ws)).await;
     }
-    for _ in 0..8 { let t = Instant::now(); while t.elapsed() < Duration::from_secs(1) { let _ = tokio::time::timeout(Duration::from_millis(100), recv(&mut ws)).await; } eprintln!("DBG rss {:?}", rss_kib(pid)); }
-    let subscribed = rss_kib(pid).unwrap_or(0);
-    eprintln!("DBG smaps subs {}", std::fs::read_to_string(format!("/proc/{pid}/smaps_rollup")).unwrap_or_default());
-    println!(
-        "{:<22} RSS idle {:.1} MiB, with {} subscriptions {:.1} MiB (goal ≤ 10 MB)",
-        "gateway process",
-        idle as f64 / 1024.0,
-        mplexes.len(),
-        subscribed as f64 / 1024.0
-    );
+    let subscribed = memory_kib(pid).unwrap_or_default();
+    for (what, [rss, pss, anon]) in [("idle", idle), ("subscribed", subscribed)] {
+        let label = if what == "idle" {
+            "gateway idle".to_owned()
+        } else {
+            format!("gateway, {} subs", mplexes.len())
+        };
+        println!(
+            "{label:<22} RSS {:.1} MiB   PSS {:.1} MiB   anonymous {:.1} MiB (goal ≤ 10 MB)",
+            mib(rss),
+            mib(pss),
+            mib(anon)
+        );
+    }
     let _ = std::process::Command::new("kill")
         .args(["-INT", &pid.to_string()])
         .status();
