@@ -46,6 +46,9 @@ pub struct TestPki {
     pub ca: PathBuf,
     pub cert: PathBuf,
     pub key: PathBuf,
+    /// A client certificate signed by the same CA, for mutual TLS.
+    pub client_cert: PathBuf,
+    pub client_key: PathBuf,
 }
 
 pub fn pki(dir: &Path) -> TestPki {
@@ -62,11 +65,19 @@ pub fn pki(dir: &Path) -> TestPki {
         CertificateParams::new(vec!["localhost".to_owned(), "127.0.0.1".to_owned()]).unwrap();
     let key = KeyPair::generate().unwrap();
     let cert = params.signed_by(&key, &issuer).unwrap();
+    let client_params =
+        CertificateParams::new(vec!["gateway-180917010200000102".to_owned()]).unwrap();
+    let client_key = KeyPair::generate().unwrap();
+    let client = client_params.signed_by(&client_key, &issuer).unwrap();
     let pki = TestPki {
         ca: dir.join("ca.pem"),
         cert: dir.join("server.pem"),
         key: dir.join("server.key"),
+        client_cert: dir.join("client.pem"),
+        client_key: dir.join("client.key"),
     };
+    std::fs::write(&pki.client_cert, client.pem()).unwrap();
+    std::fs::write(&pki.client_key, client_key.serialize_pem()).unwrap();
     std::fs::write(&pki.ca, ca_cert.pem()).unwrap();
     std::fs::write(&pki.cert, cert.pem()).unwrap();
     std::fs::write(&pki.key, key.serialize_pem()).unwrap();
@@ -84,14 +95,32 @@ pub struct Portal {
 
 impl Portal {
     pub async fn start(pki: &TestPki) -> Portal {
+        Portal::start_with(pki, false).await
+    }
+
+    /// A portal that requires a client certificate signed by the test CA.
+    pub async fn start_with(pki: &TestPki, client_auth: bool) -> Portal {
         let certs = gateway::tls::certificates(&pki.cert).unwrap();
         let key = gateway::tls::private_key(&pki.key).unwrap();
-        let config = rustls::ServerConfig::builder_with_provider(gateway::tls::provider())
+        let builder = rustls::ServerConfig::builder_with_provider(gateway::tls::provider())
             .with_safe_default_protocol_versions()
-            .unwrap()
-            .with_no_client_auth()
-            .with_single_cert(certs, key)
             .unwrap();
+        let builder = if client_auth {
+            let mut roots = rustls::RootCertStore::empty();
+            for c in gateway::tls::certificates(&pki.ca).unwrap() {
+                roots.add(c).unwrap();
+            }
+            let verifier = rustls::server::WebPkiClientVerifier::builder_with_provider(
+                Arc::new(roots),
+                gateway::tls::provider(),
+            )
+            .build()
+            .unwrap();
+            builder.with_client_cert_verifier(verifier)
+        } else {
+            builder.with_no_client_auth()
+        };
+        let config = builder.with_single_cert(certs, key).unwrap();
         Portal {
             listener: TcpListener::bind("127.0.0.1:0").await.unwrap(),
             acceptor: tokio_rustls::TlsAcceptor::from(Arc::new(config)),
@@ -104,6 +133,15 @@ impl Portal {
             "wss://localhost:{}/ws",
             self.listener.local_addr().unwrap().port()
         )
+    }
+
+    /// Accept TCP and try TLS: whether the handshake succeeded.
+    pub async fn try_tls(&self) -> bool {
+        let (tcp, _) = tokio::time::timeout(WAIT, self.listener.accept())
+            .await
+            .expect("a gateway connects")
+            .unwrap();
+        self.acceptor.accept(tcp).await.is_ok()
     }
 
     /// Accept the next gateway; returns the socket and the request's headers of interest.

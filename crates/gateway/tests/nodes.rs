@@ -1,0 +1,121 @@
+//! Other nodes and networks, EDS metadata, and mutual TLS.
+
+mod common;
+
+use common::*;
+use gateway::config::{NetworkSection, NodeSection};
+use gateway::Gateway;
+use lift417::catalog::Device;
+use lift417::sim::{export_eds, SimConfig, Simulator};
+use serde_json::json;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn eds_metadata_and_a_second_network() {
+    let dir = Scratch::new("nodes");
+    let pki = pki(&dir.0);
+    let portal = Portal::start(&pki).await;
+    let sim1 = Simulator::start("mem://nodes-1", SimConfig::default())
+        .await
+        .unwrap();
+    let lifts2 = SimConfig {
+        io_node: None,
+        lifts: 2,
+        ..SimConfig::default()
+    };
+    let sim2 = Simulator::start("mem://nodes-2", lifts2).await.unwrap();
+    let eds = dir.0.join("io-node.eds");
+    std::fs::write(&eds, export_eds(&SimConfig::default(), Device::Io).unwrap()).unwrap();
+    let mut config = config(&portal.url(), &pki, "mem://nodes-1", &dir.0);
+    config.bus.nodes = vec![NodeSection { id: 12, eds }];
+    config.networks = vec![NetworkSection {
+        net: 2,
+        url: "mem://nodes-2".into(),
+        nodes: vec![],
+    }];
+    let gateway = Gateway::bus_node(config).await.unwrap();
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let task = tokio::spawn(gateway.run(stopped));
+    let (mut ws, ..) = portal.accept().await;
+    connack(&mut ws).await;
+    let mut notes = Vec::new();
+    // Node 12 has an EDS: no datatype needed, names and access from it.
+    let get = r#"{"jsonrpc":"2.0","id":1,"method":"get_canopen_object","params":{"node":{"id":12,"net":1},"object":{"mplex":"0x610001"}}}"#;
+    let answer = ask(&mut ws, get, &mut notes).await;
+    let object = &answer["result"]["object"];
+    assert_eq!(object["name"], "Virtual input 1");
+    assert_eq!(object["datatype"], 25);
+    assert_eq!(object["access"], "ro");
+    let missing = get.replace("0x610001", "0x5FFF00");
+    assert_eq!(
+        ask(&mut ws, &missing, &mut notes).await["error"]["code"],
+        0x0602_0000
+    );
+    // The EDS says read-only: refused without a bus round trip, even with setup rights.
+    let elevate = format!(
+        r#"{{"jsonrpc":"2.0","id":2,"method":"elevate_privilege","params":{{"sernum":"{SERNUM}","privilege":2,"passhash":"{SETUP_SHA1}"}}}}"#
+    );
+    assert_eq!(
+        ask(&mut ws, &elevate, &mut notes).await["result"],
+        json!({"duration": 300})
+    );
+    let put = format!(
+        r#"{{"jsonrpc":"2.0","id":3,"method":"put_canopen_object","params":{{"sernum":"{SERNUM}","node":{{"id":12,"net":1}},"object":{{"mplex":"0x610001","datatype":25,"physunit":0,"value":"1"}}}}}}"#
+    );
+    assert_eq!(
+        ask(&mut ws, &put, &mut notes).await["error"]["code"],
+        0x0601_0002
+    );
+    // Net 2: the lift-2 trip counter of the second controller (at +800h).
+    let net2 = r#"{"jsonrpc":"2.0","id":4,"method":"get_canopen_object","params":{"node":{"id":1,"net":2,"datatype":7},"object":{"mplex":"0x6D2001","naked":true}}}"#;
+    assert_eq!(
+        ask(&mut ws, net2, &mut notes).await["result"],
+        json!({"object": {"mplex": "0x6D2001", "value": ["0"]}})
+    );
+    // Subscriptions on another node are pushed with the node.
+    let reg = r#"{"jsonrpc":"2.0","id":5,"method":"reg_canopen_object","params":{"node":{"id":1,"net":2,"datatype":7},"mplex":["0x6D2001"]}}"#;
+    assert_eq!(
+        ask(&mut ws, reg, &mut notes).await["result"],
+        json!({"done": 0})
+    );
+    while notes.is_empty() {
+        notes.push(recv(&mut ws).await);
+    }
+    assert_eq!(
+        notes[0]["result"],
+        json!({"mplex": "0x6D2001", "value": "0", "node": {"id": 1, "net": 2}})
+    );
+    stop.send(true).unwrap();
+    tokio::time::timeout(WAIT, task).await.unwrap().unwrap();
+    sim1.stop().await;
+    sim2.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn mutual_tls_needs_the_client_certificate() {
+    let dir = Scratch::new("mtls");
+    let pki = pki(&dir.0);
+    let portal = Portal::start_with(&pki, true).await;
+    let sim = Simulator::start("mem://mtls", SimConfig::default())
+        .await
+        .unwrap();
+    // Without a client certificate the handshake fails.
+    let config = config(&portal.url(), &pki, "mem://mtls", &dir.0);
+    let gateway = Gateway::bus_node(config.clone()).await.unwrap();
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let task = tokio::spawn(gateway.run(stopped));
+    assert!(!portal.try_tls().await, "no client certificate, no TLS");
+    stop.send(true).unwrap();
+    tokio::time::timeout(WAIT, task).await.unwrap().unwrap();
+    // With it the gateway gets through to CONNECT.
+    let mut config = config;
+    config.cloud.client_cert = Some(pki.client_cert.clone());
+    config.cloud.client_key = Some(pki.client_key.clone());
+    let gateway = Gateway::bus_node(config).await.unwrap();
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let task = tokio::spawn(gateway.run(stopped));
+    let (mut ws, ..) = portal.accept().await;
+    connack(&mut ws).await;
+    stop.send(true).unwrap();
+    tokio::time::timeout(WAIT, task).await.unwrap().unwrap();
+    sim.stop().await;
+}
