@@ -57,23 +57,31 @@ impl Backend {
         }
     }
 
+    /// Where requests for `target` go.
+    fn route(&self, target: Target) -> Result<Route<'_>, AbortCode> {
+        match self {
+            Backend::Bus(nets) => nets
+                .get(&target.net)
+                .map(Route::Sdo)
+                .ok_or(AbortCode::NO_OBJECT),
+            Backend::Local { od, node } if target.node == *node && target.net == 1 => {
+                Ok(Route::Local(od))
+            }
+            Backend::Local { .. } => Err(AbortCode::NO_OBJECT),
+        }
+    }
+
     /// Read one sub-object.
     pub async fn read(&self, target: Target, index: u16, sub: u8) -> Result<Vec<u8>, AbortCode> {
-        match self {
-            Backend::Bus(nets) => {
-                let sdo = nets.get(&target.net).ok_or(AbortCode::NO_OBJECT)?;
-                sdo.read_raw(target.node, index, sub)
-                    .await
-                    .map_err(|e| e.abort_code())
-            }
-            Backend::Local { od, node } => {
-                if target.node != *node || target.net != 1 {
-                    return Err(AbortCode::NO_OBJECT);
-                }
-                od.lock()
-                    .unwrap_or_else(PoisonError::into_inner)
-                    .read(index, sub)
-            }
+        match self.route(target)? {
+            Route::Sdo(sdo) => sdo
+                .read_raw(target.node, index, sub)
+                .await
+                .map_err(|e| e.abort_code()),
+            Route::Local(od) => od
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .read(index, sub),
         }
     }
 
@@ -84,21 +92,20 @@ impl Backend {
         sub: u8,
         data: &[u8],
     ) -> Result<(), AbortCode> {
-        match self {
-            Backend::Bus(nets) => {
-                let sdo = nets.get(&target.net).ok_or(AbortCode::NO_OBJECT)?;
-                sdo.write_raw(target.node, index, sub, data)
-                    .await
-                    .map_err(|e| e.abort_code())
-            }
-            Backend::Local { od, node } => {
-                if target.node != *node || target.net != 1 {
-                    return Err(AbortCode::NO_OBJECT);
-                }
-                od.lock()
-                    .unwrap_or_else(PoisonError::into_inner)
-                    .write(index, sub, data)
-            }
+        match self.route(target)? {
+            Route::Sdo(sdo) => sdo
+                .write_raw(target.node, index, sub, data)
+                .await
+                .map_err(|e| e.abort_code()),
+            Route::Local(od) => od
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .write(index, sub, data),
         }
     }
+}
+
+enum Route<'a> {
+    Sdo(&'a SdoClients),
+    Local(&'a SharedDictionary),
 }

@@ -8,44 +8,7 @@ use nxg::gateway::{Identity, Settings};
 use serde::{Deserialize, Serialize};
 
 /// `[identity]`: what CONNECT says (NXg SW003 §5.2.1).
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct IdentitySection {
-    /// Serial number, unique per vendor.
-    pub sernum: String,
-    /// CiA vendor-ID.
-    pub vendorid: u32,
-    /// Product code.
-    pub productcode: u32,
-    /// The owner's lift number.
-    pub liftnum: String,
-    /// Hardware description.
-    pub hardware: String,
-    /// Software version.
-    pub software: String,
-    /// Board hash.
-    pub boardhash: String,
-    /// Account the unit belongs to.
-    pub domaintoken: String,
-    /// Highest API version offered.
-    pub api: u32,
-}
-
-impl Default for IdentitySection {
-    fn default() -> Self {
-        IdentitySection {
-            sernum: String::new(),
-            vendorid: 0,
-            productcode: 0,
-            liftnum: String::new(),
-            hardware: String::new(),
-            software: format!("canlift {}", env!("CARGO_PKG_VERSION")),
-            boardhash: String::new(),
-            domaintoken: String::new(),
-            api: 1,
-        }
-    }
-}
+pub type IdentitySection = Identity;
 
 /// `[cloud]`: where and how to connect.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -269,20 +232,12 @@ impl Config {
 
     /// The session settings.
     pub fn settings(&self) -> Settings {
-        let i = &self.identity;
         let mut nets = vec![1];
         nets.extend(self.networks.iter().map(|n| n.net));
         Settings {
             identity: Identity {
-                sernum: i.sernum.clone(),
-                vendorid: i.vendorid,
-                productcode: i.productcode,
-                liftnum: i.liftnum.clone(),
-                hardware: i.hardware.clone(),
-                software: i.software.clone(),
-                boardhash: i.boardhash.clone(),
-                domaintoken: i.domaintoken.clone(),
-                api: i.api.max(1),
+                api: self.identity.api.max(1),
+                ..self.identity.clone()
             },
             service_sha1: self.privileges.service_sha1.clone(),
             setup_sha1: self.privileges.setup_sha1.clone(),

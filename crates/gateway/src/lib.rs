@@ -124,6 +124,17 @@ fn load_eds(
     Ok(())
 }
 
+/// The catalog for the lift controller, EDS files for the nodes that have one.
+fn metadata(config: &Config, eds: HashMap<Target, ObjectDictionary>) -> BusMetadata {
+    BusMetadata {
+        controller: Some(Target {
+            net: 1,
+            node: config.bus.lift_controller,
+        }),
+        nodes: eds,
+    }
+}
+
 async fn open(url: &str) -> Result<Bus, GatewayError> {
     Bus::open(url).await.map_err(|error| GatewayError::Bus {
         url: url.to_owned(),
@@ -152,13 +163,7 @@ impl Gateway {
         for n in &config.networks {
             load_eds(n.net, &n.nodes, &mut eds)?;
         }
-        let metadata = BusMetadata {
-            controller: Some(Target {
-                net: 1,
-                node: config.bus.lift_controller,
-            }),
-            nodes: eds,
-        };
+        let metadata = metadata(&config, eds);
         let node_config = NodeConfig {
             device_type: 417,
             identity: [config.identity.vendorid, config.identity.productcode, 1, 0],
@@ -193,13 +198,7 @@ impl Gateway {
         config.validate()?;
         let tls = tls::client_config(&config.cloud)?;
         let changes = LocalChanges::install(&od);
-        let metadata = BusMetadata {
-            controller: Some(Target {
-                net: 1,
-                node: config.bus.lift_controller,
-            }),
-            nodes: HashMap::new(),
-        };
+        let metadata = metadata(&config, HashMap::new());
         let node = config.bus.lift_controller;
         Ok(Gateway {
             shared: Arc::new(Shared {

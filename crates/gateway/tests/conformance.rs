@@ -121,8 +121,7 @@ async fn every_sample_of_the_specification() {
     .unwrap();
     let config = config(&portal.url(), &pki, bus, &dir.0);
     let gateway = Gateway::bus_node(config).await.unwrap();
-    let (stop, stopped) = tokio::sync::watch::channel(false);
-    let task = tokio::spawn(gateway.run(stopped));
+    let running = spawn(gateway);
 
     // §5.1: the upgrade offers both subprotocols and sends the configured Origin.
     let (mut ws, protocols, origin) = portal.accept().await;
@@ -316,10 +315,6 @@ async fn every_sample_of_the_specification() {
     let timeout = recv(&mut ws).await;
     assert_eq!(timeout["error"]["code"], 0x0504_0000);
 
-    stop.send(true).unwrap();
-    tokio::time::timeout(WAIT, task)
-        .await
-        .expect("gateway stops")
-        .unwrap();
+    running.finish().await;
     sim.stop().await;
 }

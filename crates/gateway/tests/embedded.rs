@@ -26,8 +26,7 @@ async fn serves_the_controllers_own_dictionary() {
         .unwrap();
     let config = config(&portal.url(), &pki, "mem://unused", &dir.0);
     let gateway = Gateway::embedded(config, od.clone()).unwrap();
-    let (stop, stopped) = tokio::sync::watch::channel(false);
-    let task = tokio::spawn(gateway.run(stopped));
+    let running = spawn(gateway);
     let (mut ws, ..) = portal.accept().await;
     connack(&mut ws).await;
     let mut notes = Vec::new();
@@ -70,6 +69,5 @@ async fn serves_the_controllers_own_dictionary() {
         od.lock().unwrap().get_value(0x5022, 0),
         Ok(CoValue::Uint(6))
     );
-    stop.send(true).unwrap();
-    tokio::time::timeout(WAIT, task).await.unwrap().unwrap();
+    running.finish().await;
 }

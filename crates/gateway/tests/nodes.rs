@@ -33,8 +33,7 @@ async fn eds_metadata_and_a_second_network() {
         nodes: vec![],
     }];
     let gateway = Gateway::bus_node(config).await.unwrap();
-    let (stop, stopped) = tokio::sync::watch::channel(false);
-    let task = tokio::spawn(gateway.run(stopped));
+    let running = spawn(gateway);
     let (mut ws, ..) = portal.accept().await;
     connack(&mut ws).await;
     let mut notes = Vec::new();
@@ -84,8 +83,7 @@ async fn eds_metadata_and_a_second_network() {
         notes[0]["result"],
         json!({"mplex": "0x6D2001", "value": "0", "node": {"id": 1, "net": 2}})
     );
-    stop.send(true).unwrap();
-    tokio::time::timeout(WAIT, task).await.unwrap().unwrap();
+    running.finish().await;
     sim1.stop().await;
     sim2.stop().await;
 }
@@ -101,21 +99,17 @@ async fn mutual_tls_needs_the_client_certificate() {
     // Without a client certificate the handshake fails.
     let config = config(&portal.url(), &pki, "mem://mtls", &dir.0);
     let gateway = Gateway::bus_node(config.clone()).await.unwrap();
-    let (stop, stopped) = tokio::sync::watch::channel(false);
-    let task = tokio::spawn(gateway.run(stopped));
+    let running = spawn(gateway);
     assert!(!portal.try_tls().await, "no client certificate, no TLS");
-    stop.send(true).unwrap();
-    tokio::time::timeout(WAIT, task).await.unwrap().unwrap();
+    running.finish().await;
     // With it the gateway gets through to CONNECT.
     let mut config = config;
     config.cloud.client_cert = Some(pki.client_cert.clone());
     config.cloud.client_key = Some(pki.client_key.clone());
     let gateway = Gateway::bus_node(config).await.unwrap();
-    let (stop, stopped) = tokio::sync::watch::channel(false);
-    let task = tokio::spawn(gateway.run(stopped));
+    let running = spawn(gateway);
     let (mut ws, ..) = portal.accept().await;
     connack(&mut ws).await;
-    stop.send(true).unwrap();
-    tokio::time::timeout(WAIT, task).await.unwrap().unwrap();
+    running.finish().await;
     sim.stop().await;
 }

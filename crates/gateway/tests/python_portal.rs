@@ -47,8 +47,7 @@ async fn a_python_websockets_portal_talks_to_the_gateway() {
     .unwrap();
     let config = config(&format!("wss://localhost:{port}/ws"), &pki, bus, &dir.0);
     let gateway = Gateway::bus_node(config).await.unwrap();
-    let (stop, stopped) = tokio::sync::watch::channel(false);
-    let task = tokio::spawn(gateway.run(stopped));
+    let running = spawn(gateway);
     let mut answers: HashMap<String, Value> = HashMap::new();
     let mut notes = Vec::new();
     let mut facts = HashMap::new();
@@ -99,7 +98,6 @@ async fn a_python_websockets_portal_talks_to_the_gateway() {
     );
     assert!(notes.contains(&json!({"jsonrpc": "2.0", "method": "canopen_object", "result": {"mplex": "0x652001", "value": "1"}})));
     assert!(portal.wait().await.unwrap().success());
-    stop.send(true).unwrap();
-    tokio::time::timeout(WAIT, task).await.unwrap().unwrap();
+    running.finish().await;
     sim.stop().await;
 }

@@ -16,8 +16,7 @@ struct Rig {
     _dir: Scratch,
     portal: Portal,
     sim: Simulator,
-    stop: tokio::sync::watch::Sender<bool>,
-    task: tokio::task::JoinHandle<()>,
+    running: Running,
 }
 
 async fn rig(name: &str, limits: impl FnOnce(&mut gateway::config::Config)) -> Rig {
@@ -37,24 +36,17 @@ async fn rig(name: &str, limits: impl FnOnce(&mut gateway::config::Config)) -> R
     let mut config = config(&portal.url(), &pki, &bus, &dir.0);
     limits(&mut config);
     let gateway = Gateway::bus_node(config).await.unwrap();
-    let (stop, stopped) = tokio::sync::watch::channel(false);
-    let task = tokio::spawn(gateway.run(stopped));
     Rig {
         _dir: dir,
         portal,
         sim,
-        stop,
-        task,
+        running: spawn(gateway),
     }
 }
 
 impl Rig {
     async fn finish(self) {
-        self.stop.send(true).unwrap();
-        tokio::time::timeout(WAIT, self.task)
-            .await
-            .expect("gateway stops")
-            .unwrap();
+        self.running.finish().await;
         self.sim.stop().await;
     }
 }

@@ -19,8 +19,10 @@ use crate::errors::{self, rpc_codes, NxgError};
 use crate::mplex::Mplex;
 use crate::rpc::{self, Incoming};
 
-/// What the gateway says about itself in CONNECT (NXg SW003 §5.2.1).
-#[derive(Debug, Clone, PartialEq, Eq)]
+/// What the gateway says about itself in CONNECT (NXg SW003 §5.2.1); also the `[identity]`
+/// section of the gateway's configuration.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct Identity {
     /// Serial number (unique per vendor).
     pub sernum: String,
@@ -40,6 +42,22 @@ pub struct Identity {
     pub domaintoken: String,
     /// Highest API version supported.
     pub api: u32,
+}
+
+impl Default for Identity {
+    fn default() -> Self {
+        Identity {
+            sernum: String::new(),
+            vendorid: 0,
+            productcode: 0,
+            liftnum: String::new(),
+            hardware: String::new(),
+            software: format!("canlift {}", env!("CARGO_PKG_VERSION")),
+            boardhash: String::new(),
+            domaintoken: String::new(),
+            api: 1,
+        }
+    }
 }
 
 /// The settings of a session.

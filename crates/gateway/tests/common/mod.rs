@@ -246,3 +246,29 @@ pub fn config(portal_url: &str, pki: &TestPki, bus: &str, dir: &Path) -> Config 
     c.privileges.setup_sha1 = Some(SETUP_SHA1.into());
     c
 }
+
+/// A gateway running in a task.
+pub struct Running {
+    stop: tokio::sync::watch::Sender<bool>,
+    task: tokio::task::JoinHandle<()>,
+}
+
+/// Run `gateway` until [`Running::finish`].
+pub fn spawn(gateway: gateway::Gateway) -> Running {
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    Running {
+        stop,
+        task: tokio::spawn(gateway.run(stopped)),
+    }
+}
+
+impl Running {
+    /// Stop the gateway and wait until it has.
+    pub async fn finish(self) {
+        self.stop.send(true).unwrap();
+        tokio::time::timeout(WAIT, self.task)
+            .await
+            .expect("gateway stops")
+            .unwrap();
+    }
+}

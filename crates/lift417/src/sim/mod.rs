@@ -259,72 +259,72 @@ enum Input {
     Press(u8, CallKind, u8),
 }
 
-/// 0x5022: a floor within the lift's floors registers a car call.
-struct CallHook {
-    lift: u8,
-    floors: u8,
+/// A writable object whose writes become simulator inputs: `parse` checks the value (its error
+/// refuses the write with that abort code) and says what it means.
+struct InputHook<F> {
     tx: mpsc::UnboundedSender<Input>,
+    parse: F,
 }
 
-impl VariableHook for CallHook {
+impl<F: Fn(&[u8]) -> Result<Input, AbortCode> + Send + Sync> VariableHook for InputHook<F> {
     fn on_write(&self, _: u16, _: u8, data: &[u8]) -> Result<(), AbortCode> {
-        let floor = data
-            .try_into()
-            .map(u32::from_le_bytes)
-            .map_err(|_| AbortCode::LENGTH_MISMATCH)?;
-        let floor = u8::try_from(floor)
-            .ok()
-            .filter(|f| *f <= self.floors)
-            .ok_or(AbortCode::VALUE_TOO_HIGH)?;
-        if floor == 0 {
-            return Err(AbortCode::VALUE_TOO_LOW);
-        }
-        let _ = self.tx.send(Input::Call(self.lift, floor, CallKind::Car));
+        let input = (self.parse)(data)?;
+        let _ = self.tx.send(input);
         Ok(())
     }
+}
+
+fn input_hook(
+    tx: &mpsc::UnboundedSender<Input>,
+    parse: impl Fn(&[u8]) -> Result<Input, AbortCode> + Send + Sync + 'static,
+) -> Arc<dyn VariableHook> {
+    Arc::new(InputHook {
+        tx: tx.clone(),
+        parse,
+    })
+}
+
+/// 0x5022: a floor within the lift's floors registers a car call.
+fn passenger_call(lift: u8, floors: u8, data: &[u8]) -> Result<Input, AbortCode> {
+    let floor = data
+        .try_into()
+        .map(u32::from_le_bytes)
+        .map_err(|_| AbortCode::LENGTH_MISMATCH)?;
+    let floor = u8::try_from(floor)
+        .ok()
+        .filter(|f| *f <= floors)
+        .ok_or(AbortCode::VALUE_TOO_HIGH)?;
+    if floor == 0 {
+        return Err(AbortCode::VALUE_TOO_LOW);
+    }
+    Ok(Input::Call(lift, floor, CallKind::Car))
 }
 
 /// 0x5030: fault injection bits.
-struct FaultHook {
-    lift: u8,
-    tx: mpsc::UnboundedSender<Input>,
-}
-
-impl VariableHook for FaultHook {
-    fn on_write(&self, _: u16, _: u8, data: &[u8]) -> Result<(), AbortCode> {
-        let bits = *data.first().ok_or(AbortCode::LENGTH_MISMATCH)?;
-        let _ = self.tx.send(Input::Inject(self.lift, bits));
-        Ok(())
-    }
+fn fault_injection(lift: u8, data: &[u8]) -> Result<Input, AbortCode> {
+    let bits = *data.first().ok_or(AbortCode::LENGTH_MISMATCH)?;
+    Ok(Input::Inject(lift, bits))
 }
 
 /// The I/O node's 0x2000: bits 0–7 floor, 8–11 kind (0 car, 1 hall up, 2 hall down), 12–14
 /// lift − 1.
-struct PressHook {
-    floors: u8,
-    tx: mpsc::UnboundedSender<Input>,
-}
-
-impl VariableHook for PressHook {
-    fn on_write(&self, _: u16, _: u8, data: &[u8]) -> Result<(), AbortCode> {
-        let value = data
-            .try_into()
-            .map(u16::from_le_bytes)
-            .map_err(|_| AbortCode::LENGTH_MISMATCH)?;
-        let floor = (value & 0xFF) as u8;
-        let kind = match (value >> 8) & 0x0F {
-            0 => CallKind::Car,
-            1 => CallKind::HallUp,
-            2 => CallKind::HallDown,
-            _ => return Err(AbortCode::INVALID_VALUE),
-        };
-        let lift = ((value >> 12) & 0x07) as u8 + 1;
-        if floor == 0 || floor > self.floors {
-            return Err(AbortCode::VALUE_TOO_HIGH);
-        }
-        let _ = self.tx.send(Input::Press(floor, kind, lift));
-        Ok(())
+fn button_press(floors: u8, data: &[u8]) -> Result<Input, AbortCode> {
+    let value = data
+        .try_into()
+        .map(u16::from_le_bytes)
+        .map_err(|_| AbortCode::LENGTH_MISMATCH)?;
+    let floor = (value & 0xFF) as u8;
+    let kind = match (value >> 8) & 0x0F {
+        0 => CallKind::Car,
+        1 => CallKind::HallUp,
+        2 => CallKind::HallDown,
+        _ => return Err(AbortCode::INVALID_VALUE),
+    };
+    let lift = ((value >> 12) & 0x07) as u8 + 1;
+    if floor == 0 || floor > floors {
+        return Err(AbortCode::VALUE_TOO_HIGH);
     }
+    Ok(Input::Press(floor, kind, lift))
 }
 
 fn hook(od: &mut ObjectDictionary, index: u16, h: Arc<dyn VariableHook>) {
@@ -351,17 +351,11 @@ impl Simulator {
         let (tx, rx) = mpsc::unbounded_channel();
         let mut od = controller_dictionary(&config)?;
         for lift in 1..=config.lifts {
-            let call = CallHook {
-                lift,
-                floors: config.floors,
-                tx: tx.clone(),
-            };
-            hook(&mut od, manufacturer(0x5022, lift), Arc::new(call));
-            let fault = FaultHook {
-                lift,
-                tx: tx.clone(),
-            };
-            hook(&mut od, manufacturer(0x5030, lift), Arc::new(fault));
+            let floors = config.floors;
+            let call = input_hook(&tx, move |d| passenger_call(lift, floors, d));
+            hook(&mut od, manufacturer(0x5022, lift), call);
+            let fault = input_hook(&tx, move |d| fault_injection(lift, d));
+            hook(&mut od, manufacturer(0x5030, lift), fault);
         }
         let watcher_tx = tx.clone();
         od.watch(Arc::new(move |index, _| {
@@ -377,11 +371,12 @@ impl Simulator {
         let io = match config.io_node {
             Some(id) => {
                 let mut od = io_dictionary(&config)?;
-                let press = PressHook {
-                    floors: config.floors,
-                    tx: tx.clone(),
-                };
-                hook(&mut od, 0x2000, Arc::new(press));
+                let floors = config.floors;
+                hook(
+                    &mut od,
+                    0x2000,
+                    input_hook(&tx, move |d| button_press(floors, d)),
+                );
                 let node = LocalNode::start(Bus::open(url).await?, od, config.io_config(id));
                 node.configure_pdo(&PdoSetup {
                     transmit: true,
