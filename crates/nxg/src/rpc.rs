@@ -123,9 +123,13 @@ pub fn error(id: &Value, code: i64, message: &str, data: Option<Value>) -> Strin
     json!({"jsonrpc": "2.0", "id": id, "error": error}).to_string()
 }
 
-/// A request.
+/// A request (without `params` when they are `null`, as the get_heartbeat sample).
 pub fn request(id: &Value, method: &str, params: Value) -> String {
-    json!({"jsonrpc": "2.0", "method": method, "id": id, "params": params}).to_string()
+    let mut request = json!({"jsonrpc": "2.0", "method": method, "id": id});
+    if !params.is_null() {
+        request["params"] = params;
+    }
+    request.to_string()
 }
 
 /// A notification carrying its payload under `result`, as NXg SW003 §7.3.1 shows.
