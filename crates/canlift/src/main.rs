@@ -2,7 +2,6 @@
 
 mod cmd;
 mod config;
-mod devpki;
 mod logging;
 
 use clap::{Parser, Subcommand};
@@ -30,6 +29,8 @@ enum Command {
     Sdo(cmd::sdo::SdoArgs),
     /// The elevator gateway: connects the lift to a cloud portal (NXg connector).
     Gateway(cmd::gateway::GatewayArgs),
+    /// The cloud portal: gateways on /ws, the operator REST API (`account add` makes API keys).
+    Cloud(cmd::cloud::CloudArgs),
     /// Simulated CiA 417 lift controller (and I/O node) on a bus.
     Sim(cmd::sim::SimArgs),
     /// Measure canlift's components.
@@ -55,6 +56,7 @@ fn main() -> std::process::ExitCode {
             Command::Bench(args) => cmd::bench::run(args).await,
             Command::Sim(args) => cmd::sim::run(args).await,
             Command::Gateway(args) => cmd::gateway::run(args).await,
+            Command::Cloud(args) => cmd::cloud::run(args).await,
         }
     });
     match result {

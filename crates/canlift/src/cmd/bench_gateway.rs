@@ -22,7 +22,7 @@ use tokio_tungstenite::tungstenite::http::HeaderValue;
 use tokio_tungstenite::tungstenite::Message;
 use tokio_tungstenite::WebSocketStream;
 
-use crate::devpki::{self, DevPki};
+use cloud::devpki::{self, DevPki};
 
 /// Arguments of `canlift bench gateway`.
 #[derive(Debug, Clone, clap::Args)]

@@ -2,6 +2,7 @@
 
 pub mod bench;
 pub mod bench_gateway;
+pub mod cloud;
 pub mod dump;
 pub mod gateway;
 pub mod hub;

@@ -1,0 +1,128 @@
+//! The portal's configuration (issue 7; DESIGN.md §3): `[server]`, `[state]`, `[database]`,
+//! `[gateways]`.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use nxg::portal::PortalSettings;
+use serde::{Deserialize, Serialize};
+
+/// `[server]`: the one TLS port.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ServerSection {
+    /// Address to listen on.
+    pub listen: SocketAddr,
+    /// PEM certificate chain; with `tls_key` absent a development CA and certificate are
+    /// generated into the state directory.
+    pub tls_cert: Option<PathBuf>,
+    /// PEM private key.
+    pub tls_key: Option<PathBuf>,
+    /// PEM CA certificates: gateways must present a certificate signed by one of them.
+    pub client_ca: Option<PathBuf>,
+}
+
+impl Default for ServerSection {
+    fn default() -> Self {
+        ServerSection {
+            listen: SocketAddr::from(([127, 0, 0, 1], 8443)),
+            tls_cert: None,
+            tls_key: None,
+            client_ca: None,
+        }
+    }
+}
+
+/// `[state]`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct StateSection {
+    /// Directory for the database and the development PKI.
+    pub dir: PathBuf,
+}
+
+impl Default for StateSection {
+    fn default() -> Self {
+        StateSection {
+            dir: "state".into(),
+        }
+    }
+}
+
+/// `[database]`.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DatabaseSection {
+    /// `sqlite://PATH`; absent: `sqlite://STATE_DIR/canlift.db`.
+    pub url: Option<String>,
+}
+
+/// `[gateways]`: how gateways are served.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct GatewaysSection {
+    /// Seconds between `get_heartbeat` requests.
+    pub heartbeat_s: u64,
+    /// Seconds a gateway has to send CONNECT.
+    pub connect_timeout_s: u64,
+    /// Seconds an operator request waits for the gateway's answer.
+    pub request_timeout_s: u64,
+    /// Operator requests outstanding per gateway.
+    pub max_in_flight: usize,
+    /// Requests waiting behind them per gateway.
+    pub max_queued: usize,
+    /// Largest message accepted from a gateway (bytes).
+    pub max_message_bytes: usize,
+}
+
+impl Default for GatewaysSection {
+    fn default() -> Self {
+        GatewaysSection {
+            heartbeat_s: 300,
+            connect_timeout_s: 10,
+            request_timeout_s: 10,
+            max_in_flight: 16,
+            max_queued: 64,
+            max_message_bytes: 65536,
+        }
+    }
+}
+
+impl GatewaysSection {
+    /// The session settings.
+    pub fn settings(&self) -> PortalSettings {
+        PortalSettings {
+            api: 1,
+            connect_timeout: Duration::from_secs(self.connect_timeout_s.max(1)),
+            heartbeat: Duration::from_secs(self.heartbeat_s.max(1)),
+            request_timeout: Duration::from_secs(self.request_timeout_s.max(1)),
+            max_in_flight: self.max_in_flight.max(1),
+            max_queued: self.max_queued,
+        }
+    }
+}
+
+/// The whole configuration.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Config {
+    /// `[server]`.
+    pub server: ServerSection,
+    /// `[state]`.
+    pub state: StateSection,
+    /// `[database]`.
+    pub database: DatabaseSection,
+    /// `[gateways]`.
+    pub gateways: GatewaysSection,
+}
+
+impl Config {
+    /// The database URL in force.
+    pub fn database_url(&self) -> String {
+        self.database
+            .url
+            .clone()
+            .unwrap_or_else(|| format!("sqlite://{}", self.state.dir.join("canlift.db").display()))
+    }
+}

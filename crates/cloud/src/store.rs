@@ -1,0 +1,512 @@
+//! What the portal keeps: accounts with their API keys, the gateway registry with token hashes,
+//! refused connection attempts, telemetry (pushed values) and the audit log. SQLite through sqlx.
+//!
+//! Secrets are stored only as SHA-256 digests (API keys, cloud tokens); comparisons of digests
+//! take the same time wherever they differ.
+
+use std::str::FromStr;
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use nxg::gateway::Identity;
+use rand::RngCore;
+use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions};
+use sqlx::{Row, SqlitePool};
+
+/// A database failure.
+#[derive(Debug, thiserror::Error)]
+#[error("database: {0}")]
+pub struct StoreError(#[from] sqlx::Error);
+
+/// Milliseconds since the Unix epoch.
+pub fn now_ms() -> i64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as i64)
+}
+
+/// SHA-256 hex of `secret`.
+pub fn digest(secret: &str) -> String {
+    let d = ring::digest::digest(&ring::digest::SHA256, secret.as_bytes());
+    d.as_ref().iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// Equal digests, compared in constant time.
+pub fn same_digest(a: &str, b: &str) -> bool {
+    a.len() == b.len()
+        && a.bytes()
+            .zip(b.bytes())
+            .fold(0u8, |acc, (x, y)| acc | (x ^ y))
+            == 0
+}
+
+/// A random secret of 128 bits as 32 hex digits, with a prefix.
+pub fn secret(prefix: &str) -> String {
+    let mut bytes = [0u8; 16];
+    rand::rng().fill_bytes(&mut bytes);
+    let hex: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
+    format!("{prefix}{hex}")
+}
+
+/// The id of a lift in the API: `VENDORID-PRODUCTCODE-SERNUM`.
+pub fn lift_id(identity: &Identity) -> String {
+    format!(
+        "{}-{}-{}",
+        identity.vendorid, identity.productcode, identity.sernum
+    )
+}
+
+/// An account: who may see the lifts of one domain.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+pub struct Account {
+    /// Name.
+    pub name: String,
+    /// The domain token its gateways send.
+    pub domain: String,
+}
+
+/// A lift as the registry knows it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct LiftRecord {
+    /// `VENDORID-PRODUCTCODE-SERNUM`.
+    pub id: String,
+    /// Vendor-ID.
+    pub vendorid: u32,
+    /// Product code.
+    pub productcode: u32,
+    /// Serial number.
+    pub sernum: String,
+    /// The owner's lift number.
+    pub liftnum: String,
+    /// Hardware.
+    pub hardware: String,
+    /// Software.
+    pub software: String,
+    /// Domain token.
+    pub domain: String,
+    /// API version of the last connection.
+    pub api: u32,
+    /// Last time the gateway was heard (ms since the epoch).
+    pub last_seen: i64,
+}
+
+/// What the registry says about a CONNECT.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Admission {
+    /// No token on record: accept and issue one.
+    FirstContact,
+    /// The token matches the one on record.
+    Known,
+    /// Refused, with the cause to record.
+    Refused(String),
+}
+
+/// One audit entry.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct AuditEntry {
+    /// When (ms since the epoch).
+    pub at: i64,
+    /// Account name.
+    pub account: String,
+    /// Lift id.
+    pub lift: String,
+    /// `put` or `elevate`.
+    pub action: String,
+    /// The mplex or the privilege.
+    pub object: String,
+    /// Value before (puts, when it could be read).
+    pub old_value: Option<String>,
+    /// Value written, or privilege asked for.
+    pub new_value: String,
+    /// `ok` or the error.
+    pub result: String,
+}
+
+/// The portal's database.
+#[derive(Clone)]
+pub struct Store {
+    pool: SqlitePool,
+}
+
+const SCHEMA: &[&str] = &[
+    "CREATE TABLE IF NOT EXISTS accounts (name TEXT PRIMARY KEY, domain TEXT NOT NULL UNIQUE, key_hash TEXT NOT NULL, created INTEGER NOT NULL)",
+    "CREATE TABLE IF NOT EXISTS gateways (id TEXT PRIMARY KEY, vendorid INTEGER NOT NULL, productcode INTEGER NOT NULL, sernum TEXT NOT NULL, liftnum TEXT NOT NULL, hardware TEXT NOT NULL, software TEXT NOT NULL, boardhash TEXT NOT NULL, domain TEXT NOT NULL, api INTEGER NOT NULL, token_hash TEXT, last_seen INTEGER NOT NULL)",
+    "CREATE TABLE IF NOT EXISTS refused (at INTEGER NOT NULL, lift TEXT NOT NULL, peer TEXT NOT NULL, cause TEXT NOT NULL)",
+    "CREATE TABLE IF NOT EXISTS telemetry (lift TEXT NOT NULL, mplex TEXT NOT NULL, node INTEGER NOT NULL, value TEXT NOT NULL, at INTEGER NOT NULL)",
+    "CREATE INDEX IF NOT EXISTS telemetry_by_object ON telemetry (lift, mplex, at)",
+    "CREATE TABLE IF NOT EXISTS audit (at INTEGER NOT NULL, account TEXT NOT NULL, lift TEXT NOT NULL, action TEXT NOT NULL, object TEXT NOT NULL, old_value TEXT, new_value TEXT NOT NULL, result TEXT NOT NULL)",
+];
+
+impl Store {
+    /// Open (and create) the database at `url` (`sqlite://PATH` or `sqlite::memory:`).
+    pub async fn open(url: &str) -> Result<Store, StoreError> {
+        let options = SqliteConnectOptions::from_str(url)?
+            .create_if_missing(true)
+            .journal_mode(SqliteJournalMode::Wal)
+            .busy_timeout(std::time::Duration::from_secs(5));
+        // One writer at a time is what SQLite allows; in-memory databases live in one connection.
+        let pool = SqlitePoolOptions::new()
+            .max_connections(if url.contains(":memory:") { 1 } else { 4 })
+            .connect_with(options)
+            .await?;
+        for statement in SCHEMA {
+            sqlx::query(statement).execute(&pool).await?;
+        }
+        Ok(Store { pool })
+    }
+
+    /// Create an account for `domain`; returns its API key (shown once, stored as a digest).
+    pub async fn add_account(&self, name: &str, domain: &str) -> Result<String, StoreError> {
+        let key = secret("clk_");
+        sqlx::query(
+            "INSERT INTO accounts (name, domain, key_hash, created) VALUES ($1, $2, $3, $4)",
+        )
+        .bind(name)
+        .bind(domain)
+        .bind(digest(&key))
+        .bind(now_ms())
+        .execute(&self.pool)
+        .await?;
+        Ok(key)
+    }
+
+    /// The account an API key belongs to.
+    pub async fn account_by_key(&self, key: &str) -> Result<Option<Account>, StoreError> {
+        let wanted = digest(key);
+        let rows = sqlx::query("SELECT name, domain, key_hash FROM accounts")
+            .fetch_all(&self.pool)
+            .await?;
+        // Every row is compared, so the time does not tell which account came close.
+        let mut found = None;
+        for row in rows {
+            let hash: String = row.try_get("key_hash")?;
+            if same_digest(&hash, &wanted) {
+                found = Some(Account {
+                    name: row.try_get("name")?,
+                    domain: row.try_get("domain")?,
+                });
+            }
+        }
+        Ok(found)
+    }
+
+    /// Whether an account owns `domain`.
+    pub async fn domain_exists(&self, domain: &str) -> Result<bool, StoreError> {
+        let row = sqlx::query("SELECT COUNT(*) AS n FROM accounts WHERE domain = $1")
+            .bind(domain)
+            .fetch_one(&self.pool)
+            .await?;
+        Ok(row.try_get::<i64, _>("n")? > 0)
+    }
+
+    /// Decide on a CONNECT (NXg §5.2, §5.4; issue 7: registry keyed by vendor, product, serial).
+    pub async fn admit(
+        &self,
+        identity: &Identity,
+        cloudtoken: Option<&str>,
+    ) -> Result<Admission, StoreError> {
+        if !self.domain_exists(&identity.domaintoken).await? {
+            return Ok(Admission::Refused(format!(
+                "no account for domain token {:?}",
+                identity.domaintoken
+            )));
+        }
+        let row = sqlx::query("SELECT token_hash, domain FROM gateways WHERE id = $1")
+            .bind(lift_id(identity))
+            .fetch_optional(&self.pool)
+            .await?;
+        let Some(row) = row else {
+            return Ok(Admission::FirstContact);
+        };
+        let hash: Option<String> = row.try_get("token_hash")?;
+        let domain: String = row.try_get("domain")?;
+        if domain != identity.domaintoken {
+            return Ok(Admission::Refused(
+                "domain token differs from the registered one".into(),
+            ));
+        }
+        Ok(match (hash, cloudtoken) {
+            (None, _) => Admission::FirstContact,
+            (Some(h), Some(t)) if same_digest(&h, &digest(t)) => Admission::Known,
+            (Some(_), Some(_)) => Admission::Refused("wrong cloud token".into()),
+            (Some(_), None) => Admission::Refused("no cloud token although one was issued".into()),
+        })
+    }
+
+    /// Record (or refresh) a gateway's identity after CONNACK.
+    pub async fn upsert_gateway(&self, identity: &Identity, api: u32) -> Result<(), StoreError> {
+        sqlx::query(
+            "INSERT INTO gateways (id, vendorid, productcode, sernum, liftnum, hardware, software, boardhash, domain, api, token_hash, last_seen) \
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, NULL, $11) \
+             ON CONFLICT (id) DO UPDATE SET liftnum = $5, hardware = $6, software = $7, boardhash = $8, api = $10, last_seen = $11",
+        )
+        .bind(lift_id(identity))
+        .bind(i64::from(identity.vendorid))
+        .bind(i64::from(identity.productcode))
+        .bind(&identity.sernum)
+        .bind(&identity.liftnum)
+        .bind(&identity.hardware)
+        .bind(&identity.software)
+        .bind(&identity.boardhash)
+        .bind(&identity.domaintoken)
+        .bind(i64::from(api))
+        .bind(now_ms())
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    /// The gateway confirmed `token`: only its digest is kept.
+    pub async fn set_token(&self, lift: &str, token: &str) -> Result<(), StoreError> {
+        sqlx::query("UPDATE gateways SET token_hash = $1 WHERE id = $2")
+            .bind(digest(token))
+            .bind(lift)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
+    /// The gateway was heard now.
+    pub async fn seen(&self, lift: &str) -> Result<(), StoreError> {
+        sqlx::query("UPDATE gateways SET last_seen = $1 WHERE id = $2")
+            .bind(now_ms())
+            .bind(lift)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
+    /// Record a refused connection attempt.
+    pub async fn refused(&self, lift: &str, peer: &str, cause: &str) -> Result<(), StoreError> {
+        sqlx::query("INSERT INTO refused (at, lift, peer, cause) VALUES ($1, $2, $3, $4)")
+            .bind(now_ms())
+            .bind(lift)
+            .bind(peer)
+            .bind(cause)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
+    /// Refused attempts for a lift, newest first: (at, peer, cause).
+    pub async fn refusals(&self, lift: &str) -> Result<Vec<(i64, String, String)>, StoreError> {
+        let rows =
+            sqlx::query("SELECT at, peer, cause FROM refused WHERE lift = $1 ORDER BY at DESC")
+                .bind(lift)
+                .fetch_all(&self.pool)
+                .await?;
+        rows.iter()
+            .map(|r| Ok((r.try_get("at")?, r.try_get("peer")?, r.try_get("cause")?)))
+            .collect()
+    }
+
+    fn lift_from(row: &sqlx::sqlite::SqliteRow) -> Result<LiftRecord, sqlx::Error> {
+        Ok(LiftRecord {
+            id: row.try_get("id")?,
+            vendorid: row.try_get::<i64, _>("vendorid")? as u32,
+            productcode: row.try_get::<i64, _>("productcode")? as u32,
+            sernum: row.try_get("sernum")?,
+            liftnum: row.try_get("liftnum")?,
+            hardware: row.try_get("hardware")?,
+            software: row.try_get("software")?,
+            domain: row.try_get("domain")?,
+            api: row.try_get::<i64, _>("api")? as u32,
+            last_seen: row.try_get("last_seen")?,
+        })
+    }
+
+    /// The lifts of `domain`.
+    pub async fn lifts(&self, domain: &str) -> Result<Vec<LiftRecord>, StoreError> {
+        let rows = sqlx::query("SELECT * FROM gateways WHERE domain = $1 ORDER BY id")
+            .bind(domain)
+            .fetch_all(&self.pool)
+            .await?;
+        Ok(rows
+            .iter()
+            .map(Store::lift_from)
+            .collect::<Result<_, _>>()?)
+    }
+
+    /// One lift, if `domain` owns it.
+    pub async fn lift(&self, domain: &str, id: &str) -> Result<Option<LiftRecord>, StoreError> {
+        let row = sqlx::query("SELECT * FROM gateways WHERE id = $1 AND domain = $2")
+            .bind(id)
+            .bind(domain)
+            .fetch_optional(&self.pool)
+            .await?;
+        Ok(row.as_ref().map(Store::lift_from).transpose()?)
+    }
+
+    /// Store pushed values in one transaction: (lift, mplex, node, value, at).
+    pub async fn telemetry(
+        &self,
+        batch: &[(String, String, u8, String, i64)],
+    ) -> Result<(), StoreError> {
+        let mut tx = self.pool.begin().await?;
+        for (lift, mplex, node, value, at) in batch {
+            sqlx::query(
+                "INSERT INTO telemetry (lift, mplex, node, value, at) VALUES ($1, $2, $3, $4, $5)",
+            )
+            .bind(lift)
+            .bind(mplex)
+            .bind(i64::from(*node))
+            .bind(value)
+            .bind(at)
+            .execute(&mut *tx)
+            .await?;
+        }
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// Stored values of one object between `from` and `to` (ms): (at, value).
+    pub async fn history(
+        &self,
+        lift: &str,
+        mplex: &str,
+        from: i64,
+        to: i64,
+    ) -> Result<Vec<(i64, String)>, StoreError> {
+        let rows = sqlx::query(
+            "SELECT at, value FROM telemetry WHERE lift = $1 AND mplex = $2 AND at >= $3 AND at <= $4 ORDER BY at LIMIT 10000",
+        )
+        .bind(lift)
+        .bind(mplex)
+        .bind(from)
+        .bind(to)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| Ok((r.try_get("at")?, r.try_get("value")?)))
+            .collect()
+    }
+
+    /// Add an audit entry.
+    pub async fn audit(&self, e: &AuditEntry) -> Result<(), StoreError> {
+        sqlx::query(
+            "INSERT INTO audit (at, account, lift, action, object, old_value, new_value, result) VALUES ($1, $2, $3, $4, $5, $6, $7, $8)",
+        )
+        .bind(e.at)
+        .bind(&e.account)
+        .bind(&e.lift)
+        .bind(&e.action)
+        .bind(&e.object)
+        .bind(&e.old_value)
+        .bind(&e.new_value)
+        .bind(&e.result)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    /// The audit entries of `domain`'s lifts, newest first.
+    pub async fn audit_log(&self, domain: &str) -> Result<Vec<AuditEntry>, StoreError> {
+        let rows = sqlx::query(
+            "SELECT a.* FROM audit a JOIN gateways g ON g.id = a.lift WHERE g.domain = $1 ORDER BY a.at DESC LIMIT 1000",
+        )
+        .bind(domain)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| {
+                Ok(AuditEntry {
+                    at: r.try_get("at")?,
+                    account: r.try_get("account")?,
+                    lift: r.try_get("lift")?,
+                    action: r.try_get("action")?,
+                    object: r.try_get("object")?,
+                    old_value: r.try_get("old_value")?,
+                    new_value: r.try_get("new_value")?,
+                    result: r.try_get("result")?,
+                })
+            })
+            .collect::<Result<_, sqlx::Error>>()
+            .map_err(StoreError)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn identity(sernum: &str, domain: &str) -> Identity {
+        Identity {
+            sernum: sernum.into(),
+            vendorid: 1050,
+            productcode: 4096,
+            domaintoken: domain.into(),
+            ..Identity::default()
+        }
+    }
+
+    #[tokio::test]
+    async fn accounts_tokens_and_isolation() {
+        let store = Store::open("sqlite::memory:").await.unwrap();
+        let key = store.add_account("masora", "MAS").await.unwrap();
+        assert!(key.starts_with("clk_") && key.len() == 36);
+        assert_eq!(
+            store.account_by_key(&key).await.unwrap().unwrap().domain,
+            "MAS"
+        );
+        assert!(store.account_by_key("clk_wrong").await.unwrap().is_none());
+        assert!(
+            store.add_account("again", "MAS").await.is_err(),
+            "one account per domain"
+        );
+        let gw = identity("180917010200000102", "MAS");
+        assert_eq!(
+            store.admit(&gw, None).await.unwrap(),
+            Admission::FirstContact
+        );
+        assert!(matches!(
+            store.admit(&identity("1", "XYZ"), None).await.unwrap(),
+            Admission::Refused(_)
+        ));
+        store.upsert_gateway(&gw, 1).await.unwrap();
+        // Not confirmed yet: still first contact.
+        assert_eq!(
+            store.admit(&gw, Some("x")).await.unwrap(),
+            Admission::FirstContact
+        );
+        store.set_token(&lift_id(&gw), "T0K3N").await.unwrap();
+        assert_eq!(
+            store.admit(&gw, Some("T0K3N")).await.unwrap(),
+            Admission::Known
+        );
+        assert!(
+            matches!(store.admit(&gw, Some("T0K3M")).await.unwrap(), Admission::Refused(c) if c.contains("wrong"))
+        );
+        assert!(matches!(
+            store.admit(&gw, None).await.unwrap(),
+            Admission::Refused(_)
+        ));
+        // Only digests are stored.
+        let row = sqlx::query("SELECT token_hash FROM gateways")
+            .fetch_one(&store.pool)
+            .await
+            .unwrap();
+        assert_eq!(row.get::<String, _>("token_hash"), digest("T0K3N"));
+        store.add_account("other", "OTH").await.unwrap();
+        assert_eq!(store.lifts("MAS").await.unwrap().len(), 1);
+        assert!(store.lifts("OTH").await.unwrap().is_empty());
+        assert!(store
+            .lift("OTH", "1050-4096-180917010200000102")
+            .await
+            .unwrap()
+            .is_none());
+        store
+            .telemetry(&[(
+                "1050-4096-180917010200000102".into(),
+                "0x652001".into(),
+                1,
+                "7".into(),
+                100,
+            )])
+            .await
+            .unwrap();
+        let h = store
+            .history("1050-4096-180917010200000102", "0x652001", 0, 200)
+            .await
+            .unwrap();
+        assert_eq!(h, [(100, "7".to_owned())]);
+    }
+}
