@@ -1,0 +1,81 @@
+//! The portal's identity and token rules, checked by a fake gateway written with Python
+//! `websockets` over Python's ssl (an independent implementation).
+
+use std::collections::HashMap;
+use std::time::Duration;
+
+use cloud::config::Config;
+use cloud::server::Portal;
+use cloud::store::Store;
+use serde_json::{json, Value};
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn identity_and_token_rules() {
+    let Some(python) = testkit::python() else {
+        return;
+    };
+    let dir = std::env::temp_dir().join(format!("canlift-pygw-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let mut config = Config::default();
+    config.server.listen = "127.0.0.1:0".parse().unwrap();
+    config.state.dir = dir.clone();
+    config.gateways.connect_timeout_s = 1;
+    config.gateways.heartbeat_s = 1;
+    let portal = Portal::bind(&config).await.unwrap();
+    let port = portal.local_addr().port();
+    Store::open(&config.database_url())
+        .await
+        .unwrap()
+        .add_account("masora", "MAS")
+        .await
+        .unwrap();
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let task = tokio::spawn(portal.run(stopped));
+    let out = tokio::time::timeout(
+        Duration::from_secs(60),
+        tokio::process::Command::new(&python)
+            .arg(testkit::interop_script("fake_gateway.py"))
+            .arg(format!("wss://localhost:{port}/ws"))
+            .arg(dir.join("dev-ca.pem"))
+            .output(),
+    )
+    .await
+    .expect("the fake gateway finishes")
+    .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("DONE"), "{stdout}");
+    let facts: HashMap<&str, Value> = stdout
+        .lines()
+        .filter_map(|l| l.split_once(' '))
+        .map(|(k, v)| (k, serde_json::from_str(v).unwrap()))
+        .collect();
+    assert_eq!(facts["subprotocol"], "cloud");
+    assert_eq!(
+        facts["connack"],
+        json!({"jsonrpc": "2.0", "id": 1, "result": "CONNACK", "api": 1})
+    );
+    assert_eq!(facts["update_method"], "update_unique_token");
+    assert_eq!(facts["token_sernum"], "PY-0001");
+    assert_eq!(facts["token_length"], 32);
+    assert_eq!(facts["wrong_token"], "closed");
+    assert_eq!(facts["missing_token"], "closed");
+    assert_eq!(facts["known"], "CONNACK");
+    assert_eq!(facts["second"], "CONNACK");
+    assert_eq!(facts["first_after_second"], "closed");
+    assert_eq!(facts["heartbeat"], "get_heartbeat");
+    assert_eq!(facts["silent"], "closed");
+    assert_eq!(facts["no_subprotocol"], 400);
+    // The refusals were recorded.
+    let store = Store::open(&config.database_url()).await.unwrap();
+    let refusals = store.refusals("1050-4096-PY-0001").await.unwrap();
+    assert_eq!(refusals.len(), 2, "{refusals:?}");
+    assert!(refusals.iter().any(|r| r.2 == "wrong cloud token"));
+    stop.send(true).unwrap();
+    task.await.unwrap();
+    let _ = std::fs::remove_dir_all(&dir);
+}
