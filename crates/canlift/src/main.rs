@@ -31,6 +31,14 @@ enum Command {
     Gateway(cmd::gateway::GatewayArgs),
     /// The cloud portal: gateways on /ws, the operator REST API (`account add` makes API keys).
     Cloud(cmd::cloud::CloudArgs),
+    /// The account's lifts on the portal.
+    Lifts(cmd::operator::LiftsArgs),
+    /// Read an object of a lift through the portal.
+    Get(cmd::operator::GetArgs),
+    /// Write an object of a lift through the portal.
+    Put(cmd::operator::PutArgs),
+    /// Print the values a lift pushes for some objects.
+    Watch(cmd::operator::WatchArgs),
     /// Simulated CiA 417 lift controller (and I/O node) on a bus.
     Sim(cmd::sim::SimArgs),
     /// Measure canlift's components.
@@ -57,6 +65,10 @@ fn main() -> std::process::ExitCode {
             Command::Sim(args) => cmd::sim::run(args).await,
             Command::Gateway(args) => cmd::gateway::run(args).await,
             Command::Cloud(args) => cmd::cloud::run(args).await,
+            Command::Lifts(args) => cmd::operator::lifts(args).await,
+            Command::Get(args) => cmd::operator::get(args).await,
+            Command::Put(args) => cmd::operator::put(args).await,
+            Command::Watch(args) => cmd::operator::watch(args).await,
         }
     });
     match result {

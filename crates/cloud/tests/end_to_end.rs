@@ -2,36 +2,25 @@
 //! operator reads, writes and watches through the REST API.
 
 use std::path::Path;
-use std::sync::Arc;
 use std::time::Duration;
 
 use cloud::config::Config;
 use cloud::server::Portal;
 use cloud::store::Store;
-use http_body_util::{BodyExt, Full};
-use hyper::body::Bytes;
 use lift417::sim::{SimConfig, Simulator};
 use serde_json::{json, Value};
 
+/// The operator client with a key per call.
 struct Client {
-    addr: std::net::SocketAddr,
-    tls: tokio_rustls::TlsConnector,
+    url: String,
+    ca: std::path::PathBuf,
 }
 
 impl Client {
     fn new(addr: std::net::SocketAddr, ca: &Path) -> Client {
-        let mut roots = rustls::RootCertStore::empty();
-        for c in gateway::tls::certificates(ca).unwrap() {
-            roots.add(c).unwrap();
-        }
-        let config = rustls::ClientConfig::builder_with_provider(gateway::tls::provider())
-            .with_safe_default_protocol_versions()
-            .unwrap()
-            .with_root_certificates(roots)
-            .with_no_client_auth();
         Client {
-            addr,
-            tls: tokio_rustls::TlsConnector::from(Arc::new(config)),
+            url: format!("https://localhost:{}", addr.port()),
+            ca: ca.to_path_buf(),
         }
     }
 
@@ -42,34 +31,8 @@ impl Client {
         key: Option<&str>,
         body: Option<Value>,
     ) -> (u16, Value) {
-        let tcp = tokio::net::TcpStream::connect(self.addr).await.unwrap();
-        let name = rustls::pki_types::ServerName::try_from("localhost").unwrap();
-        let tls = self.tls.connect(name, tcp).await.unwrap();
-        let (mut sender, conn) =
-            hyper::client::conn::http1::handshake(hyper_util::rt::TokioIo::new(tls))
-                .await
-                .unwrap();
-        tokio::spawn(conn);
-        let mut req = hyper::Request::builder()
-            .method(method)
-            .uri(path)
-            .header("host", "localhost");
-        if let Some(k) = key {
-            req = req.header("authorization", format!("Bearer {k}"));
-        }
-        let body = match body {
-            Some(b) => {
-                req = req.header("content-type", "application/json");
-                Full::new(Bytes::from(b.to_string()))
-            }
-            None => Full::new(Bytes::new()),
-        };
-        let response = sender.send_request(req.body(body).unwrap()).await.unwrap();
-        let status = response.status().as_u16();
-        let bytes = response.into_body().collect().await.unwrap().to_bytes();
-        let value = serde_json::from_slice(&bytes)
-            .unwrap_or(Value::String(String::from_utf8_lossy(&bytes).into()));
-        (status, value)
+        let client = cloud::client::Client::new(&self.url, key, Some(&self.ca)).unwrap();
+        client.call(method, path, body).await.unwrap()
     }
 }
 

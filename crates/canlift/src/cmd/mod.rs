@@ -7,5 +7,6 @@ pub mod dump;
 pub mod gateway;
 pub mod hub;
 pub mod nmt;
+pub mod operator;
 pub mod sdo;
 pub mod sim;

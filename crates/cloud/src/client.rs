@@ -1,0 +1,186 @@
+//! A client of the operator REST API over HTTPS (for `canlift lifts|get|put|watch` and tests).
+
+use std::path::Path;
+use std::sync::Arc;
+
+use http_body_util::{BodyExt, Full};
+use hyper::body::Bytes;
+use serde_json::Value;
+
+/// Why a call failed before an HTTP answer came.
+#[derive(Debug, thiserror::Error)]
+pub enum ClientError {
+    /// The portal URL is not `https://HOST[:PORT]`.
+    #[error("portal URL {0:?}: expected https://HOST[:PORT]")]
+    Url(String),
+    /// TLS setup or handshake.
+    #[error("TLS: {0}")]
+    Tls(String),
+    /// Connecting or talking HTTP.
+    #[error("{0}")]
+    Io(String),
+}
+
+/// An operator's connection settings.
+#[derive(Clone)]
+pub struct Client {
+    host: String,
+    port: u16,
+    key: Option<String>,
+    tls: tokio_rustls::TlsConnector,
+}
+
+/// An answer: HTTP status and JSON body (a string when the body is not JSON).
+pub type Answer = (u16, Value);
+
+impl Client {
+    /// A client for `portal` (`https://HOST[:PORT]`), trusting `ca` (or the system's roots).
+    pub fn new(portal: &str, key: Option<&str>, ca: Option<&Path>) -> Result<Client, ClientError> {
+        let rest = portal
+            .strip_prefix("https://")
+            .ok_or_else(|| ClientError::Url(portal.into()))?
+            .trim_end_matches('/');
+        let (host, port) = match rest.rsplit_once(':') {
+            Some((h, p)) => (
+                h.to_owned(),
+                p.parse().map_err(|_| ClientError::Url(portal.into()))?,
+            ),
+            None => (rest.to_owned(), 443),
+        };
+        let cloud = gateway::config::CloudSection {
+            ca_file: ca.map(Path::to_path_buf),
+            ..Default::default()
+        };
+        let tls =
+            gateway::tls::client_config(&cloud).map_err(|e| ClientError::Tls(e.to_string()))?;
+        let mut tls = Arc::unwrap_or_clone(tls);
+        tls.alpn_protocols = vec![b"http/1.1".to_vec()];
+        Ok(Client {
+            host,
+            port,
+            key: key.map(str::to_owned),
+            tls: tokio_rustls::TlsConnector::from(Arc::new(tls)),
+        })
+    }
+
+    async fn send(
+        &self,
+        method: &str,
+        path: &str,
+        body: Option<&Value>,
+    ) -> Result<hyper::Response<hyper::body::Incoming>, ClientError> {
+        let io = |e: &dyn std::fmt::Display| {
+            ClientError::Io(format!("{}:{}: {e}", self.host, self.port))
+        };
+        let tcp = tokio::net::TcpStream::connect((self.host.as_str(), self.port))
+            .await
+            .map_err(|e| io(&e))?;
+        let name = rustls::pki_types::ServerName::try_from(self.host.clone())
+            .map_err(|e| ClientError::Tls(e.to_string()))?;
+        let tls = self
+            .tls
+            .connect(name, tcp)
+            .await
+            .map_err(|e| ClientError::Tls(e.to_string()))?;
+        let (mut sender, conn) =
+            hyper::client::conn::http1::handshake(hyper_util::rt::TokioIo::new(tls))
+                .await
+                .map_err(|e| io(&e))?;
+        tokio::spawn(conn);
+        let mut request = hyper::Request::builder()
+            .method(method)
+            .uri(path)
+            .header("host", &self.host);
+        if let Some(k) = &self.key {
+            request = request.header("authorization", format!("Bearer {k}"));
+        }
+        let bytes = match body {
+            Some(b) => {
+                request = request.header("content-type", "application/json");
+                Bytes::from(b.to_string())
+            }
+            None => Bytes::new(),
+        };
+        let request = request.body(Full::new(bytes)).map_err(|e| io(&e))?;
+        sender.send_request(request).await.map_err(|e| io(&e))
+    }
+
+    /// One request with a JSON answer.
+    pub async fn call(
+        &self,
+        method: &str,
+        path: &str,
+        body: Option<Value>,
+    ) -> Result<Answer, ClientError> {
+        let response = self.send(method, path, body.as_ref()).await?;
+        let status = response.status().as_u16();
+        let bytes = response
+            .into_body()
+            .collect()
+            .await
+            .map_err(|e| ClientError::Io(e.to_string()))?
+            .to_bytes();
+        let value = serde_json::from_slice(&bytes)
+            .unwrap_or_else(|_| Value::String(String::from_utf8_lossy(&bytes).into_owned()));
+        Ok((status, value))
+    }
+
+    /// Open the Server-Sent Events at `path` (the portal subscribes before answering, so
+    /// nothing published after this returns is missed). `Err` carries a status other than 200.
+    pub async fn events(&self, path: &str) -> Result<Result<EventStream, Answer>, ClientError> {
+        let response = self.send("GET", path, None).await?;
+        let status = response.status().as_u16();
+        if status != 200 {
+            let bytes = response
+                .into_body()
+                .collect()
+                .await
+                .map_err(|e| ClientError::Io(e.to_string()))?
+                .to_bytes();
+            let body = serde_json::from_slice(&bytes).unwrap_or(Value::Null);
+            return Ok(Err((status, body)));
+        }
+        Ok(Ok(EventStream {
+            body: response.into_body(),
+            buffer: String::new(),
+        }))
+    }
+}
+
+/// Server-Sent Events as they arrive.
+pub struct EventStream {
+    body: hyper::body::Incoming,
+    buffer: String,
+}
+
+impl EventStream {
+    /// The next event: (event name, data); `None` when the stream ends.
+    pub async fn next(&mut self) -> Option<Result<(String, String), ClientError>> {
+        loop {
+            if let Some(end) = self.buffer.find("\n\n") {
+                let block: String = self.buffer.drain(..end + 2).collect();
+                let mut event = "message".to_owned();
+                let mut text = String::new();
+                for line in block.lines() {
+                    if let Some(e) = line.strip_prefix("event:") {
+                        event = e.trim().to_owned();
+                    } else if let Some(d) = line.strip_prefix("data:") {
+                        text.push_str(d.trim_start());
+                    }
+                }
+                if !text.is_empty() {
+                    return Some(Ok((event, text)));
+                }
+                continue;
+            }
+            match self.body.frame().await? {
+                Ok(frame) => {
+                    if let Ok(data) = frame.into_data() {
+                        self.buffer.push_str(&String::from_utf8_lossy(&data));
+                    }
+                }
+                Err(e) => return Some(Err(ClientError::Io(e.to_string()))),
+            }
+        }
+    }
+}
