@@ -19,6 +19,8 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// Everything in one process: hub, simulated lift, gateway and portal.
+    Demo(cmd::demo::DemoArgs),
     /// Virtual CAN bus server speaking socketcand's raw mode (python-can and canlift can join).
     Hub(cmd::hub::HubArgs),
     /// Print frames from a bus like candump, with their CANopen meaning.
@@ -57,6 +59,7 @@ fn main() -> std::process::ExitCode {
     };
     let result = runtime.block_on(async {
         match cli.command {
+            Command::Demo(args) => cmd::demo::run(args).await,
             Command::Hub(args) => cmd::hub::run(args).await,
             Command::Dump(args) => cmd::dump::run(args).await,
             Command::Nmt(args) => cmd::nmt::run(args).await,

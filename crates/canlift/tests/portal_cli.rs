@@ -49,15 +49,16 @@ async fn lifts_get_put_watch() {
     .await
     .unwrap();
     let ca = config.state.dir.join("dev-ca.pem");
-    let mut gw = gateway::config::Config::default();
-    gw.identity.sernum = "OP-1".into();
-    gw.identity.vendorid = 1050;
-    gw.identity.productcode = 4096;
-    gw.identity.domaintoken = "MAS".into();
-    gw.cloud.url = format!("wss://localhost:{port}/ws");
-    gw.cloud.ca_file = Some(ca.clone());
-    gw.state.dir = dir.join("gateway");
-    gw.bus.url = bus.into();
+    let identity = nxg::gateway::Identity {
+        sernum: "OP-1".into(),
+        vendorid: 1050,
+        productcode: 4096,
+        domaintoken: "MAS".into(),
+        ..Default::default()
+    };
+    let portal_ws = format!("wss://localhost:{port}/ws");
+    let gw =
+        gateway::config::Config::for_portal(identity, &portal_ws, &ca, bus, &dir.join("gateway"));
     let gateway = gateway::Gateway::bus_node(gw).await.unwrap();
     let (gw_stop, gw_stopped) = tokio::sync::watch::channel(false);
     let gw_task = tokio::spawn(gateway.run(gw_stopped));

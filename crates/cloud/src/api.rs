@@ -280,32 +280,22 @@ struct SubscriptionBody {
     threshold: Option<f64>,
 }
 
-async fn subscribe(
+/// `reg_canopen_object` (POST) or `unreg_canopen_object` (DELETE).
+async fn subscriptions(
     State(app): State<Arc<App>>,
+    method: axum::http::Method,
     headers: HeaderMap,
     Path(id): Path<String>,
     Json(body): Json<SubscriptionBody>,
 ) -> Result<Json<Value>, ApiError> {
     lift_of(&app, &headers, &id).await?;
-    let params = json!({"mplex": body.mplex, "inhibit": body.inhibit.unwrap_or(0), "threshold": body.threshold.unwrap_or(0.0)});
-    Ok(Json(
-        app.registry.call(&id, "reg_canopen_object", params).await?,
-    ))
-}
-
-async fn unsubscribe(
-    State(app): State<Arc<App>>,
-    headers: HeaderMap,
-    Path(id): Path<String>,
-    Json(body): Json<SubscriptionBody>,
-) -> Result<Json<Value>, ApiError> {
-    lift_of(&app, &headers, &id).await?;
-    let params = json!({"mplex": body.mplex});
-    Ok(Json(
-        app.registry
-            .call(&id, "unreg_canopen_object", params)
-            .await?,
-    ))
+    let (rpc, params) = if method == axum::http::Method::DELETE {
+        ("unreg_canopen_object", json!({"mplex": body.mplex}))
+    } else {
+        let params = json!({"mplex": body.mplex, "inhibit": body.inhibit.unwrap_or(0), "threshold": body.threshold.unwrap_or(0.0)});
+        ("reg_canopen_object", params)
+    };
+    Ok(Json(app.registry.call(&id, rpc, params).await?))
 }
 
 async fn events(
@@ -386,7 +376,7 @@ pub fn routes(app: Arc<App>) -> Router {
         )
         .route(
             "/api/v1/lifts/{id}/subscriptions",
-            axum::routing::post(subscribe).delete(unsubscribe),
+            axum::routing::post(subscriptions).delete(subscriptions),
         )
         .route("/api/v1/lifts/{id}/events", get(events))
         .route("/api/v1/audit", get(audit))

@@ -62,16 +62,17 @@ async fn operator_reads_writes_and_watches_a_simulated_lift() {
     .await
     .unwrap();
     let ca = config.state.dir.join("dev-ca.pem");
-    let mut gw = gateway::config::Config::default();
-    gw.identity.sernum = "180917010200000102".into();
-    gw.identity.vendorid = 1050;
-    gw.identity.productcode = 4096;
-    gw.identity.domaintoken = "MAS".into();
-    gw.identity.liftnum = "40/7289/20399-126".into();
-    gw.cloud.url = format!("wss://localhost:{}/ws", addr.port());
-    gw.cloud.ca_file = Some(ca.clone());
-    gw.state.dir = dir.join("gateway");
-    gw.bus.url = bus.into();
+    let identity = nxg::gateway::Identity {
+        sernum: "180917010200000102".into(),
+        vendorid: 1050,
+        productcode: 4096,
+        domaintoken: "MAS".into(),
+        liftnum: "40/7289/20399-126".into(),
+        ..Default::default()
+    };
+    let portal_ws = format!("wss://localhost:{}/ws", addr.port());
+    let mut gw =
+        gateway::config::Config::for_portal(identity, &portal_ws, &ca, bus, &dir.join("gateway"));
     gw.bus.poll_ms = 100;
     let gateway = gateway::Gateway::bus_node(gw).await.unwrap();
     let (gw_stop, gw_stopped) = tokio::sync::watch::channel(false);

@@ -199,6 +199,26 @@ fn sha1_hex(name: &str, value: &Option<String>) -> Result<(), ConfigError> {
 }
 
 impl Config {
+    /// A configuration for the gateway `identity` on `bus`, connecting to `portal`
+    /// (`wss://…/ws`) trusting `ca`, keeping its state in `state`; everything else default.
+    pub fn for_portal(
+        identity: Identity,
+        portal: &str,
+        ca: &std::path::Path,
+        bus: &str,
+        state: &std::path::Path,
+    ) -> Config {
+        let mut c = Config {
+            identity,
+            ..Config::default()
+        };
+        c.cloud.url = portal.into();
+        c.cloud.ca_file = Some(ca.to_path_buf());
+        c.state.dir = state.to_path_buf();
+        c.bus.url = bus.into();
+        c
+    }
+
     /// Check what can be checked before connecting.
     pub fn validate(&self) -> Result<(), ConfigError> {
         let err = |m: &str| Err(ConfigError(m.into()));

@@ -11,7 +11,7 @@ use cloud::store::Store;
 /// Command-line arguments of `canlift cloud`.
 #[derive(Debug, clap::Args)]
 pub struct CloudArgs {
-    /// Configuration file (TOML: [server], [state], [database], [gateways]).
+    /// Configuration file (TOML: `[server]`, `[state]`, `[database]`, `[gateways]`).
     #[arg(long, global = true)]
     config: Option<PathBuf>,
     /// Print the effective configuration and exit.

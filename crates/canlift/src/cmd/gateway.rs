@@ -9,8 +9,8 @@ use gateway::Gateway;
 /// Command-line arguments of `canlift gateway`.
 #[derive(Debug, clap::Args)]
 pub struct GatewayArgs {
-    /// Configuration file (TOML: [identity], [cloud], [state], [bus], [[networks]],
-    /// [privileges], [limits]).
+    /// Configuration file (TOML: `[identity]`, `[cloud]`, `[state]`, `[bus]`, `[[networks]]`,
+    /// `[privileges]`, `[limits]`).
     #[arg(long)]
     config: Option<PathBuf>,
     /// Print the effective configuration and exit.

@@ -3,6 +3,7 @@
 pub mod bench;
 pub mod bench_gateway;
 pub mod cloud;
+pub mod demo;
 pub mod dump;
 pub mod gateway;
 pub mod hub;

@@ -1,0 +1,163 @@
+//! `canlift demo`: everything in one process (DESIGN.md §3): the hub, the simulated lift
+//! controller and I/O node, the gateway in bus-node mode and the portal with a development CA and
+//! SQLite. The first run generates the CA, an account and the gateway's configuration into the
+//! state directory; later runs reuse them, so the lift's counters keep counting.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::Context;
+use canbus::hub::{Hub, HubConfig};
+use cloud::server::Portal;
+use cloud::store::Store;
+use lift417::sim::{SimConfig, Simulator};
+
+/// Command-line arguments of `canlift demo`.
+#[derive(Debug, clap::Args)]
+pub struct DemoArgs {
+    /// State directory [default: $XDG_DATA_HOME/canlift/demo or ~/.local/share/canlift/demo].
+    #[arg(long)]
+    state: Option<PathBuf>,
+    /// Simulated time runs this many times faster.
+    #[arg(long, default_value_t = 1.0)]
+    speed: f64,
+    /// Where the hub listens.
+    #[arg(long, default_value = "127.0.0.1:29536")]
+    hub_listen: SocketAddr,
+    /// Where the portal listens.
+    #[arg(long, default_value = "127.0.0.1:8443")]
+    portal_listen: SocketAddr,
+    /// Simulated passengers press a button about every this many simulated seconds (0: never).
+    #[arg(long, default_value_t = 45.0)]
+    passengers: f64,
+}
+
+const DOMAIN: &str = "DEMO";
+const SERNUM: &str = "DEMO-0001";
+
+fn default_state() -> PathBuf {
+    let data = std::env::var_os("XDG_DATA_HOME")
+        .map(PathBuf::from)
+        .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".local/share")))
+        .unwrap_or_else(|| PathBuf::from("."));
+    data.join("canlift/demo")
+}
+
+/// The account's API key: created on the first run and kept in the state directory (a demo
+/// convenience; a real portal shows it once and keeps only its digest).
+async fn api_key(store: &Store, dir: &Path) -> anyhow::Result<String> {
+    let path = dir.join("api-key");
+    if let Ok(key) = std::fs::read_to_string(&path) {
+        return Ok(key.trim().to_owned());
+    }
+    let key = store
+        .add_account("demo", DOMAIN)
+        .await
+        .context("creating the demo account")?;
+    canopen::storage::write_atomically(&path, &format!("{key}\n"))?;
+    Ok(key)
+}
+
+/// Run the demo until Ctrl-C or SIGTERM.
+pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
+    let dir = args.state.clone().unwrap_or_else(default_state);
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let dir = dir.canonicalize()?;
+    // The bus.
+    let hub = Hub::bind(HubConfig {
+        listen: args.hub_listen,
+        ..HubConfig::default()
+    })
+    .await
+    .with_context(|| {
+        format!(
+            "the hub cannot listen on {} (is a demo running?)",
+            args.hub_listen
+        )
+    })?
+    .spawn()?;
+    let bus = format!("socketcand://{}/can0", hub.local_addr());
+    // The portal.
+    let mut portal_config = cloud::config::Config::default();
+    portal_config.server.listen = args.portal_listen;
+    portal_config.state.dir = dir.join("portal");
+    let portal = Portal::bind(&portal_config)
+        .await
+        .with_context(|| format!("starting the portal on {}", args.portal_listen))?;
+    let portal_addr = portal.local_addr();
+    let store = Store::open(&portal_config.database_url()).await?;
+    let key = api_key(&store, &dir).await?;
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let portal_task = tokio::spawn(portal.run(stopped.clone()));
+    // The lift.
+    let sim = Simulator::start(
+        &bus,
+        SimConfig {
+            speed: args.speed,
+            state_dir: Some(dir.join("lift")),
+            passengers: (args.passengers > 0.0).then(|| Duration::from_secs_f64(args.passengers)),
+            ..SimConfig::default()
+        },
+    )
+    .await
+    .context("starting the simulated lift")?;
+    // The gateway, with a configuration a user can reuse for `canlift gateway`.
+    let ca = portal_config.state.dir.join("dev-ca.pem");
+    let identity = nxg::gateway::Identity {
+        sernum: SERNUM.into(),
+        vendorid: 1050,
+        productcode: 4096,
+        liftnum: "demo lift".into(),
+        hardware: "canlift demo".into(),
+        domaintoken: DOMAIN.into(),
+        ..Default::default()
+    };
+    let portal_ws = format!("wss://localhost:{}/ws", portal_addr.port());
+    let gw =
+        gateway::config::Config::for_portal(identity, &portal_ws, &ca, &bus, &dir.join("gateway"));
+    let gateway_toml = dir.join("gateway.toml");
+    std::fs::write(&gateway_toml, toml::to_string_pretty(&gw)?)?;
+    let gateway = gateway::Gateway::bus_node(gw)
+        .await
+        .context("starting the gateway")?;
+    let gateway_task = tokio::spawn(gateway.run(stopped));
+
+    let lift = format!("1050-4096-{SERNUM}");
+    let portal_url = format!("https://localhost:{}", portal_addr.port());
+    println!(
+        "canlift demo is running (Ctrl-C stops it); state in {}",
+        dir.display()
+    );
+    println!("  portal   {portal_url}  (operator API under /api/v1)");
+    println!("  API key  {key}");
+    println!(
+        "  CA       {}  (trust it to reach the portal)",
+        ca.display()
+    );
+    println!(
+        "  bus      {bus}  (python-can: interface=socketcand, host={}, port={}, channel=can0)",
+        hub.local_addr().ip(),
+        hub.local_addr().port()
+    );
+    println!(
+        "  lift     {lift}  (gateway configuration: {})",
+        gateway_toml.display()
+    );
+    println!("try:");
+    println!(
+        "  export CANLIFT_PORTAL={portal_url} CANLIFT_API_KEY={key} CANLIFT_CA={}",
+        ca.display()
+    );
+    println!("  canlift get {lift} 0x652001");
+    println!("  canlift watch {lift} 0x652001 0x638301");
+    println!("  canlift put {lift} 0x502200 4");
+    crate::logging::shutdown_signal().await;
+    let _ = stop.send(true);
+    let _ = gateway_task.await;
+    sim.stop().await;
+    let _ = portal_task.await;
+    hub.shutdown().await;
+    println!("canlift demo stopped");
+    Ok(())
+}
