@@ -9,7 +9,11 @@ fn keys(command: &str) -> Vec<String> {
         .env_remove("CANLIFT_STATE_DIR")
         .output()
         .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let doc: toml::Table = toml::from_str(&String::from_utf8_lossy(&out.stdout)).unwrap();
     let mut keys = Vec::new();
     for (section, value) in doc {
@@ -28,7 +32,9 @@ fn read(path: &str) -> String {
 fn documented(keys: &[String], doc: &str, what: &str) {
     for key in keys {
         let name = key.rsplit('.').next().unwrap_or(key);
-        let found = doc.contains(&format!("{name} =")) || doc.contains(&format!("`{name}`")) || doc.contains(&format!("[[{name}]]"));
+        let found = doc.contains(&format!("{name} ="))
+            || doc.contains(&format!("`{name}`"))
+            || doc.contains(&format!("[[{name}]]"));
         assert!(found, "{what}: {key} is not documented");
     }
 }

@@ -1,16 +1,16 @@
 //! What the portal keeps: accounts with their API keys, the gateway registry with token hashes,
-//! refused connection attempts, telemetry (pushed values) and the audit log. SQLite through sqlx.
+//! refused connection attempts, telemetry (pushed values) and the audit log, in SQLite or
+//! PostgreSQL through sqlx (one set of portable statements with `$n` parameters).
 //!
 //! Secrets are stored only as SHA-256 digests (API keys, cloud tokens); comparisons of digests
 //! take the same time wherever they differ.
 
-use std::str::FromStr;
 use std::time::{SystemTime, UNIX_EPOCH};
 
 use nxg::gateway::Identity;
 use rand::RngCore;
-use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions};
-use sqlx::{Row, SqlitePool};
+use sqlx::any::{AnyPoolOptions, AnyRow};
+use sqlx::{AnyPool, Executor, Row};
 
 /// A database failure.
 #[derive(Debug, thiserror::Error)]
@@ -124,30 +124,52 @@ pub struct AuditEntry {
 /// The portal's database.
 #[derive(Clone)]
 pub struct Store {
-    pool: SqlitePool,
+    pool: AnyPool,
 }
 
 const SCHEMA: &[&str] = &[
-    "CREATE TABLE IF NOT EXISTS accounts (name TEXT PRIMARY KEY, domain TEXT NOT NULL UNIQUE, key_hash TEXT NOT NULL, created INTEGER NOT NULL)",
-    "CREATE TABLE IF NOT EXISTS gateways (id TEXT PRIMARY KEY, vendorid INTEGER NOT NULL, productcode INTEGER NOT NULL, sernum TEXT NOT NULL, liftnum TEXT NOT NULL, hardware TEXT NOT NULL, software TEXT NOT NULL, boardhash TEXT NOT NULL, domain TEXT NOT NULL, api INTEGER NOT NULL, token_hash TEXT, last_seen INTEGER NOT NULL)",
-    "CREATE TABLE IF NOT EXISTS refused (at INTEGER NOT NULL, lift TEXT NOT NULL, peer TEXT NOT NULL, cause TEXT NOT NULL)",
-    "CREATE TABLE IF NOT EXISTS telemetry (lift TEXT NOT NULL, mplex TEXT NOT NULL, node INTEGER NOT NULL, value TEXT NOT NULL, at INTEGER NOT NULL)",
+    "CREATE TABLE IF NOT EXISTS accounts (name TEXT PRIMARY KEY, domain TEXT NOT NULL UNIQUE, key_hash TEXT NOT NULL, created BIGINT NOT NULL)",
+    "CREATE TABLE IF NOT EXISTS gateways (id TEXT PRIMARY KEY, vendorid BIGINT NOT NULL, productcode BIGINT NOT NULL, sernum TEXT NOT NULL, liftnum TEXT NOT NULL, hardware TEXT NOT NULL, software TEXT NOT NULL, boardhash TEXT NOT NULL, domain TEXT NOT NULL, api BIGINT NOT NULL, token_hash TEXT, last_seen BIGINT NOT NULL)",
+    "CREATE TABLE IF NOT EXISTS refused (at BIGINT NOT NULL, lift TEXT NOT NULL, peer TEXT NOT NULL, cause TEXT NOT NULL)",
+    "CREATE TABLE IF NOT EXISTS telemetry (lift TEXT NOT NULL, mplex TEXT NOT NULL, node BIGINT NOT NULL, value TEXT NOT NULL, at BIGINT NOT NULL)",
     "CREATE INDEX IF NOT EXISTS telemetry_by_object ON telemetry (lift, mplex, at)",
-    "CREATE TABLE IF NOT EXISTS audit (at INTEGER NOT NULL, account TEXT NOT NULL, lift TEXT NOT NULL, action TEXT NOT NULL, object TEXT NOT NULL, old_value TEXT, new_value TEXT NOT NULL, result TEXT NOT NULL)",
+    "CREATE TABLE IF NOT EXISTS audit (at BIGINT NOT NULL, account TEXT NOT NULL, lift TEXT NOT NULL, action TEXT NOT NULL, object TEXT NOT NULL, old_value TEXT, new_value TEXT NOT NULL, result TEXT NOT NULL)",
 ];
 
 impl Store {
-    /// Open (and create) the database at `url` (`sqlite://PATH` or `sqlite::memory:`).
+    /// Open (and create) the database at `url`: `sqlite://PATH` (created if missing),
+    /// `sqlite::memory:`, or `postgres://USER:PASSWORD@HOST/DB`.
     pub async fn open(url: &str) -> Result<Store, StoreError> {
-        let options = SqliteConnectOptions::from_str(url)?
-            .create_if_missing(true)
-            .journal_mode(SqliteJournalMode::Wal)
-            .busy_timeout(std::time::Duration::from_secs(5));
-        // One writer at a time is what SQLite allows; in-memory databases live in one connection.
-        let pool = SqlitePoolOptions::new()
-            .max_connections(if url.contains(":memory:") { 1 } else { 4 })
-            .connect_with(options)
+        sqlx::any::install_default_drivers();
+        let sqlite = url.starts_with("sqlite:");
+        let url = if sqlite && !url.contains(":memory:") && !url.contains('?') {
+            format!("{url}?mode=rwc")
+        } else {
+            url.to_owned()
+        };
+        // SQLite allows one writer at a time; an in-memory database lives in one connection.
+        let connections = match (sqlite, url.contains(":memory:")) {
+            (_, true) => 1,
+            (true, false) => 4,
+            (false, _) => 16,
+        };
+        let pool = AnyPoolOptions::new()
+            .max_connections(connections)
+            .after_connect(move |conn, _| {
+                Box::pin(async move {
+                    if sqlite {
+                        conn.execute("PRAGMA busy_timeout = 5000").await?;
+                    }
+                    Ok(())
+                })
+            })
+            .connect(&url)
             .await?;
+        if sqlite && !url.contains(":memory:") {
+            sqlx::query("PRAGMA journal_mode = WAL")
+                .execute(&pool)
+                .await?;
+        }
         for statement in SCHEMA {
             sqlx::query(statement).execute(&pool).await?;
         }
@@ -299,7 +321,7 @@ impl Store {
             .collect()
     }
 
-    fn lift_from(row: &sqlx::sqlite::SqliteRow) -> Result<LiftRecord, sqlx::Error> {
+    fn lift_from(row: &AnyRow) -> Result<LiftRecord, sqlx::Error> {
         Ok(LiftRecord {
             id: row.try_get("id")?,
             vendorid: row.try_get::<i64, _>("vendorid")? as u32,
@@ -439,8 +461,19 @@ mod tests {
     }
 
     #[tokio::test]
-    async fn accounts_tokens_and_isolation() {
-        let store = Store::open("sqlite::memory:").await.unwrap();
+    async fn sqlite() {
+        accounts_tokens_and_isolation(Store::open("sqlite::memory:").await.unwrap()).await;
+    }
+
+    #[tokio::test]
+    async fn postgres() {
+        let Some(url) = testkit::postgres("store").await else {
+            return;
+        };
+        accounts_tokens_and_isolation(Store::open(&url).await.unwrap()).await;
+    }
+
+    async fn accounts_tokens_and_isolation(store: Store) {
         let key = store.add_account("masora", "MAS").await.unwrap();
         assert!(key.starts_with("clk_") && key.len() == 36);
         assert_eq!(

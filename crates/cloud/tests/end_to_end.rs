@@ -37,10 +37,23 @@ impl Client {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn operator_reads_writes_and_watches_a_simulated_lift() {
-    let dir = std::env::temp_dir().join(format!("canlift-e2e-{}", std::process::id()));
+async fn with_sqlite() {
+    operator_reads_writes_and_watches_a_simulated_lift("sqlite", None).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn with_postgres() {
+    let Some(url) = testkit::postgres("e2e").await else {
+        return;
+    };
+    operator_reads_writes_and_watches_a_simulated_lift("postgres", Some(url)).await;
+}
+
+async fn operator_reads_writes_and_watches_a_simulated_lift(name: &str, database: Option<String>) {
+    let dir = std::env::temp_dir().join(format!("canlift-e2e-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let mut config = Config::default();
+    config.database.url = database;
     config.server.listen = "127.0.0.1:0".parse().unwrap();
     config.state.dir = dir.join("portal");
     let portal = Portal::bind(&config).await.unwrap();
@@ -51,7 +64,8 @@ async fn operator_reads_writes_and_watches_a_simulated_lift() {
     let (stop, stopped) = tokio::sync::watch::channel(false);
     let portal_task = tokio::spawn(portal.run(stopped));
 
-    let bus = "mem://e2e";
+    let bus = format!("mem://e2e-{name}");
+    let bus = bus.as_str();
     let sim = Simulator::start(
         bus,
         SimConfig {
