@@ -119,11 +119,15 @@ async fn buttons_on_the_io_node_reach_the_controller_by_pdo() {
         .write_raw(12, 0x2000, 0, &0x0206u16.to_le_bytes())
         .await
         .unwrap();
-    assert_eq!(
-        read_uint(&master, 12, 0x6100, 6).await >> 40,
-        1,
-        "requested"
-    );
+    // The simulator handles the press asynchronously: the input shows the request shortly.
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
+    while read_uint(&master, 12, 0x6100, 6).await >> 40 != 1 {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the button was never requested"
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
     until(&master, 0x6520, 1, |v| v == 1).await;
     assert_eq!(read_u32(&master, 1, 0x6383, 1).await, 18_500);
     // The controller keeps the last virtual input it received.
