@@ -288,27 +288,12 @@ impl Variable {
 
 /// Order two numeric values of possibly different representation.
 pub fn compare(a: &Value, b: &Value) -> Option<std::cmp::Ordering> {
-    fn wide(v: &Value) -> Option<f64> {
-        Some(match v {
-            Value::Bool(b) => f64::from(u8::from(*b)),
-            Value::Real32(f) => f64::from(*f),
-            Value::Real64(f) => *f,
-            _ => return None,
-        })
-    }
     match (a, b) {
         (Value::Int(x), Value::Int(y)) => Some(x.cmp(y)),
         (Value::Uint(x), Value::Uint(y)) => Some(x.cmp(y)),
         (Value::Int(x), Value::Uint(y)) => Some(i128::from(*x).cmp(&i128::from(*y))),
         (Value::Uint(x), Value::Int(y)) => Some(i128::from(*x).cmp(&i128::from(*y))),
-        _ => {
-            let as_f64 = |v: &Value| match v {
-                Value::Int(i) => Some(*i as f64),
-                Value::Uint(u) => Some(*u as f64),
-                other => wide(other),
-            };
-            as_f64(a)?.partial_cmp(&as_f64(b)?)
-        }
+        _ => a.as_f64()?.partial_cmp(&b.as_f64()?),
     }
 }
 

@@ -230,6 +230,20 @@ pub enum Value {
     },
 }
 
+impl Value {
+    /// The value as a real number, for numeric types and BOOLEAN (0/1); `None` otherwise.
+    pub fn as_f64(&self) -> Option<f64> {
+        Some(match self {
+            Value::Bool(b) => f64::from(u8::from(*b)),
+            Value::Int(i) => *i as f64,
+            Value::Uint(u) => *u as f64,
+            Value::Real32(f) => f64::from(*f),
+            Value::Real64(f) => *f,
+            _ => return None,
+        })
+    }
+}
+
 /// Why a value does not fit its type.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum TypeError {

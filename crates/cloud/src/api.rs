@@ -256,7 +256,7 @@ async fn privilege(
         &ring::digest::SHA1_FOR_LEGACY_USE_ONLY,
         body.password.as_bytes(),
     );
-    let passhash: String = sha1.as_ref().iter().map(|b| format!("{b:02x}")).collect();
+    let passhash = store::hex(sha1.as_ref());
     let params = json!({"sernum": sernum, "privilege": body.privilege, "passhash": passhash});
     let result = app.registry.call(&id, "elevate_privilege", params).await;
     let entry = AuditEntry {

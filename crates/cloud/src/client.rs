@@ -112,39 +112,35 @@ impl Client {
         path: &str,
         body: Option<Value>,
     ) -> Result<Answer, ClientError> {
-        let response = self.send(method, path, body.as_ref()).await?;
-        let status = response.status().as_u16();
-        let bytes = response
-            .into_body()
-            .collect()
-            .await
-            .map_err(|e| ClientError::Io(e.to_string()))?
-            .to_bytes();
-        let value = serde_json::from_slice(&bytes)
-            .unwrap_or_else(|_| Value::String(String::from_utf8_lossy(&bytes).into_owned()));
-        Ok((status, value))
+        answer(self.send(method, path, body.as_ref()).await?).await
     }
 
     /// Open the Server-Sent Events at `path` (the portal subscribes before answering, so
     /// nothing published after this returns is missed). `Err` carries a status other than 200.
     pub async fn events(&self, path: &str) -> Result<Result<EventStream, Answer>, ClientError> {
         let response = self.send("GET", path, None).await?;
-        let status = response.status().as_u16();
-        if status != 200 {
-            let bytes = response
-                .into_body()
-                .collect()
-                .await
-                .map_err(|e| ClientError::Io(e.to_string()))?
-                .to_bytes();
-            let body = serde_json::from_slice(&bytes).unwrap_or(Value::Null);
-            return Ok(Err((status, body)));
+        if response.status() != 200 {
+            return Ok(Err(answer(response).await?));
         }
         Ok(Ok(EventStream {
             body: response.into_body(),
             buffer: String::new(),
         }))
     }
+}
+
+/// The status and the whole body of `response`, as JSON (a string when it is not JSON).
+async fn answer(response: hyper::Response<hyper::body::Incoming>) -> Result<Answer, ClientError> {
+    let status = response.status().as_u16();
+    let bytes = response
+        .into_body()
+        .collect()
+        .await
+        .map_err(|e| ClientError::Io(e.to_string()))?
+        .to_bytes();
+    let value = serde_json::from_slice(&bytes)
+        .unwrap_or_else(|_| Value::String(String::from_utf8_lossy(&bytes).into_owned()));
+    Ok((status, value))
 }
 
 /// Server-Sent Events as they arrive.

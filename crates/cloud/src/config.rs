@@ -34,21 +34,7 @@ impl Default for ServerSection {
     }
 }
 
-/// `[state]`.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct StateSection {
-    /// Directory for the database and the development PKI.
-    pub dir: PathBuf,
-}
-
-impl Default for StateSection {
-    fn default() -> Self {
-        StateSection {
-            dir: "state".into(),
-        }
-    }
-}
+pub use gateway::config::StateSection;
 
 /// `[database]`.
 #[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]

@@ -272,11 +272,7 @@ pub async fn serve(mut socket: WebSocket, shared: Shared, peer: String) {
                     }
                     PortalOutput::Notification(payload) => {
                         if let Some((id, _)) = &lift {
-                            let mplex = payload["mplex"]
-                                .as_str()
-                                .unwrap_or_default()
-                                .to_uppercase()
-                                .replacen("0X", "0x", 1);
+                            let mplex = normalized(payload["mplex"].as_str().unwrap_or_default());
                             let value = match &payload["value"] {
                                 Value::String(s) => s.clone(),
                                 other => other.to_string(),
@@ -344,6 +340,11 @@ pub async fn serve(mut socket: WebSocket, shared: Shared, peer: String) {
     } else {
         tracing::info!(%peer, %cause, "connection ended before CONNACK");
     }
+}
+
+/// An mplex in the gateway's spelling (`0x` + upper-case hex), or as it came if it is none.
+pub fn normalized(mplex: &str) -> String {
+    nxg::mplex::Mplex::parse(mplex).map_or_else(|_| mplex.to_owned(), |m| m.to_string())
 }
 
 /// The JSON of an event for Server-Sent Events.

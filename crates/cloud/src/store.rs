@@ -2,8 +2,8 @@
 //! refused connection attempts, telemetry (pushed values) and the audit log, in SQLite or
 //! PostgreSQL through sqlx (one set of portable statements with `$n` parameters).
 //!
-//! Secrets are stored only as SHA-256 digests (API keys, cloud tokens); comparisons of digests
-//! take the same time wherever they differ.
+//! Secrets are stored only as SHA-256 digests (API keys, cloud tokens); tokens are compared with
+//! the one on record in time independent of where they differ.
 
 use std::time::{SystemTime, UNIX_EPOCH};
 
@@ -24,27 +24,21 @@ pub fn now_ms() -> i64 {
         .map_or(0, |d| d.as_millis() as i64)
 }
 
-/// SHA-256 hex of `secret`.
-pub fn digest(secret: &str) -> String {
-    let d = ring::digest::digest(&ring::digest::SHA256, secret.as_bytes());
-    d.as_ref().iter().map(|b| format!("{b:02x}")).collect()
+/// Lower-case hex of `bytes`.
+pub fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
-/// Equal digests, compared in constant time.
-pub fn same_digest(a: &str, b: &str) -> bool {
-    a.len() == b.len()
-        && a.bytes()
-            .zip(b.bytes())
-            .fold(0u8, |acc, (x, y)| acc | (x ^ y))
-            == 0
+/// SHA-256 hex of `secret`.
+pub fn digest(secret: &str) -> String {
+    hex(ring::digest::digest(&ring::digest::SHA256, secret.as_bytes()).as_ref())
 }
 
 /// A random secret of 128 bits as 32 hex digits, with a prefix.
 pub fn secret(prefix: &str) -> String {
     let mut bytes = [0u8; 16];
     rand::rng().fill_bytes(&mut bytes);
-    let hex: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
-    format!("{prefix}{hex}")
+    format!("{prefix}{}", hex(&bytes))
 }
 
 /// The id of a lift in the API: `VENDORID-PRODUCTCODE-SERNUM`.
@@ -128,7 +122,7 @@ pub struct Store {
 }
 
 const SCHEMA: &[&str] = &[
-    "CREATE TABLE IF NOT EXISTS accounts (name TEXT PRIMARY KEY, domain TEXT NOT NULL UNIQUE, key_hash TEXT NOT NULL, created BIGINT NOT NULL)",
+    "CREATE TABLE IF NOT EXISTS accounts (name TEXT PRIMARY KEY, domain TEXT NOT NULL UNIQUE, key_hash TEXT NOT NULL UNIQUE, created BIGINT NOT NULL)",
     "CREATE TABLE IF NOT EXISTS gateways (id TEXT PRIMARY KEY, vendorid BIGINT NOT NULL, productcode BIGINT NOT NULL, sernum TEXT NOT NULL, liftnum TEXT NOT NULL, hardware TEXT NOT NULL, software TEXT NOT NULL, boardhash TEXT NOT NULL, domain TEXT NOT NULL, api BIGINT NOT NULL, token_hash TEXT, last_seen BIGINT NOT NULL)",
     "CREATE TABLE IF NOT EXISTS refused (at BIGINT NOT NULL, lift TEXT NOT NULL, peer TEXT NOT NULL, cause TEXT NOT NULL)",
     "CREATE TABLE IF NOT EXISTS telemetry (lift TEXT NOT NULL, mplex TEXT NOT NULL, node BIGINT NOT NULL, value TEXT NOT NULL, at BIGINT NOT NULL)",
@@ -191,24 +185,20 @@ impl Store {
         Ok(key)
     }
 
-    /// The account an API key belongs to.
+    /// The account an API key belongs to (found by the key's digest: an index lookup reveals
+    /// nothing of a random 128-bit key).
     pub async fn account_by_key(&self, key: &str) -> Result<Option<Account>, StoreError> {
-        let wanted = digest(key);
-        let rows = sqlx::query("SELECT name, domain, key_hash FROM accounts")
-            .fetch_all(&self.pool)
+        let row = sqlx::query("SELECT name, domain FROM accounts WHERE key_hash = $1")
+            .bind(digest(key))
+            .fetch_optional(&self.pool)
             .await?;
-        // Every row is compared, so the time does not tell which account came close.
-        let mut found = None;
-        for row in rows {
-            let hash: String = row.try_get("key_hash")?;
-            if same_digest(&hash, &wanted) {
-                found = Some(Account {
-                    name: row.try_get("name")?,
-                    domain: row.try_get("domain")?,
-                });
-            }
-        }
-        Ok(found)
+        let account = row.map(|r| -> Result<Account, sqlx::Error> {
+            Ok(Account {
+                name: r.try_get("name")?,
+                domain: r.try_get("domain")?,
+            })
+        });
+        Ok(account.transpose()?)
     }
 
     /// Whether an account owns `domain`.
@@ -248,7 +238,7 @@ impl Store {
         }
         Ok(match (hash, cloudtoken) {
             (None, _) => Admission::FirstContact,
-            (Some(h), Some(t)) if same_digest(&h, &digest(t)) => Admission::Known,
+            (Some(h), Some(t)) if nxg::gateway::hash_matches(&h, &digest(t)) => Admission::Known,
             (Some(_), Some(_)) => Admission::Refused("wrong cloud token".into()),
             (Some(_), None) => Admission::Refused("no cloud token although one was issued".into()),
         })

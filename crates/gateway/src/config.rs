@@ -47,11 +47,12 @@ impl Default for CloudSection {
     }
 }
 
-/// `[state]`: durable state (the cloud token).
+/// `[state]`: durable state (the gateway's cloud token; the portal's database and development
+/// PKI).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct StateSection {
-    /// Directory for the cloud token.
+    /// Directory for durable state.
     pub dir: PathBuf,
 }
 

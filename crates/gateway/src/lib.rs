@@ -163,7 +163,6 @@ impl Gateway {
         for n in &config.networks {
             load_eds(n.net, &n.nodes, &mut eds)?;
         }
-        let metadata = metadata(&config, eds);
         let node_config = NodeConfig {
             device_type: 417,
             identity: [config.identity.vendorid, config.identity.productcode, 1, 0],
@@ -178,18 +177,18 @@ impl Gateway {
             node_config,
         );
         node.nmt(canopen::nmt::NmtCommand::Start);
-        let url = config.bus.url.clone();
-        Ok(Gateway {
-            shared: Arc::new(Shared {
-                token: TokenStore::new(&config.state.dir),
-                config,
-                tls,
-                metadata: Arc::new(metadata),
-                backend: Backend::Bus(nets),
-                mode: Mode::Bus { sdo, url },
-            }),
-            node: Some(node),
-        })
+        let mode = Mode::Bus {
+            sdo,
+            url: config.bus.url.clone(),
+        };
+        Ok(Gateway::assemble(
+            config,
+            tls,
+            eds,
+            Backend::Bus(nets),
+            mode,
+            Some(node),
+        ))
     }
 
     /// Embedded mode: serve `od`, the dictionary of the controller the gateway is linked into
@@ -197,23 +196,43 @@ impl Gateway {
     pub fn embedded(config: Config, od: SharedDictionary) -> Result<Gateway, GatewayError> {
         config.validate()?;
         let tls = tls::client_config(&config.cloud)?;
-        let changes = LocalChanges::install(&od);
-        let metadata = metadata(&config, HashMap::new());
-        let node = config.bus.lift_controller;
-        Ok(Gateway {
+        let backend = Backend::Local {
+            od: od.clone(),
+            node: config.bus.lift_controller,
+        };
+        let mode = Mode::Local {
+            changes: LocalChanges::install(&od),
+            od,
+        };
+        Ok(Gateway::assemble(
+            config,
+            tls,
+            HashMap::new(),
+            backend,
+            mode,
+            None,
+        ))
+    }
+
+    fn assemble(
+        config: Config,
+        tls: Arc<rustls::ClientConfig>,
+        eds: HashMap<Target, ObjectDictionary>,
+        backend: Backend,
+        mode: Mode,
+        node: Option<LocalNode>,
+    ) -> Gateway {
+        Gateway {
             shared: Arc::new(Shared {
                 token: TokenStore::new(&config.state.dir),
+                metadata: Arc::new(metadata(&config, eds)),
                 config,
                 tls,
-                metadata: Arc::new(metadata),
-                backend: Backend::Local {
-                    od: od.clone(),
-                    node,
-                },
-                mode: Mode::Local { od, changes },
+                backend,
+                mode,
             }),
-            node: None,
-        })
+            node,
+        }
     }
 
     /// Connect, serve, and reconnect until `shutdown` turns true.

@@ -846,7 +846,7 @@ fn check_entry(e: &Entry, code: ObjectCode, here: &str, problems: &mut Vec<Strin
         match types::from_text(ty, text) {
             Err(err) => problem(format!("default {text:?}: {err}")),
             Ok(value) => {
-                if let (Some(lo), Some(hi), Some(v)) = (e.min, e.max, numeric(&value)) {
+                if let (Some(lo), Some(hi), Some(v)) = (e.min, e.max, value.as_f64()) {
                     let zero_ok = e.zero && v == 0.0;
                     if (v < lo.as_f64() || v > hi.as_f64()) && !zero_ok {
                         problem(format!("default {text} outside the limits"));
@@ -854,17 +854,6 @@ fn check_entry(e: &Entry, code: ObjectCode, here: &str, problems: &mut Vec<Strin
                 }
             }
         }
-    }
-}
-
-fn numeric(v: &Value) -> Option<f64> {
-    match v {
-        Value::Int(i) => Some(*i as f64),
-        Value::Uint(u) => Some(*u as f64),
-        Value::Real32(r) => Some(f64::from(*r)),
-        Value::Real64(r) => Some(*r),
-        Value::Bool(b) => Some(f64::from(u8::from(*b))),
-        _ => None,
     }
 }
 
@@ -887,7 +876,7 @@ struct ZeroOrRange {
 impl VariableHook for ZeroOrRange {
     fn on_write(&self, _: u16, _: u8, data: &[u8]) -> Result<(), AbortCode> {
         let value = types::decode(self.ty, data).map_err(|e| e.abort_code())?;
-        match numeric(&value) {
+        match value.as_f64() {
             Some(v) if v != 0.0 && v < self.min => Err(AbortCode::VALUE_TOO_LOW),
             _ => Ok(()),
         }

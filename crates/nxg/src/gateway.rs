@@ -1059,8 +1059,9 @@ fn push(
     Output::Send(rpc::notification("canopen_object", payload))
 }
 
-/// Compare SHA-1 hex digests case-insensitively in time independent of where they differ.
-fn hash_matches(expected: &str, given: &str) -> bool {
+/// Compare hex digests (SHA-1 password hashes, SHA-256 of tokens and keys) case-insensitively,
+/// in time independent of where they differ.
+pub fn hash_matches(expected: &str, given: &str) -> bool {
     let (a, b) = (expected.trim().as_bytes(), given.trim().as_bytes());
     if a.len() != b.len() {
         return false;
@@ -1121,17 +1122,6 @@ fn bare_entry(m: Mplex, datatype: NxgDataType) -> Entry {
     }
 }
 
-fn numeric(v: &CoValue) -> Option<f64> {
-    match v {
-        CoValue::Int(i) => Some(*i as f64),
-        CoValue::Uint(u) => Some(*u as f64),
-        CoValue::Real32(r) => Some(f64::from(*r)),
-        CoValue::Real64(r) => Some(*r),
-        CoValue::Bool(b) => Some(f64::from(u8::from(*b))),
-        _ => None,
-    }
-}
-
 fn check_range(entry: &Entry, value: &CoValue) -> Result<(), AbortCode> {
     if let CoValue::Text(t) = value {
         if let Some(Bound::Int(max)) = entry.max {
@@ -1141,7 +1131,7 @@ fn check_range(entry: &Entry, value: &CoValue) -> Result<(), AbortCode> {
         }
         return Ok(());
     }
-    let Some(v) = numeric(value) else {
+    let Some(v) = value.as_f64() else {
         return Ok(());
     };
     if entry.zero && v == 0.0 {

@@ -261,7 +261,7 @@ pub async fn watch(args: WatchArgs) -> anyhow::Result<()> {
     let wanted: Vec<String> = args
         .mplex
         .iter()
-        .map(|m| m.to_uppercase().replacen("0X", "0x", 1))
+        .map(|m| cloud::gateways::normalized(m))
         .collect();
     let mut seen = 0;
     let shutdown = crate::logging::shutdown_signal();

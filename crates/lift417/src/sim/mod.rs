@@ -378,7 +378,8 @@ impl Simulator {
                     input_hook(&tx, move |d| button_press(floors, d)),
                 );
                 let node = LocalNode::start(Bus::open(url).await?, od, config.io_config(id));
-                node.configure_pdo(&PdoSetup {
+                // 6010h travels from the I/O node's TPDO1 to the controller's RPDO1.
+                let link = PdoSetup {
                     transmit: true,
                     number: 1,
                     cob_id: 0x180 + u32::from(id),
@@ -386,19 +387,13 @@ impl Simulator {
                     transmission_type: 255,
                     inhibit_100us: 0,
                     event_ms: 0,
-                })
-                .map_err(SimError::Pdo)?;
-                controller
-                    .configure_pdo(&PdoSetup {
-                        transmit: false,
-                        number: 1,
-                        cob_id: 0x180 + u32::from(id),
-                        objects: vec![(0x6010, 0)],
-                        transmission_type: 255,
-                        inhibit_100us: 0,
-                        event_ms: 0,
-                    })
-                    .map_err(SimError::Pdo)?;
+                };
+                node.configure_pdo(&link).map_err(SimError::Pdo)?;
+                let receive = PdoSetup {
+                    transmit: false,
+                    ..link
+                };
+                controller.configure_pdo(&receive).map_err(SimError::Pdo)?;
                 Some(Arc::new(node))
             }
             None => None,
@@ -627,12 +622,8 @@ impl Runner {
         let value = Value::Uint(virtual_input(lift, floor, kind, true));
         let (index, sub) = button(floor, kind);
         let _ = io.set_value(index, sub, &value);
-        // A change of 6010h sends the PDO by itself; the same button again needs a request.
-        let unchanged = io.value(0x6010, 0).is_ok_and(|v| v == value);
+        // Every set of 6010h (even to the same value) makes its event-driven TPDO pending.
         let _ = io.set_value(0x6010, 0, &value);
-        if unchanged {
-            io.send_pdo(1);
-        }
     }
 
     fn random(&mut self) -> u64 {
