@@ -7,8 +7,10 @@ use std::collections::HashMap;
 use std::convert::Infallible;
 use std::sync::Arc;
 
+use axum::extract::FromRequestParts;
 use axum::extract::{Path, Query, State};
-use axum::http::{HeaderMap, StatusCode};
+use axum::http::request::Parts;
+use axum::http::{Method, StatusCode};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
@@ -19,8 +21,10 @@ use nxg::portal::Failure;
 use serde::Deserialize;
 use serde_json::{json, Value};
 
+use crate::config::DashboardSection;
 use crate::gateways::{event_json, Registry};
 use crate::store::{self, Account, AuditEntry, Store};
+use crate::web::Sessions;
 
 /// What the handlers share.
 pub struct App {
@@ -28,6 +32,10 @@ pub struct App {
     pub store: Store,
     /// Live gateways.
     pub registry: Arc<Registry>,
+    /// Signed-in browsers of the web UI.
+    pub sessions: Sessions,
+    /// What the web UI shows.
+    pub dashboard: DashboardSection,
 }
 
 /// An error answer.
@@ -75,26 +83,44 @@ impl From<Failure> for ApiError {
     }
 }
 
-async fn account(app: &App, headers: &HeaderMap) -> Result<Account, ApiError> {
-    let key = headers
-        .get("authorization")
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.strip_prefix("Bearer "))
-        .ok_or_else(|| {
-            error(
+/// The account a request acts for: `Authorization: Bearer API_KEY`, or the web UI's session
+/// cookie. A cookie alone never authorises a change: requests other than GET must also carry
+/// the session's `X-CSRF-Token`, which another site cannot read.
+pub struct Caller(pub Account);
+
+impl FromRequestParts<Arc<App>> for Caller {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, app: &Arc<App>) -> Result<Self, ApiError> {
+        let header = |name: &str| parts.headers.get(name).and_then(|v| v.to_str().ok());
+        if let Some(key) = header("authorization").and_then(|v| v.strip_prefix("Bearer ")) {
+            return app
+                .store
+                .account_by_key(key.trim())
+                .await?
+                .map(Caller)
+                .ok_or_else(|| error(StatusCode::UNAUTHORIZED, "unknown API key"));
+        }
+        let Some(session) = app.sessions.get(&parts.headers) else {
+            return Err(error(
                 StatusCode::UNAUTHORIZED,
                 "Authorization: Bearer API_KEY is required",
-            )
-        })?;
-    app.store
-        .account_by_key(key.trim())
-        .await?
-        .ok_or_else(|| error(StatusCode::UNAUTHORIZED, "unknown API key"))
+            ));
+        };
+        let reads = parts.method == Method::GET || parts.method == Method::HEAD;
+        if !reads && !session.csrf_matches(header("x-csrf-token")) {
+            return Err(error(
+                StatusCode::FORBIDDEN,
+                "X-CSRF-Token missing or wrong",
+            ));
+        }
+        Ok(Caller(session.account))
+    }
 }
 
-/// The account, and the lift if it is one of the account's.
-async fn lift_of(app: &App, headers: &HeaderMap, id: &str) -> Result<Account, ApiError> {
-    let account = account(app, headers).await?;
+/// The caller's account, if the lift is one of the account's (404 otherwise).
+async fn lift_of(app: &App, caller: Caller, id: &str) -> Result<Account, ApiError> {
+    let account = caller.0;
     if app.store.lift(&account.domain, id).await?.is_none() {
         return Err(error(StatusCode::NOT_FOUND, "no such lift"));
     }
@@ -105,8 +131,10 @@ fn mplex(text: &str) -> Result<Mplex, ApiError> {
     Mplex::parse(text).map_err(|e| error(StatusCode::BAD_REQUEST, &e.to_string()))
 }
 
-async fn lifts(State(app): State<Arc<App>>, headers: HeaderMap) -> Result<Json<Value>, ApiError> {
-    let account = account(&app, &headers).await?;
+async fn lifts(
+    State(app): State<Arc<App>>,
+    Caller(account): Caller,
+) -> Result<Json<Value>, ApiError> {
     let lifts: Vec<Value> = app
         .store
         .lifts(&account.domain)
@@ -143,31 +171,40 @@ fn node_param(node: Option<u8>, net: Option<u8>, datatype: Option<u32>) -> Optio
     })
 }
 
+/// `get_canopen_object` parameters (NXg §6.1) in `form` `full`, `stripped` or `naked`.
+pub(crate) fn read_params(mplex: &str, lang: &str, alt: &str, form: &str) -> Value {
+    let mut object = json!({"mplex": mplex});
+    if form != "full" {
+        object[form] = json!(true);
+    }
+    json!({
+        "lang": {"preferred_language": lang, "alternate_language": alt},
+        "object": object,
+    })
+}
+
 async fn get_object(
     State(app): State<Arc<App>>,
-    headers: HeaderMap,
+    caller: Caller,
     Path((id, text)): Path<(String, String)>,
     Query(q): Query<GetQuery>,
 ) -> Result<Json<Value>, ApiError> {
-    lift_of(&app, &headers, &id).await?;
+    lift_of(&app, caller, &id).await?;
     mplex(&text)?;
-    let lang = q.lang.unwrap_or_else(|| "en".into());
-    let mut object = json!({"mplex": text, "compact": q.compact.unwrap_or(false)});
-    match q.form.as_deref() {
-        None | Some("full") => {}
-        Some("stripped") => object["stripped"] = json!(true),
-        Some("naked") => object["naked"] = json!(true),
+    let form = match q.form.as_deref() {
+        None | Some("full") => "full",
+        Some(f @ ("stripped" | "naked")) => f,
         Some(other) => {
             return Err(error(
                 StatusCode::BAD_REQUEST,
                 &format!("form {other:?}: full, stripped or naked"),
             ))
         }
-    }
-    let mut params = json!({
-        "lang": {"preferred_language": lang, "alternate_language": q.alt_lang.unwrap_or_else(|| "en".into())},
-        "object": object,
-    });
+    };
+    let lang = q.lang.as_deref().unwrap_or("en");
+    let alt = q.alt_lang.as_deref().unwrap_or("en");
+    let mut params = read_params(&text, lang, alt, form);
+    params["object"]["compact"] = json!(q.compact.unwrap_or(false));
     if let Some(node) = node_param(q.node, q.net, q.datatype) {
         params["node"] = node;
     }
@@ -187,11 +224,11 @@ struct PutBody {
 
 async fn put_object(
     State(app): State<Arc<App>>,
-    headers: HeaderMap,
+    caller: Caller,
     Path((id, text)): Path<(String, String)>,
     Json(body): Json<PutBody>,
 ) -> Result<Json<Value>, ApiError> {
-    let account = lift_of(&app, &headers, &id).await?;
+    let account = lift_of(&app, caller, &id).await?;
     mplex(&text)?;
     let sernum = app.registry.sernum(&id).ok_or(Failure::Gone)?;
     let node = node_param(body.node, body.net, None);
@@ -245,11 +282,11 @@ struct PrivilegeBody {
 
 async fn privilege(
     State(app): State<Arc<App>>,
-    headers: HeaderMap,
+    caller: Caller,
     Path(id): Path<String>,
     Json(body): Json<PrivilegeBody>,
 ) -> Result<Json<Value>, ApiError> {
-    let account = lift_of(&app, &headers, &id).await?;
+    let account = lift_of(&app, caller, &id).await?;
     let sernum = app.registry.sernum(&id).ok_or(Failure::Gone)?;
     // NXg §6.4: the gateway compares the unsalted SHA-1; the password itself is never stored.
     let sha1 = ring::digest::digest(
@@ -284,11 +321,11 @@ struct SubscriptionBody {
 async fn subscriptions(
     State(app): State<Arc<App>>,
     method: axum::http::Method,
-    headers: HeaderMap,
+    caller: Caller,
     Path(id): Path<String>,
     Json(body): Json<SubscriptionBody>,
 ) -> Result<Json<Value>, ApiError> {
-    lift_of(&app, &headers, &id).await?;
+    lift_of(&app, caller, &id).await?;
     let (rpc, params) = if method == axum::http::Method::DELETE {
         ("unreg_canopen_object", json!({"mplex": body.mplex}))
     } else {
@@ -300,10 +337,10 @@ async fn subscriptions(
 
 async fn events(
     State(app): State<Arc<App>>,
-    headers: HeaderMap,
+    caller: Caller,
     Path(id): Path<String>,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
-    lift_of(&app, &headers, &id).await?;
+    lift_of(&app, caller, &id).await?;
     let rx = app.registry.subscribe(&id);
     let online = app.registry.online(&id);
     let first = Event::default()
@@ -330,11 +367,11 @@ async fn events(
 
 async fn history(
     State(app): State<Arc<App>>,
-    headers: HeaderMap,
+    caller: Caller,
     Path((id, text)): Path<(String, String)>,
     Query(q): Query<HashMap<String, i64>>,
 ) -> Result<Json<Value>, ApiError> {
-    lift_of(&app, &headers, &id).await?;
+    lift_of(&app, caller, &id).await?;
     let m = mplex(&text)?;
     let to = q.get("to").copied().unwrap_or(i64::MAX);
     let from = q.get("from").copied().unwrap_or(0);
@@ -348,8 +385,10 @@ async fn history(
     ))
 }
 
-async fn audit(State(app): State<Arc<App>>, headers: HeaderMap) -> Result<Json<Value>, ApiError> {
-    let account = account(&app, &headers).await?;
+async fn audit(
+    State(app): State<Arc<App>>,
+    Caller(account): Caller,
+) -> Result<Json<Value>, ApiError> {
     Ok(Json(json!(app.store.audit_log(&account.domain).await?)))
 }
 

@@ -1,5 +1,5 @@
 //! The portal's configuration (issue 7; DESIGN.md §3): `[server]`, `[state]`, `[database]`,
-//! `[gateways]`.
+//! `[gateways]`, `[dashboard]`.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -89,8 +89,38 @@ impl GatewaysSection {
     }
 }
 
+/// `[dashboard]`: what every gateway is asked to push, and what the web UI shows.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DashboardSection {
+    /// Objects subscribed on every gateway when it connects (`reg_canopen_object`, NXg §7.3):
+    /// stored as telemetry, shown live on the lift page; 0x100100 and 0x502400 give the fleet
+    /// page its fault column.
+    pub live: Vec<String>,
+    /// Inhibit time of those subscriptions (ms).
+    pub inhibit_ms: u64,
+    /// The lift page's parameter table.
+    pub parameters: Vec<String>,
+}
+
+impl Default for DashboardSection {
+    fn default() -> Self {
+        let list = |l: &[&str]| l.iter().map(|s| (*s).to_owned()).collect();
+        DashboardSection {
+            live: list(&[
+                "0x652001", "0x652002", "0x638301", "0x639001", "0x630101", "0x648001", "0x502300",
+                "0x502400", "0x100100",
+            ]),
+            inhibit_ms: 500,
+            parameters: list(&[
+                "0x411300", "0x411400", "0x411500", "0x411200", "0x502200", "0x640801", "0x503000",
+            ]),
+        }
+    }
+}
+
 /// The whole configuration.
-#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Config {
     /// `[server]`.
@@ -101,6 +131,8 @@ pub struct Config {
     pub database: DatabaseSection,
     /// `[gateways]`.
     pub gateways: GatewaysSection,
+    /// `[dashboard]`.
+    pub dashboard: DashboardSection,
 }
 
 impl Config {

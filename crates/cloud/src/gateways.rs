@@ -162,6 +162,33 @@ pub struct Shared {
     pub settings: PortalSettings,
     /// Where notifications go to be stored in batches.
     pub telemetry: mpsc::Sender<(String, String, u8, String, i64)>,
+    /// Objects every gateway is asked to push, with their inhibit time (ms).
+    pub live: Arc<(Vec<String>, u64)>,
+}
+
+/// Ask a newly connected gateway to push the dashboard's objects, the way an operator would.
+/// `reg_canopen_object` is all or none (NXg §7.3): when one object is missing on this lift the
+/// others are registered one by one.
+async fn subscribe_live(registry: Arc<Registry>, lift: String, live: Arc<(Vec<String>, u64)>) {
+    let (objects, inhibit) = (&live.0, live.1);
+    if objects.is_empty() {
+        return;
+    }
+    let all = json!({"mplex": objects, "inhibit": inhibit, "threshold": 0});
+    match registry.call(&lift, "reg_canopen_object", all).await {
+        Ok(_) => return,
+        Err(Failure::Error(_)) => {}
+        Err(other) => {
+            tracing::debug!(%lift, failure = ?other, "dashboard objects not subscribed");
+            return;
+        }
+    }
+    for mplex in objects {
+        let one = json!({"mplex": [mplex], "inhibit": inhibit, "threshold": 0});
+        if let Err(e) = registry.call(&lift, "reg_canopen_object", one).await {
+            tracing::debug!(%lift, %mplex, failure = ?e, "dashboard object not subscribed");
+        }
+    }
 }
 
 /// Write telemetry in batches (up to 500 values or every 200 ms, whichever first).
@@ -250,6 +277,11 @@ pub async fn serve(mut socket: WebSocket, shared: Shared, peer: String) {
                                         close,
                                     );
                                     lift = Some((id.clone(), serial));
+                                    tokio::spawn(subscribe_live(
+                                        shared.registry.clone(),
+                                        id.clone(),
+                                        shared.live.clone(),
+                                    ));
                                 }
                                 tracing::info!(lift = %id, %peer, api = session.api(), first = ?admission, "gateway online");
                                 shared.registry.publish(&id, LiftEvent::Online(true));

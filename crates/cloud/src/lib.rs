@@ -9,3 +9,4 @@ pub mod devpki;
 pub mod gateways;
 pub mod server;
 pub mod store;
+pub mod web;

@@ -1,5 +1,5 @@
 //! The portal's one TLS port: `/ws` for gateways (subprotocols `cloud`, `lift`), `/api/v1/…` for
-//! operators, `/healthz`, `/metrics`.
+//! operators, `/` the web UI, `/healthz`, `/metrics`.
 
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -143,6 +143,15 @@ impl Portal {
                 registry: registry.clone(),
                 settings: config.gateways.settings(),
                 telemetry,
+                live: Arc::new((
+                    config
+                        .dashboard
+                        .live
+                        .iter()
+                        .map(|m| gateways::normalized(m))
+                        .collect(),
+                    config.dashboard.inhibit_ms,
+                )),
             },
             max_message: config.gateways.max_message_bytes,
             metrics: metrics.clone(),
@@ -159,10 +168,15 @@ impl Portal {
                     async move { metrics_text(&m, &r) }
                 }),
             )
-            .merge(api::routes(Arc::new(App {
-                store,
-                registry: registry.clone(),
-            })));
+            .merge({
+                let app = Arc::new(App {
+                    store,
+                    registry: registry.clone(),
+                    sessions: crate::web::Sessions::default(),
+                    dashboard: config.dashboard.clone(),
+                });
+                api::routes(app.clone()).merge(crate::web::routes(app))
+            });
         let listener = TcpListener::bind(config.server.listen).await.map_err(|e| {
             ServerError::Other(format!("listening on {}: {e}", config.server.listen))
         })?;

@@ -5,6 +5,7 @@
 //! Secrets are stored only as SHA-256 digests (API keys, cloud tokens); tokens are compared with
 //! the one on record in time independent of where they differ.
 
+use std::collections::HashMap;
 use std::time::{SystemTime, UNIX_EPOCH};
 
 use nxg::gateway::Identity;
@@ -390,6 +391,29 @@ impl Store {
         rows.iter()
             .map(|r| Ok((r.try_get("at")?, r.try_get("value")?)))
             .collect()
+    }
+
+    /// The newest stored value of each of `mplexes` (those with none are absent): mplex →
+    /// (at, value). One indexed look-up each.
+    pub async fn latest(
+        &self,
+        lift: &str,
+        mplexes: &[String],
+    ) -> Result<HashMap<String, (i64, String)>, StoreError> {
+        let mut found = HashMap::with_capacity(mplexes.len());
+        for mplex in mplexes {
+            let row = sqlx::query(
+                "SELECT at, value FROM telemetry WHERE lift = $1 AND mplex = $2 ORDER BY at DESC LIMIT 1",
+            )
+            .bind(lift)
+            .bind(mplex)
+            .fetch_optional(&self.pool)
+            .await?;
+            if let Some(r) = row {
+                found.insert(mplex.clone(), (r.try_get("at")?, r.try_get("value")?));
+            }
+        }
+        Ok(found)
     }
 
     /// Add an audit entry.

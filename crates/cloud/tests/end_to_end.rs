@@ -1,44 +1,16 @@
 //! End to end: the real gateway in front of the simulated lift, connected to the portal; an
 //! operator reads, writes and watches through the REST API.
 
-use std::path::Path;
 use std::time::Duration;
 
-use cloud::config::Config;
-use cloud::server::Portal;
-use cloud::store::Store;
-use lift417::sim::{SimConfig, Simulator};
-use serde_json::{json, Value};
+use serde_json::json;
 
-/// The operator client with a key per call.
-struct Client {
-    url: String,
-    ca: std::path::PathBuf,
-}
-
-impl Client {
-    fn new(addr: std::net::SocketAddr, ca: &Path) -> Client {
-        Client {
-            url: format!("https://localhost:{}", addr.port()),
-            ca: ca.to_path_buf(),
-        }
-    }
-
-    async fn call(
-        &self,
-        method: &str,
-        path: &str,
-        key: Option<&str>,
-        body: Option<Value>,
-    ) -> (u16, Value) {
-        let client = cloud::client::Client::new(&self.url, key, Some(&self.ca)).unwrap();
-        client.call(method, path, body).await.unwrap()
-    }
-}
+mod common;
+use common::{Rig, LIFT};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn with_sqlite() {
-    operator_reads_writes_and_watches_a_simulated_lift("sqlite", None).await;
+    operator_reads_writes_and_watches_a_simulated_lift("e2e-sqlite", None).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -46,75 +18,44 @@ async fn with_postgres() {
     let Some(url) = testkit::postgres("e2e").await else {
         return;
     };
-    operator_reads_writes_and_watches_a_simulated_lift("postgres", Some(url)).await;
+    operator_reads_writes_and_watches_a_simulated_lift("e2e-postgres", Some(url)).await;
 }
 
 async fn operator_reads_writes_and_watches_a_simulated_lift(name: &str, database: Option<String>) {
-    let dir = std::env::temp_dir().join(format!("canlift-e2e-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let mut config = Config::default();
-    config.database.url = database;
-    config.server.listen = "127.0.0.1:0".parse().unwrap();
-    config.state.dir = dir.join("portal");
-    let portal = Portal::bind(&config).await.unwrap();
-    let addr = portal.local_addr();
-    let store = Store::open(&config.database_url()).await.unwrap();
-    let key = store.add_account("masora", "MAS").await.unwrap();
-    let other = store.add_account("someone", "OTH").await.unwrap();
-    let (stop, stopped) = tokio::sync::watch::channel(false);
-    let portal_task = tokio::spawn(portal.run(stopped));
-
-    let bus = format!("mem://e2e-{name}");
-    let bus = bus.as_str();
-    let sim = Simulator::start(
-        bus,
-        SimConfig {
-            speed: 20.0,
-            ..SimConfig::default()
-        },
-    )
-    .await
-    .unwrap();
-    let ca = config.state.dir.join("dev-ca.pem");
-    let identity = nxg::gateway::Identity {
-        sernum: "180917010200000102".into(),
-        vendorid: 1050,
-        productcode: 4096,
-        domaintoken: "MAS".into(),
-        liftnum: "40/7289/20399-126".into(),
-        ..Default::default()
-    };
-    let portal_ws = format!("wss://localhost:{}/ws", addr.port());
-    let mut gw =
-        gateway::config::Config::for_portal(identity, &portal_ws, &ca, bus, &dir.join("gateway"));
-    gw.bus.poll_ms = 100;
-    let gateway = gateway::Gateway::bus_node(gw).await.unwrap();
-    let (gw_stop, gw_stopped) = tokio::sync::watch::channel(false);
-    let gw_task = tokio::spawn(gateway.run(gw_stopped));
-
-    let client = Client::new(addr, &ca);
-    let lift = "1050-4096-180917010200000102";
+    let mut rig = Rig::start(name, database, false).await;
+    let (key, other) = (rig.key.clone(), rig.other_key.clone());
+    let client = &rig;
+    let lift = LIFT;
     // Online, with its identity.
+    let lifts = rig.online().await;
+    assert_eq!(lifts[0]["id"], lift);
+    assert_eq!(lifts[0]["liftnum"], "40/7289/20399-126");
+    assert_eq!(lifts[0]["api"], 1);
+    // The dashboard's objects are pushed without any operator subscription (one of them is
+    // missing on this lift, the others are subscribed one by one).
     let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
     loop {
-        let (status, lifts) = client.call("GET", "/api/v1/lifts", Some(&key), None).await;
-        assert_eq!(status, 200, "{lifts}");
-        if lifts[0]["online"] == true {
-            assert_eq!(lifts[0]["id"], lift);
-            assert_eq!(lifts[0]["liftnum"], "40/7289/20399-126");
-            assert_eq!(lifts[0]["api"], 1);
+        let (_, h) = client
+            .call(
+                "GET",
+                &format!("/api/v1/lifts/{lift}/objects/0x502400/history"),
+                Some(&key),
+                None,
+            )
+            .await;
+        if h["values"].as_array().is_some_and(|v| !v.is_empty()) {
             break;
         }
         assert!(
             tokio::time::Instant::now() < deadline,
-            "the gateway did not come online: {lifts}"
+            "the lift state was not pushed: {h}"
         );
-        tokio::time::sleep(Duration::from_millis(50)).await;
+        tokio::time::sleep(Duration::from_millis(100)).await;
     }
     // The token was issued, confirmed and stored on both sides.
     let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
     let token = loop {
-        if let Ok(token) = std::fs::read_to_string(dir.join("gateway/cloudtoken")) {
+        if let Ok(token) = std::fs::read_to_string(rig.dir.join("gateway/cloudtoken")) {
             break token;
         }
         assert!(
@@ -268,12 +209,8 @@ async fn operator_reads_writes_and_watches_a_simulated_lift(name: &str, database
     assert_eq!((status, &doc["openapi"]), (200, &json!("3.0.3")));
     assert_eq!(client.call("GET", "/healthz", None, None).await.0, 200);
     // The gateway goes away: offline → 503.
-    gw_stop.send(true).unwrap();
-    gw_task.await.unwrap();
+    rig.stop_gateway().await;
     tokio::time::sleep(Duration::from_millis(200)).await;
-    assert_eq!(client.call("GET", &path, Some(&key), None).await.0, 503);
-    stop.send(true).unwrap();
-    portal_task.await.unwrap();
-    sim.stop().await;
-    let _ = std::fs::remove_dir_all(&dir);
+    assert_eq!(rig.call("GET", &path, Some(&key), None).await.0, 503);
+    rig.stop().await;
 }

@@ -73,6 +73,31 @@ pub fn python() -> Option<PathBuf> {
     None
 }
 
+/// Chromium and ChromeDriver (Debian's `chromium` and `chromium-driver`), or `None` after
+/// printing why the test is skipped. With CANLIFT_REQUIRE_BROWSER=1 (CI installs both) their
+/// absence fails the test instead.
+pub fn browser() -> Option<(PathBuf, PathBuf)> {
+    let find = |name: &str| {
+        std::env::var_os("PATH").and_then(|paths| {
+            std::env::split_paths(&paths)
+                .map(|p| p.join(name))
+                .find(|p| p.is_file())
+        })
+    };
+    match (find("chromium"), find("chromedriver")) {
+        (Some(chromium), Some(driver)) => Some((chromium, driver)),
+        _ => {
+            let reason = "browser: chromium and chromedriver are not on PATH \
+                          (apt-get install chromium chromium-driver)";
+            if std::env::var("CANLIFT_REQUIRE_BROWSER").as_deref() == Ok("1") {
+                panic!("{reason}");
+            }
+            skip(reason);
+            None
+        }
+    }
+}
+
 /// A fresh PostgreSQL database for test `name`, or `None` after printing why the test is
 /// skipped. CANLIFT_TEST_POSTGRES is a URL to an existing database whose user may create
 /// databases (CI sets it after starting Debian's PostgreSQL); with CANLIFT_REQUIRE_POSTGRES=1 a

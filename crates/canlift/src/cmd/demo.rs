@@ -129,7 +129,9 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
         "canlift demo is running (Ctrl-C stops it); state in {}",
         dir.display()
     );
-    println!("  portal   {portal_url}  (operator API under /api/v1)");
+    println!(
+        "  portal   {portal_url}  (web UI: sign in with the API key; operator API under /api/v1)"
+    );
     println!("  API key  {key}");
     println!(
         "  CA       {}  (trust it to reach the portal)",

@@ -1,0 +1,383 @@
+//! The web UI in headless Chromium (Debian's `chromium`, driven through ChromeDriver by
+//! WebDriver): sign in, fleet, a lift page whose values move by themselves, a put through the
+//! edit dialog that makes the car travel, a put that needs service rights and gets them by
+//! elevation, the history chart, the audit log, CSRF protection and signing out.
+
+use std::future::Future;
+use std::process::Stdio;
+use std::time::Duration;
+
+use fantoccini::{Client, ClientBuilder, Locator};
+use serde_json::{json, Value};
+
+mod common;
+use common::{Rig, LIFT, SERVICE_PASSWORD};
+
+/// ChromeDriver on a free loopback port, killed when dropped.
+struct Driver {
+    _child: tokio::process::Child,
+    url: String,
+}
+
+async fn chromedriver(path: &std::path::Path) -> Driver {
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let child = tokio::process::Command::new(path)
+        .arg(format!("--port={port}"))
+        .arg("--allowed-ips=127.0.0.1")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .kill_on_drop(true)
+        .spawn()
+        .expect("chromedriver starts");
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(20);
+    while tokio::net::TcpStream::connect(("127.0.0.1", port))
+        .await
+        .is_err()
+    {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "chromedriver did not listen"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    Driver {
+        _child: child,
+        url: format!("http://127.0.0.1:{port}"),
+    }
+}
+
+async fn browser(driver: &Driver, chromium: &std::path::Path, profile: &std::path::Path) -> Client {
+    let caps = json!({
+        "browserName": "chrome",
+        // The portal serves its development certificate.
+        "acceptInsecureCerts": true,
+        "goog:chromeOptions": {
+            "binary": chromium,
+            "args": [
+                "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                "--disable-quic", "--no-first-run", "--disable-background-networking",
+                "--disable-component-update", "--disable-sync", "--window-size=1280,1600",
+                format!("--user-data-dir={}", profile.display()),
+            ],
+        },
+    });
+    let serde_json::Value::Object(caps) = caps else {
+        unreachable!()
+    };
+    ClientBuilder::new(hyper_util::client::legacy::connect::HttpConnector::new())
+        .capabilities(caps)
+        .connect(&driver.url)
+        .await
+        .expect("a browser session")
+}
+
+/// Evaluate `script` (a function body) in the page.
+async fn eval(client: &Client, script: &str) -> Value {
+    client.execute(script, vec![]).await.unwrap_or(Value::Null)
+}
+
+/// Poll `check` until it gives `Some`, or fail with `what`.
+async fn until<T, F, Fut>(what: &str, seconds: u64, mut check: F) -> T
+where
+    F: FnMut() -> Fut,
+    Fut: Future<Output = Option<T>>,
+{
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(seconds);
+    loop {
+        if let Some(v) = check().await {
+            return v;
+        }
+        assert!(tokio::time::Instant::now() < deadline, "timed out: {what}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+async fn text_of(client: &Client, css: &str) -> Option<String> {
+    let script = format!(
+        "const e = document.querySelector({}); return e ? e.textContent.trim() : null;",
+        json!(css)
+    );
+    eval(client, &script).await.as_str().map(str::to_owned)
+}
+
+async fn number_of(client: &Client, css: &str) -> Option<u64> {
+    text_of(client, css).await.and_then(|t| t.parse().ok())
+}
+
+async fn click(client: &Client, css: &str) {
+    client
+        .find(Locator::Css(css))
+        .await
+        .unwrap_or_else(|e| panic!("{css}: {e}"))
+        .click()
+        .await
+        .unwrap();
+}
+
+async fn type_into(client: &Client, css: &str, text: &str) {
+    client
+        .find(Locator::Css(css))
+        .await
+        .unwrap_or_else(|e| panic!("{css}: {e}"))
+        .send_keys(text)
+        .await
+        .unwrap();
+}
+
+/// Going to `url` leads to the sign-in form.
+async fn assert_sign_in_asked(client: &Client, url: &str) {
+    client.goto(url).await.unwrap();
+    let at = client.current_url().await.unwrap();
+    assert!(at.path().ends_with("/login"), "{url} led to {at}");
+}
+
+/// Submit the sign-in form with `key`.
+async fn sign_in(client: &Client, key: &str) {
+    type_into(client, "input[name=key]", key).await;
+    click(client, "form.login button").await;
+}
+
+/// Open the edit dialog of `mplex`'s row, enter `value` and press Save.
+async fn edit(client: &Client, mplex: &str, value: &str) {
+    click(
+        client,
+        &format!("table.objects tr[data-mplex=\"{mplex}\"] button.edit"),
+    )
+    .await;
+    let input = client
+        .wait()
+        .at_most(Duration::from_secs(5))
+        .for_element(Locator::Css("dialog#edit [name=value]"))
+        .await
+        .unwrap();
+    input.clear().await.unwrap();
+    input.send_keys(value).await.unwrap();
+    click(client, "dialog#edit button.save").await;
+}
+
+async fn dialog_open(client: &Client) -> bool {
+    eval(client, "return document.getElementById('edit').open;").await == json!(true)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn operator_uses_the_web_ui() {
+    let Some((chromium, chromedriver_path)) = testkit::browser() else {
+        return;
+    };
+    let rig = Rig::start("web-ui", None, true).await;
+    rig.online().await;
+    let driver = chromedriver(&chromedriver_path).await;
+    let profile = rig.dir.join("chromium-profile");
+    let client = browser(&driver, &chromium, &profile).await;
+    let base = rig.url();
+
+    // Not signed in: every page leads to the sign-in form; a wrong key is refused.
+    assert_sign_in_asked(&client, &format!("{base}/lifts/{LIFT}")).await;
+    sign_in(&client, "clk_wrong").await;
+    let refused = until("refusal shown", 10, || text_of(&client, "p.error")).await;
+    assert_eq!(refused, "Unknown API key.");
+
+    // Sign in: the fleet shows the lift online, with no fault.
+    sign_in(&client, &rig.key).await;
+    let badge_css = format!("[data-online=\"{LIFT}\"]");
+    let badge = until("fleet page", 10, || text_of(&client, &badge_css)).await;
+    assert_eq!(badge, "online");
+    assert_eq!(
+        text_of(&client, "p.summary").await.as_deref(),
+        Some("1 of 1 lifts online")
+    );
+    let faults = until(
+        "fault column filled by the pushed error register",
+        15,
+        || async {
+            client.refresh().await.ok()?;
+            text_of(&client, "table.fleet td:last-child")
+                .await
+                .filter(|t| t != "no data")
+        },
+    )
+    .await;
+    assert_eq!(faults, "none");
+
+    // The lift page: names from the gateway, values formatted by their metadata.
+    click(&client, &format!("a[href=\"/lifts/{LIFT}\"]")).await;
+    let state = until("lift state formatted from its list", 10, || {
+        text_of(&client, "[data-mplex=\"0x502400\"] .v")
+    })
+    .await;
+    assert!(
+        ["idle", "doors cycling", "travelling up", "travelling down"].contains(&state.as_str()),
+        "lift state {state:?}"
+    );
+    assert_eq!(
+        text_of(&client, "[data-mplex=\"0x652001\"] h3")
+            .await
+            .as_deref(),
+        Some("Trip counter [trips]")
+    );
+    assert_eq!(
+        text_of(&client, "[data-mplex=\"0x652001\"] .u")
+            .await
+            .as_deref(),
+        Some("trips")
+    );
+    let trips = until("trip counter shown", 10, || {
+        number_of(&client, ".card[data-mplex=\"0x652001\"] .v")
+    })
+    .await;
+    let position = number_of(&client, ".card[data-mplex=\"0x638301\"] .v").await;
+
+    // A passenger call through the edit dialog: the car travels and the page follows by itself.
+    edit(&client, "0x502200", "4").await;
+    until("dialog closed after the put", 10, || async {
+        (!dialog_open(&client).await).then_some(())
+    })
+    .await;
+    until("car position moves on the page", 20, || async {
+        let now = number_of(&client, ".card[data-mplex=\"0x638301\"] .v").await;
+        (now.is_some() && now != position).then_some(())
+    })
+    .await;
+    let after = until("trip counter rises on the page", 40, || async {
+        number_of(&client, ".card[data-mplex=\"0x652001\"] .v")
+            .await
+            .filter(|t| *t > trips)
+    })
+    .await;
+    assert_eq!(after, trips + 1);
+
+    // Door open time needs service rights: the dialog asks for them, elevation grants them.
+    edit(&client, "0x411300", "7").await;
+    let asked = until("elevation asked for", 10, || async {
+        let hidden = eval(
+            &client,
+            "return document.querySelector('dialog#edit fieldset.elevate').hidden;",
+        )
+        .await;
+        (hidden == json!(false)).then_some(())
+    })
+    .await;
+    let () = asked;
+    let status = text_of(&client, "dialog#edit .status")
+        .await
+        .unwrap_or_default();
+    assert!(status.contains("08000021h"), "{status}");
+    type_into(&client, "dialog#edit [name=password]", SERVICE_PASSWORD).await;
+    click(&client, "dialog#edit button.save").await;
+    until("dialog closed after elevation and put", 10, || async {
+        (!dialog_open(&client).await).then_some(())
+    })
+    .await;
+    assert_eq!(
+        text_of(&client, "tr[data-mplex=\"0x411300\"] .v")
+            .await
+            .as_deref(),
+        Some("7")
+    );
+    let (status, read) = rig
+        .call(
+            "GET",
+            &format!("/api/v1/lifts/{LIFT}/objects/0x411300?form=naked"),
+            Some(&rig.key),
+            None,
+        )
+        .await;
+    assert_eq!((status, &read["object"]["value"][0]), (200, &json!("7")));
+
+    // The session cookie alone does not authorise a change (CSRF), only with the page's token.
+    let forged = client
+        .execute_async(
+            &format!(
+                "const done = arguments[0];
+                 fetch('/api/v1/lifts/{LIFT}/objects/0x502200', {{method: 'PUT',
+                   headers: {{'content-type': 'application/json'}},
+                   body: JSON.stringify({{value: '2', datatype: 7, physunit: 0}})}})
+                 .then(r => done(r.status), () => done(-1));"
+            ),
+            vec![],
+        )
+        .await
+        .unwrap();
+    assert_eq!(forged, json!(403));
+
+    // Reading any object by its mplex.
+    client
+        .goto(&format!("{base}/lifts/{LIFT}?read=0x411200&lang=de"))
+        .await
+        .unwrap();
+    let name = until("object read in German", 10, || {
+        text_of(
+            &client,
+            "table.objects tr[data-mplex=\"0x411200\"] td:nth-child(2)",
+        )
+    })
+    .await;
+    assert_eq!(name, "Optionen der Etagenrichtungsanzeige");
+
+    // History chart of the trip counter.
+    client
+        .goto(&format!("{base}/lifts/{LIFT}/history?mplex=0x652001"))
+        .await
+        .unwrap();
+    let points = eval(
+        &client,
+        "const p = document.querySelector('svg.chart polyline'); return p ? p.getAttribute('points') : null;",
+    )
+    .await;
+    let points = points.as_str().unwrap_or_default();
+    assert!(points.split(' ').count() >= 3, "chart points {points:?}");
+
+    // The audit log shows both changes and the elevation.
+    client.goto(&format!("{base}/audit")).await.unwrap();
+    let audit = text_of(&client, "table.audit tbody")
+        .await
+        .unwrap_or_default();
+    assert!(audit.contains("0x502200"), "{audit}");
+    assert!(audit.contains("0x411300"), "{audit}");
+    assert!(audit.contains("elevate"), "{audit}");
+    let failed_put = eval(
+        &client,
+        "return [...document.querySelectorAll('table.audit tbody tr')]
+           .filter(r => r.textContent.includes('0x411300') && r.textContent.includes('error')).length;",
+    )
+    .await;
+    assert_eq!(failed_put, json!(1), "the refused put is audited too");
+
+    // A picture for people (target/web-ui-lift.png).
+    client.goto(&format!("{base}/lifts/{LIFT}")).await.unwrap();
+    until("lift page again", 10, || {
+        text_of(&client, ".card[data-mplex=\"0x652001\"] .v")
+    })
+    .await;
+    if let Ok(png) = client.screenshot().await {
+        let _ = std::fs::write(testkit::workspace().join("target/web-ui-lift.png"), png);
+    }
+
+    // Signing out ends the session.
+    click(&client, "nav form button").await;
+    until("signed out", 10, || async {
+        let url = client.current_url().await.ok()?;
+        url.path().ends_with("/login").then_some(())
+    })
+    .await;
+    assert_sign_in_asked(&client, &format!("{base}/")).await;
+
+    // Another account sees none of this domain's lifts.
+    sign_in(&client, &rig.other_key).await;
+    until("the other account's fleet", 10, || async {
+        (text_of(&client, "main h1").await.as_deref() == Some("Fleet")).then_some(())
+    })
+    .await;
+    let empty = text_of(&client, "main p").await.unwrap_or_default();
+    assert!(empty.contains("No lift of domain OTH"), "{empty}");
+    client.goto(&format!("{base}/lifts/{LIFT}")).await.unwrap();
+    assert_eq!(text_of(&client, "main h1").await.as_deref(), Some("404"));
+
+    client.close().await.unwrap();
+    drop(driver);
+    rig.stop().await;
+}
