@@ -10,7 +10,7 @@ use clap::{Parser, Subcommand};
 #[derive(Debug, Parser)]
 #[command(name = "canlift", version, about, long_about = None)]
 struct Cli {
-    /// Log format on stderr (level from RUST_LOG, default info).
+    /// Log format on stderr (level from RUST_LOG; default info, warn for loadgen and bench).
     #[arg(long, value_enum, global = true, default_value = "text")]
     log_format: logging::LogFormat,
     #[command(subcommand)]
@@ -45,11 +45,18 @@ enum Command {
     Sim(cmd::sim::SimArgs),
     /// Measure canlift's components.
     Bench(cmd::bench::BenchArgs),
+    /// Many gateways (the real gateway code, embedded mode) against one portal, for load tests.
+    Loadgen(cmd::loadgen::LoadgenArgs),
 }
 
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
-    logging::init(cli.log_format);
+    // Thousands of gateways in one process would log every connection: quieter by default.
+    let level = match cli.command {
+        Command::Loadgen(_) | Command::Bench(_) => "warn",
+        _ => "info",
+    };
+    logging::init(cli.log_format, level);
     let runtime = match tokio::runtime::Runtime::new() {
         Ok(rt) => rt,
         Err(e) => {
@@ -65,6 +72,7 @@ fn main() -> std::process::ExitCode {
             Command::Nmt(args) => cmd::nmt::run(args).await,
             Command::Sdo(args) => cmd::sdo::run(args).await,
             Command::Bench(args) => cmd::bench::run(args).await,
+            Command::Loadgen(args) => cmd::loadgen::run(args).await,
             Command::Sim(args) => cmd::sim::run(args).await,
             Command::Gateway(args) => cmd::gateway::run(args).await,
             Command::Cloud(args) => cmd::cloud::run(args).await,

@@ -63,18 +63,15 @@ impl Client {
         })
     }
 
-    async fn send(
-        &self,
-        method: &str,
-        path: &str,
-        body: Option<&Value>,
-    ) -> Result<hyper::Response<hyper::body::Incoming>, ClientError> {
+    /// Open one keep-alive connection (TCP, TLS, HTTP/1.1) for many requests.
+    pub async fn connect(&self) -> Result<Connection, ClientError> {
         let io = |e: &dyn std::fmt::Display| {
             ClientError::Io(format!("{}:{}: {e}", self.host, self.port))
         };
         let tcp = tokio::net::TcpStream::connect((self.host.as_str(), self.port))
             .await
             .map_err(|e| io(&e))?;
+        let _ = tcp.set_nodelay(true);
         let name = rustls::pki_types::ServerName::try_from(self.host.clone())
             .map_err(|e| ClientError::Tls(e.to_string()))?;
         let tls = self
@@ -82,27 +79,25 @@ impl Client {
             .connect(name, tcp)
             .await
             .map_err(|e| ClientError::Tls(e.to_string()))?;
-        let (mut sender, conn) =
+        let (sender, conn) =
             hyper::client::conn::http1::handshake(hyper_util::rt::TokioIo::new(tls))
                 .await
                 .map_err(|e| io(&e))?;
         tokio::spawn(conn);
-        let mut request = hyper::Request::builder()
-            .method(method)
-            .uri(path)
-            .header("host", &self.host);
-        if let Some(k) = &self.key {
-            request = request.header("authorization", format!("Bearer {k}"));
-        }
-        let bytes = match body {
-            Some(b) => {
-                request = request.header("content-type", "application/json");
-                Bytes::from(b.to_string())
-            }
-            None => Bytes::new(),
-        };
-        let request = request.body(Full::new(bytes)).map_err(|e| io(&e))?;
-        sender.send_request(request).await.map_err(|e| io(&e))
+        Ok(Connection {
+            sender,
+            host: self.host.clone(),
+            key: self.key.clone(),
+        })
+    }
+
+    async fn send(
+        &self,
+        method: &str,
+        path: &str,
+        body: Option<&Value>,
+    ) -> Result<hyper::Response<hyper::body::Incoming>, ClientError> {
+        self.connect().await?.send(method, path, body).await
     }
 
     /// One request with a JSON answer.
@@ -126,6 +121,51 @@ impl Client {
             body: response.into_body(),
             buffer: String::new(),
         }))
+    }
+}
+
+/// One kept-alive connection to the portal: requests go one after another.
+pub struct Connection {
+    sender: hyper::client::conn::http1::SendRequest<Full<Bytes>>,
+    host: String,
+    key: Option<String>,
+}
+
+impl Connection {
+    async fn send(
+        &mut self,
+        method: &str,
+        path: &str,
+        body: Option<&Value>,
+    ) -> Result<hyper::Response<hyper::body::Incoming>, ClientError> {
+        let io = |e: &dyn std::fmt::Display| ClientError::Io(format!("{}: {e}", self.host));
+        let mut request = hyper::Request::builder()
+            .method(method)
+            .uri(path)
+            .header("host", &self.host);
+        if let Some(k) = &self.key {
+            request = request.header("authorization", format!("Bearer {k}"));
+        }
+        let bytes = match body {
+            Some(b) => {
+                request = request.header("content-type", "application/json");
+                Bytes::from(b.to_string())
+            }
+            None => Bytes::new(),
+        };
+        let request = request.body(Full::new(bytes)).map_err(|e| io(&e))?;
+        self.sender.ready().await.map_err(|e| io(&e))?;
+        self.sender.send_request(request).await.map_err(|e| io(&e))
+    }
+
+    /// One request with a JSON answer, on this connection.
+    pub async fn call(
+        &mut self,
+        method: &str,
+        path: &str,
+        body: Option<Value>,
+    ) -> Result<Answer, ClientError> {
+        answer(self.send(method, path, body.as_ref()).await?).await
     }
 }
 

@@ -4,6 +4,7 @@
 //! replaces the first; a gateway that misbehaves is closed without touching the others.
 
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Instant;
 
@@ -73,20 +74,24 @@ impl Registry {
 
     /// Live events of a lift.
     pub fn subscribe(&self, lift: &str) -> broadcast::Receiver<LiftEvent> {
-        self.sender(lift).subscribe()
-    }
-
-    fn sender(&self, lift: &str) -> broadcast::Sender<LiftEvent> {
         self.events
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .entry(lift.to_owned())
             .or_insert_with(|| broadcast::channel(1024).0)
-            .clone()
+            .subscribe()
     }
 
+    /// Hand `event` to the lift's live viewers. A channel exists only while someone watches
+    /// (its 1024 slots are allocated up front: one per idle gateway would cost more than the
+    /// connection itself).
     fn publish(&self, lift: &str, event: LiftEvent) {
-        let _ = self.sender(lift).send(event);
+        let mut events = self.events.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some(tx) = events.get(lift) {
+            if tx.send(event).is_err() {
+                events.remove(lift);
+            }
+        }
     }
 
     /// Send a request to the lift's gateway and wait for its answer.
@@ -162,6 +167,8 @@ pub struct Shared {
     pub settings: PortalSettings,
     /// Where notifications go to be stored in batches.
     pub telemetry: mpsc::Sender<(String, String, u8, String, i64)>,
+    /// Values stored and dropped, for `/metrics`.
+    pub counters: Arc<TelemetryCounters>,
     /// Objects every gateway is asked to push, with their inhibit time (ms).
     pub live: Arc<(Vec<String>, u64)>,
 }
@@ -191,10 +198,21 @@ async fn subscribe_live(registry: Arc<Registry>, lift: String, live: Arc<(Vec<St
     }
 }
 
+/// Pushed values stored, and dropped because the database could not keep up (the queue in
+/// front of it was full) or failed.
+#[derive(Debug, Default)]
+pub struct TelemetryCounters {
+    /// Values written.
+    pub stored: AtomicU64,
+    /// Values lost.
+    pub dropped: AtomicU64,
+}
+
 /// Write telemetry in batches (up to 500 values or every 200 ms, whichever first).
 pub async fn telemetry_writer(
     store: Store,
     mut rx: mpsc::Receiver<(String, String, u8, String, i64)>,
+    counters: Arc<TelemetryCounters>,
 ) {
     let mut batch = Vec::with_capacity(500);
     loop {
@@ -210,9 +228,14 @@ pub async fn telemetry_writer(
                 _ => break,
             }
         }
-        if let Err(e) = store.telemetry(&batch).await {
-            tracing::error!(error = %e, values = batch.len(), "telemetry not stored");
-        }
+        let counter = match store.telemetry(&batch).await {
+            Ok(()) => &counters.stored,
+            Err(e) => {
+                tracing::error!(error = %e, values = batch.len(), "telemetry not stored");
+                &counters.dropped
+            }
+        };
+        counter.fetch_add(batch.len() as u64, Ordering::Relaxed);
         batch.clear();
     }
 }
@@ -310,13 +333,16 @@ pub async fn serve(mut socket: WebSocket, shared: Shared, peer: String) {
                                 other => other.to_string(),
                             };
                             let node = payload["node"]["id"].as_u64().unwrap_or(0) as u8;
-                            let _ = shared.telemetry.try_send((
+                            let queued = shared.telemetry.try_send((
                                 id.clone(),
                                 mplex,
                                 node,
                                 value,
                                 store::now_ms(),
                             ));
+                            if queued.is_err() {
+                                shared.counters.dropped.fetch_add(1, Ordering::Relaxed);
+                            }
                             shared.registry.publish(id, LiftEvent::Value(payload));
                         }
                     }

@@ -135,7 +135,12 @@ impl Portal {
         let tls = server_tls(config)?;
         let registry = Arc::new(Registry::default());
         let (telemetry, telemetry_rx) = mpsc::channel(65536);
-        tokio::spawn(gateways::telemetry_writer(store.clone(), telemetry_rx));
+        let counters = Arc::new(gateways::TelemetryCounters::default());
+        tokio::spawn(gateways::telemetry_writer(
+            store.clone(),
+            telemetry_rx,
+            counters.clone(),
+        ));
         let metrics = Arc::new(Metrics::default());
         let ws_state = Arc::new(WsState {
             shared: Shared {
@@ -143,6 +148,7 @@ impl Portal {
                 registry: registry.clone(),
                 settings: config.gateways.settings(),
                 telemetry,
+                counters: counters.clone(),
                 live: Arc::new((
                     config
                         .dashboard
@@ -158,14 +164,15 @@ impl Portal {
         });
         let m = metrics.clone();
         let r = registry.clone();
+        let t = counters;
         let router = Router::new()
             .route("/ws", get(ws).with_state(ws_state))
             .route("/healthz", get(|| async { "ok\n" }))
             .route(
                 "/metrics",
                 get(move || {
-                    let (m, r) = (m.clone(), r.clone());
-                    async move { metrics_text(&m, &r) }
+                    let (m, r, t) = (m.clone(), r.clone(), t.clone());
+                    async move { metrics_text(&m, &r, &t) }
                 }),
             )
             .merge({
@@ -248,13 +255,17 @@ impl Portal {
     }
 }
 
-fn metrics_text(m: &Metrics, r: &Registry) -> String {
+fn metrics_text(m: &Metrics, r: &Registry, t: &gateways::TelemetryCounters) -> String {
     format!(
         "# TYPE canlift_gateways_online gauge\ncanlift_gateways_online {}\n\
          # TYPE canlift_gateway_connections_total counter\ncanlift_gateway_connections_total {}\n\
-         # TYPE canlift_gateway_upgrades_refused_total counter\ncanlift_gateway_upgrades_refused_total {}\n",
+         # TYPE canlift_gateway_upgrades_refused_total counter\ncanlift_gateway_upgrades_refused_total {}\n\
+         # TYPE canlift_telemetry_stored_total counter\ncanlift_telemetry_stored_total {}\n\
+         # TYPE canlift_telemetry_dropped_total counter\ncanlift_telemetry_dropped_total {}\n",
         r.online_count(),
         m.connections.load(Ordering::Relaxed),
-        m.upgrades_refused.load(Ordering::Relaxed)
+        m.upgrades_refused.load(Ordering::Relaxed),
+        t.stored.load(Ordering::Relaxed),
+        t.dropped.load(Ordering::Relaxed)
     )
 }

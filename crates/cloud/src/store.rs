@@ -354,18 +354,36 @@ impl Store {
         &self,
         batch: &[(String, String, u8, String, i64)],
     ) -> Result<(), StoreError> {
+        // Multi-row INSERTs of up to 100 rows (500 parameters: within SQLite's and PostgreSQL's
+        // limits) in one transaction.
         let mut tx = self.pool.begin().await?;
-        for (lift, mplex, node, value, at) in batch {
-            sqlx::query(
-                "INSERT INTO telemetry (lift, mplex, node, value, at) VALUES ($1, $2, $3, $4, $5)",
-            )
-            .bind(lift)
-            .bind(mplex)
-            .bind(i64::from(*node))
-            .bind(value)
-            .bind(at)
-            .execute(&mut *tx)
-            .await?;
+        for rows in batch.chunks(100) {
+            let mut sql =
+                String::from("INSERT INTO telemetry (lift, mplex, node, value, at) VALUES ");
+            for i in 0..rows.len() {
+                let p = i * 5;
+                if i > 0 {
+                    sql.push_str(", ");
+                }
+                sql.push_str(&format!(
+                    "(${}, ${}, ${}, ${}, ${})",
+                    p + 1,
+                    p + 2,
+                    p + 3,
+                    p + 4,
+                    p + 5
+                ));
+            }
+            let mut query = sqlx::query(&sql);
+            for (lift, mplex, node, value, at) in rows {
+                query = query
+                    .bind(lift)
+                    .bind(mplex)
+                    .bind(i64::from(*node))
+                    .bind(value)
+                    .bind(at);
+            }
+            query.execute(&mut *tx).await?;
         }
         tx.commit().await?;
         Ok(())

@@ -30,6 +30,9 @@ pub struct CloudSection {
     pub connect_timeout_s: u64,
     /// Seconds between WebSocket pings.
     pub ping_s: u64,
+    /// Local address to connect from (a gateway with several interfaces; `canlift loadgen`
+    /// spreads its gateways over 127.0.0.x); absent: the system chooses.
+    pub source_address: Option<std::net::IpAddr>,
 }
 
 impl Default for CloudSection {
@@ -43,6 +46,7 @@ impl Default for CloudSection {
             heartbeat_s: 300,
             connect_timeout_s: 10,
             ping_s: 60,
+            source_address: None,
         }
     }
 }

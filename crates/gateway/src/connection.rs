@@ -6,7 +6,9 @@ use std::time::{Duration, Instant};
 
 use futures_util::{SinkExt, StreamExt};
 use nxg::gateway::{Job, JobId, JobResult, Output, Phase, Session};
-use tokio::net::TcpStream;
+use std::net::{IpAddr, SocketAddr};
+
+use tokio::net::{TcpSocket, TcpStream};
 use tokio::sync::mpsc;
 use tokio_rustls::TlsConnector;
 use tokio_tungstenite::tungstenite::client::IntoClientRequest;
@@ -40,6 +42,35 @@ fn ended(served: bool, cause: impl Into<String>) -> Ended {
     }
 }
 
+/// TCP to the portal, from `source` when given.
+async fn tcp(host: &str, port: u16, source: Option<IpAddr>) -> std::io::Result<TcpStream> {
+    let Some(source) = source else {
+        return TcpStream::connect((host, port)).await;
+    };
+    let mut last = None;
+    for addr in tokio::net::lookup_host((host, port)).await? {
+        if addr.is_ipv4() != source.is_ipv4() {
+            continue;
+        }
+        let socket = if addr.is_ipv4() {
+            TcpSocket::new_v4()?
+        } else {
+            TcpSocket::new_v6()?
+        };
+        socket.bind(SocketAddr::new(source, 0))?;
+        match socket.connect(addr).await {
+            Ok(stream) => return Ok(stream),
+            Err(e) => last = Some(e),
+        }
+    }
+    Err(last.unwrap_or_else(|| {
+        std::io::Error::new(
+            std::io::ErrorKind::AddrNotAvailable,
+            format!("{host} has no address of the family of {source}"),
+        )
+    }))
+}
+
 /// Connect once and serve until the connection ends.
 pub async fn run(shared: &Shared, shutdown: &mut tokio::sync::watch::Receiver<bool>) -> Ended {
     let cloud = &shared.config.cloud;
@@ -65,7 +96,7 @@ pub async fn run(shared: &Shared, shutdown: &mut tokio::sync::watch::Receiver<bo
             Err(_) => return ended(false, "cloud.origin is not a valid header value"),
         }
     }
-    let tcp = match tokio::time::timeout(timeout, TcpStream::connect((host.as_str(), port))).await {
+    let tcp = match tokio::time::timeout(timeout, tcp(&host, port, cloud.source_address)).await {
         Ok(Ok(s)) => s,
         Ok(Err(e)) => return ended(false, format!("TCP {host}:{port}: {e}")),
         Err(_) => {
@@ -173,6 +204,7 @@ where
         if !served {
             if let Phase::Connected(api) = session.phase() {
                 served = true;
+                shared.online.send_replace(true);
                 tracing::info!(api, "CONNACK: serving the portal");
             }
         }

@@ -78,6 +78,8 @@ pub struct Shared {
     metadata: Arc<dyn Metadata>,
     backend: Backend,
     mode: Mode,
+    /// Whether a connection is in service (CONNACK came), for [`Gateway::online`].
+    online: watch::Sender<bool>,
 }
 
 impl Shared {
@@ -230,9 +232,16 @@ impl Gateway {
                 tls,
                 backend,
                 mode,
+                online: watch::channel(false).0,
             }),
             node,
         }
+    }
+
+    /// Whether the gateway is connected to the portal and in service (CONNACK received) —
+    /// for a status LED, a health check, or `canlift loadgen`'s count.
+    pub fn online(&self) -> watch::Receiver<bool> {
+        self.shared.online.subscribe()
     }
 
     /// Connect, serve, and reconnect until `shutdown` turns true.
@@ -245,6 +254,7 @@ impl Gateway {
             }
             let started = Instant::now();
             let ended = connection::run(&self.shared, &mut shutdown).await;
+            self.shared.online.send_replace(false);
             if ended.shutdown {
                 break;
             }

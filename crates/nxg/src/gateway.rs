@@ -876,20 +876,25 @@ impl Session {
             });
             sub.inhibit = Duration::from_millis(inhibit);
             sub.threshold = threshold;
+            // A registration starts the subscription afresh: the baseline read below is pushed.
+            sub.last = None;
+            sub.last_push = None;
+            sub.pending = None;
             if fresh {
                 out.push(Output::Watch(target, m.index, m.sub));
-                // The current value is the first push and the baseline for the threshold.
-                let job = Job::Read {
-                    target,
-                    index: m.index,
-                    sub: m.sub,
-                };
-                let id = self.next_job;
-                self.next_job += 1;
-                self.waiting
-                    .insert(id, Waiting::Baseline(target, m.index, m.sub));
-                out.push(Output::Start(id, job));
             }
+            // The current value is the first push and the baseline for the threshold — after a
+            // repeated registration too, so that whoever registered learns where it stands.
+            let job = Job::Read {
+                target,
+                index: m.index,
+                sub: m.sub,
+            };
+            let id = self.next_job;
+            self.next_job += 1;
+            self.waiting
+                .insert(id, Waiting::Baseline(target, m.index, m.sub));
+            out.push(Output::Start(id, job));
         }
         Ok(out)
     }

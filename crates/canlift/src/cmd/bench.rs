@@ -31,6 +31,9 @@ enum BenchKind {
     Node(NodeBench),
     /// The elevator gateway from a portal's seat: get latency and rate, notifications/s, RSS.
     Gateway(super::bench_gateway::GatewayBench),
+    /// The cloud portal: idle gateways and memory per connection, reconnect storm, ingest,
+    /// operator latency.
+    Portal(super::bench_portal::PortalBench),
 }
 
 #[derive(Debug, Clone, clap::Args)]
@@ -688,5 +691,6 @@ pub async fn run(args: BenchArgs) -> anyhow::Result<()> {
         BenchKind::Sdo(s) => run_sdo_bench(s).await,
         BenchKind::Node(n) => run_node_bench(n).await,
         BenchKind::Gateway(g) => super::bench_gateway::run(g).await,
+        BenchKind::Portal(p) => super::bench_portal::run(p).await,
     }
 }

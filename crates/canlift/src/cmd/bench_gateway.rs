@@ -126,7 +126,7 @@ fn get(id: usize, mplex: &str, form: &str) -> String {
     )
 }
 
-fn percentile(sorted: &[Duration], p: f64) -> f64 {
+pub(crate) fn percentile(sorted: &[Duration], p: f64) -> f64 {
     let rank = ((p / 100.0) * (sorted.len().max(1) - 1) as f64).round() as usize;
     sorted.get(rank).map_or(0.0, |d| d.as_secs_f64() * 1e6)
 }
@@ -213,7 +213,7 @@ async fn notifications(
 /// RSS, PSS and anonymous memory of a process in KiB (`/proc/PID/smaps_rollup`): RSS counts the
 /// binary's pages shared with other canlift processes in full, PSS shares them out, anonymous is
 /// the process's own heap and stacks.
-fn memory_kib(pid: u32) -> Option<[u64; 3]> {
+pub(crate) fn memory_kib(pid: u32) -> Option<[u64; 3]> {
     let rollup = std::fs::read_to_string(format!("/proc/{pid}/smaps_rollup")).ok()?;
     let field = |name: &str| {
         rollup
@@ -224,7 +224,7 @@ fn memory_kib(pid: u32) -> Option<[u64; 3]> {
     Some([field("Rss:")?, field("Pss:")?, field("Anonymous:")?])
 }
 
-fn mib(kib: u64) -> f64 {
+pub(crate) fn mib(kib: u64) -> f64 {
     kib as f64 / 1024.0
 }
 

@@ -523,6 +523,20 @@ fn subscriptions_register_all_or_none_and_respect_inhibit_and_threshold() {
     assert!(value(&mut p, 140).is_empty());
     assert!(value(&mut p, 127).is_empty());
     assert!(p.later(Duration::from_secs(2)).is_empty());
+    // Registering again (a second viewer) pushes the current value once more, although it did
+    // not change, and keeps the object watched only once.
+    let again = p.send(&good.replace("\"r\"", "\"r2\""));
+    assert!(!again.iter().any(|o| matches!(o, Output::Watch(..))));
+    let reread = again.iter().find_map(|o| match o {
+        Output::Start(id, Job::Read { sub: 1, .. }) => Some(*id),
+        _ => None,
+    });
+    let repeated = sent(&p.session.complete(
+        reread.unwrap(),
+        JobResult::Read(vec![126u32.to_le_bytes().to_vec()]),
+        p.now,
+    ));
+    assert_eq!(repeated[0]["result"]["value"], "126");
     let unreg = r#"{"jsonrpc":"2.0","method":"unreg_canopen_object","id":"12345","params":{"mplex":["0x652001","0x652002"]}}"#;
     let out = p.send(unreg);
     assert_eq!(

@@ -1,0 +1,222 @@
+//! `canlift loadgen`: many elevator gateways against one portal, for the portal's benchmarks
+//! (issue 7). Every one is the real gateway of `crates/gateway` in embedded mode — the same TLS,
+//! WebSocket, session, token store and reconnect code as `canlift gateway` — sharing one
+//! simulated controller dictionary. Connections are spread over loopback source addresses
+//! 127.0.0.1…127.0.0.N so that tens of thousands do not run out of ephemeral ports.
+
+use std::net::{IpAddr, Ipv4Addr};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context};
+use canopen::driver::SharedDictionary;
+use gateway::Gateway;
+use lift417::catalog::{Catalog, Device};
+use tokio::sync::watch;
+use tokio::task::JoinHandle;
+
+/// Arguments of `canlift loadgen`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct LoadgenArgs {
+    /// The portal's gateway endpoint.
+    #[arg(long, default_value = "wss://localhost:8443/ws")]
+    pub portal: String,
+    /// PEM CA certificate the gateways trust (the portal's dev-ca.pem).
+    #[arg(long)]
+    pub ca: PathBuf,
+    /// Domain token of the portal account the gateways belong to.
+    #[arg(long)]
+    pub domain: String,
+    /// Gateways to run.
+    #[arg(long, default_value_t = 1000)]
+    pub gateways: usize,
+    /// Number of the first gateway: serial numbers are LOAD-NNNNNN from here on.
+    #[arg(long, default_value_t = 1)]
+    pub first: usize,
+    /// Loopback source addresses to spread the connections over (127.0.0.1…127.0.0.N).
+    #[arg(long, default_value_t = 8)]
+    pub sources: u8,
+    /// Gateways started per second (0: all at once).
+    #[arg(long, default_value_t = 0)]
+    pub rate: u32,
+    /// Change the simulated lift's values this often (ms) so that every gateway pushes what
+    /// the portal subscribed; 0: the gateways stay idle.
+    #[arg(long, default_value_t = 0)]
+    pub change_ms: u64,
+    /// Directory for the gateways' cloud tokens (reuse it and they reconnect as known lifts).
+    #[arg(long, default_value = "loadgen-state")]
+    pub state: PathBuf,
+    /// Exit once all are online, after printing how long it took.
+    #[arg(long)]
+    pub until_online: bool,
+}
+
+/// Running gateways.
+pub struct Fleet {
+    online: Arc<AtomicUsize>,
+    stop: watch::Sender<bool>,
+    tasks: Vec<JoinHandle<()>>,
+    od: SharedDictionary,
+    total: usize,
+}
+
+/// The shared controller dictionary the gateways serve.
+fn dictionary() -> anyhow::Result<SharedDictionary> {
+    let od = Catalog::builtin().dictionary(Device::Controller, 1, 8)?;
+    Ok(Arc::new(Mutex::new(od)))
+}
+
+impl Fleet {
+    /// Start the gateways (at `rate` per second); returns once all are started.
+    pub async fn start(args: &LoadgenArgs) -> anyhow::Result<Fleet> {
+        if args.sources == 0 {
+            bail!("--sources: at least 1");
+        }
+        let od = dictionary()?;
+        let online = Arc::new(AtomicUsize::new(0));
+        let (stop, stopped) = watch::channel(false);
+        let mut tasks = Vec::with_capacity(args.gateways * 2);
+        let started = Instant::now();
+        for i in 0..args.gateways {
+            if args.rate > 0 {
+                let due = started + Duration::from_secs_f64(i as f64 / f64::from(args.rate));
+                tokio::time::sleep_until(due.into()).await;
+            }
+            let number = args.first + i;
+            let identity = nxg::gateway::Identity {
+                sernum: format!("LOAD-{number:06}"),
+                vendorid: 1050,
+                productcode: 4097,
+                domaintoken: args.domain.clone(),
+                liftnum: format!("load {number}"),
+                software: format!("canlift loadgen {}", env!("CARGO_PKG_VERSION")),
+                ..Default::default()
+            };
+            let mut config = gateway::config::Config::for_portal(
+                identity,
+                &args.portal,
+                &args.ca,
+                "mem://loadgen",
+                &args.state.join(format!("gw-{number:06}")),
+            );
+            let host = 1 + (i % usize::from(args.sources)) as u8;
+            config.cloud.source_address = Some(IpAddr::V4(Ipv4Addr::new(127, 0, 0, host)));
+            let gw = Gateway::embedded(config, od.clone())
+                .with_context(|| format!("gateway {number}"))?;
+            let mut status = gw.online();
+            let count = online.clone();
+            tasks.push(tokio::spawn(async move {
+                let mut was = false;
+                while status.changed().await.is_ok() {
+                    let now = *status.borrow_and_update();
+                    if now != was {
+                        if now {
+                            count.fetch_add(1, Ordering::Relaxed);
+                        } else {
+                            count.fetch_sub(1, Ordering::Relaxed);
+                        }
+                        was = now;
+                    }
+                }
+                if was {
+                    count.fetch_sub(1, Ordering::Relaxed);
+                }
+            }));
+            tasks.push(tokio::spawn(gw.run(stopped.clone())));
+        }
+        Ok(Fleet {
+            online,
+            stop,
+            tasks,
+            od,
+            total: args.gateways,
+        })
+    }
+
+    /// Gateways in service now.
+    pub fn online(&self) -> usize {
+        self.online.load(Ordering::Relaxed)
+    }
+
+    /// Wait until all gateways are online; how long that took from `since`.
+    pub async fn all_online(&self, since: Instant, limit: Duration) -> anyhow::Result<Duration> {
+        while self.online() < self.total {
+            if since.elapsed() > limit {
+                bail!(
+                    "{} of {} gateways online after {limit:?}",
+                    self.online(),
+                    self.total
+                );
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        Ok(since.elapsed())
+    }
+
+    /// Move the simulated lift one step: the trip counter, position, speed and load change, so
+    /// every gateway that has them subscribed pushes them.
+    pub fn change(&self, step: u32) {
+        let mut od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
+        let changes: [(u16, u8, Vec<u8>); 4] = [
+            (0x6520, 1, step.to_le_bytes().to_vec()),
+            (0x6383, 1, (1000 + step % 20_000).to_le_bytes().to_vec()),
+            (0x6390, 1, ((step % 1600) as i16).to_le_bytes().to_vec()),
+            (0x6480, 1, ((step % 600) as u16).to_le_bytes().to_vec()),
+        ];
+        for (index, sub, bytes) in changes {
+            if let Err(e) = od.set(index, sub, &bytes) {
+                tracing::warn!(index, sub, error = %e, "loadgen could not change a value");
+            }
+        }
+    }
+
+    /// Stop every gateway (each closes its connection).
+    pub async fn stop(self) {
+        self.stop.send_replace(true);
+        for task in self.tasks {
+            let _ = task.await;
+        }
+    }
+}
+
+/// `canlift loadgen`.
+pub async fn run(args: LoadgenArgs) -> anyhow::Result<()> {
+    let begin = Instant::now();
+    let fleet = Fleet::start(&args).await?;
+    println!(
+        "{} gateways started in {:.1} s; waiting for CONNACK",
+        args.gateways,
+        begin.elapsed().as_secs_f64()
+    );
+    let mut report = tokio::time::interval(Duration::from_secs(1));
+    let mut change = tokio::time::interval(Duration::from_millis(args.change_ms.max(1)));
+    let mut step = 0u32;
+    let mut all = false;
+    let shutdown = crate::logging::shutdown_signal();
+    tokio::pin!(shutdown);
+    loop {
+        tokio::select! {
+            _ = report.tick() => {
+                let online = fleet.online();
+                if !all && online == args.gateways {
+                    all = true;
+                    println!("all {online} online after {:.2} s", begin.elapsed().as_secs_f64());
+                    if args.until_online {
+                        break;
+                    }
+                } else if !all {
+                    println!("{online} online after {:.0} s", begin.elapsed().as_secs_f64());
+                }
+            }
+            _ = change.tick(), if args.change_ms > 0 => {
+                step = step.wrapping_add(1);
+                fleet.change(step);
+            }
+            _ = &mut shutdown => break,
+        }
+    }
+    fleet.stop().await;
+    Ok(())
+}
