@@ -103,6 +103,13 @@ async fn the_demo_runs_a_lift_end_to_end() {
     let _ = std::fs::remove_dir_all(&state);
     let demo = start(&state).await;
     online(&demo.client).await;
+    // The web UI is served on the same port: the sign-in page.
+    let (status, page) = demo.client.call("GET", "/login", None).await.unwrap();
+    assert_eq!(status, 200);
+    assert!(
+        page.as_str().is_some_and(|p| p.contains("Sign in")),
+        "{page}"
+    );
     let before = trips(&demo.client).await;
     let put = json!({"value": "3", "datatype": 7, "physunit": 0});
     let (status, answer) = demo

@@ -32,7 +32,7 @@ pub struct Call {
 }
 
 struct Live {
-    calls: mpsc::Sender<Call>,
+    calls: mpsc::Sender<Box<Call>>,
     close: oneshot::Sender<()>,
     serial: u64,
     sernum: String,
@@ -104,11 +104,13 @@ impl Registry {
             .map(|l| l.calls.clone())
             .ok_or(Failure::Gone)?;
         let (reply, answer) = oneshot::channel();
-        let call = Call {
+        // Boxed: the channel's first block of slots is allocated with it, for every idle
+        // gateway, and a pointer is an eighth of a call.
+        let call = Box::new(Call {
             method: method.to_owned(),
             params,
             reply,
-        };
+        });
         calls.try_send(call).map_err(|e| match e {
             mpsc::error::TrySendError::Full(_) => Failure::Busy,
             mpsc::error::TrySendError::Closed(_) => Failure::Gone,
@@ -120,7 +122,7 @@ impl Registry {
         &self,
         lift: &str,
         sernum: &str,
-        calls: mpsc::Sender<Call>,
+        calls: mpsc::Sender<Box<Call>>,
         close: oneshot::Sender<()>,
     ) -> u64 {
         let serial = self
@@ -208,13 +210,14 @@ pub struct TelemetryCounters {
     pub dropped: AtomicU64,
 }
 
-/// Write telemetry in batches (up to 500 values or every 200 ms, whichever first).
+/// Write telemetry in batches (up to 2,000 values or every 200 ms, whichever first).
 pub async fn telemetry_writer(
     store: Store,
     mut rx: mpsc::Receiver<(String, String, u8, String, i64)>,
     counters: Arc<TelemetryCounters>,
 ) {
-    let mut batch = Vec::with_capacity(500);
+    const BATCH: usize = 2000;
+    let mut batch = Vec::with_capacity(BATCH);
     loop {
         let first = rx.recv().await;
         let Some(first) = first else {
@@ -222,7 +225,7 @@ pub async fn telemetry_writer(
         };
         batch.push(first);
         let deadline = tokio::time::Instant::now() + std::time::Duration::from_millis(200);
-        while batch.len() < 500 {
+        while batch.len() < BATCH {
             match tokio::time::timeout_at(deadline, rx.recv()).await {
                 Ok(Some(v)) => batch.push(v),
                 _ => break,
@@ -243,8 +246,9 @@ pub async fn telemetry_writer(
 /// Serve one gateway connection until it ends.
 pub async fn serve(mut socket: WebSocket, shared: Shared, peer: String) {
     let mut session = PortalSession::new(shared.settings.clone(), Instant::now());
-    let (calls_tx, mut calls_rx) =
-        mpsc::channel::<Call>(shared.settings.max_queued.max(1) + shared.settings.max_in_flight);
+    let (calls_tx, mut calls_rx) = mpsc::channel::<Box<Call>>(
+        shared.settings.max_queued.max(1) + shared.settings.max_in_flight,
+    );
     let (close_tx, mut close_rx) = oneshot::channel::<()>();
     let mut close_tx = Some(close_tx);
     let mut waiting: HashMap<RequestId, oneshot::Sender<Result<Value, Failure>>> = HashMap::new();

@@ -58,7 +58,7 @@ async fn ws(
         .protocols(["cloud", "lift"])
         .max_message_size(state.max_message)
         .max_frame_size(state.max_message)
-        .read_buffer_size(4096)
+        .read_buffer_size(512)
         .write_buffer_size(0);
     if upgrade.selected_protocol().is_none() {
         // DESIGN.md §4: a client offering neither subprotocol is refused.
@@ -240,8 +240,16 @@ impl Portal {
                     }
                     Err(_) => return,
                 };
-                let hyper =
-                    TowerToHyperService::new(router.layer(axum::Extension(ConnectInfo(peer))));
+                // The peer address goes into each request (cheaper than layering the router
+                // per connection, which rebuilds every route).
+                let service = tower::ServiceExt::map_request(
+                    router,
+                    move |mut request: hyper::Request<hyper::body::Incoming>| {
+                        request.extensions_mut().insert(ConnectInfo(peer));
+                        request
+                    },
+                );
+                let hyper = TowerToHyperService::new(service);
                 let builder = hyper_util::server::conn::auto::Builder::new(TokioExecutor::new());
                 if let Err(e) = builder
                     .serve_connection_with_upgrades(TokioIo::new(stream), hyper)

@@ -154,6 +154,9 @@ impl Store {
                 Box::pin(async move {
                     if sqlite {
                         conn.execute("PRAGMA busy_timeout = 5000").await?;
+                        // With WAL, NORMAL syncs at checkpoints rather than at every commit: a
+                        // power cut may lose the last transactions, never the database.
+                        conn.execute("PRAGMA synchronous = NORMAL").await?;
                     }
                     Ok(())
                 })
