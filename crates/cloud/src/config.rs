@@ -37,11 +37,22 @@ impl Default for ServerSection {
 pub use gateway::config::StateSection;
 
 /// `[database]`.
-#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct DatabaseSection {
     /// `sqlite://PATH`; absent: `sqlite://STATE_DIR/canlift.db`.
     pub url: Option<String>,
+    /// Days telemetry is kept (older values are deleted every hour); 0 keeps it forever.
+    pub telemetry_days: u32,
+}
+
+impl Default for DatabaseSection {
+    fn default() -> Self {
+        DatabaseSection {
+            url: None,
+            telemetry_days: 30,
+        }
+    }
 }
 
 /// `[gateways]`: how gateways are served.

@@ -243,6 +243,23 @@ pub async fn telemetry_writer(
     }
 }
 
+/// Delete telemetry older than `days` once an hour (and at start).
+pub async fn telemetry_retention(store: Store, days: u32) {
+    if days == 0 {
+        return;
+    }
+    let mut hourly = tokio::time::interval(std::time::Duration::from_secs(3600));
+    loop {
+        hourly.tick().await;
+        let before = store::now_ms() - i64::from(days) * 86_400_000;
+        match store.forget_telemetry(before).await {
+            Ok(0) => {}
+            Ok(n) => tracing::info!(values = n, days, "old telemetry deleted"),
+            Err(e) => tracing::error!(error = %e, "old telemetry not deleted"),
+        }
+    }
+}
+
 /// Serve one gateway connection until it ends.
 pub async fn serve(mut socket: WebSocket, shared: Shared, peer: String) {
     let mut session = PortalSession::new(shared.settings.clone(), Instant::now());

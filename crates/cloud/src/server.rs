@@ -136,6 +136,10 @@ impl Portal {
         let registry = Arc::new(Registry::default());
         let (telemetry, telemetry_rx) = mpsc::channel(65536);
         let counters = Arc::new(gateways::TelemetryCounters::default());
+        tokio::spawn(gateways::telemetry_retention(
+            store.clone(),
+            config.database.telemetry_days,
+        ));
         tokio::spawn(gateways::telemetry_writer(
             store.clone(),
             telemetry_rx,

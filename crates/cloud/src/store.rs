@@ -128,6 +128,7 @@ const SCHEMA: &[&str] = &[
     "CREATE TABLE IF NOT EXISTS refused (at BIGINT NOT NULL, lift TEXT NOT NULL, peer TEXT NOT NULL, cause TEXT NOT NULL)",
     "CREATE TABLE IF NOT EXISTS telemetry (lift TEXT NOT NULL, mplex TEXT NOT NULL, node BIGINT NOT NULL, value TEXT NOT NULL, at BIGINT NOT NULL)",
     "CREATE INDEX IF NOT EXISTS telemetry_by_object ON telemetry (lift, mplex, at)",
+    "CREATE INDEX IF NOT EXISTS telemetry_by_time ON telemetry (at)",
     "CREATE TABLE IF NOT EXISTS audit (at BIGINT NOT NULL, account TEXT NOT NULL, lift TEXT NOT NULL, action TEXT NOT NULL, object TEXT NOT NULL, old_value TEXT, new_value TEXT NOT NULL, result TEXT NOT NULL)",
 ];
 
@@ -392,7 +393,8 @@ impl Store {
         Ok(())
     }
 
-    /// Stored values of one object between `from` and `to` (ms): (at, value).
+    /// Stored values of one object between `from` and `to` (ms), oldest first: (at, value). At
+    /// most the newest 10,000 of the range.
     pub async fn history(
         &self,
         lift: &str,
@@ -401,7 +403,7 @@ impl Store {
         to: i64,
     ) -> Result<Vec<(i64, String)>, StoreError> {
         let rows = sqlx::query(
-            "SELECT at, value FROM telemetry WHERE lift = $1 AND mplex = $2 AND at >= $3 AND at <= $4 ORDER BY at LIMIT 10000",
+            "SELECT at, value FROM (SELECT at, value FROM telemetry WHERE lift = $1 AND mplex = $2 AND at >= $3 AND at <= $4 ORDER BY at DESC LIMIT 10000) newest ORDER BY at",
         )
         .bind(lift)
         .bind(mplex)
@@ -435,6 +437,15 @@ impl Store {
             }
         }
         Ok(found)
+    }
+
+    /// Delete telemetry older than `before` (ms); how many values went.
+    pub async fn forget_telemetry(&self, before: i64) -> Result<u64, StoreError> {
+        let done = sqlx::query("DELETE FROM telemetry WHERE at < $1")
+            .bind(before)
+            .execute(&self.pool)
+            .await?;
+        Ok(done.rows_affected())
     }
 
     /// Add an audit entry.
@@ -576,5 +587,16 @@ mod tests {
             .await
             .unwrap();
         assert_eq!(h, [(100, "7".to_owned())]);
+        // Retention: values older than the cut go, newer ones stay; latest sees the newest.
+        let lift = "1050-4096-180917010200000102";
+        store
+            .telemetry(&[(lift.into(), "0x652001".into(), 1, "8".into(), 300)])
+            .await
+            .unwrap();
+        let latest = store.latest(lift, &["0x652001".into()]).await.unwrap();
+        assert_eq!(latest["0x652001"], (300, "8".to_owned()));
+        assert_eq!(store.forget_telemetry(200).await.unwrap(), 1);
+        let h = store.history(lift, "0x652001", 0, 1000).await.unwrap();
+        assert_eq!(h, [(300, "8".to_owned())]);
     }
 }

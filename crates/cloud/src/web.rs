@@ -166,7 +166,7 @@ fn time(ms: i64) -> String {
 }
 
 /// A whole page. `session` absent: the sign-in page (no navigation).
-fn page(title: &str, session: Option<&Session>, lift: Option<&str>, body: &str) -> Response {
+fn page_html(title: &str, session: Option<&Session>, lift: Option<&str>, body: &str) -> Response {
     let nav = session.map_or_else(String::new, |s| {
         format!(
             "<nav><a href=\"/\">Fleet</a><a href=\"/audit\">Audit</a><span class=\"who\">{}</span>\
@@ -198,7 +198,7 @@ fn problem(status: StatusCode, session: Option<&Session>, message: &str) -> Resp
         status.as_u16(),
         esc(message)
     );
-    (status, page(status.as_str(), session, None, &body)).into_response()
+    (status, page_html(status.as_str(), session, None, &body)).into_response()
 }
 
 impl From<StoreError> for Response {
@@ -240,7 +240,7 @@ fn login_form(error: Option<&str>) -> Response {
          <button>Sign in</button></form>\
          <p class=\"hint\">The key was printed once by <code>canlift cloud account add</code> (or by <code>canlift demo</code>).</p>"
     );
-    page("Sign in", None, None, &body)
+    page_html("Sign in", None, None, &body)
 }
 
 #[derive(Deserialize)]
@@ -351,17 +351,42 @@ fn online_badge(lift: &str, online: bool) -> String {
     )
 }
 
-async fn fleet(State(app): State<Arc<App>>, SignedIn(session): SignedIn) -> Response {
-    let lifts = match app.store.lifts(&session.account.domain).await {
+/// Lifts per fleet page.
+const PAGE: usize = 100;
+
+#[derive(Deserialize)]
+struct FleetQuery {
+    /// 1-based page.
+    page: Option<usize>,
+    /// Part of a lift's id or lift number.
+    q: Option<String>,
+}
+
+async fn fleet(
+    State(app): State<Arc<App>>,
+    SignedIn(session): SignedIn,
+    Query(query): Query<FleetQuery>,
+) -> Response {
+    let all = match app.store.lifts(&session.account.domain).await {
         Ok(l) => l,
         Err(e) => return e.into(),
     };
+    let total = all.len();
+    let online_count = all.iter().filter(|l| app.registry.online(&l.id)).count();
+    let needle = query.q.as_deref().unwrap_or("").trim().to_lowercase();
+    let lifts: Vec<&LiftRecord> = all
+        .iter()
+        .filter(|l| {
+            needle.is_empty()
+                || l.id.to_lowercase().contains(&needle)
+                || l.liftnum.to_lowercase().contains(&needle)
+        })
+        .collect();
+    let pages = lifts.len().div_ceil(PAGE).max(1);
+    let page = query.page.unwrap_or(1).clamp(1, pages);
     let watched = [ERROR_REGISTER.to_owned(), LIFT_STATE.to_owned()];
     let mut rows = String::new();
-    let mut online_count = 0;
-    for lift in &lifts {
-        let online = app.registry.online(&lift.id);
-        online_count += usize::from(online);
+    for lift in lifts.iter().skip((page - 1) * PAGE).take(PAGE) {
         let latest = match app.store.latest(&lift.id, &watched).await {
             Ok(l) => l,
             Err(e) => return e.into(),
@@ -370,26 +395,38 @@ async fn fleet(State(app): State<Arc<App>>, SignedIn(session): SignedIn) -> Resp
             rows,
             "<tr><td><a href=\"/lifts/{id}\">{id}</a></td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
             esc(&lift.liftnum),
-            online_badge(&lift.id, online),
+            online_badge(&lift.id, app.registry.online(&lift.id)),
             time(lift.last_seen),
             faults(&latest),
             id = esc(&lift.id),
         );
     }
-    let body = if lifts.is_empty() {
+    let link =
+        |p: usize, text: &str| format!("<a href=\"/?page={p}&amp;q={}\">{text}</a>", esc(&needle));
+    let mut pager = format!("<p class=\"ranges\">page {page} of {pages} ");
+    if page > 1 {
+        pager.push_str(&link(page - 1, "← previous"));
+    }
+    if page < pages {
+        pager.push_str(&link(page + 1, "next →"));
+    }
+    pager.push_str("</p>");
+    let body = if total == 0 {
         format!(
             "<h1>Fleet</h1><p>No lift of domain <code>{}</code> has connected yet.</p>",
             esc(&session.account.domain)
         )
     } else {
         format!(
-            "<h1>Fleet</h1><p class=\"summary\">{online_count} of {} lifts online</p>\
+            "<h1>Fleet</h1><p class=\"summary\">{online_count} of {total} lifts online</p>\
+             <form class=\"read\" method=\"get\"><input name=\"q\" placeholder=\"lift id or number\" value=\"{}\">\
+             <button>Find</button></form>\
              <table class=\"fleet\"><thead><tr><th>Lift</th><th>Lift number</th><th>State</th>\
-             <th>Last seen</th><th>Active faults</th></tr></thead><tbody>{rows}</tbody></table>",
-            lifts.len()
+             <th>Last seen</th><th>Active faults</th></tr></thead><tbody>{rows}</tbody></table>{pager}",
+            esc(&needle)
         )
     };
-    page("Fleet", Some(&session), None, &body)
+    page_html("Fleet", Some(&session), None, &body)
 }
 
 /// What the gateway says about one object (the `object` and `hints` of a full
@@ -708,7 +745,7 @@ async fn lift_page(
         body.push_str("</tbody></table>");
     }
     body.push_str(EDIT_DIALOG);
-    page(&format!("Lift {id}"), Some(&session), Some(&id), &body)
+    page_html(&format!("Lift {id}"), Some(&session), Some(&id), &body)
 }
 
 const EDIT_DIALOG: &str = "<dialog id=\"edit\"><form method=\"dialog\">\
@@ -833,7 +870,7 @@ async fn history_page(
             .map_or_else(|| "—".to_owned(), |p| format!("{} at {}", p.1, time(p.0))),
         id = esc(&id),
     );
-    page(&format!("History {mplex}"), Some(&session), None, &body)
+    page_html(&format!("History {mplex}"), Some(&session), None, &body)
 }
 
 async fn audit_page(State(app): State<Arc<App>>, SignedIn(session): SignedIn) -> Response {
@@ -863,7 +900,7 @@ async fn audit_page(State(app): State<Arc<App>>, SignedIn(session): SignedIn) ->
          <table class=\"audit\"><thead><tr><th>When</th><th>Who</th><th>Lift</th><th>Action</th>\
          <th>Object</th><th>Before</th><th>After</th><th>Result</th></tr></thead><tbody>{rows}</tbody></table>"
     );
-    page("Audit", Some(&session), None, &body)
+    page_html("Audit", Some(&session), None, &body)
 }
 
 const APP_JS: &str = include_str!("web/app.js");

@@ -202,6 +202,29 @@ async fn operator_uses_the_web_ui() {
     )
     .await;
     assert_eq!(faults, "none");
+    // Finding lifts by part of their number (the fleet is paged, 100 per page).
+    client.goto(&format!("{base}/?q=7289")).await.unwrap();
+    let found = eval(
+        &client,
+        "return document.querySelectorAll('table.fleet tbody tr').length;",
+    )
+    .await;
+    assert_eq!(found, json!(1));
+    client
+        .goto(&format!("{base}/?q=no-such-lift"))
+        .await
+        .unwrap();
+    let found = eval(
+        &client,
+        "return document.querySelectorAll('table.fleet tbody tr').length;",
+    )
+    .await;
+    assert_eq!(found, json!(0));
+    assert_eq!(
+        text_of(&client, "p.ranges").await.as_deref(),
+        Some("page 1 of 1")
+    );
+    client.goto(&format!("{base}/")).await.unwrap();
 
     // The lift page: names from the gateway, values formatted by their metadata.
     click(&client, &format!("a[href=\"/lifts/{LIFT}\"]")).await;

@@ -83,11 +83,18 @@ function liveValues(lift) {
   });
 }
 
+// The fleet page refreshes its own table (this page of lifts, faults included) every 10 s.
 function refreshFleet() {
   setInterval(async () => {
-    const r = await fetch("/api/v1/lifts");
+    const r = await fetch(location.href);
     if (!r.ok) return;
-    for (const l of await r.json()) setOnline(l.id, Boolean(l.online));
+    const fresh = new DOMParser().parseFromString(await r.text(), "text/html");
+    for (const part of ["table.fleet tbody", "p.summary"]) {
+      const now = document.querySelector(part);
+      const next = fresh.querySelector(part);
+      if (now && next) now.replaceWith(next);
+    }
+    localTimes(document);
   }, 10000);
 }
 
