@@ -19,6 +19,7 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
+    #[cfg(feature = "portal")]
     /// Everything in one process: hub, simulated lift, gateway and portal.
     Demo(cmd::demo::DemoArgs),
     /// Virtual CAN bus server speaking socketcand's raw mode (python-can and canlift can join).
@@ -31,14 +32,19 @@ enum Command {
     Sdo(cmd::sdo::SdoArgs),
     /// The elevator gateway: connects the lift to a cloud portal (NXg connector).
     Gateway(cmd::gateway::GatewayArgs),
+    #[cfg(feature = "portal")]
     /// The cloud portal: gateways on /ws, the operator REST API (`account add` makes API keys).
     Cloud(cmd::cloud::CloudArgs),
+    #[cfg(feature = "portal")]
     /// The account's lifts on the portal.
     Lifts(cmd::operator::LiftsArgs),
+    #[cfg(feature = "portal")]
     /// Read an object of a lift through the portal.
     Get(cmd::operator::GetArgs),
+    #[cfg(feature = "portal")]
     /// Write an object of a lift through the portal.
     Put(cmd::operator::PutArgs),
+    #[cfg(feature = "portal")]
     /// Print the values a lift pushes for some objects.
     Watch(cmd::operator::WatchArgs),
     /// Simulated CiA 417 lift controller (and I/O node) on a bus.
@@ -66,6 +72,7 @@ fn main() -> std::process::ExitCode {
     };
     let result = runtime.block_on(async {
         match cli.command {
+            #[cfg(feature = "portal")]
             Command::Demo(args) => cmd::demo::run(args).await,
             Command::Hub(args) => cmd::hub::run(args).await,
             Command::Dump(args) => cmd::dump::run(args).await,
@@ -75,10 +82,15 @@ fn main() -> std::process::ExitCode {
             Command::Loadgen(args) => cmd::loadgen::run(args).await,
             Command::Sim(args) => cmd::sim::run(args).await,
             Command::Gateway(args) => cmd::gateway::run(args).await,
+            #[cfg(feature = "portal")]
             Command::Cloud(args) => cmd::cloud::run(args).await,
+            #[cfg(feature = "portal")]
             Command::Lifts(args) => cmd::operator::lifts(args).await,
+            #[cfg(feature = "portal")]
             Command::Get(args) => cmd::operator::get(args).await,
+            #[cfg(feature = "portal")]
             Command::Put(args) => cmd::operator::put(args).await,
+            #[cfg(feature = "portal")]
             Command::Watch(args) => cmd::operator::watch(args).await,
         }
     });

@@ -29,8 +29,10 @@ enum BenchKind {
     Sdo(SdoBench),
     /// A LocalNode through the hub: change→TPDO latency, PDO frames/s, SYNC jitter, idle CPU.
     Node(NodeBench),
+    #[cfg(feature = "portal")]
     /// The elevator gateway from a portal's seat: get latency and rate, notifications/s, RSS.
     Gateway(super::bench_gateway::GatewayBench),
+    #[cfg(feature = "portal")]
     /// The cloud portal: idle gateways and memory per connection, reconnect storm, ingest,
     /// operator latency.
     Portal(super::bench_portal::PortalBench),
@@ -690,7 +692,9 @@ pub async fn run(args: BenchArgs) -> anyhow::Result<()> {
         BenchKind::Hub(h) => run_hub_bench(h).await,
         BenchKind::Sdo(s) => run_sdo_bench(s).await,
         BenchKind::Node(n) => run_node_bench(n).await,
+        #[cfg(feature = "portal")]
         BenchKind::Gateway(g) => super::bench_gateway::run(g).await,
+        #[cfg(feature = "portal")]
         BenchKind::Portal(p) => super::bench_portal::run(p).await,
     }
 }

@@ -39,6 +39,19 @@ pub struct GatewayBench {
     /// Subscriptions for the memory figure.
     #[arg(long, default_value_t = 1000)]
     subscriptions: usize,
+    /// The canlift binary whose `gateway` is measured for memory and size — e.g. a
+    /// `--no-default-features` build, as a gateway device would run; default: this one.
+    #[arg(long)]
+    exe: Option<PathBuf>,
+}
+
+impl GatewayBench {
+    fn exe(&self) -> anyhow::Result<PathBuf> {
+        Ok(match &self.exe {
+            Some(e) => e.clone(),
+            None => std::env::current_exe()?,
+        })
+    }
 }
 
 type Ws = WebSocketStream<TlsStream<TcpStream>>;
@@ -250,7 +263,7 @@ async fn memory(args: &GatewayBench, pki: &DevPki, bus: &str, dir: &Path) -> any
     let config = config(&portal.url()?, pki, bus, &dir.join("process"));
     let path = dir.join("gateway.toml");
     std::fs::write(&path, toml::to_string_pretty(&config)?)?;
-    let exe = std::env::current_exe()?;
+    let exe = args.exe()?;
     let mut child = tokio::process::Command::new(&exe)
         .args(["gateway", "--config"])
         .arg(&path)
@@ -302,17 +315,17 @@ async fn memory(args: &GatewayBench, pki: &DevPki, bus: &str, dir: &Path) -> any
     Ok(())
 }
 
-fn binary_size(dir: &Path) -> anyhow::Result<()> {
-    let exe = std::env::current_exe()?;
+fn binary_size(exe: &Path, dir: &Path) -> anyhow::Result<()> {
     let copy: PathBuf = dir.join("canlift-stripped");
-    std::fs::copy(&exe, &copy)?;
+    std::fs::copy(exe, &copy)?;
     let stripped = std::process::Command::new("strip").arg(&copy).status();
     let size = std::fs::metadata(&copy)?.len();
     match stripped {
         Ok(s) if s.success() => println!(
-            "{:<22} {:.1} MiB stripped (whole canlift binary)",
+            "{:<22} {:.1} MiB stripped ({})",
             "binary",
-            size as f64 / (1024.0 * 1024.0)
+            size as f64 / (1024.0 * 1024.0),
+            exe.display()
         ),
         _ => println!(
             "{:<22} {:.1} MiB (strip not available)",
@@ -369,5 +382,5 @@ async fn measure(args: &GatewayBench, pki: &DevPki, dir: &Path) -> anyhow::Resul
     memory(args, pki, &bus, dir).await?;
     sim.stop().await;
     hub.shutdown().await;
-    binary_size(dir)
+    binary_size(&args.exe()?, dir)
 }

@@ -193,28 +193,33 @@ pub async fn run(args: LoadgenArgs) -> anyhow::Result<()> {
     let mut report = tokio::time::interval(Duration::from_secs(1));
     let mut change = tokio::time::interval(Duration::from_millis(args.change_ms.max(1)));
     let mut step = 0u32;
-    let mut all = false;
     let shutdown = crate::logging::shutdown_signal();
     tokio::pin!(shutdown);
-    loop {
-        tokio::select! {
-            _ = report.tick() => {
-                let online = fleet.online();
-                if !all && online == args.gateways {
+    {
+        let all_online = fleet.all_online(begin, Duration::from_secs(24 * 3600));
+        tokio::pin!(all_online);
+        let mut all = false;
+        loop {
+            tokio::select! {
+                took = &mut all_online, if !all => {
                     all = true;
-                    println!("all {online} online after {:.2} s", begin.elapsed().as_secs_f64());
+                    match took {
+                        Ok(t) => println!("all {} online after {:.2} s", fleet.total, t.as_secs_f64()),
+                        Err(e) => println!("{e}"),
+                    }
                     if args.until_online {
                         break;
                     }
-                } else if !all {
-                    println!("{online} online after {:.0} s", begin.elapsed().as_secs_f64());
                 }
+                _ = report.tick(), if !all => {
+                    println!("{} online after {:.0} s", fleet.online(), begin.elapsed().as_secs_f64());
+                }
+                _ = change.tick(), if args.change_ms > 0 => {
+                    step = step.wrapping_add(1);
+                    fleet.change(step);
+                }
+                _ = &mut shutdown => break,
             }
-            _ = change.tick(), if args.change_ms > 0 => {
-                step = step.wrapping_add(1);
-                fleet.change(step);
-            }
-            _ = &mut shutdown => break,
         }
     }
     fleet.stop().await;
