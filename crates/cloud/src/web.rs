@@ -761,7 +761,8 @@ const EDIT_DIALOG: &str = "<dialog id=\"edit\"><form method=\"dialog\">\
 #[derive(Deserialize)]
 struct HistoryQuery {
     mplex: String,
-    hours: Option<u32>,
+    /// The period shown, ending now.
+    minutes: Option<u32>,
 }
 
 /// An SVG step chart of `points` (ms, value) between `from` and `to`.
@@ -827,9 +828,9 @@ async fn history_page(
         );
     };
     let mplex = mplex.to_string();
-    let hours = q.hours.unwrap_or(1).clamp(1, 24 * 31);
+    let minutes = q.minutes.unwrap_or(60).clamp(1, 31 * 24 * 60);
     let to = store::now_ms();
-    let from = to - i64::from(hours) * 3_600_000;
+    let from = to - i64::from(minutes) * 60_000;
     let rows = match app.store.history(&id, &mplex, from, to).await {
         Ok(r) => r,
         Err(e) => return e.into(),
@@ -838,21 +839,27 @@ async fn history_page(
         .iter()
         .filter_map(|(at, v)| v.trim().parse::<f64>().ok().map(|v| (*at, v)))
         .collect();
-    let ranges: String = [1u32, 6, 24, 168]
-        .iter()
-        .map(|h| {
-            let class = if *h == hours {
-                " class=\"current\""
-            } else {
-                ""
-            };
-            format!(
-                "<a{class} href=\"/lifts/{}/history?mplex={}&amp;hours={h}\">{h} h</a>",
-                esc(&id),
-                esc(&mplex)
-            )
-        })
-        .collect();
+    let ranges: String = [
+        (10u32, "10 min"),
+        (60, "1 h"),
+        (360, "6 h"),
+        (1440, "24 h"),
+        (10080, "7 d"),
+    ]
+    .iter()
+    .map(|(m, label)| {
+        let class = if *m == minutes {
+            " class=\"current\""
+        } else {
+            ""
+        };
+        format!(
+            "<a{class} href=\"/lifts/{}/history?mplex={}&amp;minutes={m}\">{label}</a>",
+            esc(&id),
+            esc(&mplex)
+        )
+    })
+    .collect();
     let graph = if points.is_empty() {
         "<p class=\"muted\">No stored numeric values in this period. Values are stored while the \
          gateway pushes them (the dashboard's objects, or a subscription).</p>"

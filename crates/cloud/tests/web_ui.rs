@@ -353,6 +353,18 @@ async fn operator_uses_the_web_ui() {
     .await;
     let points = points.as_str().unwrap_or_default();
     assert!(points.split(' ').count() >= 3, "chart points {points:?}");
+    client
+        .goto(&format!(
+            "{base}/lifts/{LIFT}/history?mplex=0x652001&minutes=10"
+        ))
+        .await
+        .unwrap();
+    assert_eq!(
+        text_of(&client, ".ranges a.current").await.as_deref(),
+        Some("10 min")
+    );
+    let last = text_of(&client, "p.summary").await.unwrap_or_default();
+    assert!(!last.starts_with("0 values"), "{last}");
 
     // The audit log shows both changes and the elevation.
     client.goto(&format!("{base}/audit")).await.unwrap();
