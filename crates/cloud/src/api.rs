@@ -34,8 +34,8 @@ pub struct App {
     pub registry: Arc<Registry>,
     /// Signed-in browsers of the web UI.
     pub sessions: Sessions,
-    /// What the web UI shows.
-    pub dashboard: DashboardSection,
+    /// What the web UI shows (mplexes normalized).
+    pub dashboard: Arc<DashboardSection>,
 }
 
 /// An error answer.

@@ -91,29 +91,20 @@ impl Client {
         })
     }
 
-    async fn send(
-        &self,
-        method: &str,
-        path: &str,
-        body: Option<&Value>,
-    ) -> Result<hyper::Response<hyper::body::Incoming>, ClientError> {
-        self.connect().await?.send(method, path, body).await
-    }
-
-    /// One request with a JSON answer.
+    /// One request with a JSON answer, on a connection of its own.
     pub async fn call(
         &self,
         method: &str,
         path: &str,
         body: Option<Value>,
     ) -> Result<Answer, ClientError> {
-        answer(self.send(method, path, body.as_ref()).await?).await
+        self.connect().await?.call(method, path, body).await
     }
 
     /// Open the Server-Sent Events at `path` (the portal subscribes before answering, so
     /// nothing published after this returns is missed). `Err` carries a status other than 200.
     pub async fn events(&self, path: &str) -> Result<Result<EventStream, Answer>, ClientError> {
-        let response = self.send("GET", path, None).await?;
+        let response = self.connect().await?.send("GET", path, None).await?;
         if response.status() != 200 {
             return Ok(Err(answer(response).await?));
         }

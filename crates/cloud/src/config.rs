@@ -114,6 +114,19 @@ pub struct DashboardSection {
     pub parameters: Vec<String>,
 }
 
+impl DashboardSection {
+    /// The same with every mplex in the gateway's spelling, as pushes and stored values carry
+    /// them (done once, when the portal starts).
+    pub fn normalized(&self) -> DashboardSection {
+        let spell = |list: &[String]| list.iter().map(|m| nxg::mplex::normalized(m)).collect();
+        DashboardSection {
+            live: spell(&self.live),
+            inhibit_ms: self.inhibit_ms,
+            parameters: spell(&self.parameters),
+        }
+    }
+}
+
 impl Default for DashboardSection {
     fn default() -> Self {
         let list = |l: &[&str]| l.iter().map(|s| (*s).to_owned()).collect();

@@ -13,6 +13,7 @@ use nxg::portal::{Failure, PortalOutput, PortalSession, PortalSettings, RequestI
 use serde_json::{json, Value};
 use tokio::sync::{broadcast, mpsc, oneshot};
 
+use crate::config::DashboardSection;
 use crate::store::{self, Admission, Store};
 
 /// An event for live viewers of a lift.
@@ -171,15 +172,15 @@ pub struct Shared {
     pub telemetry: mpsc::Sender<(String, String, u8, String, i64)>,
     /// Values stored and dropped, for `/metrics`.
     pub counters: Arc<TelemetryCounters>,
-    /// Objects every gateway is asked to push, with their inhibit time (ms).
-    pub live: Arc<(Vec<String>, u64)>,
+    /// What every gateway is asked to push (`live`, `inhibit_ms`), normalized.
+    pub dashboard: Arc<DashboardSection>,
 }
 
 /// Ask a newly connected gateway to push the dashboard's objects, the way an operator would.
 /// `reg_canopen_object` is all or none (NXg §7.3): when one object is missing on this lift the
 /// others are registered one by one.
-async fn subscribe_live(registry: Arc<Registry>, lift: String, live: Arc<(Vec<String>, u64)>) {
-    let (objects, inhibit) = (&live.0, live.1);
+async fn subscribe_live(registry: Arc<Registry>, lift: String, dashboard: Arc<DashboardSection>) {
+    let (objects, inhibit) = (&dashboard.live, dashboard.inhibit_ms);
     if objects.is_empty() {
         return;
     }
@@ -324,7 +325,7 @@ pub async fn serve(mut socket: WebSocket, shared: Shared, peer: String) {
                                     tokio::spawn(subscribe_live(
                                         shared.registry.clone(),
                                         id.clone(),
-                                        shared.live.clone(),
+                                        shared.dashboard.clone(),
                                     ));
                                 }
                                 tracing::info!(lift = %id, %peer, api = session.api(), first = ?admission, "gateway online");
@@ -348,7 +349,9 @@ pub async fn serve(mut socket: WebSocket, shared: Shared, peer: String) {
                     }
                     PortalOutput::Notification(payload) => {
                         if let Some((id, _)) = &lift {
-                            let mplex = normalized(payload["mplex"].as_str().unwrap_or_default());
+                            let mplex = nxg::mplex::normalized(
+                                payload["mplex"].as_str().unwrap_or_default(),
+                            );
                             let value = match &payload["value"] {
                                 Value::String(s) => s.clone(),
                                 other => other.to_string(),
@@ -419,11 +422,6 @@ pub async fn serve(mut socket: WebSocket, shared: Shared, peer: String) {
     } else {
         tracing::info!(%peer, %cause, "connection ended before CONNACK");
     }
-}
-
-/// An mplex in the gateway's spelling (`0x` + upper-case hex), or as it came if it is none.
-pub fn normalized(mplex: &str) -> String {
-    nxg::mplex::Mplex::parse(mplex).map_or_else(|_| mplex.to_owned(), |m| m.to_string())
 }
 
 /// The JSON of an event for Server-Sent Events.

@@ -146,6 +146,7 @@ impl Portal {
             counters.clone(),
         ));
         let metrics = Arc::new(Metrics::default());
+        let dashboard = Arc::new(config.dashboard.normalized());
         let ws_state = Arc::new(WsState {
             shared: Shared {
                 store: store.clone(),
@@ -153,15 +154,7 @@ impl Portal {
                 settings: config.gateways.settings(),
                 telemetry,
                 counters: counters.clone(),
-                live: Arc::new((
-                    config
-                        .dashboard
-                        .live
-                        .iter()
-                        .map(|m| gateways::normalized(m))
-                        .collect(),
-                    config.dashboard.inhibit_ms,
-                )),
+                dashboard: dashboard.clone(),
             },
             max_message: config.gateways.max_message_bytes,
             metrics: metrics.clone(),
@@ -184,7 +177,7 @@ impl Portal {
                     store,
                     registry: registry.clone(),
                     sessions: crate::web::Sessions::default(),
-                    dashboard: config.dashboard.clone(),
+                    dashboard,
                 });
                 api::routes(app.clone()).merge(crate::web::routes(app))
             });

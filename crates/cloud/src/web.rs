@@ -23,7 +23,6 @@ use serde::Deserialize;
 use serde_json::Value;
 
 use crate::api::{read_params, App};
-use crate::gateways::normalized;
 use crate::store::{self, Account, LiftRecord, StoreError};
 
 const COOKIE: &str = "canlift_session";
@@ -138,23 +137,17 @@ fn esc(text: &str) -> String {
 
 /// Milliseconds since the epoch as `YYYY-MM-DD HH:MM:SS UTC` (the script shows local time).
 fn utc(ms: i64) -> String {
-    let secs = ms.div_euclid(1000);
-    let (days, rem) = (secs.div_euclid(86_400), secs.rem_euclid(86_400));
-    // Civil date from days since 1970-01-01 (H. Hinnant's algorithm).
-    let z = days + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z - era * 146_097;
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let day = doy - (153 * mp + 2) / 5 + 1;
-    let month = if mp < 10 { mp + 3 } else { mp - 9 };
-    let year = yoe + era * 400 + i64::from(month <= 2);
+    let Ok(t) = time::OffsetDateTime::from_unix_timestamp(ms.div_euclid(1000)) else {
+        return format!("{ms} ms");
+    };
     format!(
-        "{year:04}-{month:02}-{day:02} {:02}:{:02}:{:02} UTC",
-        rem / 3600,
-        rem % 3600 / 60,
-        rem % 60
+        "{:04}-{:02}-{:02} {:02}:{:02}:{:02} UTC",
+        t.year(),
+        u8::from(t.month()),
+        t.day(),
+        t.hour(),
+        t.minute(),
+        t.second()
     )
 }
 
@@ -429,27 +422,29 @@ async fn fleet(
     page_html("Fleet", Some(&session), None, &body)
 }
 
-/// What the gateway says about one object (the `object` and `hints` of a full
-/// `get_canopen_object`), or why it could not.
+/// What the gateway says about one object (the result of a full `get_canopen_object`, with
+/// its `object` and `hints`), or why it could not.
 struct Object {
     mplex: String,
-    meta: Result<Value, String>,
-    hints: Value,
+    answer: Result<Value, String>,
     stored: Option<(i64, String)>,
 }
 
 impl Object {
+    /// The object's metadata and value.
+    fn meta(&self) -> Option<&Value> {
+        self.answer.as_ref().ok().map(|a| &a["object"])
+    }
+
     fn name(&self) -> String {
-        self.meta
-            .as_ref()
-            .ok()
+        self.meta()
             .and_then(|m| m["name"].as_str())
             .map_or_else(|| self.mplex.clone(), str::to_owned)
     }
 
     /// The current value: the gateway's answer, else the newest stored one.
     fn raw(&self) -> String {
-        let live = self.meta.as_ref().ok().and_then(|m| match &m["value"] {
+        let live = self.meta().and_then(|m| match &m["value"] {
             Value::Array(items) => Some(
                 items
                     .iter()
@@ -464,13 +459,17 @@ impl Object {
     }
 
     fn number(&self, key: &str) -> Option<i64> {
-        self.meta.as_ref().ok().and_then(|m| m[key].as_i64())
+        self.meta().and_then(|m| m[key].as_i64())
     }
 
     /// The `data-…` attributes the script formats values and fills the edit dialog with.
     fn attributes(&self) -> String {
-        let meta = self.meta.as_ref().ok();
+        let meta = self.meta();
         let get = |k: &str| meta.map_or(Value::Null, |m| m[k].clone());
+        let hints = self
+            .answer
+            .as_ref()
+            .map_or(Value::Null, |a| a["hints"].clone());
         let plain = |v: Value| match v {
             Value::Null => String::new(),
             Value::String(s) => s,
@@ -495,14 +494,13 @@ impl Object {
             esc(&plain(get("privilege"))),
             esc(unit),
             esc(&get("list").to_string()),
-            esc(&self.hints.to_string()),
+            esc(&hints.to_string()),
         )
     }
 
     fn writable(&self) -> bool {
-        self.meta
-            .as_ref()
-            .is_ok_and(|m| matches!(m["access"].as_str(), Some("rw" | "wo")))
+        self.meta()
+            .is_some_and(|m| matches!(m["access"].as_str(), Some("rw" | "wo")))
     }
 
     fn numeric(&self) -> bool {
@@ -530,7 +528,7 @@ impl Object {
     }
 
     fn card(&self, lift: &str) -> String {
-        let note = match &self.meta {
+        let note = match &self.answer {
             Err(e) if self.stored.is_none() => format!("<p class=\"error\">{}</p>", esc(e)),
             _ => String::new(),
         };
@@ -544,7 +542,7 @@ impl Object {
     }
 
     fn row(&self, lift: &str) -> String {
-        let meta = self.meta.as_ref().ok();
+        let meta = self.meta();
         let range = match (self.number("min"), self.number("max")) {
             (Some(lo), Some(hi)) => format!("{lo} … {hi}"),
             _ => String::new(),
@@ -562,7 +560,7 @@ impl Object {
         } else {
             String::new()
         };
-        let value = match &self.meta {
+        let value = match &self.answer {
             Err(e) => format!("<span class=\"error\">{}</span>", esc(e)),
             Ok(_) => format!(
                 "<span class=\"v\">{}</span> <span class=\"u\"></span>",
@@ -599,7 +597,7 @@ async fn read_all(
 ) -> Vec<Object> {
     let online = app.registry.online(lift);
     let reads = mplexes.iter().map(|mplex| async move {
-        let meta = if online {
+        let answer = if online {
             let call = app.registry.call(
                 lift,
                 "get_canopen_object",
@@ -607,26 +605,16 @@ async fn read_all(
             );
             match tokio::time::timeout(READ_TIMEOUT, call).await {
                 Ok(Ok(v)) => Ok(v),
-                Ok(Err(nxg::portal::Failure::Error(e))) => Err(format!(
-                    "{} ({})",
-                    e["message"].as_str().unwrap_or("error"),
-                    e["code"]
-                        .as_i64()
-                        .map_or_else(String::new, |c| format!("{c:08X}h"))
-                )),
+                Ok(Err(nxg::portal::Failure::Error(e))) => Err(nxg::errors::describe(&e)),
                 Ok(Err(f)) => Err(format!("{f:?}").to_lowercase()),
                 Err(_) => Err("no answer in time".into()),
             }
         } else {
             Err("offline".into())
         };
-        let hints = meta
-            .as_ref()
-            .map_or(Value::Null, |v: &Value| v["hints"].clone());
         Object {
             mplex: mplex.clone(),
-            meta: meta.map(|v| v["object"].clone()),
-            hints,
+            answer,
             stored: stored.get(mplex).cloned(),
         }
     });
@@ -677,25 +665,19 @@ async fn lift_page(
         Err(r) => return r,
     };
     let lang = language(q.lang.as_deref(), &headers);
-    let live: Vec<String> = app.dashboard.live.iter().map(|m| normalized(m)).collect();
-    let parameters: Vec<String> = app
-        .dashboard
-        .parameters
-        .iter()
-        .map(|m| normalized(m))
-        .collect();
+    let (live, parameters) = (&app.dashboard.live, &app.dashboard.parameters);
     let read = q
         .read
         .as_deref()
         .map(str::trim)
         .filter(|r| !r.is_empty())
-        .map(normalized);
-    let stored = match app.store.latest(&id, &live).await {
+        .map(nxg::mplex::normalized);
+    let stored = match app.store.latest(&id, live).await {
         Ok(s) => s,
         Err(e) => return e.into(),
     };
     let mut wanted = live.clone();
-    wanted.extend(parameters.iter().cloned());
+    wanted.extend_from_slice(parameters);
     wanted.extend(read.iter().cloned());
     let mut objects = read_all(&app, &id, &wanted, &lang, &stored).await;
     let read_object = read.as_ref().and_then(|_| objects.pop());

@@ -133,8 +133,38 @@ pub mod rpc_codes {
     pub const BUSY: i64 = -32000;
 }
 
+/// An error object of a gateway's answer (`{"code", "message", "data"}`) as an operator reads it:
+/// `message (CODEh, data)`, the abort code in the hex form of CiA 301.
+pub fn describe(error: &serde_json::Value) -> String {
+    let code = match &error["code"] {
+        serde_json::Value::Null => String::new(),
+        code => code
+            .as_i64()
+            .map_or_else(|| code.to_string(), |c| format!("{c:08X}h")),
+    };
+    let data = match &error["data"] {
+        serde_json::Value::Null => String::new(),
+        data => format!(", {data}"),
+    };
+    let message = error["message"].as_str().unwrap_or("error");
+    format!("{message} ({code}{data})")
+}
+
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn describes_an_error_object() {
+        let e = serde_json::json!({"code": 0x0602_0000, "message": "Object does not exist in the object dictionary.", "data": "0x5FFF00"});
+        assert_eq!(
+            super::describe(&e),
+            "Object does not exist in the object dictionary. (06020000h, \"0x5FFF00\")"
+        );
+        assert_eq!(
+            super::describe(&serde_json::json!({"code": 1, "message": "m"})),
+            "m (00000001h)"
+        );
+    }
+
     use super::*;
 
     #[test]

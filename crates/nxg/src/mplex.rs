@@ -34,6 +34,12 @@ impl Mplex {
     }
 }
 
+/// An mplex in the gateway's spelling (`0x` + upper-case hex), or the text as it came if it is
+/// none: the portal's key for stored values and the web page's key for live ones.
+pub fn normalized(text: &str) -> String {
+    Mplex::parse(text).map_or_else(|_| text.to_owned(), |m| m.to_string())
+}
+
 impl fmt::Display for Mplex {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(f, "0x{:04X}{:02X}", self.index, self.sub)

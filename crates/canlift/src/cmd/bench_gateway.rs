@@ -223,6 +223,37 @@ async fn notifications(
     Ok(())
 }
 
+/// A canlift daemon (`gateway`, `cloud`) started by a benchmark as a process of its own, so its
+/// memory is its own: quiet, and killed if the benchmark fails.
+pub(crate) struct Daemon {
+    child: tokio::process::Child,
+    /// Its process id.
+    pub(crate) pid: u32,
+}
+
+impl Daemon {
+    /// `exe COMMAND --config CONFIG`.
+    pub(crate) fn start(exe: &Path, command: &str, config: &Path) -> anyhow::Result<Daemon> {
+        let child = tokio::process::Command::new(exe)
+            .args([command, "--config"])
+            .arg(config)
+            .env("RUST_LOG", "warn")
+            .stdout(Stdio::null())
+            .kill_on_drop(true)
+            .spawn()?;
+        let pid = child.id().with_context(|| format!("{command} process"))?;
+        Ok(Daemon { child, pid })
+    }
+
+    /// SIGINT (the daemons' graceful shutdown), then wait up to `limit` for the exit.
+    pub(crate) async fn stop(mut self, limit: Duration) {
+        let _ = std::process::Command::new("kill")
+            .args(["-INT", &self.pid.to_string()])
+            .status();
+        let _ = tokio::time::timeout(limit, self.child.wait()).await;
+    }
+}
+
 /// RSS, PSS and anonymous memory of a process in KiB (`/proc/PID/smaps_rollup`): RSS counts the
 /// binary's pages shared with other canlift processes in full, PSS shares them out, anonymous is
 /// the process's own heap and stacks.
@@ -263,15 +294,8 @@ async fn memory(args: &GatewayBench, pki: &DevPki, bus: &str, dir: &Path) -> any
     let config = config(&portal.url()?, pki, bus, &dir.join("process"));
     let path = dir.join("gateway.toml");
     std::fs::write(&path, toml::to_string_pretty(&config)?)?;
-    let exe = args.exe()?;
-    let mut child = tokio::process::Command::new(&exe)
-        .args(["gateway", "--config"])
-        .arg(&path)
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::null())
-        .kill_on_drop(true)
-        .spawn()?;
-    let pid = child.id().context("gateway process")?;
+    let daemon = Daemon::start(&args.exe()?, "gateway", &path)?;
+    let pid = daemon.pid;
     let mut ws = portal.accept().await?;
     tokio::time::sleep(Duration::from_secs(2)).await;
     let idle = memory_kib(pid).unwrap_or_default();
@@ -308,10 +332,7 @@ async fn memory(args: &GatewayBench, pki: &DevPki, bus: &str, dir: &Path) -> any
             mib(anon)
         );
     }
-    let _ = std::process::Command::new("kill")
-        .args(["-INT", &pid.to_string()])
-        .status();
-    let _ = tokio::time::timeout(Duration::from_secs(5), child.wait()).await;
+    daemon.stop(Duration::from_secs(5)).await;
     Ok(())
 }
 

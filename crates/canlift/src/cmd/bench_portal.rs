@@ -9,13 +9,12 @@
 //! gateway → SDO → simulator.
 
 use std::path::{Path, PathBuf};
-use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use lift417::sim::{SimConfig, Simulator};
 
-use super::bench_gateway::{memory_kib, mib, percentile};
+use super::bench_gateway::{memory_kib, mib, percentile, Daemon};
 use super::loadgen::{Fleet, LoadgenArgs};
 
 /// Arguments of `canlift bench portal`.
@@ -53,8 +52,7 @@ pub struct PortalBench {
 
 /// The portal process.
 struct PortalProcess {
-    child: tokio::process::Child,
-    pid: u32,
+    daemon: Daemon,
     port: u16,
     ca: PathBuf,
     client: cloud::client::Client,
@@ -74,14 +72,7 @@ impl PortalProcess {
         config.dashboard.inhibit_ms = 0;
         let path = dir.join("portal.toml");
         std::fs::write(&path, toml::to_string_pretty(&config)?)?;
-        let child = tokio::process::Command::new(std::env::current_exe()?)
-            .args(["cloud", "--config"])
-            .arg(&path)
-            .env("RUST_LOG", "warn")
-            .stdout(Stdio::null())
-            .kill_on_drop(true)
-            .spawn()?;
-        let pid = child.id().context("portal process")?;
+        let daemon = Daemon::start(&std::env::current_exe()?, "cloud", &path)?;
         let ca = config.state.dir.join("dev-ca.pem");
         let deadline = Instant::now() + Duration::from_secs(30);
         while tokio::net::TcpStream::connect(("127.0.0.1", port))
@@ -97,8 +88,7 @@ impl PortalProcess {
         let client =
             cloud::client::Client::new(&format!("https://localhost:{port}"), None, Some(&ca))?;
         Ok(PortalProcess {
-            child,
-            pid,
+            daemon,
             port,
             ca,
             client,
@@ -119,14 +109,11 @@ impl PortalProcess {
     }
 
     fn rss_kib(&self) -> u64 {
-        memory_kib(self.pid).map_or(0, |m| m[0])
+        memory_kib(self.daemon.pid).map_or(0, |m| m[0])
     }
 
-    async fn stop(mut self) {
-        let _ = std::process::Command::new("kill")
-            .args(["-INT", &self.pid.to_string()])
-            .status();
-        let _ = tokio::time::timeout(Duration::from_secs(10), self.child.wait()).await;
+    async fn stop(self) {
+        self.daemon.stop(Duration::from_secs(10)).await;
     }
 }
 

@@ -6,7 +6,6 @@
 
 use std::net::{IpAddr, Ipv4Addr};
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
@@ -55,11 +54,11 @@ pub struct LoadgenArgs {
 
 /// Running gateways.
 pub struct Fleet {
-    online: Arc<AtomicUsize>,
+    /// Each gateway's in-service status (`Gateway::online`).
+    status: Vec<watch::Receiver<bool>>,
     stop: watch::Sender<bool>,
     tasks: Vec<JoinHandle<()>>,
     od: SharedDictionary,
-    total: usize,
 }
 
 /// The shared controller dictionary the gateways serve.
@@ -75,9 +74,9 @@ impl Fleet {
             bail!("--sources: at least 1");
         }
         let od = dictionary()?;
-        let online = Arc::new(AtomicUsize::new(0));
         let (stop, stopped) = watch::channel(false);
-        let mut tasks = Vec::with_capacity(args.gateways * 2);
+        let mut tasks = Vec::with_capacity(args.gateways);
+        let mut status = Vec::with_capacity(args.gateways);
         let started = Instant::now();
         for i in 0..args.gateways {
             if args.rate > 0 {
@@ -105,49 +104,30 @@ impl Fleet {
             config.cloud.source_address = Some(IpAddr::V4(Ipv4Addr::new(127, 0, 0, host)));
             let gw = Gateway::embedded(config, od.clone())
                 .with_context(|| format!("gateway {number}"))?;
-            let mut status = gw.online();
-            let count = online.clone();
-            tasks.push(tokio::spawn(async move {
-                let mut was = false;
-                while status.changed().await.is_ok() {
-                    let now = *status.borrow_and_update();
-                    if now != was {
-                        if now {
-                            count.fetch_add(1, Ordering::Relaxed);
-                        } else {
-                            count.fetch_sub(1, Ordering::Relaxed);
-                        }
-                        was = now;
-                    }
-                }
-                if was {
-                    count.fetch_sub(1, Ordering::Relaxed);
-                }
-            }));
+            status.push(gw.online());
             tasks.push(tokio::spawn(gw.run(stopped.clone())));
         }
         Ok(Fleet {
-            online,
+            status,
             stop,
             tasks,
             od,
-            total: args.gateways,
         })
     }
 
     /// Gateways in service now.
     pub fn online(&self) -> usize {
-        self.online.load(Ordering::Relaxed)
+        self.status.iter().filter(|s| *s.borrow()).count()
     }
 
     /// Wait until all gateways are online; how long that took from `since`.
     pub async fn all_online(&self, since: Instant, limit: Duration) -> anyhow::Result<Duration> {
-        while self.online() < self.total {
+        while self.online() < self.status.len() {
             if since.elapsed() > limit {
                 bail!(
                     "{} of {} gateways online after {limit:?}",
                     self.online(),
-                    self.total
+                    self.status.len()
                 );
             }
             tokio::time::sleep(Duration::from_millis(20)).await;
@@ -204,7 +184,7 @@ pub async fn run(args: LoadgenArgs) -> anyhow::Result<()> {
                 took = &mut all_online, if !all => {
                     all = true;
                     match took {
-                        Ok(t) => println!("all {} online after {:.2} s", fleet.total, t.as_secs_f64()),
+                        Ok(t) => println!("all {} online after {:.2} s", args.gateways, t.as_secs_f64()),
                         Err(e) => println!("{e}"),
                     }
                     if args.until_online {

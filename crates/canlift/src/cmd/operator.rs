@@ -128,17 +128,7 @@ fn check((status, body): (u16, Value)) -> anyhow::Result<Value> {
         return Ok(body);
     }
     match (body.get("code"), body.get("message")) {
-        (Some(code), Some(message)) => {
-            let code = code
-                .as_i64()
-                .map_or(code.to_string(), |c| format!("{c:08X}h"));
-            bail!(
-                "{status}: {message} ({code}{})",
-                body.get("data")
-                    .map(|d| format!(", {d}"))
-                    .unwrap_or_default()
-            )
-        }
+        (Some(_), Some(_)) => bail!("{status}: {}", nxg::errors::describe(&body)),
         _ => bail!("{status}: {body}"),
     }
 }
@@ -261,7 +251,7 @@ pub async fn watch(args: WatchArgs) -> anyhow::Result<()> {
     let wanted: Vec<String> = args
         .mplex
         .iter()
-        .map(|m| cloud::gateways::normalized(m))
+        .map(|m| nxg::mplex::normalized(m))
         .collect();
     let mut seen = 0;
     let shutdown = crate::logging::shutdown_signal();
