@@ -1,4 +1,7 @@
-//! CAN frames, the [`Bus`] abstraction and its backends, and the socketcand-compatible hub.
+//! CAN frames, the `Bus` abstraction and its backends, and the socketcand-compatible hub.
+//!
+//! Without the `tokio` feature (on by default) the crate is frames, filters, the socketcand
+//! text codec and the wire-time model: what sans-IO protocol code needs, without a runtime.
 //!
 //! ```no_run
 //! # async fn demo() -> Result<(), canbus::BusError> {
@@ -13,14 +16,19 @@
 #![warn(missing_docs)]
 
 pub mod backoff;
+#[cfg(feature = "tokio")]
 mod bus;
 mod frame;
+#[cfg(feature = "tokio")]
 pub mod hub;
+#[cfg(feature = "tokio")]
 mod mem;
+#[cfg(feature = "tokio")]
 pub mod socketcan;
 pub mod socketcand;
 pub mod wire;
 
+#[cfg(feature = "tokio")]
 pub use bus::{
     Bus, BusError, BusEvent, BusOptions, BusReceiver, BusSender, BusUrl, DEFAULT_RX_QUEUE,
     SOCKETCAND_DEFAULT_PORT,

@@ -257,12 +257,28 @@ pub enum TypeError {
         /// What was given.
         got: usize,
     },
-    /// The value is not of this type, or out of its range.
+    /// The value is not of this type.
     #[error("{value} is not a valid {ty}")]
     Invalid {
         /// The type.
         ty: DataType,
         /// The offending value or text.
+        value: String,
+    },
+    /// A number above the type's range.
+    #[error("{value} is too high for {ty}")]
+    TooHigh {
+        /// The type.
+        ty: DataType,
+        /// The offending text.
+        value: String,
+    },
+    /// A number below the type's range.
+    #[error("{value} is too low for {ty}")]
+    TooLow {
+        /// The type.
+        ty: DataType,
+        /// The offending text.
         value: String,
     },
 }
@@ -274,6 +290,8 @@ impl TypeError {
             TypeError::Length { expected, got, .. } if got > expected => AbortCode::LENGTH_TOO_HIGH,
             TypeError::Length { .. } => AbortCode::LENGTH_TOO_LOW,
             TypeError::Invalid { .. } => AbortCode::INVALID_VALUE,
+            TypeError::TooHigh { .. } => AbortCode::VALUE_TOO_HIGH,
+            TypeError::TooLow { .. } => AbortCode::VALUE_TOO_LOW,
         }
     }
 }
@@ -453,7 +471,32 @@ fn parse_hex_bytes(ty: DataType, text: &str) -> Result<Vec<u8>, TypeError> {
         .collect())
 }
 
-/// Parse an integer written in decimal, `0x` hex or a leading-zero octal (as EDS files do).
+/// Parse an integer in the text form of values: decimal (leading zeros are decimal: `010` is
+/// ten) or `0x` hex, with an optional sign.
+pub fn parse_text_integer(text: &str) -> Option<i128> {
+    let t = text.trim();
+    let (neg, digits) = match t.strip_prefix('-') {
+        Some(rest) => (true, rest),
+        None => (false, t.strip_prefix('+').unwrap_or(t)),
+    };
+    let magnitude = match digits
+        .strip_prefix("0x")
+        .or_else(|| digits.strip_prefix("0X"))
+    {
+        Some(hex) if !hex.is_empty() && hex.bytes().all(|b| b.is_ascii_hexdigit()) => {
+            i128::from_str_radix(hex, 16).ok()?
+        }
+        Some(_) => return None,
+        None if !digits.is_empty() && digits.bytes().all(|b| b.is_ascii_digit()) => {
+            digits.parse::<i128>().ok()?
+        }
+        None => return None,
+    };
+    Some(if neg { -magnitude } else { magnitude })
+}
+
+/// Parse an integer written in decimal, `0x` hex or a leading-zero octal (as EDS files do,
+/// CiA 306 §4.6).
 pub fn parse_integer(text: &str) -> Option<i128> {
     let t = text.trim();
     let (neg, digits) = match t.strip_prefix('-') {
@@ -476,7 +519,8 @@ pub fn parse_integer(text: &str) -> Option<i128> {
     Some(if neg { -magnitude } else { magnitude })
 }
 
-/// Parse the text form of a `ty` value (integers also accept `0x` hex).
+/// Parse the text form of a `ty` value: integers in decimal or with a `0x` prefix in hex (a
+/// number outside the type's range is [`TypeError::TooHigh`] or [`TypeError::TooLow`]).
 pub fn from_text(ty: DataType, text: &str) -> Result<Value, TypeError> {
     use DataType::*;
     let bad = || invalid(ty, text);
@@ -487,10 +531,14 @@ pub fn from_text(ty: DataType, text: &str) -> Result<Value, TypeError> {
             _ => Err(bad()),
         },
         _ if ty.is_signed() || ty.is_unsigned() => {
-            let v = parse_integer(text).ok_or_else(bad)?;
+            let v = parse_text_integer(text).ok_or_else(bad)?;
             let (lo, hi) = ty.integer_range().ok_or_else(bad)?;
-            if !(lo..=hi).contains(&v) {
-                return Err(bad());
+            let value = text.to_owned();
+            if v > hi {
+                return Err(TypeError::TooHigh { ty, value });
+            }
+            if v < lo {
+                return Err(TypeError::TooLow { ty, value });
             }
             Ok(if ty.is_signed() {
                 Value::Int(v as i64)
@@ -702,7 +750,28 @@ mod tests {
             from_text(DataType::Unsigned16, "0x1017").unwrap(),
             Value::Uint(0x1017)
         );
-        assert!(from_text(DataType::Unsigned8, "256").is_err());
+        assert!(matches!(
+            from_text(DataType::Unsigned8, "256"),
+            Err(TypeError::TooHigh { .. })
+        ));
+        assert!(matches!(
+            from_text(DataType::Unsigned8, "-1"),
+            Err(TypeError::TooLow { .. })
+        ));
+        assert_eq!(
+            from_text(DataType::Unsigned8, "010").unwrap(),
+            Value::Uint(10),
+            "decimal, not octal"
+        );
+        assert_eq!(
+            from_text(DataType::Unsigned8, "08").unwrap(),
+            Value::Uint(8)
+        );
+        assert_eq!(
+            from_text(DataType::Integer8, "-0x10").unwrap(),
+            Value::Int(-16)
+        );
+        assert!(from_text(DataType::Unsigned8, "0x").is_err());
         assert!(from_text(DataType::Integer16, "12a").is_err());
         assert!(from_text(DataType::OctetString, "ABC").is_err());
         assert!(

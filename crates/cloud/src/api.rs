@@ -1,14 +1,14 @@
 //! The operator REST API (`/api/v1/…`, JSON, `Authorization: Bearer API_KEY`). A lift's id is
 //! `VENDORID-PRODUCTCODE-SERNUM`; an account sees only the lifts of its own domain (404 for
-//! others). NXg errors come back as 4xx with `{"code", "message", "data"}`; an offline gateway
-//! gives 503, a gateway that does not answer in time 504. Puts and elevations are audited.
+//! others). NXg errors come back as 4xx with the gateway's error object; an offline gateway
+//! gives 503, a gateway that does not answer in time 504. Puts and elevations are audited. The
+//! bodies are the types of [`crate::rest`].
 
-use std::collections::HashMap;
 use std::convert::Infallible;
 use std::sync::Arc;
 
-use axum::extract::FromRequestParts;
-use axum::extract::{Path, Query, State};
+use axum::extract::rejection::{JsonRejection, QueryRejection};
+use axum::extract::{FromRequest, FromRequestParts, Path, Request, State};
 use axum::http::request::Parts;
 use axum::http::{Method, StatusCode};
 use axum::response::sse::{Event, KeepAlive, Sse};
@@ -16,13 +16,20 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::{Json, Router};
 use futures_util::Stream;
-use nxg::mplex::Mplex;
+use nxg::errors::ErrorCode;
+use nxg::msg::{
+    Done, ElevateAnswer, ElevateParams, ErrorObject, GetObject, GetParams, Lang, MplexText, NodeId,
+    NodeRef, ObjectAnswer, PutAnswer, PutObject, PutParams, RegParams, UnregParams,
+};
 use nxg::portal::Failure;
-use serde::Deserialize;
-use serde_json::{json, Value};
+use serde::de::DeserializeOwned;
 
-use crate::config::DashboardSection;
-use crate::gateways::{event_json, Registry};
+use crate::config::Dashboard;
+use crate::gateways::Registry;
+use crate::rest::{
+    Form, GetQuery, History, HistoryPoint, HistoryQuery, LiftSummary, PrivilegeBody, PutBody,
+    SubscriptionBody,
+};
 use crate::store::{self, Account, AuditEntry, Store};
 use crate::web::Sessions;
 
@@ -34,12 +41,12 @@ pub struct App {
     pub registry: Arc<Registry>,
     /// Signed-in browsers of the web UI.
     pub sessions: Sessions,
-    /// What the web UI shows (mplexes normalized).
-    pub dashboard: Arc<DashboardSection>,
+    /// What the web UI shows.
+    pub dashboard: Arc<Dashboard>,
 }
 
-/// An error answer.
-pub struct ApiError(StatusCode, Value);
+/// An error answer: the status and an error object.
+pub struct ApiError(StatusCode, ErrorObject);
 
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
@@ -47,8 +54,12 @@ impl IntoResponse for ApiError {
     }
 }
 
-fn error(status: StatusCode, message: &str) -> ApiError {
-    ApiError(status, json!({"code": status.as_u16(), "message": message}))
+/// An error of the portal itself: the status as its code.
+pub(crate) fn error(status: StatusCode, message: impl Into<String>) -> ApiError {
+    ApiError(
+        status,
+        ErrorObject::rpc(i64::from(status.as_u16()), message),
+    )
 }
 
 impl From<store::StoreError> for ApiError {
@@ -58,18 +69,26 @@ impl From<store::StoreError> for ApiError {
     }
 }
 
+/// The HTTP status of a gateway's NXg error: a missing object is 404, a refusal of rights or
+/// identity 403, anything else the caller's mistake (400).
+fn status_of(code: Option<ErrorCode>) -> StatusCode {
+    match code {
+        Some(ErrorCode::NO_OBJECT | ErrorCode::NO_SUB_INDEX) => StatusCode::NOT_FOUND,
+        Some(ErrorCode::IDENTITY | ErrorCode::PRIVILEGE | ErrorCode::DEVICE_STATE) => {
+            StatusCode::FORBIDDEN
+        }
+        _ => StatusCode::BAD_REQUEST,
+    }
+}
+
 impl From<Failure> for ApiError {
     fn from(f: Failure) -> Self {
         match f {
-            Failure::Error(e) => {
-                let code = e.get("code").and_then(Value::as_i64).unwrap_or(0);
-                let status = match code {
-                    0x0602_0000 | 0x0609_0011 => StatusCode::NOT_FOUND,
-                    0x0800_0020 | 0x0800_0021 => StatusCode::FORBIDDEN,
-                    _ => StatusCode::BAD_REQUEST,
-                };
-                ApiError(status, e)
-            }
+            Failure::Error(e) => ApiError(status_of(e.abort_code()), e),
+            Failure::Invalid(why) => error(
+                StatusCode::BAD_GATEWAY,
+                format!("the gateway's answer is not valid: {why}"),
+            ),
             Failure::Timeout => error(
                 StatusCode::GATEWAY_TIMEOUT,
                 "the gateway did not answer in time",
@@ -80,6 +99,35 @@ impl From<Failure> for ApiError {
             ),
             Failure::Gone => error(StatusCode::SERVICE_UNAVAILABLE, "the gateway is offline"),
         }
+    }
+}
+
+/// A query string read into `T`; a malformed one answers 400 with an error object.
+pub struct ApiQuery<T>(pub T);
+
+impl<T: DeserializeOwned + Send, S: Send + Sync> FromRequestParts<S> for ApiQuery<T> {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, state: &S) -> Result<Self, ApiError> {
+        axum::extract::Query::<T>::from_request_parts(parts, state)
+            .await
+            .map(|q| ApiQuery(q.0))
+            .map_err(|e: QueryRejection| error(StatusCode::BAD_REQUEST, e.body_text()))
+    }
+}
+
+/// A JSON body read into `T`; a malformed one answers with an error object (400, or 415 without
+/// a JSON content type, 422 for a body of the wrong shape).
+pub struct ApiJson<T>(pub T);
+
+impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for ApiJson<T> {
+    type Rejection = ApiError;
+
+    async fn from_request(request: Request, state: &S) -> Result<Self, ApiError> {
+        Json::<T>::from_request(request, state)
+            .await
+            .map(|j| ApiJson(j.0))
+            .map_err(|e: JsonRejection| error(e.status(), e.body_text()))
     }
 }
 
@@ -127,131 +175,110 @@ async fn lift_of(app: &App, caller: Caller, id: &str) -> Result<Account, ApiErro
     Ok(account)
 }
 
-fn mplex(text: &str) -> Result<Mplex, ApiError> {
-    Mplex::parse(text).map_err(|e| error(StatusCode::BAD_REQUEST, &e.to_string()))
+fn mplex(text: &str) -> Result<MplexText, ApiError> {
+    nxg::mplex::Mplex::parse(text)
+        .map(|mplex| MplexText {
+            mplex,
+            text: text.to_owned(),
+        })
+        .map_err(|e| error(StatusCode::BAD_REQUEST, e.to_string()))
+}
+
+fn node(node: Option<u8>, net: Option<u8>) -> Result<Option<NodeRef>, ApiError> {
+    node.map(|id| {
+        let id = NodeId::new(id)
+            .ok_or_else(|| error(StatusCode::BAD_REQUEST, "node: a node-ID 1–127"))?;
+        Ok(NodeRef::new(id, net.unwrap_or(1)))
+    })
+    .transpose()
 }
 
 async fn lifts(
     State(app): State<Arc<App>>,
     Caller(account): Caller,
-) -> Result<Json<Value>, ApiError> {
-    let lifts: Vec<Value> = app
+) -> Result<Json<Vec<LiftSummary>>, ApiError> {
+    let lifts = app
         .store
         .lifts(&account.domain)
         .await?
         .into_iter()
-        .map(|l| {
-            let online = app.registry.online(&l.id);
-            let mut v = serde_json::to_value(&l).unwrap_or_default();
-            v["online"] = json!(online);
-            v
+        .map(|record| LiftSummary {
+            online: app.registry.online(&record.id),
+            record,
         })
         .collect();
-    Ok(Json(json!(lifts)))
+    Ok(Json(lifts))
 }
 
-#[derive(Debug, Deserialize)]
-struct GetQuery {
-    lang: Option<String>,
-    alt_lang: Option<String>,
-    form: Option<String>,
-    compact: Option<bool>,
-    node: Option<u8>,
-    net: Option<u8>,
-    datatype: Option<u32>,
-}
-
-fn node_param(node: Option<u8>, net: Option<u8>, datatype: Option<u32>) -> Option<Value> {
-    node.map(|id| {
-        let mut n = json!({"id": id, "net": net.unwrap_or(1)});
-        if let Some(t) = datatype {
-            n["datatype"] = json!(t);
-        }
-        n
-    })
-}
-
-/// `get_canopen_object` parameters (NXg §6.1) in `form` `full`, `stripped` or `naked`.
-pub(crate) fn read_params(mplex: &str, lang: &str, alt: &str, form: &str) -> Value {
-    let mut object = json!({"mplex": mplex});
-    if form != "full" {
-        object[form] = json!(true);
+/// `get_canopen_object` parameters (NXg §6.1) for `mplex` in `form`.
+pub(crate) fn read_params(mplex: MplexText, lang: Lang, form: Form) -> GetParams {
+    GetParams {
+        lang: Some(lang),
+        node: None,
+        object: GetObject {
+            mplex,
+            compact: false,
+            stripped: form == Form::Stripped,
+            naked: form == Form::Naked,
+        },
     }
-    json!({
-        "lang": {"preferred_language": lang, "alternate_language": alt},
-        "object": object,
-    })
 }
 
 async fn get_object(
     State(app): State<Arc<App>>,
     caller: Caller,
     Path((id, text)): Path<(String, String)>,
-    Query(q): Query<GetQuery>,
-) -> Result<Json<Value>, ApiError> {
+    ApiQuery(q): ApiQuery<GetQuery>,
+) -> Result<Json<ObjectAnswer>, ApiError> {
     lift_of(&app, caller, &id).await?;
-    mplex(&text)?;
-    let form = match q.form.as_deref() {
-        None | Some("full") => "full",
-        Some(f @ ("stripped" | "naked")) => f,
-        Some(other) => {
-            return Err(error(
-                StatusCode::BAD_REQUEST,
-                &format!("form {other:?}: full, stripped or naked"),
-            ))
-        }
-    };
-    let lang = q.lang.as_deref().unwrap_or("en");
-    let alt = q.alt_lang.as_deref().unwrap_or("en");
-    let mut params = read_params(&text, lang, alt, form);
-    params["object"]["compact"] = json!(q.compact.unwrap_or(false));
-    if let Some(node) = node_param(q.node, q.net, q.datatype) {
-        params["node"] = node;
-    }
-    Ok(Json(
-        app.registry.call(&id, "get_canopen_object", params).await?,
-    ))
-}
-
-#[derive(Debug, Deserialize)]
-struct PutBody {
-    value: String,
-    datatype: u32,
-    physunit: u32,
-    node: Option<u8>,
-    net: Option<u8>,
+    let lang = Lang::new(
+        q.lang.as_deref().unwrap_or("en"),
+        q.alt_lang.as_deref().unwrap_or("en"),
+    );
+    let mut params = read_params(mplex(&text)?, lang, q.form.unwrap_or_default());
+    params.object.compact = q.compact.unwrap_or(false);
+    params.node = node(q.node, q.net)?.map(|n| NodeRef {
+        datatype: q.datatype,
+        ..n
+    });
+    Ok(Json(app.registry.call(&id, &params).await?))
 }
 
 async fn put_object(
     State(app): State<Arc<App>>,
     caller: Caller,
     Path((id, text)): Path<(String, String)>,
-    Json(body): Json<PutBody>,
-) -> Result<Json<Value>, ApiError> {
+    ApiJson(body): ApiJson<PutBody>,
+) -> Result<Json<PutAnswer>, ApiError> {
     let account = lift_of(&app, caller, &id).await?;
-    mplex(&text)?;
+    let object = mplex(&text)?;
     let sernum = app.registry.sernum(&id).ok_or(Failure::Gone)?;
-    let node = node_param(body.node, body.net, None);
+    let node = node(body.node, body.net)?;
     // The value before, for the audit log (best effort: a write-only object has none).
-    let mut read = json!({"object": {"mplex": text, "naked": true}});
-    if let Some(n) = &node {
-        read["node"] = n.clone();
-        read["node"]["datatype"] = json!(body.datatype);
-    }
+    let mut read = read_params(object.clone(), Lang::default(), Form::Naked);
+    read.lang = None;
+    read.node = node.map(|n| NodeRef {
+        datatype: Some(body.datatype),
+        ..n
+    });
     let old = app
         .registry
-        .call(&id, "get_canopen_object", read)
+        .call(&id, &read)
         .await
         .ok()
-        .and_then(|v| v["object"]["value"][0].as_str().map(str::to_owned));
-    let mut params = json!({
-        "sernum": sernum,
-        "object": {"mplex": text, "datatype": body.datatype, "physunit": body.physunit, "value": body.value},
-    });
-    if let Some(n) = node {
-        params["node"] = n;
-    }
-    let result = app.registry.call(&id, "put_canopen_object", params).await;
+        .and_then(|a| a.object.value.into_iter().next());
+    let params = PutParams {
+        sernum,
+        lang: None,
+        node,
+        object: PutObject {
+            mplex: object,
+            datatype: body.datatype,
+            physunit: body.physunit,
+            value: body.value.clone(),
+        },
+    };
+    let result = app.registry.call(&id, &params).await;
     let entry = AuditEntry {
         at: store::now_ms(),
         account: account.name,
@@ -266,26 +293,22 @@ async fn put_object(
     Ok(Json(result?))
 }
 
-fn outcome(result: &Result<Value, Failure>) -> String {
+/// What the audit log says about a gateway request's outcome.
+fn outcome<T>(result: &Result<T, Failure>) -> String {
     match result {
         Ok(_) => "ok".into(),
-        Err(Failure::Error(e)) => format!("error {}", e["code"]),
+        Err(Failure::Error(e)) => format!("error {}", e.code),
+        Err(Failure::Invalid(_)) => "invalid answer".into(),
         Err(f) => format!("{f:?}").to_lowercase(),
     }
-}
-
-#[derive(Debug, Deserialize)]
-struct PrivilegeBody {
-    privilege: u8,
-    password: String,
 }
 
 async fn privilege(
     State(app): State<Arc<App>>,
     caller: Caller,
     Path(id): Path<String>,
-    Json(body): Json<PrivilegeBody>,
-) -> Result<Json<Value>, ApiError> {
+    ApiJson(body): ApiJson<PrivilegeBody>,
+) -> Result<Json<ElevateAnswer>, ApiError> {
     let account = lift_of(&app, caller, &id).await?;
     let sernum = app.registry.sernum(&id).ok_or(Failure::Gone)?;
     // NXg §6.4: the gateway compares the unsalted SHA-1; the password itself is never stored.
@@ -293,9 +316,12 @@ async fn privilege(
         &ring::digest::SHA1_FOR_LEGACY_USE_ONLY,
         body.password.as_bytes(),
     );
-    let passhash = store::hex(sha1.as_ref());
-    let params = json!({"sernum": sernum, "privilege": body.privilege, "passhash": passhash});
-    let result = app.registry.call(&id, "elevate_privilege", params).await;
+    let params = ElevateParams {
+        sernum,
+        privilege: u32::from(body.privilege),
+        passhash: store::hex(sha1.as_ref()).to_uppercase(),
+    };
+    let result = app.registry.call(&id, &params).await;
     let entry = AuditEntry {
         at: store::now_ms(),
         account: account.name,
@@ -310,29 +336,40 @@ async fn privilege(
     Ok(Json(result?))
 }
 
-#[derive(Debug, Deserialize)]
-struct SubscriptionBody {
-    mplex: Vec<String>,
-    inhibit: Option<u64>,
-    threshold: Option<f64>,
-}
-
 /// `reg_canopen_object` (POST) or `unreg_canopen_object` (DELETE).
 async fn subscriptions(
     State(app): State<Arc<App>>,
-    method: axum::http::Method,
+    method: Method,
     caller: Caller,
     Path(id): Path<String>,
-    Json(body): Json<SubscriptionBody>,
-) -> Result<Json<Value>, ApiError> {
+    ApiJson(body): ApiJson<SubscriptionBody>,
+) -> Result<Json<Done>, ApiError> {
     lift_of(&app, caller, &id).await?;
-    let (rpc, params) = if method == axum::http::Method::DELETE {
-        ("unreg_canopen_object", json!({"mplex": body.mplex}))
+    let list = body
+        .mplex
+        .iter()
+        .map(|m| mplex(m))
+        .collect::<Result<Vec<_>, _>>()?;
+    let done = if method == Method::DELETE {
+        let params = UnregParams {
+            mplex: list,
+            node: None,
+        };
+        app.registry.call(&id, &params).await?
     } else {
-        let params = json!({"mplex": body.mplex, "inhibit": body.inhibit.unwrap_or(0), "threshold": body.threshold.unwrap_or(0.0)});
-        ("reg_canopen_object", params)
+        let threshold = body.threshold.unwrap_or(0.0);
+        if threshold.is_nan() || threshold < 0.0 {
+            return Err(error(StatusCode::BAD_REQUEST, "threshold: a number ≥ 0"));
+        }
+        let params = RegParams {
+            mplex: list,
+            inhibit: body.inhibit.unwrap_or(0),
+            threshold,
+            node: None,
+        };
+        app.registry.call(&id, &params).await?
     };
-    Ok(Json(app.registry.call(&id, rpc, params).await?))
+    Ok(Json(done))
 }
 
 async fn events(
@@ -342,10 +379,9 @@ async fn events(
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
     lift_of(&app, caller, &id).await?;
     let rx = app.registry.subscribe(&id);
-    let online = app.registry.online(&id);
-    let first = Event::default()
-        .event("online")
-        .data(json!({"lift": id, "online": online}).to_string());
+    let online = crate::gateways::LiftEvent::Online(app.registry.online(&id));
+    let (kind, data) = online.to_sse(&id);
+    let first = Event::default().event(kind).data(data);
     let stream =
         futures_util::stream::unfold((rx, Some(first), id), |(mut rx, first, id)| async move {
             if let Some(first) = first {
@@ -354,7 +390,7 @@ async fn events(
             loop {
                 match rx.recv().await {
                     Ok(event) => {
-                        let (kind, data) = event_json(&id, &event);
+                        let (kind, data) = event.to_sse(&id);
                         return Some((Ok(Event::default().event(kind).data(data)), (rx, None, id)));
                     }
                     Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => continue,
@@ -369,31 +405,38 @@ async fn history(
     State(app): State<Arc<App>>,
     caller: Caller,
     Path((id, text)): Path<(String, String)>,
-    Query(q): Query<HashMap<String, i64>>,
-) -> Result<Json<Value>, ApiError> {
+    ApiQuery(q): ApiQuery<HistoryQuery>,
+) -> Result<Json<History>, ApiError> {
     lift_of(&app, caller, &id).await?;
-    let m = mplex(&text)?;
-    let to = q.get("to").copied().unwrap_or(i64::MAX);
-    let from = q.get("from").copied().unwrap_or(0);
-    let rows = app.store.history(&id, &m.to_string(), from, to).await?;
-    let values: Vec<Value> = rows
+    let m = mplex(&text)?.mplex.to_string();
+    let rows = app
+        .store
+        .history(&id, &m, q.from.unwrap_or(0), q.to.unwrap_or(i64::MAX))
+        .await?;
+    let values = rows
         .into_iter()
-        .map(|(at, v)| json!({"at": at, "value": v}))
+        .map(|(at, value)| HistoryPoint { at, value })
         .collect();
-    Ok(Json(
-        json!({"lift": id, "mplex": m.to_string(), "values": values}),
-    ))
+    Ok(Json(History {
+        lift: id,
+        mplex: m,
+        values,
+    }))
 }
 
 async fn audit(
     State(app): State<Arc<App>>,
     Caller(account): Caller,
-) -> Result<Json<Value>, ApiError> {
-    Ok(Json(json!(app.store.audit_log(&account.domain).await?)))
+) -> Result<Json<Vec<AuditEntry>>, ApiError> {
+    Ok(Json(app.store.audit_log(&account.domain).await?))
 }
 
-async fn openapi() -> Json<Value> {
-    Json(serde_json::from_str(OPENAPI).unwrap_or_default())
+async fn openapi() -> Response {
+    (
+        [(axum::http::header::CONTENT_TYPE, "application/json")],
+        OPENAPI,
+    )
+        .into_response()
 }
 
 /// The OpenAPI document of this API.

@@ -47,12 +47,7 @@ impl Client {
             ),
             None => (rest.to_owned(), 443),
         };
-        let cloud = gateway::config::CloudSection {
-            ca_file: ca.map(Path::to_path_buf),
-            ..Default::default()
-        };
-        let tls =
-            gateway::tls::client_config(&cloud).map_err(|e| ClientError::Tls(e.to_string()))?;
+        let tls = tls::client_config(ca, None).map_err(|e| ClientError::Tls(e.to_string()))?;
         let mut tls = Arc::unwrap_or_clone(tls);
         tls.alpn_protocols = vec![b"http/1.1".to_vec()];
         Ok(Client {

@@ -1,11 +1,12 @@
-//! The portal's configuration (issue 7; DESIGN.md §3): `[server]`, `[state]`, `[database]`,
-//! `[gateways]`, `[dashboard]`.
+//! The portal's configuration (docs/PORTAL.md §Configuration): `[server]`, `[state]`,
+//! `[database]`, `[gateways]`, `[dashboard]`.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 
-use nxg::portal::PortalSettings;
+use nxg::mplex::Mplex;
+use nxg::portal::Settings;
 use serde::{Deserialize, Serialize};
 
 /// `[server]`: the one TLS port.
@@ -34,7 +35,22 @@ impl Default for ServerSection {
     }
 }
 
-pub use gateway::config::StateSection;
+/// `[state]`: the portal's durable state (the SQLite database by default, the development
+/// PKI).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct StateSection {
+    /// Directory for durable state.
+    pub dir: PathBuf,
+}
+
+impl Default for StateSection {
+    fn default() -> Self {
+        StateSection {
+            dir: "state".into(),
+        }
+    }
+}
 
 /// `[database]`.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -88,8 +104,8 @@ impl Default for GatewaysSection {
 
 impl GatewaysSection {
     /// The session settings.
-    pub fn settings(&self) -> PortalSettings {
-        PortalSettings {
+    pub fn settings(&self) -> Settings {
+        Settings {
             api: 1,
             connect_timeout: Duration::from_secs(self.connect_timeout_s.max(1)),
             heartbeat: Duration::from_secs(self.heartbeat_s.max(1)),
@@ -114,16 +130,30 @@ pub struct DashboardSection {
     pub parameters: Vec<String>,
 }
 
+/// The dashboard as the portal uses it: the objects read once, when the portal starts.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Dashboard {
+    /// Subscribed on every gateway.
+    pub live: Vec<Mplex>,
+    /// Their inhibit time (ms).
+    pub inhibit_ms: u64,
+    /// The lift page's parameter table.
+    pub parameters: Vec<Mplex>,
+}
+
 impl DashboardSection {
-    /// The same with every mplex in the gateway's spelling, as pushes and stored values carry
-    /// them (done once, when the portal starts).
-    pub fn normalized(&self) -> DashboardSection {
-        let spell = |list: &[String]| list.iter().map(|m| nxg::mplex::normalized(m)).collect();
-        DashboardSection {
-            live: spell(&self.live),
+    /// The dashboard's objects read; a text that is no mplex is named in the error.
+    pub fn dashboard(&self) -> Result<Dashboard, String> {
+        let read = |key: &str, list: &[String]| {
+            list.iter()
+                .map(|m| Mplex::parse(m).map_err(|e| format!("dashboard.{key}: {e}")))
+                .collect::<Result<Vec<_>, _>>()
+        };
+        Ok(Dashboard {
+            live: read("live", &self.live)?,
             inhibit_ms: self.inhibit_ms,
-            parameters: spell(&self.parameters),
-        }
+            parameters: read("parameters", &self.parameters)?,
+        })
     }
 }
 

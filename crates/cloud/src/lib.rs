@@ -1,4 +1,7 @@
-//! The cloud portal: the server side of the NXg CANopen-Lift Connector.
+//! The cloud portal: the server side of the NXg CANopen-Lift Connector — the gateways'
+//! connections and registry ([`gateways`]), the store ([`store`]), the operator REST API
+//! ([`api`], its bodies in [`rest`]) with its client ([`client`]), the web UI ([`web`]) and
+//! the one TLS port serving them all ([`server`]).
 
 #![warn(missing_docs)]
 
@@ -7,6 +10,7 @@ pub mod client;
 pub mod config;
 pub mod devpki;
 pub mod gateways;
+pub mod rest;
 pub mod server;
 pub mod store;
 pub mod web;

@@ -17,7 +17,7 @@ use tokio::sync::{mpsc, watch};
 
 use crate::api::{self, App};
 use crate::config::Config;
-use crate::gateways::{self, Registry, Shared};
+use crate::gateways::{self, telemetry, Registry, Shared};
 use crate::store::Store;
 
 /// Why the portal cannot start.
@@ -28,10 +28,7 @@ pub enum ServerError {
     Store(#[from] crate::store::StoreError),
     /// TLS material.
     #[error(transparent)]
-    Tls(#[from] gateway::tls::TlsError),
-    /// rustls refused the configuration.
-    #[error("TLS: {0}")]
-    Rustls(#[from] rustls::Error),
+    Tls(#[from] tls::TlsError),
     /// Anything else (listening, the development PKI).
     #[error("{0}")]
     Other(String),
@@ -61,7 +58,7 @@ async fn ws(
         .read_buffer_size(512)
         .write_buffer_size(0);
     if upgrade.selected_protocol().is_none() {
-        // DESIGN.md §4: a client offering neither subprotocol is refused.
+        // docs/PROTOCOL.md §Connection: a client offering neither subprotocol is refused.
         state
             .metrics
             .upgrades_refused
@@ -100,28 +97,7 @@ fn server_tls(config: &Config) -> Result<Arc<rustls::ServerConfig>, ServerError>
             ))
         }
     };
-    let builder = rustls::ServerConfig::builder_with_provider(gateway::tls::provider())
-        .with_safe_default_protocol_versions()?;
-    let builder = match &config.server.client_ca {
-        Some(ca) => {
-            let mut roots = rustls::RootCertStore::empty();
-            for c in gateway::tls::certificates(ca)? {
-                roots.add(c)?;
-            }
-            let verifier = rustls::server::WebPkiClientVerifier::builder_with_provider(
-                Arc::new(roots),
-                gateway::tls::provider(),
-            )
-            .build()
-            .map_err(|e| ServerError::Other(format!("client_ca: {e}")))?;
-            builder.with_client_cert_verifier(verifier)
-        }
-        None => builder.with_no_client_auth(),
-    };
-    let mut tls = builder.with_single_cert(
-        gateway::tls::certificates(&cert)?,
-        gateway::tls::private_key(&key)?,
-    )?;
+    let mut tls = tls::server_config(&cert, &key, config.server.client_ca.as_deref())?;
     tls.alpn_protocols = vec![b"http/1.1".to_vec()];
     Ok(Arc::new(tls))
 }
@@ -134,19 +110,19 @@ impl Portal {
         let store = Store::open(&config.database_url()).await?;
         let tls = server_tls(config)?;
         let registry = Arc::new(Registry::default());
+        let dashboard = Arc::new(config.dashboard.dashboard().map_err(ServerError::Other)?);
         let (telemetry, telemetry_rx) = mpsc::channel(65536);
         let counters = Arc::new(gateways::TelemetryCounters::default());
-        tokio::spawn(gateways::telemetry_retention(
+        tokio::spawn(telemetry::retention(
             store.clone(),
             config.database.telemetry_days,
         ));
-        tokio::spawn(gateways::telemetry_writer(
+        tokio::spawn(telemetry::writer(
             store.clone(),
             telemetry_rx,
             counters.clone(),
         ));
         let metrics = Arc::new(Metrics::default());
-        let dashboard = Arc::new(config.dashboard.normalized());
         let ws_state = Arc::new(WsState {
             shared: Shared {
                 store: store.clone(),

@@ -8,7 +8,7 @@
 use std::collections::HashMap;
 use std::time::{SystemTime, UNIX_EPOCH};
 
-use nxg::gateway::Identity;
+use nxg::msg::{Connect, Identity};
 use rand::RngCore;
 use sqlx::any::{AnyPoolOptions, AnyRow};
 use sqlx::{AnyPool, Executor, Row};
@@ -50,6 +50,21 @@ pub fn lift_id(identity: &Identity) -> String {
     )
 }
 
+/// One pushed value to keep: which lift, object and node, the value, when it came.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TelemetryRow {
+    /// Lift id.
+    pub lift: String,
+    /// The object (the gateway's spelling, `0x652001`).
+    pub mplex: String,
+    /// Node-ID the value is from (0: the lift controller).
+    pub node: u8,
+    /// The value in text form.
+    pub value: String,
+    /// When it arrived (ms since the epoch).
+    pub at: i64,
+}
+
 /// An account: who may see the lifts of one domain.
 #[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
 pub struct Account {
@@ -60,7 +75,7 @@ pub struct Account {
 }
 
 /// A lift as the registry knows it.
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct LiftRecord {
     /// `VENDORID-PRODUCTCODE-SERNUM`.
     pub id: String,
@@ -215,16 +230,14 @@ impl Store {
         Ok(row.try_get::<i64, _>("n")? > 0)
     }
 
-    /// Decide on a CONNECT (NXg §5.2, §5.4; issue 7: registry keyed by vendor, product, serial).
-    pub async fn admit(
-        &self,
-        identity: &Identity,
-        cloudtoken: Option<&str>,
-    ) -> Result<Admission, StoreError> {
-        if !self.domain_exists(&identity.domaintoken).await? {
+    /// Decide on a CONNECT (NXg §5.2, §5.4): the registry is keyed by vendor, product and
+    /// serial number; the domain token names the account.
+    pub async fn admit(&self, connect: &Connect) -> Result<Admission, StoreError> {
+        let identity = &connect.identity;
+        if !self.domain_exists(&connect.domaintoken).await? {
             return Ok(Admission::Refused(format!(
                 "no account for domain token {:?}",
-                identity.domaintoken
+                connect.domaintoken
             )));
         }
         let row = sqlx::query("SELECT token_hash, domain FROM gateways WHERE id = $1")
@@ -236,21 +249,22 @@ impl Store {
         };
         let hash: Option<String> = row.try_get("token_hash")?;
         let domain: String = row.try_get("domain")?;
-        if domain != identity.domaintoken {
+        if domain != connect.domaintoken {
             return Ok(Admission::Refused(
                 "domain token differs from the registered one".into(),
             ));
         }
-        Ok(match (hash, cloudtoken) {
+        Ok(match (hash, identity.cloudtoken.as_deref()) {
             (None, _) => Admission::FirstContact,
-            (Some(h), Some(t)) if nxg::gateway::hash_matches(&h, &digest(t)) => Admission::Known,
+            (Some(h), Some(t)) if nxg::digest::matches(&h, &digest(t)) => Admission::Known,
             (Some(_), Some(_)) => Admission::Refused("wrong cloud token".into()),
             (Some(_), None) => Admission::Refused("no cloud token although one was issued".into()),
         })
     }
 
     /// Record (or refresh) a gateway's identity after CONNACK.
-    pub async fn upsert_gateway(&self, identity: &Identity, api: u32) -> Result<(), StoreError> {
+    pub async fn upsert_gateway(&self, connect: &Connect, api: u32) -> Result<(), StoreError> {
+        let identity = &connect.identity;
         sqlx::query(
             "INSERT INTO gateways (id, vendorid, productcode, sernum, liftnum, hardware, software, boardhash, domain, api, token_hash, last_seen) \
              VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, NULL, $11) \
@@ -264,7 +278,7 @@ impl Store {
         .bind(&identity.hardware)
         .bind(&identity.software)
         .bind(&identity.boardhash)
-        .bind(&identity.domaintoken)
+        .bind(&connect.domaintoken)
         .bind(i64::from(api))
         .bind(now_ms())
         .execute(&self.pool)
@@ -353,11 +367,8 @@ impl Store {
         Ok(row.as_ref().map(Store::lift_from).transpose()?)
     }
 
-    /// Store pushed values in one transaction: (lift, mplex, node, value, at).
-    pub async fn telemetry(
-        &self,
-        batch: &[(String, String, u8, String, i64)],
-    ) -> Result<(), StoreError> {
+    /// Store pushed values in one transaction.
+    pub async fn telemetry(&self, batch: &[TelemetryRow]) -> Result<(), StoreError> {
         // Multi-row INSERTs of up to 100 rows (500 parameters: within SQLite's and PostgreSQL's
         // limits) in one transaction.
         let mut tx = self.pool.begin().await?;
@@ -379,13 +390,13 @@ impl Store {
                 ));
             }
             let mut query = sqlx::query(&sql);
-            for (lift, mplex, node, value, at) in rows {
+            for row in rows {
                 query = query
-                    .bind(lift)
-                    .bind(mplex)
-                    .bind(i64::from(*node))
-                    .bind(value)
-                    .bind(at);
+                    .bind(&row.lift)
+                    .bind(&row.mplex)
+                    .bind(i64::from(row.node))
+                    .bind(&row.value)
+                    .bind(row.at);
             }
             query.execute(&mut *tx).await?;
         }
@@ -496,13 +507,30 @@ impl Store {
 mod tests {
     use super::*;
 
-    fn identity(sernum: &str, domain: &str) -> Identity {
-        Identity {
-            sernum: sernum.into(),
-            vendorid: 1050,
-            productcode: 4096,
+    fn connect(sernum: &str, domain: &str, token: Option<&str>) -> Connect {
+        Connect {
+            identity: Identity {
+                sernum: sernum.into(),
+                vendorid: 1050,
+                productcode: 4096,
+                liftnum: String::new(),
+                hardware: String::new(),
+                software: String::new(),
+                api: 1,
+                boardhash: String::new(),
+                cloudtoken: token.map(str::to_owned),
+            },
             domaintoken: domain.into(),
-            ..Identity::default()
+        }
+    }
+
+    fn telemetry_row(lift: &str, value: &str, at: i64) -> TelemetryRow {
+        TelemetryRow {
+            lift: lift.into(),
+            mplex: "0x652001".into(),
+            node: 1,
+            value: value.into(),
+            at,
         }
     }
 
@@ -531,31 +559,34 @@ mod tests {
             store.add_account("again", "MAS").await.is_err(),
             "one account per domain"
         );
-        let gw = identity("180917010200000102", "MAS");
+        let gw = |token| connect("180917010200000102", "MAS", token);
         assert_eq!(
-            store.admit(&gw, None).await.unwrap(),
+            store.admit(&gw(None)).await.unwrap(),
             Admission::FirstContact
         );
         assert!(matches!(
-            store.admit(&identity("1", "XYZ"), None).await.unwrap(),
+            store.admit(&connect("1", "XYZ", None)).await.unwrap(),
             Admission::Refused(_)
         ));
-        store.upsert_gateway(&gw, 1).await.unwrap();
+        store.upsert_gateway(&gw(None), 1).await.unwrap();
         // Not confirmed yet: still first contact.
         assert_eq!(
-            store.admit(&gw, Some("x")).await.unwrap(),
+            store.admit(&gw(Some("x"))).await.unwrap(),
             Admission::FirstContact
         );
-        store.set_token(&lift_id(&gw), "T0K3N").await.unwrap();
+        store
+            .set_token(&lift_id(&gw(None).identity), "T0K3N")
+            .await
+            .unwrap();
         assert_eq!(
-            store.admit(&gw, Some("T0K3N")).await.unwrap(),
+            store.admit(&gw(Some("T0K3N"))).await.unwrap(),
             Admission::Known
         );
         assert!(
-            matches!(store.admit(&gw, Some("T0K3M")).await.unwrap(), Admission::Refused(c) if c.contains("wrong"))
+            matches!(store.admit(&gw(Some("T0K3M"))).await.unwrap(), Admission::Refused(c) if c.contains("wrong"))
         );
         assert!(matches!(
-            store.admit(&gw, None).await.unwrap(),
+            store.admit(&gw(None)).await.unwrap(),
             Admission::Refused(_)
         ));
         // Only digests are stored.
@@ -573,13 +604,7 @@ mod tests {
             .unwrap()
             .is_none());
         store
-            .telemetry(&[(
-                "1050-4096-180917010200000102".into(),
-                "0x652001".into(),
-                1,
-                "7".into(),
-                100,
-            )])
+            .telemetry(&[telemetry_row("1050-4096-180917010200000102", "7", 100)])
             .await
             .unwrap();
         let h = store
@@ -590,7 +615,7 @@ mod tests {
         // Retention: values older than the cut go, newer ones stay; latest sees the newest.
         let lift = "1050-4096-180917010200000102";
         store
-            .telemetry(&[(lift.into(), "0x652001".into(), 1, "8".into(), 300)])
+            .telemetry(&[telemetry_row(lift, "8", 300)])
             .await
             .unwrap();
         let latest = store.latest(lift, &["0x652001".into()]).await.unwrap();

@@ -1,4 +1,4 @@
-//! The gateway's configuration (issue 6; DESIGN.md §3): sections `[identity]`, `[cloud]`,
+//! The gateway's configuration (docs/GATEWAY.md): sections `[identity]`, `[cloud]`,
 //! `[state]`, `[bus]` (with `[[bus.nodes]]`), `[[networks]]`, `[privileges]`, `[limits]`.
 
 use std::path::PathBuf;
@@ -33,6 +33,18 @@ pub struct CloudSection {
     /// Local address to connect from (a gateway with several interfaces; `canlift loadgen`
     /// spreads its gateways over 127.0.0.x); absent: the system chooses.
     pub source_address: Option<std::net::IpAddr>,
+}
+
+impl CloudSection {
+    /// The TLS client configuration: `ca_file` or the system's roots, the client certificate
+    /// when there is one.
+    pub fn tls(&self) -> Result<std::sync::Arc<rustls::ClientConfig>, tls::TlsError> {
+        let identity = match (&self.client_cert, &self.client_key) {
+            (Some(cert), Some(key)) => Some(tls::Identity { cert, key }),
+            _ => None,
+        };
+        tls::client_config(self.ca_file.as_deref(), identity)
+    }
 }
 
 impl Default for CloudSection {

@@ -183,9 +183,9 @@ where
                         return ended(served, format!("sending failed: {e}"));
                     }
                 }
-                Output::Close(cause) => {
+                Output::Close(reason) => {
                     let _ = ws.close(None).await;
-                    return ended(served, cause);
+                    return ended(served, reason.to_string());
                 }
                 Output::Start(id, job) => jobs.push_back((id, job)),
                 Output::Watch(target, index, sub) => feed.watch(target, index, sub),

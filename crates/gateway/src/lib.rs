@@ -1,5 +1,5 @@
 //! The elevator gateway: the device side of the NXg CANopen-Lift Connector (NXg SW003 §5–§7,
-//! DESIGN.md §4). It dials out to the portal over TLS WebSocket, answers its JSON-RPC requests
+//! docs/PROTOCOL.md). It dials out to the portal over TLS WebSocket, answers its JSON-RPC requests
 //! from the lift's object dictionaries and pushes subscribed changes; when the connection ends it
 //! comes back with capped, fully jittered backoff.
 //!
@@ -16,7 +16,7 @@ pub mod access;
 pub mod config;
 pub mod connection;
 pub mod feed;
-pub mod tls;
+pub mod metadata;
 pub mod token;
 
 use std::collections::HashMap;
@@ -29,12 +29,13 @@ use canopen::driver::{SdoClients, SharedDictionary};
 use canopen::node::{LocalNode, NodeConfig};
 use canopen::od::ObjectDictionary;
 use canopen::sdo::client::ClientConfig;
-use nxg::gateway::{BusMetadata, Metadata, Target};
+use nxg::gateway::{Metadata, Target};
 use tokio::sync::{mpsc, watch};
 
 use crate::access::Backend;
 use crate::config::{Config, NodeSection};
 use crate::feed::{Feed, LocalChanges, Update};
+use crate::metadata::BusMetadata;
 use crate::token::TokenStore;
 
 /// Why the gateway cannot start.
@@ -149,7 +150,7 @@ impl Gateway {
     /// nodes of every network by SDO.
     pub async fn bus_node(config: Config) -> Result<Gateway, GatewayError> {
         config.validate()?;
-        let tls = tls::client_config(&config.cloud)?;
+        let tls = config.cloud.tls()?;
         let client = ClientConfig {
             timeout: Duration::from_millis(config.bus.sdo_timeout_ms.max(10)),
             ..ClientConfig::default()
@@ -197,7 +198,7 @@ impl Gateway {
     /// (node `bus.lift_controller`); metadata comes from the catalog.
     pub fn embedded(config: Config, od: SharedDictionary) -> Result<Gateway, GatewayError> {
         config.validate()?;
-        let tls = tls::client_config(&config.cloud)?;
+        let tls = config.cloud.tls()?;
         let backend = Backend::Local {
             od: od.clone(),
             node: config.bus.lift_controller,
@@ -246,7 +247,7 @@ impl Gateway {
 
     /// Connect, serve, and reconnect until `shutdown` turns true.
     pub async fn run(self, mut shutdown: watch::Receiver<bool>) {
-        // DESIGN.md §4: 1 s growing to 5 min, full jitter, reset after a stable minute.
+        // docs/PROTOCOL.md: 1 s growing to 5 min, full jitter, reset after a stable minute.
         let mut backoff = Backoff::new(Duration::from_secs(1), Duration::from_secs(300));
         loop {
             if *shutdown.borrow() {

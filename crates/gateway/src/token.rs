@@ -1,4 +1,4 @@
-//! The cloud token, kept durably (DESIGN.md §4): written to a temporary file, fsynced and renamed
+//! The cloud token, kept durably (NXg §5.4; docs/PROTOCOL.md §Tokens): written to a temporary file, fsynced and renamed
 //! over the old one, so a crash leaves the old or the new token, never a broken one.
 
 use std::path::{Path, PathBuf};

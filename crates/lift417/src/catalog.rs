@@ -16,10 +16,11 @@ use std::sync::{Arc, OnceLock};
 use canopen::od::{self, Object, ObjectCode, ObjectDictionary, Variable, VariableHook};
 use canopen::sdo::abort::AbortCode;
 use canopen::types::{self, DataType, Value};
+use nxg::gateway::Lookup;
+use nxg::meta::{self, Access, Bound, Description, FormType, Hints, PhysUnit, Privilege, Texts};
 use serde::Deserialize;
 
 use crate::lift::{self, MAX_LIFTS};
-use crate::meta::{Access, FormType, NxgDataType, PhysUnit, Privilege};
 
 /// The catalog source compiled into canlift.
 pub const BUILTIN_TOML: &str = include_str!("../catalog/lift.toml");
@@ -44,104 +45,9 @@ pub enum CatalogError {
     },
 }
 
-/// Texts by language tag (`en`, `de`, …). Shared, not copied, between the entries that use the
-/// same texts (an object's hint serves all its sub-indices), which keeps the catalog small.
-#[derive(Debug, Clone, Default, PartialEq, Eq, Deserialize)]
-#[serde(from = "BTreeMap<String, String>")]
-pub struct Texts(Arc<BTreeMap<String, String>>);
-
-impl From<BTreeMap<String, String>> for Texts {
-    fn from(map: BTreeMap<String, String>) -> Texts {
-        Texts(Arc::new(map))
-    }
-}
-
-impl Texts {
-    /// The text in `lang` (case-insensitive), if the catalog has it.
-    pub fn get(&self, lang: &str) -> Option<&str> {
-        self.0
-            .iter()
-            .find(|(l, _)| l.eq_ignore_ascii_case(lang))
-            .map(|(_, t)| t.as_str())
-    }
-
-    /// A text in English only (names from an EDS).
-    pub fn english(text: &str) -> Texts {
-        Texts(Arc::new(BTreeMap::from([(
-            "en".to_owned(),
-            text.to_owned(),
-        )])))
-    }
-
-    /// The languages present.
-    pub fn languages(&self) -> impl Iterator<Item = &str> {
-        self.0.keys().map(String::as_str)
-    }
-
-    /// The texts with `key` (`{n}`, `{i}`) replaced by `value`; shared when there is none.
-    fn fill(&self, key: &str, value: u16) -> Texts {
-        if !self.0.values().any(|t| t.contains(key)) {
-            return self.clone();
-        }
-        Texts(Arc::new(
-            self.0
-                .iter()
-                .map(|(l, t)| (l.clone(), t.replace(key, &value.to_string())))
-                .collect(),
-        ))
-    }
-
-    fn expand(&self, n: u16, i: u8) -> Texts {
-        self.fill("{n}", n).fill("{i}", i.into())
-    }
-}
-
-/// A limit: an integer (any CiA integer type fits an `i128`) or a real.
-#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
-#[serde(from = "RawBound")]
-pub enum Bound {
-    /// Integer types and string lengths.
-    Int(i128),
-    /// REAL32 / REAL64.
-    Real(f64),
-}
-
-/// TOML integers are 64-bit; every catalog limit fits.
-#[derive(Deserialize)]
-#[serde(untagged)]
-enum RawBound {
-    Int(i64),
-    Real(f64),
-}
-
-impl From<RawBound> for Bound {
-    fn from(raw: RawBound) -> Bound {
-        match raw {
-            RawBound::Int(v) => Bound::Int(v.into()),
-            RawBound::Real(v) => Bound::Real(v),
-        }
-    }
-}
-
-impl Bound {
-    /// As a real number, for comparisons across kinds.
-    pub fn as_f64(self) -> f64 {
-        match self {
-            Bound::Int(v) => v as f64,
-            Bound::Real(v) => v,
-        }
-    }
-}
-
-/// Presentation hints of `get_canopen_object` (NXg SW003 §6.1.1).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct Hints {
-    /// Show 0 as "off".
-    pub show_off_at_zero: bool,
-    /// Show `max` as "unlimited".
-    pub show_unlimited_at_max: bool,
-    /// Show `max` as "undefined".
-    pub show_undefined_at_max: bool,
+/// The texts with `{n}` (object number) and `{i}` (sub-index) filled in.
+fn expand(texts: &Texts, n: u16, i: u8) -> Texts {
+    texts.fill("{n}", n).fill("{i}", i.into())
 }
 
 /// The simulated devices a catalog object belongs to.
@@ -161,32 +67,8 @@ pub struct Entry {
     pub index: u16,
     /// Sub-index.
     pub sub: u8,
-    /// The object code of the object this entry belongs to (NXg §8.1).
-    pub objcode: ObjectCode,
-    /// Data type (NXg §8.3).
-    pub datatype: NxgDataType,
-    /// How a portal presents the value.
-    pub formtype: FormType,
-    /// Physical unit (NXg §8.2).
-    pub physunit: PhysUnit,
-    /// Access (NXg §8.5).
-    pub access: Access,
-    /// Privilege needed to write (NXg §8.4).
-    pub privilege: Privilege,
-    /// Name per language.
-    pub name: Texts,
-    /// Help text per language.
-    pub hint: Texts,
-    /// Lowest value (strings: none).
-    pub min: Option<Bound>,
-    /// Highest value (strings: most characters).
-    pub max: Option<Bound>,
-    /// 0 is valid although outside `min..=max`.
-    pub zero: bool,
-    /// Texts for the values `min..=max` (choice) or for the bits from bit 0 (bits).
-    pub list: Vec<Texts>,
-    /// Presentation hints.
-    pub hints: Hints,
+    /// What `get_canopen_object` reports about it (NXg §6.1.1).
+    pub description: Description,
     /// Initial value in CiA text form.
     pub default: Option<String>,
     /// Mappable into PDOs.
@@ -196,14 +78,15 @@ pub struct Entry {
 }
 
 impl Entry {
-    /// The mplex text of this entry for `index` (`0x` + upper-case hex, DESIGN.md §4).
+    /// The mplex text of this entry for `index` (`0x` + upper-case hex, docs/PROTOCOL.md
+    /// §Mplex).
     pub fn mplex(index: u16, sub: u8) -> String {
-        format!("0x{index:04X}{sub:02X}")
+        nxg::mplex::Mplex { index, sub }.to_string()
     }
 
     /// The CiA 301 type of the values.
     pub fn value_type(&self) -> DataType {
-        self.datatype.value_type()
+        self.description.datatype.value_type()
     }
 }
 
@@ -244,7 +127,7 @@ impl CatalogObject {
             .filter(|_| (1..=self.last).contains(&sub))?;
         let mut e = template.clone();
         e.sub = sub;
-        e.name = e.name.fill("{i}", sub.into());
+        e.description.name = e.description.name.fill("{i}", sub.into());
         Some(Cow::Owned(e))
     }
 
@@ -385,16 +268,14 @@ fn entry_from(
     hint: Texts,
     a: &RawAttrs,
 ) -> Result<Entry, CatalogError> {
-    let err = |e: crate::meta::UnknownCode| object_error(index, format!("sub {sub}: {e}"));
+    let err = |e: meta::UnknownCode| object_error(index, format!("sub {sub}: {e}"));
     let code = a
         .datatype
         .ok_or_else(|| object_error(index, format!("sub {sub}: no type")))?;
-    let datatype = NxgDataType::from_code(code).map_err(err)?;
+    let datatype = meta::DataType::from_code(code).map_err(err)?;
     let access = Access::parse(a.access.as_deref().unwrap_or("ro")).map_err(err)?;
-    Ok(Entry {
-        index,
-        sub,
-        objcode,
+    let description = Description {
+        objcode: objcode.into(),
         datatype,
         formtype: FormType::from_code(a.form.unwrap_or(0)).map_err(err)?,
         physunit: PhysUnit::from_code(a.unit.unwrap_or(0)).map_err(err)?,
@@ -411,6 +292,11 @@ fn entry_from(
             show_unlimited_at_max: a.unlimited_at_max.unwrap_or(false),
             show_undefined_at_max: a.undefined_at_max.unwrap_or(false),
         },
+    };
+    Ok(Entry {
+        index,
+        sub,
+        description,
         default: a.default.clone(),
         pdo: a.pdo.unwrap_or(false),
         persist: a.persist.unwrap_or(false),
@@ -458,8 +344,8 @@ impl RawObject {
                 .checked_add(k)
                 .ok_or_else(|| object_error(self.index, "repeat runs past FFFFh"))?;
             let n = first + k;
-            let name = self.name.expand(n, 0);
-            let hint = self.hint.expand(n, 0);
+            let name = expand(&self.name, n, 0);
+            let hint = expand(&self.hint, n, 0);
             let mut entries = BTreeMap::new();
             let mut element = None;
             let mut highest = 0;
@@ -513,11 +399,11 @@ impl RawObject {
                         let sub_name = over
                             .and_then(|o| o.name.clone())
                             .or_else(|| self.item.clone())
-                            .ok_or_else(|| object_error(index, format!("sub {sub} has no name")))?
-                            .expand(n, sub);
+                            .ok_or_else(|| object_error(index, format!("sub {sub} has no name")))
+                            .map(|t| expand(&t, n, sub))?;
                         let sub_hint = over
                             .and_then(|o| o.hint.clone())
-                            .map_or_else(|| hint.clone(), |h| h.expand(n, sub));
+                            .map_or_else(|| hint.clone(), |h| expand(&h, n, sub));
                         let e = entry_from(index, sub, code, sub_name, sub_hint, &attrs)?;
                         entries.insert(sub, e);
                     }
@@ -654,7 +540,8 @@ impl Catalog {
     }
 
     /// A text in the caller's language: `preferred`, then `alternate`, then the declared
-    /// fallback of each, then English (NXg §6.1, DESIGN.md §4). Returns (language, text).
+    /// fallback of each, then English (NXg §6.1; docs/PROTOCOL.md §Languages). Returns
+    /// (language, text).
     pub fn text<'a>(
         &'a self,
         texts: &'a Texts,
@@ -667,12 +554,28 @@ impl Catalog {
                 .find(|(k, _)| k.eq_ignore_ascii_case(l))
                 .map(|(_, v)| v.as_str())
         };
-        [Some(preferred), Some(alternate)]
-            .into_iter()
-            .chain([fallback(preferred), fallback(alternate), Some("en")])
-            .flatten()
-            .find_map(|l| texts.0.iter().find(|(k, _)| k.eq_ignore_ascii_case(l)))
-            .map(|(l, t)| (l.as_str(), t.as_str()))
+        let (fp, fa) = (fallback(preferred), fallback(alternate));
+        texts.first_of(
+            [Some(preferred), Some(alternate), fp, fa, Some("en")]
+                .into_iter()
+                .flatten(),
+        )
+    }
+
+    /// What a gateway reports about (`index`, `sub`) of a lift controller built on this
+    /// catalog, for any lift (NXg §6.1.1).
+    pub fn describe(&self, index: u16, sub: u8) -> Lookup {
+        match self.lookup(index, sub) {
+            Some(found) => Lookup::Found(Box::new(found.entry.into_owned().description)),
+            None if self.object_for(index).is_some() => Lookup::NoSub,
+            None => Lookup::NoObject,
+        }
+    }
+
+    /// The name and hint of the whole object at `index` (for a `compact` read, NXg §6.2).
+    pub fn object_texts(&self, index: u16) -> Option<(Texts, Texts)> {
+        let (_, object) = self.object_for(index)?;
+        Some((object.name.clone(), object.hint.clone()))
     }
 
     fn check_lift_collisions(&self) -> Result<(), CatalogError> {
@@ -721,9 +624,10 @@ impl Catalog {
             }
             for e in o.entries() {
                 let here = at(Some(e.sub));
-                self.check_texts(&e.name, &here, "name", &mut problems);
-                self.check_texts(&e.hint, &here, "hint", &mut problems);
-                for t in &e.list {
+                let d = &e.description;
+                self.check_texts(&d.name, &here, "name", &mut problems);
+                self.check_texts(&d.hint, &here, "hint", &mut problems);
+                for t in &d.list {
                     self.check_texts(t, &here, "list", &mut problems);
                 }
                 check_entry(&e, o.code, &here, &mut problems);
@@ -787,9 +691,10 @@ impl Catalog {
 
 fn check_entry(e: &Entry, code: ObjectCode, here: &str, problems: &mut Vec<String>) {
     let ty = e.value_type();
+    let d = &e.description;
     let mut problem = |text: String| problems.push(format!("{here}: {text}"));
     let is_string = matches!(ty, DataType::VisibleString | DataType::UnicodeString);
-    if let (Some(Bound::Int(lo)), Some(Bound::Int(hi))) = (e.min, e.max) {
+    if let (Some(Bound::Int(lo)), Some(Bound::Int(hi))) = (d.min, d.max) {
         if lo > hi {
             problem(format!("min {lo} > max {hi}"));
         }
@@ -801,28 +706,28 @@ fn check_entry(e: &Entry, code: ObjectCode, here: &str, problems: &mut Vec<Strin
             problem(format!("integer limits on {ty}"));
         }
         let width = u32::try_from(ty.size().unwrap_or(0) * 8).unwrap_or(0);
-        match e.formtype {
+        match d.formtype {
             FormType::Choice => {
                 let wanted = hi - lo + 1;
-                if e.list.len() as i128 != wanted {
+                if d.list.len() as i128 != wanted {
                     problem(format!(
                         "a choice over {lo}..={hi} needs {wanted} list texts, has {}",
-                        e.list.len()
+                        d.list.len()
                     ));
                 }
             }
-            FormType::Bits if e.list.len() > width as usize => {
-                problem(format!("{} bit names for {width} bits", e.list.len()));
+            FormType::Bits if d.list.len() > width as usize => {
+                problem(format!("{} bit names for {width} bits", d.list.len()));
             }
             _ => {}
         }
-    } else if e.min.is_some() != e.max.is_some() {
+    } else if d.min.is_some() != d.max.is_some() {
         problem("min without max or max without min".into());
     }
-    if !matches!(e.formtype, FormType::Choice | FormType::Bits) && !e.list.is_empty() {
-        problem(format!("a list on form {}", e.formtype));
+    if !matches!(d.formtype, FormType::Choice | FormType::Bits) && !d.list.is_empty() {
+        problem(format!("a list on form {}", d.formtype));
     }
-    let form_fits = match e.formtype {
+    let form_fits = match d.formtype {
         FormType::Text => is_string,
         FormType::Real => matches!(ty, DataType::Real32 | DataType::Real64),
         FormType::Switch => ty == DataType::Boolean || ty.is_unsigned(),
@@ -834,20 +739,20 @@ fn check_entry(e: &Entry, code: ObjectCode, here: &str, problems: &mut Vec<Strin
         FormType::Raw | FormType::Hex | FormType::Command => true,
     };
     if !form_fits {
-        problem(format!("form {} does not suit {ty}", e.formtype));
+        problem(format!("form {} does not suit {ty}", d.formtype));
     }
-    if e.hints.show_off_at_zero && !(e.zero || e.min.is_some_and(|m| m.as_f64() <= 0.0)) {
+    if d.hints.show_off_at_zero && !(d.zero || d.min.is_some_and(|m| m.as_f64() <= 0.0)) {
         problem("show_off_at_zero, but 0 is not a valid value".into());
     }
-    if e.zero && e.min.is_none_or(|m| m.as_f64() <= 0.0) {
+    if d.zero && d.min.is_none_or(|m| m.as_f64() <= 0.0) {
         problem("zero is set, but 0 is inside the range anyway".into());
     }
     if let Some(text) = &e.default {
         match types::from_text(ty, text) {
             Err(err) => problem(format!("default {text:?}: {err}")),
             Ok(value) => {
-                if let (Some(lo), Some(hi), Some(v)) = (e.min, e.max, value.as_f64()) {
-                    let zero_ok = e.zero && v == 0.0;
+                if let (Some(lo), Some(hi), Some(v)) = (d.min, d.max, value.as_f64()) {
+                    let zero_ok = d.zero && v == 0.0;
                     if (v < lo.as_f64() || v > hi.as_f64()) && !zero_ok {
                         problem(format!("default {text} outside the limits"));
                     }
@@ -885,7 +790,8 @@ impl VariableHook for ZeroOrRange {
 
 fn build_variable(e: &Entry, name: String) -> Result<Variable, CatalogError> {
     let ty = e.value_type();
-    let access = match e.access {
+    let d = &e.description;
+    let access = match d.access {
         Access::Rw => od::Access::Rw,
         Access::Wo => od::Access::Wo,
         Access::Ro => od::Access::Ro,
@@ -898,12 +804,12 @@ fn build_variable(e: &Entry, name: String) -> Result<Variable, CatalogError> {
         var = var.with_value(value);
     }
     if matches!(ty, DataType::VisibleString | DataType::UnicodeString) {
-        var.max_len = e.max.and_then(|b| match b {
+        var.max_len = d.max.and_then(|b| match b {
             Bound::Int(n) => usize::try_from(n).ok(),
             Bound::Real(_) => None,
         });
-    } else if e.access.writable() {
-        let low = match (e.zero, e.min) {
+    } else if d.access.writable() {
+        let low = match (d.zero, d.min) {
             (true, Some(min)) => {
                 var = var.with_hook(Arc::new(ZeroOrRange {
                     ty,
@@ -913,7 +819,7 @@ fn build_variable(e: &Entry, name: String) -> Result<Variable, CatalogError> {
             }
             (_, min) => min.and_then(|b| bound_value(ty, b)),
         };
-        let high = e.max.and_then(|b| bound_value(ty, b));
+        let high = d.max.and_then(|b| bound_value(ty, b));
         var = var.with_limits(low, high);
     }
     if e.pdo {
@@ -940,7 +846,7 @@ fn build_object(
     let last = if o.per_floor { floors.max(1) } else { o.last };
     let mut entries = Vec::new();
     for e in o.entries().filter(|e| e.sub <= last) {
-        let mut var = build_variable(&e, english(&e.name))?;
+        let mut var = build_variable(&e, english(&e.description.name))?;
         if e.sub == 0 && o.code != ObjectCode::Var {
             var = var.with_value(Value::Uint(last.into()));
         }

@@ -1,12 +1,26 @@
-//! The NXg CANopen-Lift Connector (NXg SW003 v1.0.0) with the readings of DESIGN.md §4: the
-//! multiplexer text ([`mplex`]), JSON-RPC 2.0 envelopes ([`rpc`]), CANopen abort codes with their
-//! messages per language ([`errors`]), and the gateway's side of a connection as a sans-IO state
-//! machine ([`gateway`]), and the portal's side of a gateway connection ([`portal`]).
+//! The NXg CANopen-Lift Connector (NXg SW003 v1.0.0) with the readings of docs/PROTOCOL.md:
+//! the messages as types ([`msg`]), the multiplexer text ([`mplex`]), the metadata vocabulary
+//! ([`meta`]), abort codes with their messages per language ([`errors`]), and both sides of a
+//! connection as sans-IO state machines: the gateway's ([`gateway`], feature `gateway`, which
+//! brings the CiA 301 data types of the `canopen` crate) and the portal's ([`portal`]).
+//!
+//! Without the `gateway` feature the crate needs no CANopen stack: that is what a portal uses.
 
 #![warn(missing_docs)]
 
+pub mod digest;
 pub mod errors;
+#[cfg(feature = "gateway")]
 pub mod gateway;
+pub mod meta;
 pub mod mplex;
+pub mod msg;
 pub mod portal;
-pub mod rpc;
+
+use std::time::Duration;
+
+/// How long a connection may be silent before either side drops it: 2 × the heartbeat interval
+/// + 30 s, pings and pongs counting as traffic (docs/PROTOCOL.md §Heartbeat).
+pub fn silence_limit(heartbeat: Duration) -> Duration {
+    heartbeat * 2 + Duration::from_secs(30)
+}

@@ -63,12 +63,7 @@ struct Portal {
 
 impl Portal {
     async fn start(pki: &DevPki) -> anyhow::Result<Portal> {
-        let certs = gateway::tls::certificates(&pki.cert)?;
-        let key = gateway::tls::private_key(&pki.key)?;
-        let config = rustls::ServerConfig::builder_with_provider(gateway::tls::provider())
-            .with_safe_default_protocol_versions()?
-            .with_no_client_auth()
-            .with_single_cert(certs, key)?;
+        let config = tls::server_config(&pki.cert, &pki.key, None)?;
         Ok(Portal {
             listener: TcpListener::bind("127.0.0.1:0").await?,
             acceptor: tokio_rustls::TlsAcceptor::from(Arc::new(config)),
@@ -280,8 +275,14 @@ fn subscribable(n: usize) -> Vec<String> {
         .filter(|o| o.devices.contains(&Device::Controller) && !o.per_floor)
     {
         for e in o.entries().filter(|e| e.sub > 0) {
-            if e.access != lift417::meta::Access::Wo {
-                out.push(format!("0x{:04X}{:02X}", o.index, e.sub));
+            if e.description.access != nxg::meta::Access::Wo {
+                out.push(
+                    nxg::mplex::Mplex {
+                        index: o.index,
+                        sub: e.sub,
+                    }
+                    .to_string(),
+                );
             }
         }
     }

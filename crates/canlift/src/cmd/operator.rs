@@ -1,10 +1,14 @@
-//! `canlift lifts|get|put|watch`: the operator client of the portal's REST API (issue 7).
+//! `canlift lifts|get|put|watch`: the operator client of the portal's REST API
+//! (docs/PORTAL.md §CLI), reading and writing the API's own types.
 
 use std::path::PathBuf;
 
 use anyhow::{bail, Context};
 use cloud::client::Client;
-use serde_json::{json, Value};
+use cloud::rest::{Form, GetQuery, LiftSummary, PutBody, SubscriptionBody, ValueEvent};
+use nxg::msg::{ErrorObject, ObjectAnswer};
+use serde::de::DeserializeOwned;
+use serde_json::Value;
 
 /// Where the portal is and who is asking.
 #[derive(Debug, Clone, clap::Args)]
@@ -123,54 +127,58 @@ pub struct WatchArgs {
     portal: PortalArgs,
 }
 
-fn check((status, body): (u16, Value)) -> anyhow::Result<Value> {
-    if status == 200 {
-        return Ok(body);
+/// The body of a 200 answer as a `T`; any other answer is an error with the portal's message.
+fn check<T: DeserializeOwned>((status, body): (u16, Value)) -> anyhow::Result<T> {
+    if status != 200 {
+        match serde_json::from_value::<ErrorObject>(body.clone()) {
+            Ok(e) => bail!("{status}: {e}"),
+            Err(_) => bail!("{status}: {body}"),
+        }
     }
-    match (body.get("code"), body.get("message")) {
-        (Some(_), Some(_)) => bail!("{status}: {}", nxg::errors::describe(&body)),
-        _ => bail!("{status}: {body}"),
+    serde_json::from_value(body).context("the portal's answer is not what the API documents")
+}
+
+/// The query of a read for `node`.
+fn query(node: &NodeArgs, form: Form) -> GetQuery {
+    GetQuery {
+        form: Some(form),
+        node: node.node,
+        net: node.net,
+        datatype: node.datatype,
+        ..GetQuery::default()
     }
 }
 
-fn query(node: &NodeArgs) -> String {
-    let mut q = String::new();
-    for (k, v) in [
-        ("node", node.node.map(u32::from)),
-        ("net", node.net.map(u32::from)),
-        ("datatype", node.datatype),
-    ] {
-        if let Some(v) = v {
-            q.push_str(&format!("&{k}={v}"));
-        }
-    }
-    q
+fn object_path(lift: &str, mplex: &str, query: &GetQuery) -> anyhow::Result<String> {
+    let query = serde_urlencoded::to_string(query)?;
+    Ok(format!("/api/v1/lifts/{lift}/objects/{mplex}?{query}"))
 }
 
 /// `canlift lifts`.
 pub async fn lifts(args: LiftsArgs) -> anyhow::Result<()> {
-    let lifts = check(
-        args.portal
-            .client()?
-            .call("GET", "/api/v1/lifts", None)
-            .await?,
-    )?;
+    let answer = args
+        .portal
+        .client()?
+        .call("GET", "/api/v1/lifts", None)
+        .await?;
     if args.json {
-        println!("{lifts}");
+        println!("{}", check::<Value>(answer)?);
         return Ok(());
     }
+    let lifts: Vec<LiftSummary> = check(answer)?;
     println!(
         "{:<32} {:<8} {:<22} {:<14} LAST SEEN (ms)",
         "LIFT", "ONLINE", "LIFTNUM", "SOFTWARE"
     );
-    for l in lifts.as_array().into_iter().flatten() {
+    for l in &lifts {
+        let r = &l.record;
         println!(
             "{:<32} {:<8} {:<22} {:<14} {}",
-            l["id"].as_str().unwrap_or(""),
-            if l["online"] == true { "yes" } else { "no" },
-            l["liftnum"].as_str().unwrap_or(""),
-            l["software"].as_str().unwrap_or(""),
-            l["last_seen"]
+            r.id,
+            if l.online { "yes" } else { "no" },
+            r.liftnum,
+            r.software,
+            r.last_seen
         );
     }
     Ok(())
@@ -179,21 +187,19 @@ pub async fn lifts(args: LiftsArgs) -> anyhow::Result<()> {
 /// `canlift get`.
 pub async fn get(args: GetArgs) -> anyhow::Result<()> {
     let form = if args.naked {
-        "naked"
+        Form::Naked
     } else if args.stripped {
-        "stripped"
+        Form::Stripped
     } else {
-        "full"
+        Form::Full
     };
-    let path = format!(
-        "/api/v1/lifts/{}/objects/{}?form={form}&lang={}&compact={}{}",
-        args.lift,
-        args.mplex,
-        args.lang,
-        args.compact,
-        query(&args.node)
-    );
-    let answer = check(args.portal.client()?.call("GET", &path, None).await?)?;
+    let query = GetQuery {
+        lang: Some(args.lang.clone()),
+        compact: Some(args.compact),
+        ..query(&args.node, form)
+    };
+    let path = object_path(&args.lift, &args.mplex, &query)?;
+    let answer: ObjectAnswer = check(args.portal.client()?.call("GET", &path, None).await?)?;
     println!("{}", serde_json::to_string_pretty(&answer)?);
     Ok(())
 }
@@ -204,28 +210,28 @@ pub async fn put(args: PutArgs) -> anyhow::Result<()> {
     let (datatype, physunit) = match (args.node.datatype, args.physunit) {
         (Some(t), Some(u)) => (t, u),
         (t, u) => {
-            let path = format!(
-                "/api/v1/lifts/{}/objects/{}?form=stripped{}",
-                args.lift,
-                args.mplex,
-                query(&args.node)
-            );
-            let meta = check(client.call("GET", &path, None).await?)?;
-            let known = |k: &str| meta["object"][k].as_u64().map(|v| v as u32);
+            let path = object_path(&args.lift, &args.mplex, &query(&args.node, Form::Stripped))?;
+            let meta: ObjectAnswer = check(client.call("GET", &path, None).await?)?;
             (
-                t.or_else(|| known("datatype"))
+                t.or(meta.object.datatype)
                     .context("no datatype known; give --datatype")?,
-                u.or_else(|| known("physunit")).unwrap_or(0),
+                u.or(meta.object.physunit).unwrap_or(0),
             )
         }
     };
-    let mut body = json!({"value": args.value, "datatype": datatype, "physunit": physunit});
-    if let Some(n) = args.node.node {
-        body["node"] = json!(n);
-        body["net"] = json!(args.node.net.unwrap_or(1));
-    }
+    let body = PutBody {
+        value: args.value.clone(),
+        datatype,
+        physunit,
+        node: args.node.node,
+        net: args.node.node.map(|_| args.node.net.unwrap_or(1)),
+    };
     let path = format!("/api/v1/lifts/{}/objects/{}", args.lift, args.mplex);
-    check(client.call("PUT", &path, Some(body)).await?)?;
+    check::<Value>(
+        client
+            .call("PUT", &path, Some(serde_json::to_value(&body)?))
+            .await?,
+    )?;
     println!("{} {} = {}", args.lift, args.mplex, args.value);
     Ok(())
 }
@@ -237,13 +243,17 @@ pub async fn watch(args: WatchArgs) -> anyhow::Result<()> {
     let mut events = match client.events(&path).await? {
         Ok(stream) => stream,
         Err(answer) => {
-            check(answer)?;
+            check::<Value>(answer)?;
             bail!("no event stream");
         }
     };
-    let body = json!({"mplex": args.mplex, "inhibit": args.inhibit, "threshold": args.threshold});
+    let body = serde_json::to_value(SubscriptionBody {
+        mplex: args.mplex.clone(),
+        inhibit: Some(args.inhibit),
+        threshold: Some(args.threshold),
+    })?;
     let subscriptions = format!("/api/v1/lifts/{}/subscriptions", args.lift);
-    check(
+    check::<Value>(
         client
             .call("POST", &subscriptions, Some(body.clone()))
             .await?,
@@ -265,23 +275,26 @@ pub async fn watch(args: WatchArgs) -> anyhow::Result<()> {
             bail!("the portal ended the event stream");
         };
         let (event, data) = next?;
-        let Ok(v) = serde_json::from_str::<Value>(&data) else {
-            continue;
-        };
         match event.as_str() {
             "value" => {
-                let mplex = v["object"]["mplex"].as_str().unwrap_or("");
-                if wanted.iter().any(|w| w == mplex) {
+                let Ok(v) = serde_json::from_str::<ValueEvent>(&data) else {
+                    continue;
+                };
+                if wanted.contains(&v.object.mplex) {
                     println!(
                         "{} {} {}",
                         cloud::store::now_ms(),
-                        mplex,
-                        v["object"]["value"].as_str().unwrap_or("")
+                        v.object.mplex,
+                        v.object.value
                     );
                     seen += 1;
                 }
             }
-            "online" => eprintln!("{} online: {}", args.lift, v["online"]),
+            "online" => {
+                if let Ok(o) = serde_json::from_str::<cloud::rest::OnlineEvent>(&data) {
+                    eprintln!("{} online: {}", args.lift, o.online);
+                }
+            }
             _ => {}
         }
     }

@@ -100,27 +100,8 @@ impl Portal {
 
     /// A portal that requires a client certificate signed by the test CA.
     pub async fn start_with(pki: &TestPki, client_auth: bool) -> Portal {
-        let certs = gateway::tls::certificates(&pki.cert).unwrap();
-        let key = gateway::tls::private_key(&pki.key).unwrap();
-        let builder = rustls::ServerConfig::builder_with_provider(gateway::tls::provider())
-            .with_safe_default_protocol_versions()
-            .unwrap();
-        let builder = if client_auth {
-            let mut roots = rustls::RootCertStore::empty();
-            for c in gateway::tls::certificates(&pki.ca).unwrap() {
-                roots.add(c).unwrap();
-            }
-            let verifier = rustls::server::WebPkiClientVerifier::builder_with_provider(
-                Arc::new(roots),
-                gateway::tls::provider(),
-            )
-            .build()
-            .unwrap();
-            builder.with_client_cert_verifier(verifier)
-        } else {
-            builder.with_no_client_auth()
-        };
-        let config = builder.with_single_cert(certs, key).unwrap();
+        let ca = client_auth.then_some(pki.ca.as_path());
+        let config = tls::server_config(&pki.cert, &pki.key, ca).unwrap();
         Portal {
             listener: TcpListener::bind("127.0.0.1:0").await.unwrap(),
             acceptor: tokio_rustls::TlsAcceptor::from(Arc::new(config)),

@@ -40,69 +40,94 @@ fn the_builtin_catalog_is_sound() {
 fn the_nxg_sample_objects_carry_the_sample_metadata() {
     // NXg SW003 §6.1.1: the trip counter.
     let trip = catalog().lookup(0x6520, 1).unwrap().entry;
-    assert_eq!(trip.objcode, ObjectCode::Array);
-    assert_eq!(trip.datatype.code(), 7);
-    assert_eq!(trip.formtype.code(), 10);
-    assert_eq!(trip.physunit.code(), 26);
-    assert_eq!(trip.access, Access::Ro);
-    assert_eq!(trip.privilege.code(), 0);
-    assert_eq!(en(&trip.name), "Trip counter [trips]");
+    assert_eq!(trip.description.objcode, nxg::meta::ObjCode::Array);
+    assert_eq!(trip.description.datatype.code(), 7);
+    assert_eq!(trip.description.formtype.code(), 10);
+    assert_eq!(trip.description.physunit.code(), 26);
+    assert_eq!(trip.description.access, Access::Ro);
+    assert_eq!(trip.description.privilege.code(), 0);
+    assert_eq!(en(&trip.description.name), "Trip counter [trips]");
     assert_eq!(
-        en(&trip.hint),
+        en(&trip.description.hint),
         "This object represents the internal trip counter of the lift controller."
     );
-    assert_eq!(trip.min, Some(Bound::Int(0)));
-    assert_eq!(trip.max, Some(Bound::Int(4_294_967_295)));
-    assert!(!trip.zero && trip.list.is_empty() && trip.hints == Hints::default());
+    assert_eq!(trip.description.min, Some(Bound::Int(0)));
+    assert_eq!(trip.description.max, Some(Bound::Int(4_294_967_295)));
+    assert!(
+        !trip.description.zero
+            && trip.description.list.is_empty()
+            && trip.description.hints == Hints::default()
+    );
     assert!(trip.persist);
     let hours = catalog().lookup(0x6520, 2).unwrap().entry;
-    assert_eq!(en(&hours.name), "Operating hours [h]");
+    assert_eq!(en(&hours.description.name), "Operating hours [h]");
     // §6.1.4: hall lantern options with a list of four.
     let lantern = catalog().lookup(0x4112, 0).unwrap().entry;
     assert_eq!(
         (
-            lantern.objcode,
-            lantern.datatype.code(),
-            lantern.formtype.code()
+            lantern.description.objcode,
+            lantern.description.datatype.code(),
+            lantern.description.formtype.code()
         ),
-        (ObjectCode::Var, 5, 15)
+        (nxg::meta::ObjCode::Var, 5, 15)
     );
-    assert_eq!((lantern.access, lantern.privilege.code()), (Access::Rw, 1));
     assert_eq!(
-        (lantern.min, lantern.max),
+        (
+            lantern.description.access,
+            lantern.description.privilege.code()
+        ),
+        (Access::Rw, 1)
+    );
+    assert_eq!(
+        (lantern.description.min, lantern.description.max),
         (Some(Bound::Int(0)), Some(Bound::Int(3)))
     );
-    let texts: Vec<&str> = lantern.list.iter().map(en).collect();
+    let texts: Vec<&str> = lantern.description.list.iter().map(en).collect();
     assert_eq!(
         texts[0],
         "Turn the hall lantern on, when approaching to the floor"
     );
     assert_eq!(texts[3], "off");
     assert_eq!(
-        en(&lantern.hint),
+        en(&lantern.description.hint),
         "This object defines the moment to turn on the hall lantern.."
     );
     // §6.2.2: floor level positions, read compact.
     let floors = catalog().lookup(0x4010, 1).unwrap().entry;
     assert_eq!(
         (
-            floors.objcode,
-            floors.datatype.code(),
-            floors.formtype.code(),
-            floors.physunit.code()
+            floors.description.objcode,
+            floors.description.datatype.code(),
+            floors.description.formtype.code(),
+            floors.description.physunit.code()
         ),
-        (ObjectCode::Array, 4, 26, 15)
+        (nxg::meta::ObjCode::Array, 4, 26, 15)
     );
-    assert_eq!((floors.access, floors.privilege.code()), (Access::Ro, 1));
-    assert_eq!(floors.max, Some(Bound::Int(2_147_483_647)));
+    assert_eq!(
+        (
+            floors.description.access,
+            floors.description.privilege.code()
+        ),
+        (Access::Ro, 1)
+    );
+    assert_eq!(floors.description.max, Some(Bound::Int(2_147_483_647)));
     assert_eq!(
         en(&catalog().object(0x4010).unwrap().name),
         "Floor level positions"
     );
     // §6.3.1: the passenger call takes UNSIGNED32, physunit 0, from any user.
     let call = catalog().lookup(0x5022, 0).unwrap().entry;
-    assert_eq!((call.datatype.code(), call.physunit.code()), (7, 0));
-    assert_eq!((call.access, call.privilege), (Access::Rw, Privilege::User));
+    assert_eq!(
+        (
+            call.description.datatype.code(),
+            call.description.physunit.code()
+        ),
+        (7, 0)
+    );
+    assert_eq!(
+        (call.description.access, call.description.privilege),
+        (Access::Rw, Privilege::User)
+    );
 }
 
 #[test]
@@ -112,7 +137,7 @@ fn lookups_follow_the_lift_number_rule_and_the_manufacturer_stride() {
     assert_eq!((pos2.lift, pos2.entry.index), (2, 0x6383));
     let trip8 = c.lookup(0x9D20, 1).unwrap();
     assert_eq!(
-        (trip8.lift, en(&trip8.entry.name)),
+        (trip8.lift, en(&trip8.entry.description.name)),
         (8, "Trip counter [trips]")
     );
     let call3 = c.lookup(0x5222, 0).unwrap();
@@ -130,17 +155,26 @@ fn languages_fall_back_in_the_requested_order() {
     let c = catalog();
     let trip = c.lookup(0x6520, 1).unwrap().entry;
     assert_eq!(
-        c.text(&trip.name, "fr", "de"),
+        c.text(&trip.description.name, "fr", "de"),
         Some(("fr", "Compteur de courses [courses]"))
     );
     assert_eq!(
-        c.text(&trip.name, "DE", "en"),
+        c.text(&trip.description.name, "DE", "en"),
         Some(("de", "Fahrtenzähler [Fahrten]"))
     );
     let hours = c.lookup(0x6520, 2).unwrap().entry;
-    assert_eq!(c.text(&hours.name, "fr", "de").map(|t| t.0), Some("de"));
-    assert_eq!(c.text(&hours.name, "fr", "it").map(|t| t.0), Some("en"));
-    assert_eq!(c.text(&hours.name, "it", "es").map(|t| t.0), Some("en"));
+    assert_eq!(
+        c.text(&hours.description.name, "fr", "de").map(|t| t.0),
+        Some("de")
+    );
+    assert_eq!(
+        c.text(&hours.description.name, "fr", "it").map(|t| t.0),
+        Some("en")
+    );
+    assert_eq!(
+        c.text(&hours.description.name, "it", "es").map(|t| t.0),
+        Some("en")
+    );
 }
 
 #[test]

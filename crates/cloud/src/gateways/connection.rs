@@ -1,0 +1,247 @@
+//! One gateway connection on the portal: the WebSocket, the portal [`Session`] and the steps
+//! around it — identify the gateway against the store, admit or refuse it, register it for
+//! operators, record its token, pass operator requests and their answers, store and fan out
+//! what it pushes, and clean up when it goes.
+
+use std::collections::HashMap;
+use std::sync::atomic::Ordering;
+use std::time::Instant;
+
+use axum::extract::ws::{Message, WebSocket};
+use nxg::msg::{Connect, Notification};
+use nxg::portal::{Failure, Output, RequestId, Session};
+use tokio::sync::{mpsc, oneshot};
+
+use super::{dashboard, LiftEvent, OperatorCall, Reply, Shared};
+use crate::store::{self, Admission, TelemetryRow};
+
+/// The lift a connection serves, once it is admitted.
+struct Admitted {
+    lift: String,
+    /// Tells this connection from a newer one of the same lift.
+    serial: u64,
+}
+
+/// One gateway connection.
+pub struct Connection {
+    socket: WebSocket,
+    shared: Shared,
+    peer: String,
+    session: Session,
+    calls_tx: mpsc::Sender<Box<OperatorCall>>,
+    calls_rx: mpsc::Receiver<Box<OperatorCall>>,
+    /// Handed to the registry on admission: a newer connection of the lift closes this one.
+    close_tx: Option<oneshot::Sender<()>>,
+    close_rx: oneshot::Receiver<()>,
+    waiting: HashMap<RequestId, Reply>,
+    admitted: Option<Admitted>,
+}
+
+/// Serve one gateway connection until it ends.
+pub async fn serve(socket: WebSocket, shared: Shared, peer: String) {
+    Connection::new(socket, shared, peer).run().await;
+}
+
+impl Connection {
+    fn new(socket: WebSocket, shared: Shared, peer: String) -> Connection {
+        let session = Session::new(shared.settings.clone(), Instant::now());
+        let (calls_tx, calls_rx) =
+            mpsc::channel(shared.settings.max_queued.max(1) + shared.settings.max_in_flight);
+        let (close_tx, close_rx) = oneshot::channel();
+        Connection {
+            socket,
+            shared,
+            peer,
+            session,
+            calls_tx,
+            calls_rx,
+            close_tx: Some(close_tx),
+            close_rx,
+            waiting: HashMap::new(),
+            admitted: None,
+        }
+    }
+
+    async fn run(mut self) {
+        let mut outputs = Vec::new();
+        let cause = loop {
+            if let Err(cause) = self.carry_out(outputs).await {
+                break cause;
+            }
+            outputs = match self.next().await {
+                Ok(out) => out,
+                Err(cause) => break cause,
+            };
+        };
+        self.finish(cause).await;
+    }
+
+    /// Do what the session asks; handling an output may produce more (Identify → CONNACK,
+    /// token), so until none is left. `Err`: the connection is over, with the cause.
+    async fn carry_out(&mut self, mut outputs: Vec<Output>) -> Result<(), String> {
+        while !outputs.is_empty() {
+            for output in std::mem::take(&mut outputs) {
+                match output {
+                    Output::Send(text) => {
+                        if self.socket.send(Message::Text(text.into())).await.is_err() {
+                            return Err("sending failed".into());
+                        }
+                    }
+                    Output::Close(reason) => {
+                        let _ = self.socket.send(Message::Close(None)).await;
+                        return Err(reason.to_string());
+                    }
+                    Output::Identify(connect) => outputs.extend(self.identify(connect).await),
+                    Output::TokenConfirmed(token) => self.token_confirmed(&token).await,
+                    Output::Answer(request, answer) => self.answer(request, answer),
+                    Output::Notification(n) => self.notification(n),
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Wait for the next thing to happen: a message, an operator request, replacement by a
+    /// newer connection, or the session's timer.
+    async fn next(&mut self) -> Result<Vec<Output>, String> {
+        let deadline = self
+            .session
+            .poll_timeout()
+            .map(tokio::time::Instant::from_std);
+        let timer = async {
+            match deadline {
+                Some(d) => tokio::time::sleep_until(d).await,
+                None => std::future::pending().await,
+            }
+        };
+        tokio::select! {
+            message = self.socket.recv() => {
+                let now = Instant::now();
+                match message {
+                    Some(Ok(Message::Text(text))) => Ok(self.session.text(text.as_str(), now)),
+                    Some(Ok(Message::Ping(_) | Message::Pong(_))) => {
+                        self.session.activity(now);
+                        Ok(Vec::new())
+                    }
+                    Some(Ok(Message::Binary(_))) => Err("binary message".into()),
+                    Some(Ok(Message::Close(_))) | None => {
+                        Err("gateway closed the connection".into())
+                    }
+                    Some(Err(e)) => Err(format!("connection failed: {e}")),
+                }
+            }
+            Some(call) = self.calls_rx.recv() => {
+                let (request, out) = self.session.request(call.method, call.params, Instant::now());
+                self.waiting.insert(request, call.reply);
+                Ok(out)
+            }
+            _ = &mut self.close_rx => {
+                let _ = self.socket.send(Message::Close(None)).await;
+                Err("replaced by a newer connection".into())
+            }
+            _ = timer => Ok(self.session.timeout(Instant::now())),
+        }
+    }
+
+    /// CONNECT came: admit the gateway (CONNACK, a token on first contact) or refuse it.
+    async fn identify(&mut self, connect: Connect) -> Vec<Output> {
+        let lift = store::lift_id(&connect.identity);
+        let peer = self.peer.clone();
+        match self.shared.store.admit(&connect).await {
+            Ok(Admission::Refused(cause)) => {
+                tracing::warn!(%lift, %peer, %cause, "gateway refused");
+                let _ = self.shared.store.refused(&lift, &peer, &cause).await;
+                self.session.refuse(cause)
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "registry unavailable");
+                self.session.refuse("registry unavailable".into())
+            }
+            Ok(admission) => {
+                let token = (admission == Admission::FirstContact).then(|| store::secret(""));
+                let out = self.session.accept(&connect, token, Instant::now());
+                let api = self.session.api();
+                if let Err(e) = self.shared.store.upsert_gateway(&connect, api).await {
+                    tracing::error!(error = %e, "gateway not recorded");
+                }
+                self.register(&lift, &connect.identity.sernum);
+                tracing::info!(%lift, %peer, api, first = ?admission, "gateway online");
+                self.shared.registry.publish(&lift, LiftEvent::Online(true));
+                out
+            }
+        }
+    }
+
+    /// Make the lift reachable for operators and subscribe the dashboard's objects.
+    fn register(&mut self, lift: &str, sernum: &str) {
+        let Some(close) = self.close_tx.take() else {
+            return;
+        };
+        let registry = &self.shared.registry;
+        let serial = registry.register(lift, sernum, self.calls_tx.clone(), close);
+        self.admitted = Some(Admitted {
+            lift: lift.to_owned(),
+            serial,
+        });
+        tokio::spawn(dashboard::subscribe(
+            registry.clone(),
+            lift.to_owned(),
+            self.shared.dashboard.clone(),
+        ));
+    }
+
+    async fn token_confirmed(&mut self, token: &str) {
+        if let Some(a) = &self.admitted {
+            if let Err(e) = self.shared.store.set_token(&a.lift, token).await {
+                tracing::error!(error = %e, lift = %a.lift, "token not recorded");
+            }
+        }
+    }
+
+    fn answer(&mut self, request: RequestId, answer: Result<String, Failure>) {
+        if let Some(reply) = self.waiting.remove(&request) {
+            let _ = reply.send(answer);
+        }
+    }
+
+    /// A pushed value: queued for the store (dropped and counted when the store lags) and
+    /// handed to live viewers.
+    fn notification(&self, n: Notification) {
+        let Some(a) = &self.admitted else {
+            return;
+        };
+        let row = TelemetryRow {
+            lift: a.lift.clone(),
+            mplex: nxg::mplex::normalized(&n.mplex),
+            node: n.node.map_or(0, |node| node.id.get()),
+            value: n.value.clone(),
+            at: store::now_ms(),
+        };
+        if self.shared.telemetry.try_send(row).is_err() {
+            self.shared.counters.dropped.fetch_add(1, Ordering::Relaxed);
+        }
+        self.shared.registry.publish(&a.lift, LiftEvent::Value(n));
+    }
+
+    /// The connection is over: open requests fail, the lift goes offline (unless a newer
+    /// connection already serves it).
+    async fn finish(mut self, cause: String) {
+        for output in self.session.ended() {
+            if let Output::Answer(request, answer) = output {
+                self.answer(request, answer);
+            }
+        }
+        let peer = &self.peer;
+        let Some(a) = &self.admitted else {
+            tracing::info!(%peer, %cause, "connection ended before CONNACK");
+            return;
+        };
+        let _ = self.shared.store.seen(&a.lift).await;
+        if self.shared.registry.unregister(&a.lift, a.serial) {
+            self.shared
+                .registry
+                .publish(&a.lift, LiftEvent::Online(false));
+        }
+        tracing::info!(lift = %a.lift, %peer, %cause, "gateway offline");
+    }
+}

@@ -1,0 +1,227 @@
+//! Gateways on their WebSocket: one [`connection::Connection`] per gateway runs a portal
+//! [`nxg::portal::Session`], checks the identity against the store, issues tokens, answers
+//! operator requests through the [`Registry`] and stores and fans out notifications. A second
+//! connection with a valid token replaces the first; a gateway that misbehaves is closed without
+//! touching the others.
+
+pub mod connection;
+mod dashboard;
+pub mod telemetry;
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
+
+use nxg::msg::{self, Call, Method, Notification};
+use nxg::portal::{Failure, Settings};
+use serde_json::value::RawValue;
+use tokio::sync::{broadcast, mpsc, oneshot};
+
+use crate::config::Dashboard;
+use crate::rest::{OnlineEvent, ValueEvent};
+use crate::store::{Store, TelemetryRow};
+
+pub use connection::serve;
+pub use telemetry::TelemetryCounters;
+
+/// An event for live viewers of a lift.
+#[derive(Debug, Clone, PartialEq)]
+pub enum LiftEvent {
+    /// A pushed value.
+    Value(Notification),
+    /// The gateway came online or went offline.
+    Online(bool),
+}
+
+impl LiftEvent {
+    /// The Server-Sent Event of `lift`: its name and its JSON data.
+    pub fn to_sse(&self, lift: &str) -> (&'static str, String) {
+        let lift = lift.to_owned();
+        match self {
+            LiftEvent::Value(n) => (
+                "value",
+                serde_json::to_string(&ValueEvent {
+                    lift,
+                    object: n.clone(),
+                })
+                .unwrap_or_default(),
+            ),
+            LiftEvent::Online(online) => (
+                "online",
+                serde_json::to_string(&OnlineEvent {
+                    lift,
+                    online: *online,
+                })
+                .unwrap_or_default(),
+            ),
+        }
+    }
+}
+
+/// The answer to an operator request: the raw JSON of its `result`, or why not.
+type Reply = oneshot::Sender<Result<String, Failure>>;
+
+/// An operator request on its way to a gateway.
+pub(crate) struct OperatorCall {
+    method: Method,
+    params: Option<Box<RawValue>>,
+    reply: Reply,
+}
+
+struct Live {
+    calls: mpsc::Sender<Box<OperatorCall>>,
+    close: oneshot::Sender<()>,
+    serial: u64,
+    sernum: String,
+}
+
+/// The gateways connected now, and the event channels of every lift.
+#[derive(Default)]
+pub struct Registry {
+    live: Mutex<HashMap<String, Live>>,
+    events: Mutex<HashMap<String, broadcast::Sender<LiftEvent>>>,
+    serial: AtomicU64,
+}
+
+impl Registry {
+    /// Whether the lift's gateway is connected.
+    pub fn online(&self, lift: &str) -> bool {
+        self.live
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .contains_key(lift)
+    }
+
+    /// How many gateways are connected.
+    pub fn online_count(&self) -> usize {
+        self.live
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .len()
+    }
+
+    /// The serial number of a connected gateway (sent with puts and elevations).
+    pub fn sernum(&self, lift: &str) -> Option<String> {
+        self.live
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(lift)
+            .map(|l| l.sernum.clone())
+    }
+
+    /// Live events of a lift.
+    pub fn subscribe(&self, lift: &str) -> broadcast::Receiver<LiftEvent> {
+        self.events
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .entry(lift.to_owned())
+            .or_insert_with(|| broadcast::channel(1024).0)
+            .subscribe()
+    }
+
+    /// Hand `event` to the lift's live viewers. A channel exists only while someone watches
+    /// (its 1024 slots are allocated up front: one per idle gateway would cost more than the
+    /// connection itself).
+    fn publish(&self, lift: &str, event: LiftEvent) {
+        let mut events = self.events.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some(tx) = events.get(lift) {
+            if tx.send(event).is_err() {
+                events.remove(lift);
+            }
+        }
+    }
+
+    /// Send `call` to the lift's gateway and wait for its answer.
+    pub async fn call<C: Call>(&self, lift: &str, call: &C) -> Result<C::Answer, Failure> {
+        let params =
+            serde_json::value::to_raw_value(call).map_err(|e| Failure::Invalid(e.to_string()))?;
+        let params = (params.get() != "null").then_some(params);
+        let raw = self.send(lift, C::METHOD, params).await?;
+        msg::read::<C::Answer>(&raw).map_err(Failure::Invalid)
+    }
+
+    async fn send(
+        &self,
+        lift: &str,
+        method: Method,
+        params: Option<Box<RawValue>>,
+    ) -> Result<String, Failure> {
+        let calls = self
+            .live
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(lift)
+            .map(|l| l.calls.clone())
+            .ok_or(Failure::Gone)?;
+        let (reply, answer) = oneshot::channel();
+        // Boxed: the channel's first block of slots is allocated with it, for every idle
+        // gateway, and a pointer is a fraction of a call.
+        let call = Box::new(OperatorCall {
+            method,
+            params,
+            reply,
+        });
+        calls.try_send(call).map_err(|e| match e {
+            mpsc::error::TrySendError::Full(_) => Failure::Busy,
+            mpsc::error::TrySendError::Closed(_) => Failure::Gone,
+        })?;
+        answer.await.map_err(|_| Failure::Gone)?
+    }
+
+    /// A connection is in service for `lift`: it replaces an earlier one. Returns the serial
+    /// that [`Registry::unregister`] needs.
+    fn register(
+        &self,
+        lift: &str,
+        sernum: &str,
+        calls: mpsc::Sender<Box<OperatorCall>>,
+        close: oneshot::Sender<()>,
+    ) -> u64 {
+        let serial = self.serial.fetch_add(1, Ordering::Relaxed);
+        let old = self
+            .live
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .insert(
+                lift.to_owned(),
+                Live {
+                    calls,
+                    close,
+                    serial,
+                    sernum: sernum.to_owned(),
+                },
+            );
+        if let Some(old) = old {
+            tracing::info!(lift, "a new connection replaces the old one");
+            let _ = old.close.send(());
+        }
+        serial
+    }
+
+    /// The connection `serial` of `lift` ended; whether it was still the lift's.
+    fn unregister(&self, lift: &str, serial: u64) -> bool {
+        let mut live = self.live.lock().unwrap_or_else(PoisonError::into_inner);
+        if live.get(lift).is_some_and(|l| l.serial == serial) {
+            live.remove(lift);
+            return true;
+        }
+        false
+    }
+}
+
+/// What a connection task needs.
+#[derive(Clone)]
+pub struct Shared {
+    /// The database.
+    pub store: Store,
+    /// Live gateways.
+    pub registry: Arc<Registry>,
+    /// Session settings.
+    pub settings: Settings,
+    /// Where notifications go to be stored in batches.
+    pub telemetry: mpsc::Sender<TelemetryRow>,
+    /// Values stored and dropped, for `/metrics`.
+    pub counters: Arc<TelemetryCounters>,
+    /// What every gateway is asked to push (`live`, `inhibit_ms`), normalized.
+    pub dashboard: Arc<Dashboard>,
+}

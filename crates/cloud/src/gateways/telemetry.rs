@@ -1,0 +1,69 @@
+//! Telemetry: the values gateways push, written to the store in batches, and deleted again
+//! after the retention time.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+
+use tokio::sync::mpsc;
+
+use crate::store::{self, Store, TelemetryRow};
+
+/// Pushed values stored, and dropped because the database could not keep up (the queue in
+/// front of it was full) or failed.
+#[derive(Debug, Default)]
+pub struct TelemetryCounters {
+    /// Values written.
+    pub stored: AtomicU64,
+    /// Values lost.
+    pub dropped: AtomicU64,
+}
+
+/// Write telemetry in batches (up to 2,000 values or every 200 ms, whichever first).
+pub async fn writer(
+    store: Store,
+    mut rx: mpsc::Receiver<TelemetryRow>,
+    counters: Arc<TelemetryCounters>,
+) {
+    const BATCH: usize = 2000;
+    let mut batch = Vec::with_capacity(BATCH);
+    loop {
+        let first = rx.recv().await;
+        let Some(first) = first else {
+            return;
+        };
+        batch.push(first);
+        let deadline = tokio::time::Instant::now() + std::time::Duration::from_millis(200);
+        while batch.len() < BATCH {
+            match tokio::time::timeout_at(deadline, rx.recv()).await {
+                Ok(Some(v)) => batch.push(v),
+                _ => break,
+            }
+        }
+        let counter = match store.telemetry(&batch).await {
+            Ok(()) => &counters.stored,
+            Err(e) => {
+                tracing::error!(error = %e, values = batch.len(), "telemetry not stored");
+                &counters.dropped
+            }
+        };
+        counter.fetch_add(batch.len() as u64, Ordering::Relaxed);
+        batch.clear();
+    }
+}
+
+/// Delete telemetry older than `days` once an hour (and at start).
+pub async fn retention(store: Store, days: u32) {
+    if days == 0 {
+        return;
+    }
+    let mut hourly = tokio::time::interval(std::time::Duration::from_secs(3600));
+    loop {
+        hourly.tick().await;
+        let before = store::now_ms() - i64::from(days) * 86_400_000;
+        match store.forget_telemetry(before).await {
+            Ok(0) => {}
+            Ok(n) => tracing::info!(values = n, days, "old telemetry deleted"),
+            Err(e) => tracing::error!(error = %e, "old telemetry not deleted"),
+        }
+    }
+}

@@ -1,0 +1,147 @@
+//! The operator REST API's bodies as types (docs/PORTAL.md §REST API, `openapi.json`): what
+//! the handlers of [`crate::api`] read and write and what [`crate::client`] and `canlift
+//! lifts|get|put|watch` read back. Objects travel in the connector's own types
+//! ([`nxg::msg::ObjectAnswer`], [`nxg::msg::Notification`]); errors as
+//! [`nxg::msg::ErrorObject`].
+
+use nxg::msg::Notification;
+use serde::{Deserialize, Serialize};
+
+use crate::store::LiftRecord;
+
+/// One lift of `GET /api/v1/lifts`: the registry's record and whether its gateway is connected.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LiftSummary {
+    /// What the registry knows.
+    #[serde(flatten)]
+    pub record: LiftRecord,
+    /// The gateway is connected now.
+    pub online: bool,
+}
+
+/// The query of `GET /api/v1/lifts/{id}/objects/{mplex}`.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct GetQuery {
+    /// Language of names and hints (default `en`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lang: Option<String>,
+    /// Second language (default `en`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alt_lang: Option<String>,
+    /// `full` (default), `stripped` or `naked`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub form: Option<Form>,
+    /// Every element of an array (mplex with sub-index 1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub compact: Option<bool>,
+    /// Another node than the lift controller.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub node: Option<u8>,
+    /// Its network (default 1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub net: Option<u8>,
+    /// Its data type, for nodes the gateway has no description of.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub datatype: Option<u32>,
+}
+
+/// How much of an object a read returns (NXg §6.1.1–§6.1.3).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Form {
+    /// Everything, names and hints in the asked language.
+    #[default]
+    Full,
+    /// Without names, hints and lists.
+    Stripped,
+    /// Only the value.
+    Naked,
+}
+
+/// The body of `PUT /api/v1/lifts/{id}/objects/{mplex}`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PutBody {
+    /// The value in the connector's text form.
+    pub value: String,
+    /// The data type the caller assumes (NXg §6.3).
+    pub datatype: u32,
+    /// The physical unit the caller assumes.
+    pub physunit: u32,
+    /// Another node than the lift controller.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub node: Option<u8>,
+    /// Its network (default 1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub net: Option<u8>,
+}
+
+/// The body of `POST /api/v1/lifts/{id}/privilege`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PrivilegeBody {
+    /// 1 service, 2 setup.
+    pub privilege: u8,
+    /// The lift's password for it (sent to the gateway only as its SHA-1, NXg §6.4).
+    pub password: String,
+}
+
+/// The body of `POST` and `DELETE /api/v1/lifts/{id}/subscriptions`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SubscriptionBody {
+    /// The objects.
+    pub mplex: Vec<String>,
+    /// Minimum gap between two pushes of one object (ms).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub inhibit: Option<u64>,
+    /// Smallest change pushed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub threshold: Option<f64>,
+}
+
+/// The query of `GET …/objects/{mplex}/history` (ms since the epoch).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct HistoryQuery {
+    /// From (default: the beginning).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub from: Option<i64>,
+    /// To (default: now).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub to: Option<i64>,
+}
+
+/// One stored value.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct HistoryPoint {
+    /// When it arrived (ms since the epoch).
+    pub at: i64,
+    /// The value in text form.
+    pub value: String,
+}
+
+/// The answer of `GET …/objects/{mplex}/history`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct History {
+    /// Lift id.
+    pub lift: String,
+    /// The object (the gateway's spelling).
+    pub mplex: String,
+    /// Oldest first; at most the newest 10,000 of the range.
+    pub values: Vec<HistoryPoint>,
+}
+
+/// Server-Sent Event `value`: a pushed value of a lift.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ValueEvent {
+    /// Lift id.
+    pub lift: String,
+    /// The gateway's notification.
+    pub object: Notification,
+}
+
+/// Server-Sent Event `online`: the lift's gateway connected or went away.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct OnlineEvent {
+    /// Lift id.
+    pub lift: String,
+    /// Connected now.
+    pub online: bool,
+}

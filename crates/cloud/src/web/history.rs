@@ -1,0 +1,147 @@
+//! The history page: the stored values of one object over a period, as an SVG step chart
+//! drawn by the portal.
+
+use std::sync::Arc;
+
+use axum::extract::{Path, Query, State};
+use axum::http::StatusCode;
+use axum::response::{IntoResponse, Response};
+use maud::{html, Markup};
+use serde::Deserialize;
+
+use super::page::{layout, problem, time, utc};
+use super::{owned, SignedIn};
+use crate::api::App;
+use crate::store;
+
+#[derive(Deserialize)]
+pub(super) struct HistoryQuery {
+    mplex: String,
+    /// The period shown, ending now.
+    minutes: Option<u32>,
+}
+
+/// An SVG step chart of `points` (ms, value) between `from` and `to`.
+fn chart(points: &[(i64, f64)], from: i64, to: i64) -> Markup {
+    const W: f64 = 800.0;
+    const H: f64 = 280.0;
+    const LEFT: f64 = 70.0;
+    const BOTTOM: f64 = 30.0;
+    let lo = points.iter().map(|p| p.1).fold(f64::INFINITY, f64::min);
+    let hi = points.iter().map(|p| p.1).fold(f64::NEG_INFINITY, f64::max);
+    let (lo, hi) = if (hi - lo).abs() < f64::EPSILON {
+        (lo - 1.0, hi + 1.0)
+    } else {
+        (lo, hi)
+    };
+    let x = |t: i64| LEFT + (t - from) as f64 / (to - from).max(1) as f64 * (W - LEFT - 10.0);
+    let y = |v: f64| 10.0 + (hi - v) / (hi - lo) * (H - BOTTOM - 10.0);
+    let mut path = Vec::with_capacity(points.len() * 2 + 1);
+    let mut previous: Option<f64> = None;
+    for &(t, v) in points {
+        if let Some(p) = previous {
+            path.push(format!("{:.1},{:.1}", x(t), y(p)));
+        }
+        path.push(format!("{:.1},{:.1}", x(t), y(v)));
+        previous = Some(v);
+    }
+    if let Some(p) = previous {
+        path.push(format!("{:.1},{:.1}", x(to), y(p)));
+    }
+    let (bottom, right, label_x, label_y) = (H - BOTTOM, W - 10.0, LEFT - 6.0, H - 8.0);
+    html! {
+        svg.chart viewBox={ "0 0 " (W) " " (H) } role="img" aria-label="history chart" {
+            line x1=(LEFT) y1="10" x2=(LEFT) y2=(bottom) class="axis" {}
+            line x1=(LEFT) y1=(bottom) x2=(right) y2=(bottom) class="axis" {}
+            text x=(label_x) y="16" class="label" text-anchor="end" { (hi) }
+            text x=(label_x) y=(bottom) class="label" text-anchor="end" { (lo) }
+            text x=(LEFT) y=(label_y) class="label" { (utc(from)) }
+            text x=(right) y=(label_y) class="label" text-anchor="end" { (utc(to)) }
+            polyline class="line" points=(path.join(" ")) {}
+        }
+    }
+}
+
+pub(super) async fn history_page(
+    State(app): State<Arc<App>>,
+    SignedIn(session): SignedIn,
+    Path(id): Path<String>,
+    Query(q): Query<HistoryQuery>,
+) -> Response {
+    if let Err(r) = owned(&app, &session, &id).await {
+        return r;
+    }
+    let Ok(mplex) = nxg::mplex::Mplex::parse(&q.mplex) else {
+        return problem(
+            StatusCode::BAD_REQUEST,
+            Some(&session),
+            "mplex: six hex digits, e.g. 0x652001.",
+        );
+    };
+    let mplex = mplex.to_string();
+    let minutes = q.minutes.unwrap_or(60).clamp(1, 31 * 24 * 60);
+    let to = store::now_ms();
+    let from = to - i64::from(minutes) * 60_000;
+    let rows = match app.store.history(&id, &mplex, from, to).await {
+        Ok(r) => r,
+        Err(e) => return e.into(),
+    };
+    let points: Vec<(i64, f64)> = rows
+        .iter()
+        .filter_map(|(at, v)| v.trim().parse::<f64>().ok().map(|v| (*at, v)))
+        .collect();
+    let ranges = [
+        (10u32, "10 min"),
+        (60, "1 h"),
+        (360, "6 h"),
+        (1440, "24 h"),
+        (10080, "7 d"),
+    ];
+    let body = html! {
+        h1 { "History of " code { (mplex) } " on " a href={ "/lifts/" (id) } { (id) } }
+        p.ranges {
+            @for (m, label) in ranges {
+                a.current[m == minutes] href={ "/lifts/" (id) "/history?mplex=" (mplex) "&minutes=" (m) } {
+                    (label)
+                }
+            }
+        }
+        p.summary {
+            (points.len()) " values, last "
+            @if let Some((at, v)) = points.last() {
+                (v) " at " (time(*at))
+            } @else {
+                "—"
+            }
+        }
+        @if points.is_empty() {
+            p.muted {
+                "No stored numeric values in this period. Values are stored while the gateway \
+                 pushes them (the dashboard's objects, or a subscription)."
+            }
+        } @else {
+            (chart(&points, from, to))
+        }
+    };
+    layout(&format!("History {mplex}"), Some(&session), None, body).into_response()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn chart_steps_between_values() {
+        let svg = chart(&[(0, 1.0), (500, 3.0)], 0, 1000).into_string();
+        assert!(svg.contains("<polyline"), "{svg}");
+        // Three points per change: the old level to the change, then the new one to the end.
+        let points = svg
+            .split("points=\"")
+            .nth(1)
+            .unwrap()
+            .split('"')
+            .next()
+            .unwrap();
+        assert_eq!(points.split(' ').count(), 4, "{points}");
+    }
+}

@@ -1,0 +1,334 @@
+//! The lift page: identity, live values (kept current by the script from the lift's events),
+//! the parameter table with its edit dialog, and reading any object.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::Duration;
+
+use axum::extract::{Path, Query, State};
+use axum::http::HeaderMap;
+use axum::response::{IntoResponse, Response};
+use maud::{html, Markup};
+use nxg::meta::{FormType, PhysUnit, Privilege};
+use nxg::mplex::Mplex;
+use nxg::msg::{Lang, ObjectAnswer, ObjectData};
+use nxg::portal::Failure;
+use serde::Deserialize;
+
+use super::page::{layout, online_badge, time};
+use super::{language, owned, SignedIn};
+use crate::api::{read_params, App};
+use crate::rest::Form;
+
+/// How long a page waits for the gateway's metadata before it shows what it has.
+const READ_TIMEOUT: Duration = Duration::from_secs(4);
+
+/// The attributes the page's script reads an object's value and metadata from.
+struct Data {
+    mplex: String,
+    name: String,
+    raw: String,
+    datatype: String,
+    physunit: String,
+    form: String,
+    min: String,
+    max: String,
+    privilege: String,
+    unit: &'static str,
+    list: String,
+    hints: String,
+}
+
+/// An element (`tag` with optional classes) carrying an object's [`Data`] around `content`.
+macro_rules! with_data {
+    ($tag:ident $(.$class:ident)*, $data:expr, $content:expr) => {{
+        let d = &$data;
+        html! {
+            $tag $(.$class)* data-mplex=(d.mplex) data-name=(d.name) data-raw=(d.raw)
+                data-datatype=(d.datatype) data-physunit=(d.physunit) data-form=(d.form)
+                data-min=(d.min) data-max=(d.max) data-privilege=(d.privilege)
+                data-unit=(d.unit) data-list=(d.list) data-hints=(d.hints) { ($content) }
+        }
+    }};
+}
+
+/// What the gateway says about one object (a full `get_canopen_object` answer), or why it
+/// could not, and the newest stored value.
+struct Object {
+    mplex: Mplex,
+    answer: Result<ObjectAnswer, String>,
+    stored: Option<(i64, String)>,
+}
+
+impl Object {
+    /// The object's metadata and value.
+    fn data(&self) -> Option<&ObjectData> {
+        self.answer.as_ref().ok().map(|a| &a.object)
+    }
+
+    fn name(&self) -> String {
+        self.data()
+            .and_then(|d| d.name.clone())
+            .unwrap_or_else(|| self.mplex.to_string())
+    }
+
+    /// The current value: the gateway's answer, else the newest stored one.
+    fn raw(&self) -> String {
+        self.data()
+            .map(ObjectData::value_text)
+            .or_else(|| self.stored.as_ref().map(|(_, v)| v.clone()))
+            .unwrap_or_default()
+    }
+
+    fn form(&self) -> Option<FormType> {
+        self.data()
+            .and_then(|d| d.formtype)
+            .and_then(|f| FormType::from_code(f).ok())
+    }
+
+    fn writable(&self) -> bool {
+        self.data()
+            .is_some_and(|d| matches!(d.access.as_deref(), Some("rw" | "wo")))
+    }
+
+    fn numeric(&self) -> bool {
+        match self.form() {
+            Some(f) => matches!(
+                f,
+                FormType::Number | FormType::Real | FormType::Duration | FormType::Choice
+            ),
+            None => self.raw().parse::<f64>().is_ok(),
+        }
+    }
+
+    /// The `data-…` attributes the script formats values and fills the edit dialog with.
+    fn attributes(&self) -> Data {
+        let d = self.data();
+        let number = |v: Option<u32>| v.map(|n| n.to_string()).unwrap_or_default();
+        let limit = |v: Option<&serde_json::Number>| v.map(ToString::to_string).unwrap_or_default();
+        Data {
+            mplex: self.mplex.to_string(),
+            name: self.name(),
+            raw: self.raw(),
+            datatype: number(d.and_then(|d| d.datatype)),
+            physunit: number(d.and_then(|d| d.physunit)),
+            form: number(d.and_then(|d| d.formtype)),
+            min: limit(d.and_then(|d| d.min.as_ref())),
+            max: limit(d.and_then(|d| d.max.as_ref())),
+            privilege: number(d.and_then(|d| d.privilege)),
+            unit: d
+                .and_then(|d| d.physunit)
+                .and_then(|u| PhysUnit::from_code(u).ok())
+                .map_or("", PhysUnit::text),
+            list: serde_json::to_string(&d.and_then(|d| d.list.as_ref())).unwrap_or_default(),
+            hints: serde_json::to_string(&self.answer.as_ref().ok().and_then(|a| a.hints))
+                .unwrap_or_default(),
+        }
+    }
+
+    fn history_link(&self, lift: &str) -> Markup {
+        html! {
+            @if self.numeric() {
+                a.chart href={ "/lifts/" (lift) "/history?mplex=" (self.mplex) } { "chart" }
+            }
+        }
+    }
+
+    fn card(&self, lift: &str) -> Markup {
+        let content = html! {
+            h3 { (self.name()) }
+            p { span.v { (self.raw()) } " " span.u {} }
+            @if let (Err(e), None) = (&self.answer, &self.stored) {
+                p.error { (e) }
+            }
+            (self.history_link(lift))
+        };
+        with_data!(div.card, self.attributes(), content)
+    }
+
+    fn row(&self, lift: &str) -> Markup {
+        let d = self.data();
+        let range = match (
+            d.and_then(|d| d.min.as_ref()),
+            d.and_then(|d| d.max.as_ref()),
+        ) {
+            (Some(lo), Some(hi)) => format!("{lo} … {hi}"),
+            _ => String::new(),
+        };
+        let privilege = d
+            .and_then(|d| d.privilege)
+            .and_then(|p| Privilege::from_code(p).ok())
+            .map_or("", Privilege::text);
+        let content = html! {
+            td { code { (self.mplex) } }
+            td title=(d.and_then(|d| d.hint.as_deref()).unwrap_or_default()) { (self.name()) }
+            td {
+                @match &self.answer {
+                    Err(e) => span.error { (e) },
+                    Ok(_) => { span.v { (self.raw()) } " " span.u {} },
+                }
+            }
+            td { (range) }
+            td { (d.and_then(|d| d.access.as_deref()).unwrap_or_default()) }
+            td { (privilege) }
+            td {
+                @if self.writable() {
+                    button.edit type="button" { "Edit" }
+                }
+                " "
+                (self.history_link(lift))
+            }
+        };
+        with_data!(tr, self.attributes(), content)
+    }
+}
+
+/// Read full metadata of `mplexes` from the lift's gateway, all at once, each waiting at most
+/// [`READ_TIMEOUT`].
+async fn read_all(
+    app: &App,
+    lift: &str,
+    mplexes: &[Mplex],
+    lang: &str,
+    stored: &HashMap<String, (i64, String)>,
+) -> Vec<Object> {
+    let online = app.registry.online(lift);
+    let reads = mplexes.iter().map(|&mplex| async move {
+        let answer = if online {
+            let params = read_params(mplex.into(), Lang::new(lang, "en"), Form::Full);
+            match tokio::time::timeout(READ_TIMEOUT, app.registry.call(lift, &params)).await {
+                Ok(Ok(v)) => Ok(v),
+                Ok(Err(Failure::Error(e))) => Err(e.to_string()),
+                Ok(Err(f)) => Err(format!("{f:?}").to_lowercase()),
+                Err(_) => Err("no answer in time".into()),
+            }
+        } else {
+            Err("offline".into())
+        };
+        Object {
+            mplex,
+            answer,
+            stored: stored.get(&mplex.to_string()).cloned(),
+        }
+    });
+    futures_util::future::join_all(reads).await
+}
+
+#[derive(Deserialize)]
+pub(super) struct LiftQuery {
+    lang: Option<String>,
+    read: Option<String>,
+}
+
+const TABLE_HEAD: [&str; 7] = [
+    "Object",
+    "Name",
+    "Value",
+    "Range",
+    "Access",
+    "Privilege",
+    "",
+];
+
+fn table(lift: &str, objects: &[Object]) -> Markup {
+    html! {
+        table.objects {
+            thead { tr { @for h in TABLE_HEAD { th { (h) } } } }
+            tbody { @for o in objects { (o.row(lift)) } }
+        }
+    }
+}
+
+fn edit_dialog() -> Markup {
+    html! {
+        dialog #edit {
+            form method="dialog" {
+                h2.title {}
+                p.hint.muted {}
+                label { "New value " span.field {} }
+                p.range.muted {}
+                fieldset.elevate hidden {
+                    legend { "Privilege needed" }
+                    label {
+                        "Privilege "
+                        select name="privilege" {
+                            option value="1" { "service" }
+                            option value="2" { "setup" }
+                        }
+                    }
+                    label { "Password " input type="password" name="password" autocomplete="off"; }
+                }
+                p.status role="status" {}
+                menu {
+                    button value="cancel" formnovalidate { "Cancel" }
+                    button.save value="save" { "Save" }
+                }
+            }
+        }
+    }
+}
+
+pub(super) async fn lift_page(
+    State(app): State<Arc<App>>,
+    SignedIn(session): SignedIn,
+    headers: HeaderMap,
+    Path(id): Path<String>,
+    Query(q): Query<LiftQuery>,
+) -> Response {
+    let lift = match owned(&app, &session, &id).await {
+        Ok(l) => l,
+        Err(r) => return r,
+    };
+    let lang = language(q.lang.as_deref(), &headers);
+    let (live, parameters) = (&app.dashboard.live, &app.dashboard.parameters);
+    let asked = q.read.as_deref().map(str::trim).filter(|r| !r.is_empty());
+    let read = asked.map(Mplex::parse);
+    let live_keys: Vec<String> = live.iter().map(ToString::to_string).collect();
+    let stored = match app.store.latest(&id, &live_keys).await {
+        Ok(s) => s,
+        Err(e) => return e.into(),
+    };
+    let mut wanted = live.clone();
+    wanted.extend_from_slice(parameters);
+    if let Some(Ok(m)) = read {
+        wanted.push(m);
+    }
+    let mut objects = read_all(&app, &id, &wanted, &lang, &stored).await;
+    let read_object = matches!(read, Some(Ok(_))).then(|| objects.pop()).flatten();
+    let parameter_objects = objects.split_off(live.len());
+    let identity = [
+        ("Lift number", lift.liftnum.clone()),
+        ("Vendor-ID", lift.vendorid.to_string()),
+        ("Product code", lift.productcode.to_string()),
+        ("Serial number", lift.sernum.clone()),
+        ("Hardware", lift.hardware.clone()),
+        ("Software", lift.software.clone()),
+        ("API", lift.api.to_string()),
+    ];
+    let body = html! {
+        h1 { "Lift " code { (id) } " " (online_badge(&id, app.registry.online(&id))) }
+        dl.identity {
+            @for (term, value) in &identity { dt { (term) } dd { (value) } }
+            dt { "Last seen" } dd { (time(lift.last_seen)) }
+        }
+        h2 { "Live values" }
+        div.cards { @for o in &objects { (o.card(&id)) } }
+        h2 { "Parameters" }
+        (table(&id, &parameter_objects))
+        h2 { "Read an object" }
+        form.read method="get" {
+            input name="read" placeholder="0x652001" value=(asked.unwrap_or_default())
+                pattern="(0[xX])?[0-9A-Fa-f]{6}" required;
+            input type="hidden" name="lang" value=(lang);
+            button { "Read" }
+        }
+        @if let Some(Err(e)) = &read {
+            p.error { (e) }
+        }
+        @if let Some(o) = &read_object {
+            (table(&id, std::slice::from_ref(o)))
+        }
+        (edit_dialog())
+    };
+    layout(&format!("Lift {id}"), Some(&session), Some(&id), body).into_response()
+}

@@ -1,0 +1,143 @@
+//! The web UI: pages rendered on the server (maud templates: text is escaped unless a template
+//! says otherwise), one small script (`web/app.js`) for live values, local times and the edit
+//! dialog, one style sheet, no build step. One file per page; [`session`] keeps the signed-in
+//! browsers. Every response carries a Content-Security-Policy that allows only this origin's
+//! script and style.
+
+mod audit;
+mod fleet;
+mod history;
+mod lift;
+mod login;
+mod page;
+pub mod session;
+
+use std::sync::Arc;
+
+use axum::extract::FromRequestParts;
+use axum::http::request::Parts;
+use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
+use axum::response::{IntoResponse, Redirect, Response};
+use axum::routing::{get, post};
+use axum::Router;
+
+use crate::api::App;
+use crate::store::LiftRecord;
+pub use session::{Session, Sessions};
+
+/// A page's signed-in browser; without a session, the page redirects to the sign-in form.
+struct SignedIn(Session);
+
+impl FromRequestParts<Arc<App>> for SignedIn {
+    type Rejection = Redirect;
+
+    async fn from_request_parts(parts: &mut Parts, app: &Arc<App>) -> Result<Self, Redirect> {
+        app.sessions
+            .get(&parts.headers)
+            .map(SignedIn)
+            .ok_or_else(|| Redirect::to("/login"))
+    }
+}
+
+/// The language of the page: `?lang=`, else the browser's first choice, else English.
+fn language(query: Option<&str>, headers: &HeaderMap) -> String {
+    let browser = headers
+        .get(header::ACCEPT_LANGUAGE)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.split([',', ';', '-']).next());
+    query
+        .or(browser)
+        .map(str::trim)
+        .filter(|l| (2..=8).contains(&l.len()) && l.chars().all(|c| c.is_ascii_alphabetic()))
+        .unwrap_or("en")
+        .to_ascii_lowercase()
+}
+
+/// The lift, if it is one of the session's account (a 404 page otherwise).
+async fn owned(app: &App, session: &Session, id: &str) -> Result<LiftRecord, Response> {
+    match app.store.lift(&session.account.domain, id).await {
+        Ok(Some(l)) => Ok(l),
+        Ok(None) => Err(page::problem(
+            StatusCode::NOT_FOUND,
+            Some(session),
+            "No such lift.",
+        )),
+        Err(e) => Err(e.into()),
+    }
+}
+
+const APP_JS: &str = include_str!("app.js");
+const STYLE_CSS: &str = include_str!("style.css");
+
+fn asset(kind: &'static str, text: &'static str) -> Response {
+    (
+        [
+            (header::CONTENT_TYPE, kind),
+            (header::CACHE_CONTROL, "no-cache"),
+        ],
+        text,
+    )
+        .into_response()
+}
+
+/// Headers every UI response carries: only this origin's script and style, no framing, no
+/// sniffing, no referrer to other sites.
+async fn harden(mut response: Response) -> Response {
+    let h = response.headers_mut();
+    h.insert(
+        header::CONTENT_SECURITY_POLICY,
+        HeaderValue::from_static(
+            "default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data:; \
+             connect-src 'self'; frame-ancestors 'none'; base-uri 'none'; form-action 'self'",
+        ),
+    );
+    h.insert(
+        header::X_CONTENT_TYPE_OPTIONS,
+        HeaderValue::from_static("nosniff"),
+    );
+    h.insert(
+        header::REFERRER_POLICY,
+        HeaderValue::from_static("no-referrer"),
+    );
+    h.insert(header::X_FRAME_OPTIONS, HeaderValue::from_static("DENY"));
+    response
+}
+
+/// The UI's routes.
+pub fn routes(app: Arc<App>) -> Router {
+    Router::new()
+        .route("/", get(fleet::fleet))
+        .route("/login", get(login::login_page).post(login::login))
+        .route("/logout", post(login::logout))
+        .route("/lifts/{id}", get(lift::lift_page))
+        .route("/lifts/{id}/history", get(history::history_page))
+        .route("/audit", get(audit::audit_page))
+        .route(
+            "/static/app.js",
+            get(|| async { asset("text/javascript; charset=utf-8", APP_JS) }),
+        )
+        .route(
+            "/static/style.css",
+            get(|| async { asset("text/css; charset=utf-8", STYLE_CSS) }),
+        )
+        .layer(axum::middleware::map_response(harden))
+        .with_state(app)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn page_language() {
+        let mut h = HeaderMap::new();
+        assert_eq!(language(None, &h), "en");
+        h.insert(
+            header::ACCEPT_LANGUAGE,
+            HeaderValue::from_static("de-DE,de;q=0.9"),
+        );
+        assert_eq!(language(None, &h), "de");
+        assert_eq!(language(Some("FR"), &h), "fr");
+        assert_eq!(language(Some("<x>"), &h), "en");
+    }
+}

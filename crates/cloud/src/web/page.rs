@@ -1,0 +1,130 @@
+//! What every page shares: the layout with navigation, error pages, times, the online badge.
+//! Pages are maud templates: text is escaped unless a template says otherwise.
+
+use axum::http::StatusCode;
+use axum::response::{IntoResponse, Response};
+use maud::{html, Markup, DOCTYPE};
+
+use super::session::Session;
+use crate::store::StoreError;
+
+/// A whole page. `session` absent: the sign-in page (no navigation); `lift`: the lift whose
+/// live events the page's script follows.
+pub(super) fn layout(
+    title: &str,
+    session: Option<&Session>,
+    lift: Option<&str>,
+    body: Markup,
+) -> Markup {
+    html! {
+        (DOCTYPE)
+        html lang="en" {
+            head {
+                meta charset="utf-8";
+                meta name="viewport" content="width=device-width, initial-scale=1";
+                @if let Some(s) = session {
+                    meta name="csrf" content=(s.csrf);
+                }
+                title { (title) " · canlift" }
+                link rel="stylesheet" href="/static/style.css";
+                script src="/static/app.js" defer {}
+            }
+            body data-lift=[lift] {
+                header {
+                    a.brand href="/" { "canlift" }
+                    @if let Some(s) = session {
+                        nav {
+                            a href="/" { "Fleet" }
+                            a href="/audit" { "Audit" }
+                            span.who { (s.account.name) }
+                            form method="post" action="/logout" {
+                                input type="hidden" name="csrf" value=(s.csrf);
+                                button { "Sign out" }
+                            }
+                        }
+                    }
+                }
+                main { (body) }
+            }
+        }
+    }
+}
+
+/// A page that says what went wrong.
+pub(super) fn problem(status: StatusCode, session: Option<&Session>, message: &str) -> Response {
+    let body = html! {
+        h1 { (status.as_u16()) }
+        p.error { (message) }
+    };
+    (status, layout(status.as_str(), session, None, body)).into_response()
+}
+
+impl From<StoreError> for Response {
+    fn from(e: StoreError) -> Response {
+        tracing::error!(error = %e, "web page failed on the database");
+        problem(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            None,
+            "The database is unavailable.",
+        )
+    }
+}
+
+/// Milliseconds since the epoch as `YYYY-MM-DD HH:MM:SS UTC` (the script shows local time).
+pub(super) fn utc(ms: i64) -> String {
+    let Ok(t) = time::OffsetDateTime::from_unix_timestamp(ms.div_euclid(1000)) else {
+        return format!("{ms} ms");
+    };
+    format!(
+        "{:04}-{:02}-{:02} {:02}:{:02}:{:02} UTC",
+        t.year(),
+        u8::from(t.month()),
+        t.day(),
+        t.hour(),
+        t.minute(),
+        t.second()
+    )
+}
+
+/// A time the script shows in local time; "never" for none.
+pub(super) fn time(ms: i64) -> Markup {
+    html! {
+        @if ms <= 0 {
+            "never"
+        } @else {
+            time data-ms=(ms) { (utc(ms)) }
+        }
+    }
+}
+
+/// The lift's online state, kept current by the script.
+pub(super) fn online_badge(lift: &str, online: bool) -> Markup {
+    let text = if online { "online" } else { "offline" };
+    html! {
+        span.badge.(text) data-online=(lift) { (text) }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn escapes_markup() {
+        let page = html! { p title=("\"x\"") { ("<a href=\"x\">'&'</a>") } }.into_string();
+        assert_eq!(
+            page,
+            "<p title=\"&quot;x&quot;\">&lt;a href=&quot;x&quot;&gt;'&amp;'&lt;/a&gt;</p>"
+        );
+    }
+
+    #[test]
+    fn utc_dates() {
+        assert_eq!(utc(0), "1970-01-01 00:00:00 UTC");
+        assert_eq!(utc(951_782_400_000), "2000-02-29 00:00:00 UTC");
+        assert_eq!(
+            utc(1_795_392_000_000 + 3_723_000),
+            "2026-11-23 01:02:03 UTC"
+        );
+    }
+}

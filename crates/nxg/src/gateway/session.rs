@@ -1,0 +1,909 @@
+//! The elevator gateway's side of one connection (NXg SW003 §5–§7), sans-IO.
+//!
+//! [`Session`] takes WebSocket text messages, object values and time, and returns what to send,
+//! which dictionary accesses to run ([`Job`]s, by SDO or on a local dictionary — the driver
+//! decides) and when to wake it next. Every rule of the protocol lives here: CONNECT and API
+//! negotiation, privileges with expiry and lock-out, the checks of `put_canopen_object`,
+//! subscriptions with inhibit and threshold, bounded work in flight, the dead-connection timer.
+
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use canopen::sdo::abort::AbortCode;
+use canopen::types::{self, DataType as CiaType};
+use serde_json::value::RawValue;
+
+use super::answer::{self, Form, Langs, Refusal};
+use super::metadata::{bare, Lookup, Metadata, Target};
+use super::settings::Settings;
+use crate::digest;
+use crate::errors::{rpc_codes, ErrorCode};
+use crate::meta::{Access, DataType, Description, Privilege};
+use crate::msg::{
+    self, Done, ElevateAnswer, ElevateParams, ErrorObject, GetParams, Id, Incoming, Method,
+    MplexText, NodeRef, Notification, PutAnswer, PutParams, RegParams, TokenParams, UnregParams,
+};
+
+/// A dictionary access the driver runs and reports back with [`Session::complete`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Job {
+    /// Read one sub-object.
+    Read {
+        /// Where.
+        target: Target,
+        /// Index.
+        index: u16,
+        /// Sub-index.
+        sub: u8,
+    },
+    /// Read sub-index 0 (the count) and then sub-indices 1..=count (`compact`).
+    ReadArray {
+        /// Where.
+        target: Target,
+        /// Index.
+        index: u16,
+    },
+    /// Write one sub-object.
+    Write {
+        /// Where.
+        target: Target,
+        /// Index.
+        index: u16,
+        /// Sub-index.
+        sub: u8,
+        /// The encoded value.
+        data: Vec<u8>,
+    },
+    /// Store the cloud token durably (write, fsync, rename).
+    StoreToken(String),
+}
+
+/// The outcome of a [`Job`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum JobResult {
+    /// The bytes read (one entry for `Read`, the elements for `ReadArray`).
+    Read(Vec<Vec<u8>>),
+    /// Written or stored.
+    Done,
+    /// Refused, with the abort code (SDO timeout 0x05040000, …).
+    Failed(AbortCode),
+}
+
+/// Identifies a job.
+pub type JobId = u64;
+
+/// Why a session ended the connection.
+#[derive(Debug, Clone, PartialEq)]
+pub enum CloseReason {
+    /// No CONNACK within the connect timeout.
+    NoConnack,
+    /// The portal answered CONNECT with an error.
+    Refused(ErrorObject),
+    /// The portal answered CONNECT with something else than CONNACK.
+    UnexpectedConnack(String),
+    /// Nothing heard for 2 × heartbeat + 30 s.
+    Silent,
+}
+
+impl std::fmt::Display for CloseReason {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            CloseReason::NoConnack => write!(f, "no CONNACK in time"),
+            CloseReason::Refused(e) => write!(f, "portal refused CONNECT: {e}"),
+            CloseReason::UnexpectedConnack(why) => write!(f, "{why}"),
+            CloseReason::Silent => write!(f, "connection silent for 2 × heartbeat + 30 s"),
+        }
+    }
+}
+
+/// What the driver must do.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Output {
+    /// Send this text message.
+    Send(String),
+    /// Close the connection.
+    Close(CloseReason),
+    /// Run a job and call [`Session::complete`] with its result.
+    Start(JobId, Job),
+    /// Start feeding [`Session::value`] with changes of this sub-object.
+    Watch(Target, u16, u8),
+    /// Stop feeding it.
+    Unwatch(Target, u16, u8),
+}
+
+/// Where the connection stands.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Phase {
+    /// CONNECT sent, waiting for CONNACK.
+    Connecting,
+    /// Serving the portal with this API version.
+    Connected(u32),
+    /// Closed.
+    Closed,
+}
+
+/// The id of our CONNECT (a string, as the specification's samples).
+const CONNECT_ID: u64 = 1;
+
+#[derive(Debug)]
+enum Waiting {
+    Get {
+        id: Option<Id>,
+        lang: Langs,
+        mplex: String,
+        description: Box<Description>,
+        form: Form,
+    },
+    Put {
+        id: Option<Id>,
+        lang: Langs,
+        mplex: String,
+    },
+    Token {
+        id: Option<Id>,
+        token: String,
+    },
+    Baseline(Target, u16, u8),
+}
+
+/// A request waiting for a free slot.
+struct Queued {
+    id: Option<Id>,
+    method: Method,
+    params: Option<Box<RawValue>>,
+}
+
+#[derive(Debug, Clone)]
+struct Subscription {
+    inhibit: Duration,
+    threshold: f64,
+    datatype: CiaType,
+    last: Option<String>,
+    last_push: Option<Instant>,
+    pending: Option<String>,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Grant {
+    level: Privilege,
+    until: Instant,
+}
+
+/// Why a request fails: bad parameters (−32602) or an NXg refusal.
+enum Failure {
+    Params(String),
+    Nxg(Refusal),
+}
+
+impl From<Refusal> for Failure {
+    fn from(r: Refusal) -> Failure {
+        Failure::Nxg(r)
+    }
+}
+
+type Outcome = Result<Vec<Output>, Failure>;
+
+const LOCKOUT_AFTER: u32 = 3;
+const LOCKOUT_BASE: Duration = Duration::from_secs(30);
+const LOCKOUT_CAP: Duration = Duration::from_secs(3600);
+
+/// One connection's protocol state.
+pub struct Session {
+    settings: Settings,
+    metadata: Arc<dyn Metadata>,
+    token: Option<String>,
+    phase: Phase,
+    started: Instant,
+    last_rx: Instant,
+    next_job: JobId,
+    waiting: HashMap<JobId, Waiting>,
+    in_flight: usize,
+    queue: VecDeque<Queued>,
+    grant: Option<Grant>,
+    failures: u32,
+    locked_until: Option<Instant>,
+    subscriptions: BTreeMap<(Target, u16, u8), Subscription>,
+}
+
+impl Session {
+    /// A session that will CONNECT with `token` (the stored cloud token, if any).
+    pub fn new(
+        settings: Settings,
+        metadata: Arc<dyn Metadata>,
+        token: Option<String>,
+        now: Instant,
+    ) -> Self {
+        Session {
+            settings,
+            metadata,
+            token,
+            phase: Phase::Connecting,
+            started: now,
+            last_rx: now,
+            next_job: 1,
+            waiting: HashMap::new(),
+            in_flight: 0,
+            queue: VecDeque::new(),
+            grant: None,
+            failures: 0,
+            locked_until: None,
+            subscriptions: BTreeMap::new(),
+        }
+    }
+
+    /// Where the connection stands.
+    pub fn phase(&self) -> Phase {
+        self.phase
+    }
+
+    /// The CONNECT request to send first (NXg SW003 §5.2.1).
+    pub fn connect(&self) -> Output {
+        let params = self.settings.identity.connect(self.token.clone());
+        Output::Send(msg::request(
+            &Id::counter(CONNECT_ID),
+            Method::Connect,
+            Some(&params),
+        ))
+    }
+
+    /// Subscriptions in force.
+    pub fn subscription_count(&self) -> usize {
+        self.subscriptions.len()
+    }
+
+    fn silence_deadline(&self) -> Instant {
+        match self.phase {
+            Phase::Connecting => self.started + self.settings.connect_timeout,
+            _ => self.last_rx + crate::silence_limit(self.settings.heartbeat),
+        }
+    }
+
+    /// When to call [`Session::timeout`] next.
+    pub fn poll_timeout(&self) -> Option<Instant> {
+        if self.phase == Phase::Closed {
+            return None;
+        }
+        let pushes = self
+            .subscriptions
+            .values()
+            .filter(|s| s.pending.is_some())
+            .filter_map(|s| s.last_push.map(|t| t + s.inhibit));
+        pushes.chain([self.silence_deadline()]).min()
+    }
+
+    /// Something arrived (a text, a ping or pong): the connection is alive.
+    pub fn activity(&mut self, now: Instant) {
+        self.last_rx = now;
+    }
+
+    /// Time passed: pushes whose inhibit gap ended, or the end of a silent connection.
+    pub fn timeout(&mut self, now: Instant) -> Vec<Output> {
+        match self.phase {
+            Phase::Closed => return Vec::new(),
+            Phase::Connecting if now >= self.silence_deadline() => {
+                return self.close(CloseReason::NoConnack);
+            }
+            Phase::Connected(_) if now >= self.silence_deadline() => {
+                return self.close(CloseReason::Silent);
+            }
+            _ => {}
+        }
+        let mut out = Vec::new();
+        let controller = self.controller();
+        for (key, sub) in self.subscriptions.iter_mut() {
+            let due = sub.last_push.is_none_or(|t| now >= t + sub.inhibit);
+            if due {
+                if let Some(value) = sub.pending.take() {
+                    out.push(push(key, sub, value, now, controller));
+                }
+            }
+        }
+        out
+    }
+
+    fn close(&mut self, reason: CloseReason) -> Vec<Output> {
+        self.phase = Phase::Closed;
+        vec![Output::Close(reason)]
+    }
+
+    fn controller(&self) -> Target {
+        Target {
+            net: 1,
+            node: self.settings.lift_controller,
+        }
+    }
+
+    /// A text message from the portal.
+    pub fn text(&mut self, text: &str, now: Instant) -> Vec<Output> {
+        self.last_rx = now;
+        let message = match msg::parse(text) {
+            Ok(m) => m,
+            Err(rejected) => {
+                let error = ErrorObject::rpc(rejected.code, rejected.message);
+                return vec![Output::Send(msg::error_response(
+                    rejected.id.as_ref(),
+                    &error,
+                ))];
+            }
+        };
+        match (self.phase, message) {
+            (Phase::Closed, _) => Vec::new(),
+            (Phase::Connecting, Incoming::Response { id, outcome, api }) => {
+                if id.and_then(|i| i.counter_value()) != Some(CONNECT_ID) {
+                    return Vec::new();
+                }
+                match outcome {
+                    Err(error) => self.close(CloseReason::Refused(error)),
+                    Ok(result) => match msg::Connack::read(result, api) {
+                        Ok(connack) => {
+                            let agreed = connack.api.min(self.settings.identity.api).max(1);
+                            self.phase = Phase::Connected(agreed);
+                            Vec::new()
+                        }
+                        Err(why) => self.close(CloseReason::UnexpectedConnack(why)),
+                    },
+                }
+            }
+            (Phase::Connecting, Incoming::Request { id, .. }) => {
+                let error =
+                    ErrorObject::rpc(rpc_codes::INVALID_REQUEST, "not connected: CONNACK first");
+                vec![Output::Send(msg::error_response(id.as_ref(), &error))]
+            }
+            (Phase::Connected(_), Incoming::Request { id, method, params }) => {
+                let Some(method) = Method::from_name(&method) else {
+                    let error = ErrorObject::rpc(
+                        rpc_codes::METHOD_NOT_FOUND,
+                        format!("unknown method {method:?}"),
+                    );
+                    return vec![Output::Send(msg::error_response(id.as_ref(), &error))];
+                };
+                self.request(id, method, params, now)
+            }
+            // Responses to nothing we asked and notifications from the portal: nothing to do.
+            _ => Vec::new(),
+        }
+    }
+
+    fn request(
+        &mut self,
+        id: Option<Id>,
+        method: Method,
+        params: Option<&RawValue>,
+        now: Instant,
+    ) -> Vec<Output> {
+        let needs_bus = matches!(
+            method,
+            Method::GetCanopenObject
+                | Method::PutCanopenObject
+                | Method::UpdateUniqueToken
+                | Method::RegCanopenObject
+        );
+        if needs_bus && self.in_flight >= self.settings.max_in_flight {
+            if self.queue.len() >= self.settings.max_queued {
+                let error = ErrorObject::rpc(
+                    rpc_codes::BUSY,
+                    "too many requests waiting; try again later",
+                );
+                return vec![Output::Send(msg::error_response(id.as_ref(), &error))];
+            }
+            self.queue.push_back(Queued {
+                id,
+                method,
+                params: params.map(ToOwned::to_owned),
+            });
+            return Vec::new();
+        }
+        self.dispatch(id, method, params, now)
+    }
+
+    fn dispatch(
+        &mut self,
+        id: Option<Id>,
+        method: Method,
+        params: Option<&RawValue>,
+        now: Instant,
+    ) -> Vec<Output> {
+        // Refusals before the parameters are read are in English.
+        let mut lang = Langs::default();
+        let result = match method {
+            Method::GetHeartbeat => Ok(vec![Output::Send(msg::response(id.as_ref(), &Done::OK))]),
+            Method::UpdateUniqueToken => msg::params(params)
+                .map_err(Failure::Params)
+                .and_then(|p| self.update_token(&id, p)),
+            Method::GetCanopenObject => msg::params::<GetParams>(params)
+                .map_err(Failure::Params)
+                .and_then(|p| {
+                    lang = languages(p.lang.as_ref());
+                    self.get(&id, p, &lang)
+                }),
+            Method::PutCanopenObject => msg::params::<PutParams>(params)
+                .map_err(Failure::Params)
+                .and_then(|p| {
+                    lang = languages(p.lang.as_ref());
+                    self.put(&id, p, &lang, now)
+                }),
+            Method::ElevatePrivilege => msg::params(params)
+                .map_err(Failure::Params)
+                .and_then(|p| self.elevate(&id, p, now)),
+            Method::RegCanopenObject => msg::params(params)
+                .map_err(Failure::Params)
+                .and_then(|p| self.register(&id, p)),
+            Method::UnregCanopenObject => msg::params(params)
+                .map_err(Failure::Params)
+                .and_then(|p| self.unregister(&id, p)),
+            Method::Connect | Method::CanopenObject => {
+                let error = ErrorObject::rpc(
+                    rpc_codes::METHOD_NOT_FOUND,
+                    format!("{method} is not a request a gateway serves"),
+                );
+                return vec![Output::Send(msg::error_response(id.as_ref(), &error))];
+            }
+        };
+        match result {
+            Ok(out) => out,
+            Err(Failure::Params(why)) => {
+                let error = ErrorObject::rpc(rpc_codes::INVALID_PARAMS, why);
+                vec![Output::Send(msg::error_response(id.as_ref(), &error))]
+            }
+            Err(Failure::Nxg(refusal)) => vec![Output::Send(msg::error_response(
+                id.as_ref(),
+                &refusal.to_error(&lang),
+            ))],
+        }
+    }
+
+    fn start(&mut self, job: Job, waiting: Waiting) -> Output {
+        let id = self.next_job;
+        self.next_job += 1;
+        self.in_flight += 1;
+        self.waiting.insert(id, waiting);
+        Output::Start(id, job)
+    }
+
+    fn check_sernum(&self, sernum: &str) -> Result<(), Failure> {
+        if sernum != self.settings.identity.sernum {
+            return Err(Refusal::detailed(
+                ErrorCode::IDENTITY,
+                sernum.chars().take(64).collect::<String>(),
+                "The serial number does not match.",
+            )
+            .into());
+        }
+        Ok(())
+    }
+
+    fn update_token(&mut self, id: &Option<Id>, p: TokenParams) -> Outcome {
+        self.check_sernum(&p.sernum)?;
+        if p.token.chars().count() > msg::MAX_TOKEN {
+            return Err(Refusal::new(ErrorCode::TOO_LONG, "token").into());
+        }
+        if p.token.is_empty() || p.token.chars().any(char::is_control) {
+            return Err(Refusal::new(ErrorCode::INVALID_VALUE, "token").into());
+        }
+        let waiting = Waiting::Token {
+            id: id.clone(),
+            token: p.token.clone(),
+        };
+        Ok(vec![self.start(Job::StoreToken(p.token), waiting)])
+    }
+
+    /// The node a request is for, and whether it is another one than the lift controller.
+    fn target(&self, node: Option<&NodeRef>) -> Result<(Target, bool), Failure> {
+        let Some(node) = node else {
+            return Ok((self.controller(), false));
+        };
+        if !self.settings.nets.contains(&node.net) {
+            return Err(Failure::Params(format!(
+                "node.net: net {} is not configured",
+                node.net
+            )));
+        }
+        let target = Target {
+            net: node.net,
+            node: node.id.get(),
+        };
+        Ok((target, target != self.controller()))
+    }
+
+    /// The description for a request, from metadata or, for nodes without it, the request's
+    /// data type.
+    fn describe(
+        &self,
+        target: Target,
+        m: &MplexText,
+        datatype: Option<u32>,
+    ) -> Result<Description, Failure> {
+        match self.metadata.lookup(target, m.mplex.index, m.mplex.sub) {
+            Lookup::Found(d) => Ok(*d),
+            Lookup::NoSub => Err(Refusal::new(ErrorCode::NO_SUB_INDEX, m.text.as_str()).into()),
+            Lookup::NoObject => Err(Refusal::new(ErrorCode::NO_OBJECT, m.text.as_str()).into()),
+            Lookup::Unknown => {
+                let code = datatype.ok_or_else(|| {
+                    Failure::Params("node.datatype is needed for a node without metadata".into())
+                })?;
+                let datatype = DataType::from_code(code)
+                    .map_err(|e| Failure::Params(format!("node.datatype: {e}")))?;
+                Ok(bare(datatype))
+            }
+        }
+    }
+
+    fn get(&mut self, id: &Option<Id>, p: GetParams, lang: &Langs) -> Outcome {
+        let object = p.object;
+        let form = if object.naked {
+            Form::Naked
+        } else if object.stripped {
+            Form::Stripped
+        } else {
+            Form::Full
+        };
+        let (target, _) = self.target(p.node.as_ref())?;
+        let datatype = p.node.and_then(|n| n.datatype);
+        let mut description = self.describe(target, &object.mplex, datatype)?;
+        if description.access == Access::Wo {
+            return Err(Refusal::new(ErrorCode::WRITE_ONLY, object.mplex.text).into());
+        }
+        let m = object.mplex.mplex;
+        let compact = object.compact && m.sub == 1;
+        let job = if compact {
+            if let Some((name, hint)) = self.metadata.object_texts(target, m.index) {
+                description.name = name;
+                description.hint = hint;
+            }
+            Job::ReadArray {
+                target,
+                index: m.index,
+            }
+        } else {
+            Job::Read {
+                target,
+                index: m.index,
+                sub: m.sub,
+            }
+        };
+        let waiting = Waiting::Get {
+            id: id.clone(),
+            lang: lang.clone(),
+            mplex: object.mplex.text,
+            description: Box::new(description),
+            form,
+        };
+        Ok(vec![self.start(job, waiting)])
+    }
+
+    fn privilege(&self, now: Instant) -> Privilege {
+        self.grant
+            .filter(|g| now < g.until)
+            .map_or(Privilege::User, |g| g.level)
+    }
+
+    fn put(&mut self, id: &Option<Id>, p: PutParams, lang: &Langs, now: Instant) -> Outcome {
+        self.check_sernum(&p.sernum)?;
+        let object = p.object;
+        let mplex = object.mplex.text.as_str();
+        let (target, other_node) = self.target(p.node.as_ref())?;
+        let d = self.describe(target, &object.mplex, Some(object.datatype))?;
+        let refuse = |code: ErrorCode| Err(Refusal::new(code, mplex).into());
+        if !d.access.writable() {
+            return refuse(ErrorCode::READ_ONLY);
+        }
+        let needed = if other_node {
+            d.privilege.max(Privilege::Setup)
+        } else {
+            d.privilege
+        };
+        if needed == Privilege::EngineerOnSite || self.privilege(now) < needed {
+            return refuse(ErrorCode::PRIVILEGE);
+        }
+        if u32::from(d.datatype.code()) != object.datatype
+            || u32::from(d.physunit.code()) != object.physunit
+        {
+            return refuse(ErrorCode::TYPE_MISMATCH);
+        }
+        let data = match answer::value_to_write(&d, &object.value) {
+            Ok(data) => data,
+            Err(code) => return refuse(code),
+        };
+        let m = object.mplex.mplex;
+        let job = Job::Write {
+            target,
+            index: m.index,
+            sub: m.sub,
+            data,
+        };
+        let waiting = Waiting::Put {
+            id: id.clone(),
+            lang: lang.clone(),
+            mplex: object.mplex.text,
+        };
+        Ok(vec![self.start(job, waiting)])
+    }
+
+    fn elevate(&mut self, id: &Option<Id>, p: ElevateParams, now: Instant) -> Outcome {
+        self.check_sernum(&p.sernum)?;
+        let level = Privilege::from_code(p.privilege)
+            .map_err(|e| Failure::Params(format!("privilege: {e}")))?;
+        let data = level.code().to_string();
+        if !level.grantable_remotely() {
+            return Err(Refusal::detailed(
+                ErrorCode::PRIVILEGE,
+                data,
+                "Engineer-on-site rights cannot be granted remotely.",
+            )
+            .into());
+        }
+        if let Some(until) = self.locked_until.filter(|u| now < *u) {
+            return Err(Refusal::detailed(
+                ErrorCode::IDENTITY,
+                data,
+                format!(
+                    "Too many wrong password hashes; elevation is locked for {} s.",
+                    until.duration_since(now).as_secs().max(1)
+                ),
+            )
+            .into());
+        }
+        let expected = match level {
+            Privilege::User => None,
+            Privilege::Service => self.settings.service_sha1.as_deref(),
+            _ => self.settings.setup_sha1.as_deref(),
+        };
+        let ok =
+            level == Privilege::User || expected.is_some_and(|e| digest::matches(e, &p.passhash));
+        if !ok {
+            self.failures += 1;
+            if self.failures >= LOCKOUT_AFTER {
+                // 30 s after the third failure, doubling with each further one, up to an hour.
+                let exponent = (self.failures - LOCKOUT_AFTER).min(7);
+                let lock = (LOCKOUT_BASE * 2u32.pow(exponent)).min(LOCKOUT_CAP);
+                self.locked_until = Some(now + lock);
+            }
+            return Err(Refusal::detailed(
+                ErrorCode::IDENTITY,
+                data,
+                "The password hash does not match.",
+            )
+            .into());
+        }
+        self.failures = 0;
+        self.locked_until = None;
+        let duration = self.settings.privilege_duration;
+        self.grant = Some(Grant {
+            level,
+            until: now + duration,
+        });
+        let answer = ElevateAnswer {
+            duration: duration.as_secs(),
+        };
+        Ok(vec![Output::Send(msg::response(id.as_ref(), &answer))])
+    }
+
+    fn register(&mut self, id: &Option<Id>, p: RegParams) -> Outcome {
+        let (target, _) = self.target(p.node.as_ref())?;
+        let datatype = p.node.and_then(|n| n.datatype);
+        // All or none: every mplex is checked before any is registered.
+        let mut checked = Vec::with_capacity(p.mplex.len());
+        for m in &p.mplex {
+            let d = self.describe(target, m, datatype)?;
+            if d.access == Access::Wo {
+                return Err(Refusal::new(ErrorCode::WRITE_ONLY, m.text.as_str()).into());
+            }
+            checked.push((m.mplex, d.datatype.value_type()));
+        }
+        let new = checked
+            .iter()
+            .filter(|(m, _)| !self.subscriptions.contains_key(&(target, m.index, m.sub)))
+            .count();
+        if self.subscriptions.len() + new > self.settings.max_subscriptions {
+            return Err(Refusal::detailed(
+                ErrorCode::OUT_OF_MEMORY,
+                p.mplex.first().map(|m| m.text.clone()).unwrap_or_default(),
+                format!(
+                    "At most {} subscriptions per connection.",
+                    self.settings.max_subscriptions
+                ),
+            )
+            .into());
+        }
+        let inhibit = Duration::from_millis(p.inhibit);
+        let mut out = vec![Output::Send(msg::response(id.as_ref(), &Done::OK))];
+        for (m, datatype) in checked {
+            let key = (target, m.index, m.sub);
+            if !self.subscriptions.contains_key(&key) {
+                out.push(Output::Watch(target, m.index, m.sub));
+            }
+            // A registration starts the subscription afresh: the baseline read below is the
+            // first push and the base of the threshold — after a repeated registration too, so
+            // that whoever registered learns where the value stands.
+            self.subscriptions.insert(
+                key,
+                Subscription {
+                    inhibit,
+                    threshold: p.threshold,
+                    datatype,
+                    last: None,
+                    last_push: None,
+                    pending: None,
+                },
+            );
+            let job = Job::Read {
+                target,
+                index: m.index,
+                sub: m.sub,
+            };
+            let id = self.next_job;
+            self.next_job += 1;
+            self.waiting
+                .insert(id, Waiting::Baseline(target, m.index, m.sub));
+            out.push(Output::Start(id, job));
+        }
+        Ok(out)
+    }
+
+    fn unregister(&mut self, id: &Option<Id>, p: UnregParams) -> Outcome {
+        let (target, _) = self.target(p.node.as_ref())?;
+        let mut out = vec![Output::Send(msg::response(id.as_ref(), &Done::OK))];
+        for m in p.mplex {
+            let key = (target, m.mplex.index, m.mplex.sub);
+            if self.subscriptions.remove(&key).is_some() {
+                out.push(Output::Unwatch(target, m.mplex.index, m.mplex.sub));
+            }
+        }
+        Ok(out)
+    }
+
+    /// A job finished.
+    pub fn complete(&mut self, job: JobId, result: JobResult, now: Instant) -> Vec<Output> {
+        let Some(waiting) = self.waiting.remove(&job) else {
+            return Vec::new();
+        };
+        let mut out = Vec::new();
+        let send_error = |id: &Option<Id>, refusal: Refusal, lang: &Langs| {
+            Output::Send(msg::error_response(id.as_ref(), &refusal.to_error(lang)))
+        };
+        match waiting {
+            Waiting::Baseline(target, index, sub) => {
+                if let JobResult::Read(values) = result {
+                    if let Some(bytes) = values.first() {
+                        out.extend(self.bytes(target, index, sub, bytes, now));
+                    }
+                }
+                return out;
+            }
+            Waiting::Get {
+                id,
+                lang,
+                mplex,
+                description,
+                form,
+            } => {
+                self.in_flight -= 1;
+                let answer = match result {
+                    JobResult::Read(values) => {
+                        answer::object(&*self.metadata, &description, form, &lang, &mplex, &values)
+                            .map_err(|code| Refusal::new(code, mplex.as_str()))
+                    }
+                    JobResult::Failed(code) => Err(Refusal::new(code, mplex.as_str())),
+                    JobResult::Done => Err(Refusal::new(ErrorCode::GENERAL, mplex.as_str())),
+                };
+                out.push(match answer {
+                    Ok(a) => Output::Send(msg::response(id.as_ref(), &a)),
+                    Err(refusal) => send_error(&id, refusal, &lang),
+                });
+            }
+            Waiting::Put { id, lang, mplex } => {
+                self.in_flight -= 1;
+                out.push(match result {
+                    JobResult::Failed(code) => send_error(&id, Refusal::new(code, mplex), &lang),
+                    _ => Output::Send(msg::response(id.as_ref(), &PutAnswer::new(&mplex))),
+                });
+            }
+            Waiting::Token { id, token } => {
+                self.in_flight -= 1;
+                out.push(match result {
+                    JobResult::Failed(code) => {
+                        send_error(&id, Refusal::new(code, "token"), &Langs::default())
+                    }
+                    _ => {
+                        self.token = Some(token);
+                        Output::Send(msg::response(id.as_ref(), &Done::OK))
+                    }
+                });
+            }
+        }
+        while self.in_flight < self.settings.max_in_flight {
+            let Some(q) = self.queue.pop_front() else {
+                break;
+            };
+            out.extend(self.dispatch(q.id, q.method, q.params.as_deref(), now));
+        }
+        out
+    }
+
+    /// The raw bytes of a watched sub-object (read or received in a PDO).
+    pub fn bytes(
+        &mut self,
+        target: Target,
+        index: u16,
+        sub: u8,
+        bytes: &[u8],
+        now: Instant,
+    ) -> Vec<Output> {
+        let Some(s) = self.subscriptions.get(&(target, index, sub)) else {
+            return Vec::new();
+        };
+        match types::decode(s.datatype, bytes) {
+            Ok(v) => {
+                let text = types::to_text(s.datatype, &v);
+                self.value(target, index, sub, text, now)
+            }
+            Err(_) => Vec::new(),
+        }
+    }
+
+    /// A watched sub-object has this value now (text form).
+    pub fn value(
+        &mut self,
+        target: Target,
+        index: u16,
+        sub: u8,
+        text: String,
+        now: Instant,
+    ) -> Vec<Output> {
+        let key = (target, index, sub);
+        let controller = self.controller();
+        let Some(s) = self.subscriptions.get_mut(&key) else {
+            return Vec::new();
+        };
+        let passes = match (&s.last, s.datatype.is_numeric()) {
+            (None, _) => true,
+            (Some(last), _) if *last == text => false,
+            (Some(last), true) => match (last.parse::<f64>(), text.parse::<f64>()) {
+                (Ok(a), Ok(b)) => (a - b).abs() >= s.threshold.max(f64::MIN_POSITIVE),
+                _ => true,
+            },
+            (Some(_), false) => true,
+        };
+        if !passes {
+            // Back within the threshold of what the portal has: nothing is owed.
+            s.pending = None;
+            return Vec::new();
+        }
+        let free = s.last_push.is_none_or(|t| now >= t + s.inhibit);
+        if free {
+            s.pending = None;
+            vec![push(&key, s, text, now, controller)]
+        } else {
+            s.pending = Some(text);
+            Vec::new()
+        }
+    }
+}
+
+/// The languages of a request's `lang`; English without one.
+fn languages(lang: Option<&msg::Lang>) -> Langs {
+    lang.and_then(Langs::of).unwrap_or_default()
+}
+
+/// A notification; pushes of nodes other than the lift controller say which node they are from.
+fn push(
+    key: &(Target, u16, u8),
+    s: &mut Subscription,
+    text: String,
+    now: Instant,
+    controller: Target,
+) -> Output {
+    s.last_push = Some(now);
+    s.last = Some(text.clone());
+    let (target, index, sub) = *key;
+    let node = (target != controller)
+        .then(|| msg::NodeId::new(target.node).map(|id| NodeRef::new(id, target.net)))
+        .flatten();
+    let payload = Notification {
+        mplex: crate::mplex::Mplex { index, sub }.to_string(),
+        value: text,
+        node,
+    };
+    Output::Send(msg::notification(Method::CanopenObject, &payload))
+}

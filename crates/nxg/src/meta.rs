@@ -1,0 +1,641 @@
+//! The metadata vocabulary of the NXg connector (SW003 §8): object codes (§8.1), physical units
+//! (§8.2), data types (§8.3), privileges (§8.4), access (§8.5), and the presentation form
+//! ("formtype"), which the specification uses in its samples (10, 15, 26) without listing;
+//! [`FormType`] documents our enumeration. [`Description`] puts them together: everything a
+//! gateway reports about a sub-object besides its value (NXg §6.1.1), with names and hints per
+//! language ([`Texts`]) and limits ([`Bound`]).
+//!
+//! This module needs no CANopen stack (the portal uses it); with the `gateway` feature it also
+//! converts from and to the CiA 301 types of the `canopen` crate.
+
+use std::collections::BTreeMap;
+use std::fmt;
+use std::sync::Arc;
+
+use serde::{Deserialize, Serialize};
+
+/// An unknown code in one of the enumerations.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error("{what} {code} is not defined by NXg SW003 §8")]
+pub struct UnknownCode {
+    /// Which enumeration.
+    pub what: &'static str,
+    /// The code.
+    pub code: u32,
+}
+
+macro_rules! code_enum {
+    ($(#[$doc:meta])* $name:ident : $what:literal { $($(#[$vdoc:meta])* $variant:ident = $code:literal => $text:literal,)* }) => {
+        $(#[$doc])*
+        #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+        #[repr(u8)]
+        pub enum $name {
+            $($(#[$vdoc])* $variant = $code,)*
+        }
+
+        impl $name {
+            /// Every value, in code order.
+            pub const ALL: &'static [$name] = &[$($name::$variant,)*];
+
+            /// The number on the wire.
+            pub fn code(self) -> u8 {
+                self as u8
+            }
+
+            /// The value with number `code`.
+            pub fn from_code(code: u32) -> Result<Self, UnknownCode> {
+                Self::ALL
+                    .iter()
+                    .copied()
+                    .find(|v| u32::from(v.code()) == code)
+                    .ok_or(UnknownCode { what: $what, code })
+            }
+
+            /// The specification's text for the value.
+            pub fn text(self) -> &'static str {
+                match self {
+                    $($name::$variant => $text,)*
+                }
+            }
+        }
+
+        impl fmt::Display for $name {
+            fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+                f.write_str(self.text())
+            }
+        }
+    };
+}
+
+code_enum! {
+    /// Physical units (NXg SW003 §8.2): CiA 303 base and supplementary SI units plus the
+    /// connector's own. [`PhysUnit::text`] is the symbol shown next to a value.
+    PhysUnit: "physical unit" {
+        /// No unit.
+        None = 0 => "",
+        /// Metre.
+        Metre = 1 => "m",
+        /// Kilogram.
+        Kilogram = 2 => "kg",
+        /// Second.
+        Second = 3 => "s",
+        /// Ampere.
+        Ampere = 4 => "A",
+        /// Kelvin.
+        Kelvin = 5 => "K",
+        /// Mole.
+        Mole = 6 => "mol",
+        /// Candela.
+        Candela = 7 => "cd",
+        /// Percent.
+        Percent = 8 => "%",
+        /// Per mille.
+        PerMille = 9 => "‰",
+        /// Volt.
+        Volt = 10 => "V",
+        /// Millisecond.
+        Millisecond = 11 => "ms",
+        /// Minute.
+        Minute = 12 => "min",
+        /// Hour.
+        Hour = 13 => "h",
+        /// Day.
+        Day = 14 => "d",
+        /// Millimetre.
+        Millimetre = 15 => "mm",
+        /// Radian.
+        Radian = 16 => "rad",
+        /// Steradian.
+        Steradian = 17 => "sr",
+        /// Millimetre per second.
+        MillimetrePerSecond = 18 => "mm/s",
+        /// Millimetre per second squared.
+        MillimetrePerSecond2 = 19 => "mm/s²",
+        /// Millimetre per second cubed (jerk).
+        MillimetrePerSecond3 = 20 => "mm/s³",
+        /// Bit per second.
+        BitPerSecond = 21 => "Bit/s",
+        /// Kilobit per second.
+        KilobitPerSecond = 22 => "kBit/s",
+        /// Degree Celsius.
+        Celsius = 23 => "°C",
+        /// Encoder increments.
+        Increments = 24 => "increments",
+        /// kg or %, as 0x6480 sub 2 "Load value – SI unit" says (CiA 417).
+        LoadUnit = 25 => "kg|%",
+        /// Trips (travels).
+        Trips = 26 => "trips",
+        /// Gravity (g).
+        Gravity = 27 => "g",
+        /// Millimetre per increment.
+        MillimetrePerIncrement = 28 => "mm/inc",
+        /// Watt.
+        Watt = 29 => "W",
+        /// Watt hour.
+        WattHour = 30 => "Wh",
+        /// A node-ID.
+        NodeId = 31 => "node-ID",
+        /// Revolutions per minute.
+        Rpm = 32 => "rpm",
+        /// Hertz.
+        Hertz = 33 => "Hz",
+        /// Inch.
+        Inch = 34 => "in",
+        /// Feet per minute.
+        FeetPerMinute = 35 => "fpm",
+        /// Pound.
+        Pound = 36 => "lb",
+        /// Degree Fahrenheit.
+        Fahrenheit = 37 => "°F",
+        /// Feet per second squared.
+        FeetPerSecond2 = 38 => "ft/s²",
+        /// Feet per second cubed.
+        FeetPerSecond3 = 39 => "ft/s³",
+        /// Foot.
+        Foot = 40 => "ft",
+        /// Temperature difference in °C.
+        DeltaCelsius = 41 => "Δ°C",
+        /// Temperature difference in °F.
+        DeltaFahrenheit = 42 => "Δ°F",
+        /// Switching cycles.
+        SwitchingCycles = 43 => "switching cycles",
+    }
+}
+
+code_enum! {
+    /// Who may write an object (NXg SW003 §8.4), plus "engineer on site" (DESIGN.md §4), which
+    /// only a person at the lift can have: it is never granted remotely.
+    Privilege: "privilege" {
+        /// Any portal user.
+        User = 0 => "user",
+        /// Service technicians.
+        Service = 1 => "service",
+        /// Set-up (commissioning) rights.
+        Setup = 2 => "setup",
+        /// Only locally, never through the connector.
+        EngineerOnSite = 3 => "engineer on site",
+    }
+}
+
+impl Privilege {
+    /// Whether `elevate_privilege` may grant this level.
+    pub fn grantable_remotely(self) -> bool {
+        self != Privilege::EngineerOnSite
+    }
+}
+
+code_enum! {
+    /// How a portal presents a value (the "formtype" of `get_canopen_object`).
+    ///
+    /// NXg SW003 uses 10 (the trip counter), 15 (hall lantern options, with a `list`) and 26 (the
+    /// floor level positions, read `compact`) without defining the enumeration. Ours keeps those
+    /// three meanings and adds the forms a lift portal needs; the gaps leave room to extend.
+    FormType: "formtype" {
+        /// Shown as it comes, no interpretation.
+        Raw = 0 => "raw",
+        /// Free text (VISIBLE_STRING, UNICODE_STRING).
+        Text = 1 => "text",
+        /// Hexadecimal (codes, identifiers, octet strings).
+        Hex = 2 => "hex",
+        /// On/off switch (0 = off, 1 = on).
+        Switch = 3 => "switch",
+        /// One flag per bit; `list` names the bits from bit 0.
+        Bits = 4 => "bits",
+        /// A number with its unit (counters, measurements, parameters) — the trip counter.
+        Number = 10 => "number",
+        /// A real number with its unit.
+        Real = 11 => "real",
+        /// A duration in its unit; with `show_off_at_zero` / `show_unlimited_at_max`.
+        Duration = 12 => "duration",
+        /// A date and time (TIME_OF_DAY).
+        DateTime = 13 => "date and time",
+        /// One entry of `list`, chosen by its position (min..=max) — hall lantern options.
+        Choice = 15 => "choice",
+        /// Writing performs an action (a call, a reset); the value read carries no meaning.
+        Command = 20 => "command",
+        /// An array of numbers shown as a table, one row per sub-index — floor level positions.
+        Table = 26 => "table",
+    }
+}
+
+code_enum! {
+    /// Access as the connector reports it (NXg SW003 §8.5). CANopen's rwr/rww (PDO direction
+    /// hints) are "rw" here.
+    Access: "access" {
+        /// Read and write.
+        Rw = 0 => "rw",
+        /// Write only.
+        Wo = 1 => "wo",
+        /// Read only.
+        Ro = 2 => "ro",
+        /// Read only, never changes.
+        Const = 3 => "const",
+    }
+}
+
+impl Access {
+    /// Whether the connector may write it.
+    pub fn writable(self) -> bool {
+        matches!(self, Access::Rw | Access::Wo)
+    }
+
+    /// Parse `rw`, `wo`, `ro` or `const` (any case).
+    pub fn parse(text: &str) -> Result<Self, UnknownCode> {
+        Self::ALL
+            .iter()
+            .copied()
+            .find(|a| a.text().eq_ignore_ascii_case(text.trim()))
+            .ok_or(UnknownCode {
+                what: "access",
+                code: u32::MAX,
+            })
+    }
+}
+
+code_enum! {
+    /// Object codes (NXg SW003 §8.1, from CiA 301 §7.4.3).
+    ObjCode: "object code" {
+        /// An entry without data.
+        Null = 0 => "NULL",
+        /// A large amount of data.
+        Domain = 2 => "DOMAIN",
+        /// A type definition.
+        DefType = 5 => "DEFTYPE",
+        /// A structure definition.
+        DefStruct = 6 => "DEFSTRUCT",
+        /// A single value.
+        Var = 7 => "VAR",
+        /// Several values of one type.
+        Array = 8 => "ARRAY",
+        /// Several values of different types.
+        Record = 9 => "RECORD",
+    }
+}
+
+/// A data type as the connector reports it (NXg SW003 §8.3): a CiA 301 basic data type code
+/// (01h–1Bh, as CiA 301 §7.4.7 numbers them) or one of the four structure codes 20h–23h, whose
+/// entries carry UNSIGNED32 values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(try_from = "u32", into = "u16")]
+pub struct DataType(u16);
+
+impl DataType {
+    /// BOOLEAN.
+    pub const BOOLEAN: DataType = DataType(0x01);
+    /// UNSIGNED8.
+    pub const UNSIGNED8: DataType = DataType(0x05);
+    /// UNSIGNED16.
+    pub const UNSIGNED16: DataType = DataType(0x06);
+    /// UNSIGNED32.
+    pub const UNSIGNED32: DataType = DataType(0x07);
+    /// VISIBLE_STRING.
+    pub const VISIBLE_STRING: DataType = DataType(0x09);
+    /// PDO communication parameter record (UNSIGNED32 entries).
+    pub const PDO_COMMUNICATION: DataType = DataType(0x20);
+    /// PDO mapping record.
+    pub const PDO_MAPPING: DataType = DataType(0x21);
+    /// SDO parameter record.
+    pub const SDO_PARAMETER: DataType = DataType(0x22);
+    /// Identity record.
+    pub const IDENTITY: DataType = DataType(0x23);
+
+    /// The codes NXg SW003 §8.3 lists.
+    const LISTED: [std::ops::RangeInclusive<u16>; 4] =
+        [0x01..=0x0D, 0x0F..=0x16, 0x18..=0x1B, 0x20..=0x23];
+
+    /// The number on the wire.
+    pub fn code(self) -> u16 {
+        self.0
+    }
+
+    /// The data type with number `code`, if §8.3 lists it.
+    pub fn from_code(code: u32) -> Result<Self, UnknownCode> {
+        u16::try_from(code)
+            .ok()
+            .filter(|c| Self::LISTED.iter().any(|r| r.contains(c)))
+            .map(DataType)
+            .ok_or(UnknownCode {
+                what: "data type",
+                code,
+            })
+    }
+
+    /// One of the structure codes 20h–23h (values are UNSIGNED32).
+    pub fn is_structure(self) -> bool {
+        self.0 >= 0x20
+    }
+}
+
+impl TryFrom<u32> for DataType {
+    type Error = UnknownCode;
+
+    fn try_from(code: u32) -> Result<Self, UnknownCode> {
+        DataType::from_code(code)
+    }
+}
+
+impl From<DataType> for u16 {
+    fn from(t: DataType) -> u16 {
+        t.0
+    }
+}
+
+/// Texts by language tag (`en`, `de`, …): the names, hints and list entries of NXg §6.1.1.
+/// Shared, not copied, between the entries that use the same texts (an object's hint serves all
+/// its sub-indices), which keeps a catalog small.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Deserialize)]
+#[serde(from = "BTreeMap<String, String>")]
+pub struct Texts(Arc<BTreeMap<String, String>>);
+
+impl From<BTreeMap<String, String>> for Texts {
+    fn from(map: BTreeMap<String, String>) -> Texts {
+        Texts(Arc::new(map))
+    }
+}
+
+impl Texts {
+    /// The text in `lang` (case-insensitive), if there is one.
+    pub fn get(&self, lang: &str) -> Option<&str> {
+        self.entry(lang).map(|(_, t)| t)
+    }
+
+    /// The same text in every language (names taken from an EDS).
+    pub fn english(text: &str) -> Texts {
+        Texts(Arc::new(BTreeMap::from([(
+            "en".to_owned(),
+            text.to_owned(),
+        )])))
+    }
+
+    /// The languages present.
+    pub fn languages(&self) -> impl Iterator<Item = &str> {
+        self.0.keys().map(String::as_str)
+    }
+
+    /// Whether no language has a text.
+    pub fn is_empty(&self) -> bool {
+        self.0.is_empty()
+    }
+
+    /// (language, text) of the first of `langs` present (case-insensitive).
+    pub fn first_of<'a, 'b>(
+        &'a self,
+        langs: impl IntoIterator<Item = &'b str>,
+    ) -> Option<(&'a str, &'a str)> {
+        langs.into_iter().find_map(|l| self.entry(l))
+    }
+
+    fn entry(&self, lang: &str) -> Option<(&str, &str)> {
+        self.0
+            .iter()
+            .find(|(l, _)| l.eq_ignore_ascii_case(lang))
+            .map(|(l, t)| (l.as_str(), t.as_str()))
+    }
+
+    /// The texts with every `key` replaced by `value`; shared when none contains it.
+    pub fn fill(&self, key: &str, value: u16) -> Texts {
+        if !self.0.values().any(|t| t.contains(key)) {
+            return self.clone();
+        }
+        Texts(Arc::new(
+            self.0
+                .iter()
+                .map(|(l, t)| (l.clone(), t.replace(key, &value.to_string())))
+                .collect(),
+        ))
+    }
+}
+
+/// A limit: an integer (any CiA integer type fits an `i128`) or a real.
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[serde(from = "RawBound")]
+pub enum Bound {
+    /// Integer types and string lengths.
+    Int(i128),
+    /// REAL32 / REAL64.
+    Real(f64),
+}
+
+/// TOML integers are 64-bit; every limit a file gives fits.
+#[derive(Deserialize)]
+#[serde(untagged)]
+enum RawBound {
+    Int(i64),
+    Real(f64),
+}
+
+impl From<RawBound> for Bound {
+    fn from(raw: RawBound) -> Bound {
+        match raw {
+            RawBound::Int(v) => Bound::Int(v.into()),
+            RawBound::Real(v) => Bound::Real(v),
+        }
+    }
+}
+
+impl Bound {
+    /// As a real number, for comparisons across kinds.
+    pub fn as_f64(self) -> f64 {
+        match self {
+            Bound::Int(v) => v as f64,
+            Bound::Real(v) => v,
+        }
+    }
+
+    /// As a JSON number (`min`/`max` of NXg §6.1.1); `None` for an integer beyond 64 bits.
+    pub fn to_json(self) -> Option<serde_json::Number> {
+        match self {
+            Bound::Int(v) => i64::try_from(v)
+                .map(serde_json::Number::from)
+                .or_else(|_| u64::try_from(v).map(serde_json::Number::from))
+                .ok(),
+            Bound::Real(v) => serde_json::Number::from_f64(v),
+        }
+    }
+}
+
+/// Presentation hints of `get_canopen_object` (NXg SW003 §6.1.1).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct Hints {
+    /// Show 0 as "off".
+    pub show_off_at_zero: bool,
+    /// Show `max` as "unlimited".
+    pub show_unlimited_at_max: bool,
+    /// Show `max` as "undefined".
+    pub show_undefined_at_max: bool,
+}
+
+/// What a gateway says about a sub-object besides its value (NXg SW003 §6.1.1): how to read,
+/// show and write it, its limits and its texts per language.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Description {
+    /// The object code of the object the sub-object belongs to (§8.1).
+    pub objcode: ObjCode,
+    /// Data type (§8.3).
+    pub datatype: DataType,
+    /// How a portal presents the value.
+    pub formtype: FormType,
+    /// Physical unit (§8.2).
+    pub physunit: PhysUnit,
+    /// Access (§8.5).
+    pub access: Access,
+    /// Privilege needed to write (§8.4).
+    pub privilege: Privilege,
+    /// Name per language.
+    pub name: Texts,
+    /// Help text per language.
+    pub hint: Texts,
+    /// Lowest value (strings: none).
+    pub min: Option<Bound>,
+    /// Highest value (strings: most characters).
+    pub max: Option<Bound>,
+    /// 0 is valid although outside `min..=max`.
+    pub zero: bool,
+    /// Texts for the values `min..=max` (choice) or for the bits from bit 0 (bits).
+    pub list: Vec<Texts>,
+    /// Presentation hints.
+    pub hints: Hints,
+}
+
+/// The CiA 301 types of the `canopen` crate in the connector's vocabulary, and back.
+#[cfg(feature = "gateway")]
+mod cia301 {
+    use super::{Access, DataType, ObjCode};
+    use canopen::od;
+    use canopen::types;
+
+    impl DataType {
+        /// The CiA 301 type of the values: UNSIGNED32 for the structure codes 20h–23h.
+        pub fn value_type(self) -> types::DataType {
+            types::DataType::from_code(self.0).unwrap_or(types::DataType::Unsigned32)
+        }
+    }
+
+    impl From<types::DataType> for DataType {
+        fn from(t: types::DataType) -> DataType {
+            DataType(t.code())
+        }
+    }
+
+    impl From<od::ObjectCode> for ObjCode {
+        fn from(code: od::ObjectCode) -> ObjCode {
+            match code {
+                od::ObjectCode::Null => ObjCode::Null,
+                od::ObjectCode::Domain => ObjCode::Domain,
+                od::ObjectCode::DefType => ObjCode::DefType,
+                od::ObjectCode::DefStruct => ObjCode::DefStruct,
+                od::ObjectCode::Var => ObjCode::Var,
+                od::ObjectCode::Array => ObjCode::Array,
+                od::ObjectCode::Record => ObjCode::Record,
+            }
+        }
+    }
+
+    impl From<od::Access> for Access {
+        /// CANopen's rwr/rww (PDO direction hints) are "rw" to the connector.
+        fn from(access: od::Access) -> Access {
+            match access {
+                od::Access::Ro => Access::Ro,
+                od::Access::Wo => Access::Wo,
+                od::Access::Rw | od::Access::Rwr | od::Access::Rww => Access::Rw,
+                od::Access::Const => Access::Const,
+            }
+        }
+    }
+
+    #[cfg(test)]
+    mod tests {
+        use super::*;
+
+        #[test]
+        fn conversions() {
+            assert_eq!(Access::from(od::Access::Rww), Access::Rw);
+            assert_eq!(
+                DataType::from(types::DataType::Unsigned32),
+                DataType::UNSIGNED32
+            );
+            assert_eq!(
+                DataType::PDO_MAPPING.value_type(),
+                types::DataType::Unsigned32
+            );
+            for t in types::ALL_TYPES {
+                assert_eq!(DataType::from(t).value_type(), t);
+                assert!(DataType::from_code(u32::from(t.code())).is_ok(), "{t:?}");
+            }
+            assert_eq!(ObjCode::from(od::ObjectCode::Record), ObjCode::Record);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn codes_round_trip_and_match_the_specification() {
+        assert_eq!(PhysUnit::ALL.len(), 44, "0..=43");
+        for (i, u) in PhysUnit::ALL.iter().enumerate() {
+            assert_eq!(usize::from(u.code()), i, "{u:?}");
+            assert_eq!(PhysUnit::from_code(u.code().into()), Ok(*u));
+        }
+        assert_eq!(PhysUnit::from_code(26).unwrap().text(), "trips");
+        assert_eq!(PhysUnit::from_code(15).unwrap(), PhysUnit::Millimetre);
+        assert_eq!(
+            PhysUnit::from_code(44),
+            Err(UnknownCode {
+                what: "physical unit",
+                code: 44
+            })
+        );
+        for p in Privilege::ALL {
+            assert_eq!(Privilege::from_code(p.code().into()), Ok(*p));
+        }
+        assert!(!Privilege::EngineerOnSite.grantable_remotely());
+        assert!(Privilege::Setup.grantable_remotely());
+        // The formtypes of the specification's samples.
+        assert_eq!(FormType::from_code(10), Ok(FormType::Number));
+        assert_eq!(FormType::from_code(15), Ok(FormType::Choice));
+        assert_eq!(FormType::from_code(26), Ok(FormType::Table));
+        assert!(FormType::from_code(5).is_err());
+        for f in FormType::ALL {
+            assert_eq!(FormType::from_code(f.code().into()), Ok(*f));
+        }
+        assert_eq!(ObjCode::from_code(8), Ok(ObjCode::Array));
+        assert!(ObjCode::from_code(3).is_err());
+    }
+
+    #[test]
+    fn access_and_data_types() {
+        assert_eq!(Access::parse("CONST"), Ok(Access::Const));
+        assert!(Access::parse("rwr").is_err());
+        assert_eq!(DataType::from_code(7), Ok(DataType::UNSIGNED32));
+        assert_eq!(DataType::from_code(0x21), Ok(DataType::PDO_MAPPING));
+        assert!(DataType::PDO_MAPPING.is_structure());
+        assert_eq!(DataType::from_code(0x0E).map_err(|e| e.code), Err(0x0E));
+        assert_eq!(DataType::from_code(0x17).map_err(|e| e.code), Err(0x17));
+        for code in [1u32, 0x0F, 0x1B, 0x20, 0x23] {
+            assert_eq!(u32::from(DataType::from_code(code).unwrap().code()), code);
+        }
+        let t: DataType = serde_json::from_str("9").unwrap();
+        assert_eq!(t, DataType::VISIBLE_STRING);
+        assert!(serde_json::from_str::<DataType>("14").is_err());
+    }
+
+    #[test]
+    fn texts_by_language() {
+        let t = Texts::from(BTreeMap::from([
+            ("en".to_owned(), "Floor {n}".to_owned()),
+            ("de".to_owned(), "Etage {n}".to_owned()),
+        ]));
+        assert_eq!(t.get("DE"), Some("Etage {n}"));
+        assert_eq!(t.first_of(["fr", "de"]), Some(("de", "Etage {n}")));
+        assert_eq!(t.fill("{n}", 3).get("en"), Some("Floor 3"));
+        assert_eq!(
+            Bound::Int(4_294_967_295).to_json(),
+            Some(4_294_967_295u64.into())
+        );
+        assert_eq!(Bound::Int(-5).to_json(), Some((-5i64).into()));
+        assert_eq!(Bound::Int(i128::MAX).to_json(), None);
+    }
+}
