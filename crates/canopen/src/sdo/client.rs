@@ -8,10 +8,8 @@ use std::time::{Duration, Instant};
 
 use super::abort::AbortCode;
 use super::crc::Crc16;
-use super::{
-    abort_code, abort_payload, block_segment, mux, with_mux, Payload, SubBlockReceiver,
-    MAX_BLOCK_SIZE, SEGMENT_DATA,
-};
+use super::msg::{self, BlockSegment, Initiate, Request, Response};
+use super::{Payload, SubBlockReceiver, MAX_BLOCK_SIZE, SEGMENT_DATA};
 
 /// How a transfer fails.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -249,17 +247,17 @@ impl SdoClient {
     ) -> Result<(), SdoError> {
         self.begin(index, sub, now)?;
         if how == Transfer::Block {
-            let cc = if self.config.crc { 4 } else { 0 };
-            let blksize = self.config.block_size.clamp(1, MAX_BLOCK_SIZE);
-            out.push(with_mux(
-                0xA0 | cc,
+            let request = Request::BlockUpload {
                 index,
                 sub,
-                [blksize, self.config.switch_threshold, 0, 0],
-            ));
+                crc: self.config.crc,
+                blksize: self.config.block_size.clamp(1, MAX_BLOCK_SIZE),
+                pst: self.config.switch_threshold,
+            };
+            out.push(request.write());
             self.state = State::BlockUploadInit;
         } else {
-            out.push(with_mux(0x40, index, sub, [0; 4]));
+            out.push(Request::InitiateUpload { index, sub }.write());
             self.state = State::UploadInit;
         }
         Ok(())
@@ -299,21 +297,31 @@ impl SdoClient {
         }
         self.begin(index, sub, now)?;
         self.total = Some(len.into());
-        match how {
+        let request = match how {
             _ if expedited => {
-                out.push(with_mux(0x23 | ((4 - len) as u8) << 2, index, sub, d));
                 self.state = State::DownloadInit { expedited: true };
+                let data = Initiate::Expedited {
+                    data: &d[..len as usize],
+                    sized: true,
+                };
+                Request::InitiateDownload { index, sub, data }
             }
             Transfer::Block => {
-                let cc = if self.config.crc { 4 } else { 0 };
-                out.push(with_mux(0xC2 | cc, index, sub, len.to_le_bytes()));
                 self.state = State::BlockDownloadInit;
+                Request::BlockDownload {
+                    index,
+                    sub,
+                    crc: self.config.crc,
+                    size: Some(len),
+                }
             }
             _ => {
-                out.push(with_mux(0x21, index, sub, len.to_le_bytes()));
                 self.state = State::DownloadInit { expedited: false };
+                let data = Initiate::Size(len);
+                Request::InitiateDownload { index, sub, data }
             }
-        }
+        };
+        out.push(request.write());
         self.source = Some(source);
         Ok(())
     }
@@ -321,7 +329,7 @@ impl SdoClient {
     /// Abort the transfer from this side with `code`.
     pub fn abort(&mut self, code: AbortCode, out: &mut Vec<Payload>) {
         if self.is_busy() {
-            out.push(abort_payload(self.mux.0, self.mux.1, code));
+            out.push(msg::abort(self.mux.0, self.mux.1, code));
         }
         self.state = State::Idle;
         self.deadline = None;
@@ -346,13 +354,15 @@ impl SdoClient {
         if !self.is_busy() {
             return None;
         }
-        // A sub-block of a block upload carries segments whose first byte is a sequence number;
-        // 0x80 (sequence 0) cannot be one, so it is an abort there too.
         let in_subblock = matches!(self.state, State::BlockUploadSub(_));
-        if resp[0] == 0x80 || (!in_subblock && resp[0] >> 5 == 4) {
+        if msg::is_abort(resp, in_subblock) {
             self.state = State::Idle;
             self.deadline = None;
-            return Some(Err(SdoError::Aborted(abort_code(resp))));
+            let code = match Response::read(resp) {
+                Ok(Response::Abort { code, .. }) => code,
+                _ => AbortCode::GENERAL,
+            };
+            return Some(Err(SdoError::Aborted(code)));
         }
         self.deadline = Some(now + self.config.timeout);
         let state = std::mem::replace(&mut self.state, State::Idle);
@@ -370,13 +380,13 @@ impl SdoClient {
     }
 
     fn abort_with(&mut self, code: AbortCode, out: &mut Vec<Payload>) {
-        out.push(abort_payload(self.mux.0, self.mux.1, code));
+        out.push(msg::abort(self.mux.0, self.mux.1, code));
         self.state = State::Idle;
         self.deadline = None;
     }
 
-    fn check_mux(&self, resp: &Payload) -> Result<(), AbortCode> {
-        if mux(resp) == self.mux {
+    fn check_mux(&self, index: u16, sub: u8) -> Result<(), AbortCode> {
+        if (index, sub) == self.mux {
             Ok(())
         } else {
             Err(AbortCode::GENERAL)
@@ -389,11 +399,14 @@ impl SdoClient {
         resp: &Payload,
         out: &mut Vec<Payload>,
     ) -> Result<Option<Vec<u8>>, AbortCode> {
-        let scs = resp[0] >> 5;
+        if let State::BlockUploadSub(b) = state {
+            // Inside a sub-block every frame is a data segment.
+            return self.block_upload_segment(b, BlockSegment::read(resp), out);
+        }
         let len = self.total.unwrap_or(0);
-        match state {
-            State::DownloadInit { expedited } if scs == 3 => {
-                self.check_mux(resp)?;
+        match (state, Response::read(resp)?) {
+            (State::DownloadInit { expedited }, Response::InitiateDownload { index, sub }) => {
+                self.check_mux(index, sub)?;
                 if expedited {
                     self.done = len;
                     return Ok(Some(Vec::new()));
@@ -401,8 +414,11 @@ impl SdoClient {
                 self.send_download_segment(0, false, out)?;
                 Ok(None)
             }
-            State::DownloadSegment { pos, toggle, last } if scs == 1 => {
-                if (resp[0] & 0x10 != 0) != toggle {
+            (
+                State::DownloadSegment { pos, toggle, last },
+                Response::DownloadSegment { toggle: t },
+            ) => {
+                if t != toggle {
                     return Err(AbortCode::TOGGLE);
                 }
                 self.done = pos;
@@ -412,35 +428,52 @@ impl SdoClient {
                 self.send_download_segment(pos, !toggle, out)?;
                 Ok(None)
             }
-            State::UploadInit | State::BlockUploadInit if scs == 2 => {
-                self.upload_initiated(resp, out)
+            (
+                State::UploadInit | State::BlockUploadInit,
+                Response::InitiateUpload { index, sub, data },
+            ) => {
+                self.check_mux(index, sub)?;
+                self.upload_initiated(data, out)
             }
-            State::UploadSegment { toggle, size } if scs == 0 => {
-                if (resp[0] & 0x10 != 0) != toggle {
+            (
+                State::UploadSegment { toggle, size },
+                Response::UploadSegment {
+                    toggle: t,
+                    last,
+                    data,
+                },
+            ) => {
+                if t != toggle {
                     return Err(AbortCode::TOGGLE);
                 }
-                let n = usize::from((resp[0] >> 1) & 7);
-                self.receive(&resp[1..8 - n], size)?;
-                if resp[0] & 1 == 1 {
+                self.receive(data, size)?;
+                if last {
                     if size.is_some_and(|s| self.done != s) {
                         return Err(AbortCode::LENGTH_MISMATCH);
                     }
                     return Ok(Some(self.take_received()));
                 }
-                out.push([0x60 | if toggle { 0 } else { 0x10 }, 0, 0, 0, 0, 0, 0, 0]);
+                out.push(Request::UploadSegment { toggle: !toggle }.write());
                 self.state = State::UploadSegment {
                     toggle: !toggle,
                     size,
                 };
                 Ok(None)
             }
-            State::BlockDownloadInit if scs == 5 && resp[0] & 3 == 0 => {
-                self.check_mux(resp)?;
-                let blksize = resp[4];
+            (
+                State::BlockDownloadInit,
+                Response::BlockDownload {
+                    index,
+                    sub,
+                    crc,
+                    blksize,
+                },
+            ) => {
+                self.check_mux(index, sub)?;
                 if !(1..=MAX_BLOCK_SIZE).contains(&blksize) {
                     return Err(AbortCode::BLOCK_SIZE);
                 }
-                let crc = resp[0] & 4 != 0 && self.config.crc;
+                let crc = crc && self.config.crc;
                 let sent = self.send_sub_block(0, blksize, out)?;
                 self.state = State::BlockDownloadSub {
                     block_start: 0,
@@ -449,13 +482,15 @@ impl SdoClient {
                 };
                 Ok(None)
             }
-            State::BlockDownloadSub {
-                block_start,
-                sent,
-                crc,
-            } if scs == 5 && resp[0] & 3 == 2 => {
-                let ackseq = u64::from(resp[1]);
-                let blksize = resp[2];
+            (
+                State::BlockDownloadSub {
+                    block_start,
+                    sent,
+                    crc,
+                },
+                Response::BlockDownloadAck { ackseq, blksize },
+            ) => {
+                let ackseq = u64::from(ackseq);
                 let segments_sent = sent.div_ceil(SEGMENT_DATA as u64).max(1);
                 if ackseq > segments_sent {
                     return Err(AbortCode::SEQUENCE);
@@ -467,9 +502,11 @@ impl SdoClient {
                 self.done = acked_end;
                 if block_start + sent >= len && ackseq == segments_sent {
                     let last_len = len - (block_start + (segments_sent - 1) * SEGMENT_DATA as u64);
-                    let n = (SEGMENT_DATA as u64 - last_len) as u8;
-                    let c = if crc { self.crc.value() } else { 0 }.to_le_bytes();
-                    out.push([0xC1 | n << 2, c[0], c[1], 0, 0, 0, 0, 0]);
+                    let end = Request::BlockDownloadEnd {
+                        unused: (SEGMENT_DATA as u64 - last_len) as u8,
+                        crc: if crc { self.crc.value() } else { 0 },
+                    };
+                    out.push(end.write());
                     self.state = State::BlockDownloadEnd;
                     return Ok(None);
                 }
@@ -482,30 +519,36 @@ impl SdoClient {
                 };
                 Ok(None)
             }
-            State::BlockDownloadEnd if scs == 5 && resp[0] & 3 == 1 => Ok(Some(Vec::new())),
-            State::BlockUploadInit if scs == 6 && resp[0] & 1 == 0 => {
-                self.check_mux(resp)?;
-                let size = (resp[0] & 2 != 0)
-                    .then(|| u64::from(u32::from_le_bytes([resp[4], resp[5], resp[6], resp[7]])));
+            (State::BlockDownloadEnd, Response::BlockDownloadEnd) => Ok(Some(Vec::new())),
+            (
+                State::BlockUploadInit,
+                Response::BlockUpload {
+                    index,
+                    sub,
+                    crc,
+                    size,
+                },
+            ) => {
+                self.check_mux(index, sub)?;
+                let size = size.map(u64::from);
                 self.total = size;
-                out.push([0xA3, 0, 0, 0, 0, 0, 0, 0]);
+                out.push(Request::BlockUploadStart.write());
                 self.state = State::BlockUploadSub(BlockUpload {
                     size,
-                    crc: resp[0] & 4 != 0 && self.config.crc,
+                    crc: crc && self.config.crc,
                     receiver: SubBlockReceiver::new(self.config.block_size),
                 });
                 Ok(None)
             }
-            State::BlockUploadSub(b) => self.block_upload_segment(b, resp, out),
-            State::BlockUploadEnd(b) if scs == 6 && resp[0] & 1 == 1 => {
-                self.receive(&b.receiver.tail(resp[0]), b.size)?;
+            (State::BlockUploadEnd(b), Response::BlockUploadEnd { unused, crc }) => {
+                self.receive(&b.receiver.tail(unused), b.size)?;
                 if b.size.is_some_and(|s| s != self.done) {
                     return Err(AbortCode::LENGTH_MISMATCH);
                 }
-                if b.crc && self.crc.value() != u16::from_le_bytes([resp[1], resp[2]]) {
+                if b.crc && self.crc.value() != crc {
                     return Err(AbortCode::CRC);
                 }
-                out.push([0xA1, 0, 0, 0, 0, 0, 0, 0]);
+                out.push(Request::BlockUploadEnd.write());
                 Ok(Some(self.take_received()))
             }
             _ => Err(AbortCode::COMMAND),
@@ -525,25 +568,19 @@ impl SdoClient {
 
     fn upload_initiated(
         &mut self,
-        resp: &Payload,
+        data: Initiate<'_>,
         out: &mut Vec<Payload>,
     ) -> Result<Option<Vec<u8>>, AbortCode> {
-        self.check_mux(resp)?;
-        let expedited = resp[0] & 2 != 0;
-        let sized = resp[0] & 1 != 0;
-        if expedited {
-            let n = if sized {
-                usize::from((resp[0] >> 2) & 3)
-            } else {
-                0
-            };
-            self.receive(&resp[4..8 - n], None)?;
-            return Ok(Some(self.take_received()));
-        }
-        let size =
-            sized.then(|| u64::from(u32::from_le_bytes([resp[4], resp[5], resp[6], resp[7]])));
+        let size = match data {
+            Initiate::Expedited { data, .. } => {
+                self.receive(data, None)?;
+                return Ok(Some(self.take_received()));
+            }
+            Initiate::Size(n) => Some(u64::from(n)),
+            Initiate::Unsized => None,
+        };
         self.total = size;
-        out.push([0x60, 0, 0, 0, 0, 0, 0, 0]);
+        out.push(Request::UploadSegment { toggle: false }.write());
         self.state = State::UploadSegment {
             toggle: false,
             size,
@@ -576,11 +613,15 @@ impl SdoClient {
         let len = self.total.unwrap_or(0);
         let end = (pos + SEGMENT_DATA as u64).min(len);
         let n = (end - pos) as usize;
-        let mut p = [0u8; 8];
-        self.read_source(pos, &mut p[1..1 + n])?;
+        let mut data = [0u8; SEGMENT_DATA];
+        self.read_source(pos, &mut data[..n])?;
         let last = end == len;
-        p[0] = if toggle { 0x10 } else { 0 } | ((SEGMENT_DATA - n) as u8) << 1 | u8::from(last);
-        out.push(p);
+        let segment = Request::DownloadSegment {
+            toggle,
+            last,
+            data: &data[..n],
+        };
+        out.push(segment.write());
         self.state = State::DownloadSegment {
             pos: end,
             toggle,
@@ -604,7 +645,8 @@ impl SdoClient {
             let n = (end - pos) as usize;
             self.read_source(pos, &mut chunk[..n])?;
             let last = end == len;
-            out.push(block_segment(seq, last, &chunk[..n]));
+            let data = &chunk[..n];
+            out.push(BlockSegment { seq, last, data }.write());
             pos = end;
             if last {
                 break;
@@ -616,14 +658,20 @@ impl SdoClient {
     fn block_upload_segment(
         &mut self,
         mut b: BlockUpload,
-        resp: &Payload,
+        segment: BlockSegment<'_>,
         out: &mut Vec<Payload>,
     ) -> Result<Option<Vec<u8>>, AbortCode> {
-        let received = b.receiver.segment(resp)?;
+        let received = b.receiver.segment(segment)?;
         if let Some(data) = received.data {
             self.receive(data, b.size)?;
         }
-        out.extend(received.ack);
+        out.extend(received.ack.map(|a| {
+            Request::BlockUploadAck {
+                ackseq: a.ackseq,
+                blksize: a.blksize,
+            }
+            .write()
+        }));
         self.state = if received.complete {
             State::BlockUploadEnd(b)
         } else {

@@ -9,10 +9,8 @@ use std::time::{Duration, Instant};
 
 use super::abort::AbortCode;
 use super::crc::Crc16;
-use super::{
-    abort_code, abort_payload, block_segment, mux, size_indication, with_mux, Payload,
-    SubBlockReceiver, MAX_BLOCK_SIZE, SEGMENT_DATA,
-};
+use super::msg::{self, BlockSegment, Initiate, Request, Response};
+use super::{size_indication, Payload, SubBlockReceiver, MAX_BLOCK_SIZE, SEGMENT_DATA};
 use crate::od::{ObjectDictionary, Reader, Writer};
 use crate::types::Value;
 use canbus::{CanId, Filter, Frame};
@@ -43,6 +41,13 @@ impl Default for ServerConfig {
 struct Segment {
     data: [u8; SEGMENT_DATA],
     len: usize,
+}
+
+impl Segment {
+    fn frame(&self, seq: u8, last: bool) -> Payload {
+        let data = &self.data[..self.len];
+        BlockSegment { seq, last, data }.write()
+    }
 }
 
 struct Download {
@@ -125,10 +130,6 @@ fn read_segment(reader: &mut Reader) -> Result<Option<Segment>, AbortCode> {
     Ok((len > 0).then_some(Segment { data, len }))
 }
 
-fn size_field(req: &Payload) -> u64 {
-    u64::from(u32::from_le_bytes([req[4], req[5], req[6], req[7]]))
-}
-
 impl SdoServer {
     /// An idle server channel.
     pub fn new(config: ServerConfig) -> Self {
@@ -163,7 +164,7 @@ impl SdoServer {
     }
 
     fn fail(&mut self, code: AbortCode, out: &mut Vec<Payload>) {
-        out.push(abort_payload(self.mux.0, self.mux.1, code));
+        out.push(msg::abort(self.mux.0, self.mux.1, code));
         self.state = State::Idle;
         self.deadline = None;
     }
@@ -176,12 +177,10 @@ impl SdoServer {
         now: Instant,
         out: &mut Vec<Payload>,
     ) {
-        // Inside a sub-block every frame is a data segment; 0x80 (last segment, sequence 0)
-        // cannot be one, so it is the client's abort.
         let in_subblock = matches!(self.state, State::BlockDownload(_));
-        if req[0] == 0x80 || (!in_subblock && req[0] >> 5 == 4) {
-            if self.is_busy() {
-                tracing::debug!(code = %abort_code(req), "SDO transfer aborted by client");
+        if msg::is_abort(req, in_subblock) {
+            if let (true, Ok(Request::Abort { code, .. })) = (self.is_busy(), Request::read(req)) {
+                tracing::debug!(%code, "SDO transfer aborted by client");
             }
             self.state = State::Idle;
             self.deadline = None;
@@ -201,25 +200,38 @@ impl SdoServer {
         req: &Payload,
         out: &mut Vec<Payload>,
     ) -> Result<(), AbortCode> {
-        let ccs = req[0] >> 5;
-        match state {
-            State::Idle => {
-                self.mux = mux(req);
-                match ccs {
-                    1 => self.initiate_download(od, req, out),
-                    2 => self.initiate_upload(od, out),
-                    6 if req[0] & 1 == 0 => self.initiate_block_download(od, req, out),
-                    5 if req[0] & 3 == 0 => self.initiate_block_upload(od, req, out),
-                    _ => Err(AbortCode::COMMAND),
-                }
+        if let State::BlockDownload(b) = state {
+            // Inside a sub-block every frame is a data segment.
+            return self.block_download_segment(b, BlockSegment::read(req), out);
+        }
+        if let State::Idle = state {
+            // An abort answering a bad frame names the object the frame names.
+            self.mux = (u16::from_le_bytes([req[1], req[2]]), req[3]);
+        }
+        match (state, Request::read(req)?) {
+            (State::Idle, Request::InitiateDownload { data, .. }) => {
+                self.initiate_download(od, data, out)
             }
-            State::Download(d) if ccs == 0 => self.download_segment(d, od, req, out),
-            State::Upload(u) if ccs == 3 => self.upload_segment(u, req, out),
-            State::BlockDownload(b) => self.block_download_segment(b, req, out),
-            State::BlockDownloadEnd(b) if ccs == 6 && req[0] & 1 == 1 => {
-                Self::end_block_download(b, od, req, out)
+            (State::Idle, Request::InitiateUpload { .. }) => self.initiate_upload(od, out),
+            (State::Idle, Request::BlockDownload { crc, size, .. }) => {
+                self.initiate_block_download(od, crc, size, out)
             }
-            State::BlockUpload(b) if ccs == 5 => self.block_upload_step(b, req, out),
+            (
+                State::Idle,
+                Request::BlockUpload {
+                    crc, blksize, pst, ..
+                },
+            ) => self.initiate_block_upload(od, crc, blksize, pst, out),
+            (State::Download(d), Request::DownloadSegment { toggle, last, data }) => {
+                self.download_segment(d, od, toggle, last, data, out)
+            }
+            (State::Upload(u), Request::UploadSegment { toggle }) => {
+                self.upload_segment(u, toggle, out)
+            }
+            (State::BlockDownloadEnd(b), Request::BlockDownloadEnd { unused, crc }) => {
+                Self::end_block_download(b, od, unused, crc, out)
+            }
+            (State::BlockUpload(b), request) => self.block_upload_step(b, request, out),
             _ => Err(AbortCode::COMMAND),
         }
     }
@@ -227,31 +239,26 @@ impl SdoServer {
     fn initiate_download(
         &mut self,
         od: &mut ObjectDictionary,
-        req: &Payload,
+        data: Initiate<'_>,
         out: &mut Vec<Payload>,
     ) -> Result<(), AbortCode> {
         let (index, sub) = self.mux;
-        let expedited = req[0] & 2 != 0;
-        let sized = req[0] & 1 != 0;
-        if expedited {
-            let n = if sized {
-                usize::from((req[0] >> 2) & 3)
-            } else {
-                0
-            };
-            let mut data = &req[4..8 - n];
-            // Without a size indication the client sends 4 bytes; a shorter fixed-size object
-            // takes its own length from them (CiA 301 leaves the rest unspecified).
-            if let (false, Some(len)) = (sized, od.variable(index, sub)?.data_type.size()) {
-                data = &data[..len.min(4)];
+        let size = match data {
+            Initiate::Expedited { mut data, sized } => {
+                // Without a size indication the client sends 4 bytes; a shorter fixed-size
+                // object takes its own length from them (CiA 301 leaves the rest unspecified).
+                if let (false, Some(len)) = (sized, od.variable(index, sub)?.data_type.size()) {
+                    data = &data[..len.min(4)];
+                }
+                od.write(index, sub, data)?;
+                out.push(Response::InitiateDownload { index, sub }.write());
+                return Ok(());
             }
-            od.write(index, sub, data)?;
-            out.push(with_mux(0x60, index, sub, [0; 4]));
-            return Ok(());
-        }
-        let size = sized.then(|| size_field(req));
+            Initiate::Size(n) => Some(u64::from(n)),
+            Initiate::Unsized => None,
+        };
         let writer = od.open_write(index, sub, size)?;
-        out.push(with_mux(0x60, index, sub, [0; 4]));
+        out.push(Response::InitiateDownload { index, sub }.write());
         self.state = State::Download(Download {
             writer,
             toggle: false,
@@ -264,16 +271,16 @@ impl SdoServer {
         &mut self,
         mut d: Download,
         od: &mut ObjectDictionary,
-        req: &Payload,
+        toggle: bool,
+        last: bool,
+        data: &[u8],
         out: &mut Vec<Payload>,
     ) -> Result<(), AbortCode> {
-        if (req[0] & 0x10 != 0) != d.toggle {
+        if toggle != d.toggle {
             return Err(AbortCode::TOGGLE);
         }
-        let n = usize::from((req[0] >> 1) & 7);
-        d.writer.write(&req[1..8 - n])?;
-        let response = [0x20 | (req[0] & 0x10), 0, 0, 0, 0, 0, 0, 0];
-        if req[0] & 1 == 1 {
+        d.writer.write(data)?;
+        if last {
             if d.size.is_some_and(|s| s != d.writer.written()) {
                 return Err(AbortCode::LENGTH_MISMATCH);
             }
@@ -282,7 +289,7 @@ impl SdoServer {
             d.toggle = !d.toggle;
             self.state = State::Download(d);
         }
-        out.push(response);
+        out.push(Response::DownloadSegment { toggle }.write());
         Ok(())
     }
 
@@ -298,11 +305,18 @@ impl SdoServer {
         if let Some(size @ 1..=4) = size {
             let mut data = [0u8; 4];
             let n = fill(&mut reader, &mut data[..size as usize])?;
-            out.push(with_mux(0x43 | ((4 - n) as u8) << 2, index, sub, data));
+            let data = Initiate::Expedited {
+                data: &data[..n],
+                sized: true,
+            };
+            out.push(Response::InitiateUpload { index, sub, data }.write());
             return Ok(());
         }
-        let (sized, field) = size_indication(size)?;
-        out.push(with_mux(0x40 | u8::from(sized), index, sub, field));
+        let data = match size_indication(size)? {
+            Some(n) => Initiate::Size(n),
+            None => Initiate::Unsized,
+        };
+        out.push(Response::InitiateUpload { index, sub, data }.write());
         self.state = State::Upload(Upload {
             reader,
             toggle: false,
@@ -315,14 +329,14 @@ impl SdoServer {
     fn upload_segment(
         &mut self,
         mut u: Upload,
-        req: &Payload,
+        toggle: bool,
         out: &mut Vec<Payload>,
     ) -> Result<(), AbortCode> {
-        if (req[0] & 0x10 != 0) != u.toggle {
+        if toggle != u.toggle {
             return Err(AbortCode::TOGGLE);
         }
-        let mut p = [0u8; 8];
-        let n = fill(&mut u.reader, &mut p[1..8])?;
+        let mut data = [0u8; SEGMENT_DATA];
+        let n = fill(&mut u.reader, &mut data)?;
         u.sent += n as u64;
         // With a known size the last segment is the one that reaches it; a stream of unknown
         // size ends with a short segment (an empty one if it ends on a segment boundary).
@@ -336,8 +350,14 @@ impl SdoServer {
             // The value changed size under the transfer.
             return Err(AbortCode::GENERAL);
         }
-        p[0] = (req[0] & 0x10) | ((SEGMENT_DATA - n) as u8) << 1 | u8::from(last);
-        out.push(p);
+        out.push(
+            Response::UploadSegment {
+                toggle,
+                last,
+                data: &data[..n],
+            }
+            .write(),
+        );
         if !last {
             u.toggle = !u.toggle;
             self.state = State::Upload(u);
@@ -348,16 +368,23 @@ impl SdoServer {
     fn initiate_block_download(
         &mut self,
         od: &mut ObjectDictionary,
-        req: &Payload,
+        client_crc: bool,
+        size: Option<u32>,
         out: &mut Vec<Payload>,
     ) -> Result<(), AbortCode> {
         let (index, sub) = self.mux;
-        let client_crc = req[0] & 4 != 0;
-        let size = (req[0] & 2 != 0).then(|| size_field(req));
+        let size = size.map(u64::from);
         let writer = od.open_write(index, sub, size)?;
         let blksize = self.config.block_size.clamp(1, MAX_BLOCK_SIZE);
-        let sc = if self.config.crc { 4 } else { 0 };
-        out.push(with_mux(0xA0 | sc, index, sub, [blksize, 0, 0, 0]));
+        out.push(
+            Response::BlockDownload {
+                index,
+                sub,
+                crc: self.config.crc,
+                blksize,
+            }
+            .write(),
+        );
         self.state = State::BlockDownload(BlockDownload {
             writer,
             size,
@@ -370,17 +397,23 @@ impl SdoServer {
     fn block_download_segment(
         &mut self,
         mut b: BlockDownload,
-        req: &Payload,
+        segment: BlockSegment<'_>,
         out: &mut Vec<Payload>,
     ) -> Result<(), AbortCode> {
-        let received = b.receiver.segment(req)?;
+        let received = b.receiver.segment(segment)?;
         if let Some(data) = received.data {
             b.writer.write(data)?;
             if let Some(crc) = &mut b.crc {
                 crc.update(data);
             }
         }
-        out.extend(received.ack);
+        out.extend(received.ack.map(|a| {
+            Response::BlockDownloadAck {
+                ackseq: a.ackseq,
+                blksize: a.blksize,
+            }
+            .write()
+        }));
         self.state = if received.complete {
             State::BlockDownloadEnd(b)
         } else {
@@ -392,14 +425,15 @@ impl SdoServer {
     fn end_block_download(
         mut b: BlockDownload,
         od: &mut ObjectDictionary,
-        req: &Payload,
+        unused: u8,
+        crc: u16,
         out: &mut Vec<Payload>,
     ) -> Result<(), AbortCode> {
-        let tail = b.receiver.tail(req[0]);
+        let tail = b.receiver.tail(unused);
         b.writer.write(&tail)?;
-        if let Some(mut crc) = b.crc {
-            crc.update(&tail);
-            if crc.value() != u16::from_le_bytes([req[1], req[2]]) {
+        if let Some(mut ours) = b.crc {
+            ours.update(&tail);
+            if ours.value() != crc {
                 return Err(AbortCode::CRC);
             }
         }
@@ -407,18 +441,19 @@ impl SdoServer {
             return Err(AbortCode::LENGTH_MISMATCH);
         }
         b.writer.finish(od)?;
-        out.push([0xA1, 0, 0, 0, 0, 0, 0, 0]);
+        out.push(Response::BlockDownloadEnd.write());
         Ok(())
     }
 
     fn initiate_block_upload(
         &mut self,
         od: &mut ObjectDictionary,
-        req: &Payload,
+        client_crc: bool,
+        blksize: u8,
+        pst: u8,
         out: &mut Vec<Payload>,
     ) -> Result<(), AbortCode> {
         let (index, sub) = self.mux;
-        let (blksize, pst) = (req[4], req[5]);
         if !(1..=MAX_BLOCK_SIZE).contains(&blksize) {
             return Err(AbortCode::BLOCK_SIZE);
         }
@@ -428,17 +463,18 @@ impl SdoServer {
             // Protocol switch (CiA 301 §7.2.4.3.9): small values go by the normal upload.
             return self.initiate_upload(od, out);
         }
-        let sc = if self.config.crc { 4 } else { 0 };
-        let (sized, field) = size_indication(size)?;
-        out.push(with_mux(
-            0xC0 | sc | u8::from(sized) << 1,
-            index,
-            sub,
-            field,
-        ));
+        out.push(
+            Response::BlockUpload {
+                index,
+                sub,
+                crc: self.config.crc,
+                size: size_indication(size)?,
+            }
+            .write(),
+        );
         self.state = State::BlockUpload(BlockUpload {
             reader,
-            crc: (req[0] & 4 != 0 && self.config.crc).then(Crc16::new),
+            crc: (client_crc && self.config.crc).then(Crc16::new),
             blksize,
             unacked: VecDeque::new(),
             lookahead: None,
@@ -451,13 +487,15 @@ impl SdoServer {
     fn block_upload_step(
         &mut self,
         mut b: BlockUpload,
-        req: &Payload,
+        request: Request<'_>,
         out: &mut Vec<Payload>,
     ) -> Result<(), AbortCode> {
-        match (b.phase, req[0] & 3) {
-            (UploadPhase::Start, 3) => b.send_block(out)?,
-            (UploadPhase::Ack, 2) => b.acknowledge(req, out)?,
-            (UploadPhase::End, 1) => return Ok(()),
+        match (b.phase, request) {
+            (UploadPhase::Start, Request::BlockUploadStart) => b.send_block(out)?,
+            (UploadPhase::Ack, Request::BlockUploadAck { ackseq, blksize }) => {
+                b.acknowledge(ackseq, blksize, out)?
+            }
+            (UploadPhase::End, Request::BlockUploadEnd) => return Ok(()),
             _ => return Err(AbortCode::COMMAND),
         }
         self.state = State::BlockUpload(b);
@@ -501,7 +539,7 @@ impl BlockUpload {
         for (i, segment) in self.unacked.iter().take(resend).enumerate() {
             seq += 1;
             let last = self.done_reading() && i + 1 == self.unacked.len();
-            out.push(block_segment(seq, last, &segment.data[..segment.len]));
+            out.push(segment.frame(seq, last));
         }
         // New data follows only once everything unacknowledged has been resent.
         let add_new = resend == self.unacked.len() && !(self.done_reading() && resend > 0);
@@ -513,7 +551,7 @@ impl BlockUpload {
                 crc.update(&segment.data[..segment.len]);
             }
             seq += 1;
-            out.push(block_segment(seq, last, &segment.data[..segment.len]));
+            out.push(segment.frame(seq, last));
             self.unacked.push_back(segment);
             if last {
                 break;
@@ -525,15 +563,26 @@ impl BlockUpload {
                 data: [0; SEGMENT_DATA],
                 len: 0,
             });
-            out.push(block_segment(1, true, &[]));
+            out.push(
+                BlockSegment {
+                    seq: 1,
+                    last: true,
+                    data: &[],
+                }
+                .write(),
+            );
         }
         self.phase = UploadPhase::Ack;
         Ok(())
     }
 
-    fn acknowledge(&mut self, req: &Payload, out: &mut Vec<Payload>) -> Result<(), AbortCode> {
-        let ackseq = usize::from(req[1]);
-        let blksize = req[2];
+    fn acknowledge(
+        &mut self,
+        ackseq: u8,
+        blksize: u8,
+        out: &mut Vec<Payload>,
+    ) -> Result<(), AbortCode> {
+        let ackseq = usize::from(ackseq);
         let sent_in_block = self.unacked.len().min(usize::from(self.blksize));
         if ackseq > sent_in_block {
             return Err(AbortCode::SEQUENCE);
@@ -548,9 +597,11 @@ impl BlockUpload {
         self.unacked.drain(..ackseq);
         self.blksize = blksize;
         if self.unacked.is_empty() && self.done_reading() {
-            let n = (SEGMENT_DATA - last_len.unwrap_or(0)) as u8;
-            let crc = self.crc.map(Crc16::value).unwrap_or(0).to_le_bytes();
-            out.push([0xC1 | n << 2, crc[0], crc[1], 0, 0, 0, 0, 0]);
+            let end = Response::BlockUploadEnd {
+                unused: (SEGMENT_DATA - last_len.unwrap_or(0)) as u8,
+                crc: self.crc.map(Crc16::value).unwrap_or(0),
+            };
+            out.push(end.write());
             self.phase = UploadPhase::End;
             return Ok(());
         }

@@ -459,7 +459,7 @@ fn protocol_errors_on_the_server_side() {
     server.handle(&mut od, &[0xE0, 0, 0x20, 0, 0, 0, 0, 0], now, &mut out);
     assert_eq!(
         out.pop(),
-        Some(super::abort_payload(0x2000, 0, AbortCode::COMMAND))
+        Some(super::msg::abort(0x2000, 0, AbortCode::COMMAND))
     );
     // Wrong toggle in a segmented download.
     server.handle(
@@ -471,7 +471,7 @@ fn protocol_errors_on_the_server_side() {
     server.handle(&mut od, &[0x10, 1, 2, 3, 4, 5, 6, 7], now, &mut out);
     assert_eq!(
         out.pop(),
-        Some(super::abort_payload(0x2000, 0, AbortCode::TOGGLE))
+        Some(super::msg::abort(0x2000, 0, AbortCode::TOGGLE))
     );
     // Size indicated 14, 7 sent and flagged last.
     server.handle(
@@ -483,7 +483,7 @@ fn protocol_errors_on_the_server_side() {
     server.handle(&mut od, &[0x01, 1, 2, 3, 4, 5, 6, 7], now, &mut out);
     assert_eq!(
         out.pop(),
-        Some(super::abort_payload(0x2000, 0, AbortCode::LENGTH_MISMATCH))
+        Some(super::msg::abort(0x2000, 0, AbortCode::LENGTH_MISMATCH))
     );
     // Block download with a wrong CRC.
     out.clear();
@@ -502,7 +502,7 @@ fn protocol_errors_on_the_server_side() {
     );
     assert_eq!(
         out.pop(),
-        Some(super::abort_payload(0x2000, 0, AbortCode::CRC))
+        Some(super::msg::abort(0x2000, 0, AbortCode::CRC))
     );
     // Sequence number 0 inside a sub-block.
     server.handle(
@@ -514,7 +514,7 @@ fn protocol_errors_on_the_server_side() {
     server.handle(&mut od, &[0x00, 1, 2, 3, 0, 0, 0, 0], now, &mut out);
     assert_eq!(
         out.pop(),
-        Some(super::abort_payload(0x2000, 0, AbortCode::SEQUENCE))
+        Some(super::msg::abort(0x2000, 0, AbortCode::SEQUENCE))
     );
     // Block upload with block size 0.
     server.handle(
@@ -525,7 +525,7 @@ fn protocol_errors_on_the_server_side() {
     );
     assert_eq!(
         out.pop(),
-        Some(super::abort_payload(0x2000, 0, AbortCode::BLOCK_SIZE))
+        Some(super::msg::abort(0x2000, 0, AbortCode::BLOCK_SIZE))
     );
     assert!(!server.is_busy());
 }
@@ -545,7 +545,7 @@ fn client_detects_toggle_and_crc_errors() {
     assert_eq!(outcome, Some(Err(SdoError::Protocol(AbortCode::TOGGLE))));
     assert_eq!(
         out.last(),
-        Some(&super::abort_payload(0x2000, 0, AbortCode::TOGGLE))
+        Some(&super::msg::abort(0x2000, 0, AbortCode::TOGGLE))
     );
 
     out.clear();
@@ -598,10 +598,7 @@ fn timeouts_on_both_sides() {
         client.handle_timeout(now + Duration::from_millis(500), &mut out),
         Some(Err(SdoError::Timeout))
     );
-    assert_eq!(
-        out,
-        vec![super::abort_payload(0x2000, 0, AbortCode::TIMEOUT)]
-    );
+    assert_eq!(out, vec![super::msg::abort(0x2000, 0, AbortCode::TIMEOUT)]);
     // A client that vanishes: the server aborts and is free again.
     let mut od = dictionary();
     let mut server = SdoServer::new(ServerConfig::default());
@@ -617,10 +614,7 @@ fn timeouts_on_both_sides() {
     assert_eq!(deadline, now + Duration::from_secs(1));
     out.clear();
     server.handle_timeout(deadline, &mut out);
-    assert_eq!(
-        out,
-        vec![super::abort_payload(0x2000, 0, AbortCode::TIMEOUT)]
-    );
+    assert_eq!(out, vec![super::msg::abort(0x2000, 0, AbortCode::TIMEOUT)]);
     assert!(!server.is_busy());
     assert_eq!(server.poll_timeout(), None);
 }
@@ -641,7 +635,7 @@ fn client_abort_frees_the_server() {
     out.clear();
     server.handle(
         &mut od,
-        &super::abort_payload(0x2000, 0, AbortCode::GENERAL),
+        &super::msg::abort(0x2000, 0, AbortCode::GENERAL),
         now,
         &mut out,
     );
