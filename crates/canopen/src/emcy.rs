@@ -7,6 +7,20 @@ use std::time::{Duration, Instant};
 
 use canbus::{CanId, Frame};
 
+/// Emergency error codes this stack raises itself (CiA 301 §7.2.7.1, table of error codes).
+pub mod codes {
+    /// Error reset or no error: the message that ends the errors.
+    pub const ERROR_RESET: u16 = 0x0000;
+    /// Life guard or heartbeat error (communication).
+    pub const HEARTBEAT: u16 = 0x8130;
+    /// PDO not processed due to a length error.
+    pub const PDO_LENGTH: u16 = 0x8210;
+    /// PDO length exceeded.
+    pub const PDO_LENGTH_EXCEEDED: u16 = 0x8220;
+    /// RPDO timeout.
+    pub const RPDO_TIMEOUT: u16 = 0x8250;
+}
+
 /// One EMCY message.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct EmcyMessage {
@@ -162,7 +176,7 @@ impl EmcyProducer {
         }
     }
 
-    /// When [`Self::poll_transmit`] can send the next queued message.
+    /// When [`Self::handle_timeout`] can send the next queued message.
     pub fn poll_timeout(&self) -> Option<Instant> {
         if self.queue.is_empty() {
             return None;
@@ -173,19 +187,21 @@ impl EmcyProducer {
         )
     }
 
-    /// The next EMCY frame, if one is queued and the inhibit time has passed. (Messages wait
-    /// in the queue; none is lost to the inhibit time.)
-    pub fn poll_transmit(&mut self, now: Instant) -> Option<Frame> {
-        if self.last_sent.is_some_and(|t| now < t + self.inhibit) {
-            return None;
+    /// Send the queued EMCY messages the inhibit time lets through: all of them without an
+    /// inhibit time, else the next one. (Messages wait in the queue; none is lost to the
+    /// inhibit time.)
+    pub fn handle_timeout(&mut self, now: Instant, out: &mut Vec<Frame>) {
+        while self.last_sent.is_none_or(|t| now >= t + self.inhibit) {
+            let Some(message) = self.queue.pop_front() else {
+                return;
+            };
+            let Some(id) = self.cob_id else {
+                // EMCY disabled by 0x1014 bit 31: the history is kept, nothing is sent.
+                continue;
+            };
+            self.last_sent = Some(now);
+            out.extend(Frame::new(id, &message.to_bytes()).ok());
         }
-        let message = self.queue.pop_front()?;
-        let Some(id) = self.cob_id else {
-            // EMCY disabled by 0x1014 bit 31: the history is kept, nothing is sent.
-            return None;
-        };
-        self.last_sent = Some(now);
-        Frame::new(id, &message.to_bytes()).ok()
     }
 }
 
@@ -193,30 +209,38 @@ impl EmcyProducer {
 mod tests {
     use super::*;
 
+    /// What one call sends (the tests expect at most one frame at a time).
+    fn next(p: &mut EmcyProducer, now: Instant) -> Option<Frame> {
+        let mut out = Vec::new();
+        p.handle_timeout(now, &mut out);
+        assert!(out.len() <= 1, "{out:?}");
+        out.pop()
+    }
+
     #[test]
     fn errors_register_history_and_reset() {
         let now = Instant::now();
         let mut p = EmcyProducer::new(1);
         p.set_error(0x8130, [0, 12, 0, 0, 0]);
         assert_eq!(p.error_register(), 0x11, "generic + communication");
-        let f = p.poll_transmit(now).unwrap();
+        let f = next(&mut p, now).unwrap();
         assert_eq!(
             f,
             Frame::standard(0x081, &[0x30, 0x81, 0x11, 0, 12, 0, 0, 0]).unwrap()
         );
         p.set_error(0x8130, [0, 12, 0, 0, 0]);
-        assert!(p.poll_transmit(now).is_none(), "already active");
+        assert!(next(&mut p, now).is_none(), "already active");
         p.set_error(0x4210, [0; 5]);
         assert_eq!(p.error_register(), 0x19, "+ temperature");
         assert_eq!(p.history().collect::<Vec<_>>(), vec![0x4210, 0x0C00_8130]);
-        p.poll_transmit(now);
+        next(&mut p, now);
         p.clear_error(0x8130);
         assert!(
-            p.poll_transmit(now).is_none(),
+            next(&mut p, now).is_none(),
             "another error still active: no reset yet"
         );
         p.clear_error(0x4210);
-        let reset = p.poll_transmit(now).unwrap();
+        let reset = next(&mut p, now).unwrap();
         assert_eq!(reset.data(), &[0; 8]);
         assert_eq!(p.error_register(), 0);
         p.clear_history();
@@ -230,10 +254,10 @@ mod tests {
         p.set_inhibit_100us(100); // 10 ms
         p.set_error(0x1000, [0; 5]);
         p.set_error(0x2000, [0; 5]);
-        assert!(p.poll_transmit(t0).is_some());
-        assert!(p.poll_transmit(t0 + Duration::from_millis(9)).is_none());
+        assert!(next(&mut p, t0).is_some());
+        assert!(next(&mut p, t0 + Duration::from_millis(9)).is_none());
         assert_eq!(p.poll_timeout(), Some(t0 + Duration::from_millis(10)));
-        let second = p.poll_transmit(t0 + Duration::from_millis(10)).unwrap();
+        let second = next(&mut p, t0 + Duration::from_millis(10)).unwrap();
         assert_eq!(EmcyMessage::parse(second.data()).unwrap().code, 0x2000);
         assert_eq!(p.poll_timeout(), None);
     }
@@ -245,11 +269,11 @@ mod tests {
         p.set_cob_id(0x2000_0083);
         p.set_error(0xFF01, [0; 5]);
         assert_eq!(p.error_register(), 0x81, "device specific");
-        assert_eq!(p.poll_transmit(now).unwrap().id(), CanId::Extended(0x83));
+        assert_eq!(next(&mut p, now).unwrap().id(), CanId::Extended(0x83));
         p.set_cob_id(0x8000_0083);
         p.set_error(0x5000, [0; 5]);
         assert!(
-            p.poll_transmit(now + Duration::from_secs(1)).is_none(),
+            next(&mut p, now + Duration::from_secs(1)).is_none(),
             "disabled"
         );
         p.set_history_len(1);

@@ -82,10 +82,11 @@ impl GuardingSlave {
         frame: &Frame,
         state: NmtState,
         now: Instant,
+        out: &mut Vec<Frame>,
         events: &mut Vec<GuardEvent>,
-    ) -> Option<Frame> {
+    ) {
         if !frame.is_remote() || frame.id() != guard_id(self.node_id) {
-            return None;
+            return;
         }
         if self.lost {
             self.lost = false;
@@ -94,7 +95,7 @@ impl GuardingSlave {
         self.deadline = self.life_time.map(|t| now + t);
         let byte = state.code() | if self.toggle { 0x80 } else { 0 };
         self.toggle = !self.toggle;
-        Frame::new(guard_id(self.node_id), &[byte]).ok()
+        out.extend(Frame::new(guard_id(self.node_id), &[byte]).ok());
     }
 
     /// When [`Self::handle_timeout`] must be called.
@@ -253,9 +254,9 @@ mod tests {
             master.handle_timeout(now, &mut out, &mut ev);
             assert_eq!(out.len(), 1);
             assert!(out[0].is_remote() && out[0].id() == CanId::Standard(0x704));
-            let reply = slave
-                .handle(&out[0], NmtState::Operational, now, &mut ev)
-                .unwrap();
+            let mut replies = Vec::new();
+            slave.handle(&out[0], NmtState::Operational, now, &mut replies, &mut ev);
+            let reply = replies.pop().unwrap();
             answered.push(reply.data()[0]);
             master.handle(&reply, &mut ev);
         }
@@ -287,9 +288,15 @@ mod tests {
         // Both come back.
         out.clear();
         master.handle_timeout(t0 + ms(900), &mut out, &mut ev);
-        let reply = slave
-            .handle(&out[0], NmtState::Stopped, t0 + ms(900), &mut ev)
-            .unwrap();
+        let mut replies = Vec::new();
+        slave.handle(
+            &out[0],
+            NmtState::Stopped,
+            t0 + ms(900),
+            &mut replies,
+            &mut ev,
+        );
+        let reply = replies.pop().unwrap();
         master.handle(&reply, &mut ev);
         assert_eq!(
             ev,

@@ -37,15 +37,17 @@ impl HeartbeatProducer {
         self.next
     }
 
-    /// The heartbeat frame if one is due. The next one is scheduled a period after the one
-    /// due, not after `now`, so a late call does not make the producer drift.
-    pub fn handle_timeout(&mut self, now: Instant, state: NmtState) -> Option<Frame> {
-        let (next, period) = (self.next?, self.period?);
+    /// Send the heartbeat if one is due. The next one is scheduled a period after the one due,
+    /// not after `now`, so a late call does not make the producer drift.
+    pub fn handle_timeout(&mut self, now: Instant, state: NmtState, out: &mut Vec<Frame>) {
+        let (Some(next), Some(period)) = (self.next, self.period) else {
+            return;
+        };
         if now < next {
-            return None;
+            return;
         }
         self.next = Some(crate::tick::next_tick(next, period, now));
-        Some(heartbeat_frame(self.node_id, state))
+        out.push(heartbeat_frame(self.node_id, state));
     }
 }
 
@@ -233,12 +235,21 @@ impl HeartbeatConsumer {
 /// The EMCY a consumer timeout raises: error code 0x8130 (life guard / heartbeat error) and the
 /// manufacturer bytes `00 NN 00 00 00` with the node-ID, as the PLC manual describes.
 pub fn timeout_emcy(node: u8) -> (u16, [u8; 5]) {
-    (0x8130, [0x00, node, 0x00, 0x00, 0x00])
+    (
+        crate::emcy::codes::HEARTBEAT,
+        [0x00, node, 0x00, 0x00, 0x00],
+    )
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn due(p: &mut HeartbeatProducer, now: Instant, state: NmtState) -> Option<Frame> {
+        let mut out = Vec::new();
+        p.handle_timeout(now, state, &mut out);
+        out.pop()
+    }
 
     #[test]
     fn producer_keeps_its_period_without_drift() {
@@ -248,18 +259,25 @@ mod tests {
         p.set_period_ms(100, t0);
         assert_eq!(p.poll_timeout(), Some(t0 + Duration::from_millis(100)));
         assert_eq!(
-            p.handle_timeout(t0 + Duration::from_millis(99), NmtState::Operational),
+            due(
+                &mut p,
+                t0 + Duration::from_millis(99),
+                NmtState::Operational
+            ),
             None
         );
         // Called 7 ms late: the frame goes out and the next stays on the 100 ms grid.
-        let f = p
-            .handle_timeout(t0 + Duration::from_millis(107), NmtState::Operational)
-            .unwrap();
+        let f = due(
+            &mut p,
+            t0 + Duration::from_millis(107),
+            NmtState::Operational,
+        )
+        .unwrap();
         assert_eq!(f, Frame::standard(0x709, &[0x05]).unwrap());
         assert_eq!(p.poll_timeout(), Some(t0 + Duration::from_millis(200)));
         // Suspended for a second: no burst of ten frames, one frame and a fresh schedule.
         let late = t0 + Duration::from_millis(1250);
-        assert!(p.handle_timeout(late, NmtState::PreOperational).is_some());
+        assert!(due(&mut p, late, NmtState::PreOperational).is_some());
         assert_eq!(p.poll_timeout(), Some(late + Duration::from_millis(100)));
         p.set_period_ms(0, late);
         assert_eq!(p.poll_timeout(), None);

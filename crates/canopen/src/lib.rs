@@ -7,7 +7,10 @@
 //! LSS ([`lss`]) and parameter storage ([`storage`]); the pre-defined connection set ([`cob`])
 //! and bus-monitor decoding ([`monitor`]).
 //!
-//! The tokio edge (feature `tokio`, on by default): [`node::LocalNode`] runs a device,
+//! [`node::Node`] composes them into a device, sans-IO too; [`objects`] names the
+//! communication objects.
+//!
+//! The tokio edge (feature `tokio`, on by default): `node::LocalNode` runs a device,
 //! [`master::Master`] commands a network, [`driver::SdoClients`] and [`driver::serve_sdo`] do SDO
 //! alone.
 
@@ -27,8 +30,8 @@ pub mod lss;
 pub mod master;
 pub mod monitor;
 pub mod nmt;
-#[cfg(feature = "tokio")]
 pub mod node;
+pub mod objects;
 pub mod od;
 pub mod pdo;
 pub mod sdo;

@@ -143,9 +143,9 @@ impl LssSlave {
         self.active_node_id = id;
     }
 
-    /// The answer to a store request: 0 success, 1 not supported, 2 storage access error.
-    pub fn store_result(&self, error: u8) -> Frame {
-        response(cs::STORE, [error, 0, 0, 0, 0, 0, 0])
+    /// Answer a store request: 0 success, 1 not supported, 2 storage access error.
+    pub fn store_result(&self, error: u8, out: &mut Vec<Frame>) {
+        out.push(response(cs::STORE, [error, 0, 0, 0, 0, 0, 0]));
     }
 
     fn enter(&mut self, state: LssState, action: &mut Option<LssAction>) {
@@ -155,14 +155,15 @@ impl LssSlave {
         }
     }
 
-    /// Handle a frame on 0x7E5; returns the response to send and what the application must do.
-    pub fn handle(&mut self, frame: &Frame) -> (Option<Frame>, Option<LssAction>) {
+    /// Handle a frame on 0x7E5: its response goes to `out`; returns what the application must
+    /// do.
+    pub fn handle(&mut self, frame: &Frame, out: &mut Vec<Frame>) -> Option<LssAction> {
         let mut action = None;
         let Ok(d): Result<[u8; 8], _> = frame.data().try_into() else {
-            return (None, None);
+            return None;
         };
         if frame.id() != MASTER_ID {
-            return (None, None);
+            return None;
         }
         let value = u32::from_le_bytes([d[1], d[2], d[3], d[4]]);
         let configuring = self.state == LssState::Configuration;
@@ -238,7 +239,8 @@ impl LssSlave {
             cs::FASTSCAN => self.fastscan(value, d[5], d[6], d[7], &mut action),
             _ => None,
         };
-        (reply, action)
+        out.extend(reply);
+        action
     }
 
     /// Identify remote slave: vendor and product must match, revision and serial lie within
@@ -314,6 +316,19 @@ pub fn fastscan_request(id: u32, bit_checked: u8, sub: u8, next: u8) -> Frame {
 mod tests {
     use super::*;
 
+    /// The reply and the action of one frame.
+    trait Ask {
+        fn ask(&mut self, frame: &Frame) -> (Option<Frame>, Option<LssAction>);
+    }
+
+    impl Ask for LssSlave {
+        fn ask(&mut self, frame: &Frame) -> (Option<Frame>, Option<LssAction>) {
+            let mut out = Vec::new();
+            let action = self.handle(frame, &mut out);
+            (out.pop(), action)
+        }
+    }
+
     const ADDRESS: [u32; 4] = [0x0000_041A, 0x0000_1000, 0x0001_0002, 0x1234_5678];
 
     fn code(f: &Frame) -> u8 {
@@ -325,12 +340,12 @@ mod tests {
         let mut s = LssSlave::new(ADDRESS, 5);
         // Configuration services are ignored while waiting.
         assert_eq!(
-            s.handle(&request(cs::CONFIGURE_NODE_ID, [9, 0, 0, 0, 0, 0, 0]))
+            s.ask(&request(cs::CONFIGURE_NODE_ID, [9, 0, 0, 0, 0, 0, 0]))
                 .0,
             None
         );
         for (i, v) in ADDRESS.iter().enumerate() {
-            let (reply, action) = s.handle(&request(
+            let (reply, action) = s.ask(&request(
                 cs::SWITCH_SELECTIVE_VENDOR + i as u8,
                 u32_payload(*v),
             ));
@@ -344,35 +359,35 @@ mod tests {
                 );
             }
         }
-        let (reply, _) = s.handle(&request(cs::CONFIGURE_NODE_ID, [0x80, 0, 0, 0, 0, 0, 0]));
+        let (reply, _) = s.ask(&request(cs::CONFIGURE_NODE_ID, [0x80, 0, 0, 0, 0, 0, 0]));
         assert_eq!(reply.unwrap().data()[1], 1, "node-ID out of range");
-        let (reply, _) = s.handle(&request(cs::CONFIGURE_NODE_ID, [9, 0, 0, 0, 0, 0, 0]));
+        let (reply, _) = s.ask(&request(cs::CONFIGURE_NODE_ID, [9, 0, 0, 0, 0, 0, 0]));
         assert_eq!(reply.unwrap().data()[1], 0);
         assert_eq!(s.pending_node_id(), 9);
-        let (reply, _) = s.handle(&request(cs::CONFIGURE_BIT_TIMING, [0, 3, 0, 0, 0, 0, 0]));
+        let (reply, _) = s.ask(&request(cs::CONFIGURE_BIT_TIMING, [0, 3, 0, 0, 0, 0, 0]));
         assert_eq!(reply.unwrap().data()[1], 0);
         assert_eq!(s.pending_bit_timing(), Some(3));
-        let (reply, _) = s.handle(&request(cs::CONFIGURE_BIT_TIMING, [0, 5, 0, 0, 0, 0, 0]));
+        let (reply, _) = s.ask(&request(cs::CONFIGURE_BIT_TIMING, [0, 5, 0, 0, 0, 0, 0]));
         assert_eq!(reply.unwrap().data()[1], 1, "index 5 is reserved");
-        let (reply, _) = s.handle(&request(cs::INQUIRE_SERIAL, [0; 7]));
+        let (reply, _) = s.ask(&request(cs::INQUIRE_SERIAL, [0; 7]));
         assert_eq!(reply.unwrap().data()[1..5], 0x1234_5678u32.to_le_bytes());
-        let (reply, _) = s.handle(&request(cs::INQUIRE_NODE_ID, [0; 7]));
+        let (reply, _) = s.ask(&request(cs::INQUIRE_NODE_ID, [0; 7]));
         assert_eq!(
             reply.unwrap().data()[1],
             5,
             "the active node-ID until reset communication"
         );
         assert_eq!(
-            s.handle(&request(cs::STORE, [0; 7])),
+            s.ask(&request(cs::STORE, [0; 7])),
             (None, Some(LssAction::Store))
         );
         assert_eq!(
-            s.handle(&request(cs::ACTIVATE_BIT_TIMING, [100, 0, 0, 0, 0, 0, 0]))
+            s.ask(&request(cs::ACTIVATE_BIT_TIMING, [100, 0, 0, 0, 0, 0, 0]))
                 .1,
             Some(LssAction::ActivateBitTiming { delay_ms: 100 })
         );
         assert_eq!(
-            s.handle(&request(cs::SWITCH_GLOBAL, [0; 7])).1,
+            s.ask(&request(cs::SWITCH_GLOBAL, [0; 7])).1,
             Some(LssAction::StateChanged(LssState::Waiting))
         );
         // A wrong serial number does not select the slave.
@@ -381,7 +396,7 @@ mod tests {
             let v = if i == 3 { v + 1 } else { *v };
             assert_eq!(
                 other
-                    .handle(&request(
+                    .ask(&request(
                         cs::SWITCH_SELECTIVE_VENDOR + i as u8,
                         u32_payload(v)
                     ))
@@ -394,7 +409,7 @@ mod tests {
 
     /// The master side of Fastscan against a set of slaves on a simulated bus.
     fn fastscan(slaves: &mut [LssSlave]) -> Option<[u32; 4]> {
-        let mut ask = |f: Frame| slaves.iter_mut().filter_map(|s| s.handle(&f).0).count() > 0;
+        let mut ask = |f: Frame| slaves.iter_mut().filter_map(|s| s.ask(&f).0).count() > 0;
         if !ask(fastscan_request(0, 0x80, 0, 0)) {
             return None;
         }
@@ -425,12 +440,12 @@ mod tests {
         assert_eq!(found, ADDRESS, "the lowest address wins");
         assert_eq!(slaves[0].state(), LssState::Configuration);
         // Give it a node-ID and put it back to waiting: the next scan finds the other one.
-        slaves[0].handle(&request(cs::CONFIGURE_NODE_ID, [20, 0, 0, 0, 0, 0, 0]));
+        slaves[0].ask(&request(cs::CONFIGURE_NODE_ID, [20, 0, 0, 0, 0, 0, 0]));
         slaves[0].set_active_node_id(20);
-        slaves[0].handle(&request(cs::SWITCH_GLOBAL, [0; 7]));
+        slaves[0].ask(&request(cs::SWITCH_GLOBAL, [0; 7]));
         assert_eq!(fastscan(&mut slaves).unwrap(), second);
         slaves[1].set_active_node_id(21);
-        slaves[1].handle(&request(cs::SWITCH_GLOBAL, [0; 7]));
+        slaves[1].ask(&request(cs::SWITCH_GLOBAL, [0; 7]));
         assert_eq!(fastscan(&mut slaves), None, "nobody left");
     }
 
@@ -448,11 +463,11 @@ mod tests {
         let mut last = None;
         for (i, v) in steps.iter().enumerate() {
             last = s
-                .handle(&request(cs::IDENTIFY_VENDOR + i as u8, u32_payload(*v)))
+                .ask(&request(cs::IDENTIFY_VENDOR + i as u8, u32_payload(*v)))
                 .0;
         }
         assert_eq!(code(&last.unwrap()), cs::IDENTIFY_RESPONSE);
-        let (reply, _) = s.handle(&request(cs::IDENTIFY_NON_CONFIGURED, [0; 7]));
+        let (reply, _) = s.ask(&request(cs::IDENTIFY_NON_CONFIGURED, [0; 7]));
         assert_eq!(reply, None, "has a node-ID");
     }
 }

@@ -148,10 +148,10 @@ impl NmtSlave {
         self.state
     }
 
-    /// Initialisation is complete: enter pre-operational and return the boot-up message.
-    pub fn boot(&mut self) -> Frame {
+    /// Initialisation is complete: enter pre-operational and send the boot-up message.
+    pub fn boot(&mut self, out: &mut Vec<Frame>) {
         self.state = NmtState::PreOperational;
-        boot_up_frame(self.node_id)
+        out.push(boot_up_frame(self.node_id));
     }
 
     /// Handle an NMT frame; `None` when it is not addressed to this node or changes nothing.
@@ -196,7 +196,9 @@ mod tests {
             None,
             "ignored while initialising"
         );
-        assert_eq!(nmt.boot(), Frame::standard(0x705, &[0]).unwrap());
+        let mut out = Vec::new();
+        nmt.boot(&mut out);
+        assert_eq!(out, [Frame::standard(0x705, &[0]).unwrap()]);
         assert_eq!(nmt.state(), NmtState::PreOperational);
         assert_eq!(
             nmt.handle(&NmtCommand::Start.frame(6)),
@@ -227,13 +229,13 @@ mod tests {
             Some(NmtAction::ResetCommunication)
         );
         assert_eq!(nmt.state(), NmtState::Initialising);
-        nmt.boot();
+        nmt.boot(&mut Vec::new());
         assert_eq!(
             nmt.handle(&NmtCommand::ResetNode.frame(0)),
             Some(NmtAction::ResetNode)
         );
         let bad = Frame::standard(0, &[0x03, 5]).unwrap();
-        nmt.boot();
+        nmt.boot(&mut Vec::new());
         assert_eq!(nmt.handle(&bad), None, "unknown command specifier");
     }
 

@@ -307,9 +307,9 @@ impl PdoEvent {
     /// The emergency error code CiA 301 assigns.
     pub fn emcy_code(self) -> u16 {
         match self {
-            PdoEvent::LengthError { .. } => 0x8210,
-            PdoEvent::LengthExceeded { .. } => 0x8220,
-            PdoEvent::Timeout { .. } => 0x8250,
+            PdoEvent::LengthError { .. } => crate::emcy::codes::PDO_LENGTH,
+            PdoEvent::LengthExceeded { .. } => crate::emcy::codes::PDO_LENGTH_EXCEEDED,
+            PdoEvent::Timeout { .. } => crate::emcy::codes::RPDO_TIMEOUT,
         }
     }
 }

@@ -76,26 +76,28 @@ impl SyncProducer {
         self.next
     }
 
-    /// The SYNC frame if one is due.
-    pub fn handle_timeout(&mut self, now: Instant) -> Option<Frame> {
-        let next = self.next?;
-        if now < next {
-            return None;
-        }
+    /// Send the SYNC if one is due.
+    pub fn handle_timeout(&mut self, now: Instant, out: &mut Vec<Frame>) {
+        let Some(next) = self.next.filter(|n| now >= *n) else {
+            return;
+        };
         let period = Duration::from_micros(self.config.period_us.into());
         self.next = Some(crate::tick::next_tick(next, period, now));
-        let id = self.config.id()?;
-        if self.config.counter_overflow >= 2 {
+        let Some(id) = self.config.id() else {
+            return;
+        };
+        let frame = if self.config.counter_overflow >= 2 {
             let counter = self.counter;
             self.counter = if counter >= self.config.counter_overflow {
                 1
             } else {
                 counter + 1
             };
-            Frame::new(id, &[counter]).ok()
+            Frame::new(id, &[counter])
         } else {
-            Frame::new(id, &[]).ok()
-        }
+            Frame::new(id, &[])
+        };
+        out.extend(frame.ok());
     }
 }
 
@@ -125,6 +127,12 @@ pub fn receive(config: &SyncConfig, frame: &Frame, now: Instant) -> Option<SyncE
 mod tests {
     use super::*;
 
+    fn due(p: &mut SyncProducer, now: Instant) -> Option<Frame> {
+        let mut out = Vec::new();
+        p.handle_timeout(now, &mut out);
+        out.pop()
+    }
+
     #[test]
     fn producer_period_counter_and_grid() {
         let t0 = Instant::now();
@@ -137,9 +145,9 @@ mod tests {
         };
         let mut p = SyncProducer::new(config, t0);
         assert_eq!(p.poll_timeout(), Some(t0 + us(1000)));
-        assert_eq!(p.handle_timeout(t0 + us(999)), None);
+        assert_eq!(due(&mut p, t0 + us(999)), None);
         let counters: Vec<u8> = (1..=5)
-            .map(|k| p.handle_timeout(t0 + us(1000 * k + 300)).unwrap().data()[0])
+            .map(|k| due(&mut p, t0 + us(1000 * k + 300)).unwrap().data()[0])
             .collect();
         assert_eq!(counters, vec![1, 2, 3, 1, 2]);
         assert_eq!(
@@ -154,10 +162,7 @@ mod tests {
             },
             t0 + us(6000),
         );
-        assert_eq!(
-            p.handle_timeout(t0 + us(7000)).unwrap().data(),
-            &[] as &[u8]
-        );
+        assert_eq!(due(&mut p, t0 + us(7000)).unwrap().data(), &[] as &[u8]);
         p.reconfigure(
             SyncConfig {
                 cob_id: 0x80,

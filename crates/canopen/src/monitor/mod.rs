@@ -410,9 +410,9 @@ mod fuzz_tests {
                 if let Some(t) = tracker.feed(f) {
                     let _ = t.to_string();
                 }
-                let _ = lss.handle(&crate::lss::request(f.data().first().copied().unwrap_or(0), [0; 7]));
-                let _ = lss.handle(f);
-                let _ = guard.handle(f, crate::nmt::NmtState::Operational, now, &mut ev);
+                let _ = lss.handle(&crate::lss::request(f.data().first().copied().unwrap_or(0), [0; 7]), &mut out);
+                let _ = lss.handle(f, &mut out);
+                guard.handle(f, crate::nmt::NmtState::Operational, now, &mut out, &mut ev);
                 master.handle(f, &mut ev);
                 let _ = pdo.handle_frame(&mut od, f, now, &mut pev);
                 let _ = pdo.handle_remote(&od, f, now, &mut out);
