@@ -1,7 +1,7 @@
 """python-canopen's SDO client against a canlift SDO server (crates/canopen/tests/python_canopen.rs).
 
 usage: sdo_client.py HOST PORT NODE
-The canlift node serves 0x1000 UNSIGNED32 ro = 0x000101A1 and 0x2000 DOMAIN rw. Every size is
+The canlift node serves 0x1000 UNSIGNED32 ro = 0x000101A1 and 0x2002 DOMAIN rw. Every size is
 written and read back with expedited/segmented transfers, then with block transfers.
 """
 
@@ -43,16 +43,16 @@ def main():
 
         for n in SIZES:
             data = pattern(n)
-            node.sdo.download(0x2000, 0, data)  # expedited up to 4 bytes, else segmented
-            got = node.sdo.upload(0x2000, 0)
+            node.sdo.download(0x2002, 0, data)  # expedited up to 4 bytes, else segmented
+            got = node.sdo.upload(0x2002, 0)
             assert got == data, f"segmented round trip of {n} bytes"
-            node.sdo.download(0x2000, 0, data, force_segment=True)
-            assert node.sdo.upload(0x2000, 0) == data, f"forced segmented {n}"
+            node.sdo.download(0x2002, 0, data, force_segment=True)
+            assert node.sdo.upload(0x2002, 0) == data, f"forced segmented {n}"
 
             block = pattern(n + 1)[:n]
-            with node.sdo.open(0x2000, 0, "wb", size=n, block_transfer=True) as f:
+            with node.sdo.open(0x2002, 0, "wb", size=n, block_transfer=True) as f:
                 f.write(block)
-            with node.sdo.open(0x2000, 0, "rb", block_transfer=True) as f:
+            with node.sdo.open(0x2002, 0, "rb", block_transfer=True) as f:
                 got = f.read()
             assert got == block, f"block round trip of {n} bytes: {len(got)} bytes back"
             print(f"size {n}: ok", flush=True)

@@ -128,12 +128,10 @@ mod tests {
 
     #[test]
     fn unknown_keys_are_errors() {
-        let dir = std::env::temp_dir().join(format!("canlift-config-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let path = dir.join("c.toml");
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("c.toml");
         std::fs::write(&path, "[hub]\nbitrat = 5\n").unwrap();
         let err = load::<Sample>(Some(&path), "hub").unwrap_err();
         assert!(format!("{err:#}").contains("bitrat"), "{err:#}");
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

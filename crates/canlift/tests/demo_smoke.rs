@@ -10,6 +10,9 @@ use cloud::client::Client;
 use serde_json::json;
 use tokio::io::{AsyncBufReadExt, BufReader};
 
+mod common;
+use common::{canlift, interrupt};
+
 const LIFT: &str = "1050-4096-DEMO-0001";
 
 struct Demo {
@@ -18,7 +21,7 @@ struct Demo {
 }
 
 async fn start(state: &std::path::Path) -> Demo {
-    let mut child = tokio::process::Command::new(env!("CARGO_BIN_EXE_canlift"))
+    let mut child = canlift()
         .args(["demo", "--speed", "10", "--passengers", "0"])
         .args([
             "--hub-listen",
@@ -28,9 +31,7 @@ async fn start(state: &std::path::Path) -> Demo {
             "--state",
         ])
         .arg(state)
-        .stdout(Stdio::piped())
         .stderr(Stdio::null())
-        .kill_on_drop(true)
         .spawn()
         .unwrap();
     let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
@@ -86,22 +87,15 @@ async fn online(client: &Client) {
 }
 
 async fn stop(mut demo: Demo) {
-    let pid = demo.child.id().unwrap();
-    let _ = std::process::Command::new("kill")
-        .args(["-INT", &pid.to_string()])
-        .status();
-    let status = tokio::time::timeout(Duration::from_secs(20), demo.child.wait())
-        .await
-        .expect("the demo stops after Ctrl-C")
-        .unwrap();
-    assert!(status.success(), "{status:?}");
+    let status = interrupt(&mut demo.child, Duration::from_secs(20)).await;
+    assert!(status.success(), "the demo stops after Ctrl-C: {status:?}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_demo_runs_a_lift_end_to_end() {
-    let state = std::env::temp_dir().join(format!("canlift-demo-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&state);
-    let demo = start(&state).await;
+    let scratch = testkit::scratch();
+    let state = scratch.path();
+    let demo = start(state).await;
     online(&demo.client).await;
     // The web UI is served on the same port: the sign-in page.
     let (status, page) = demo.client.call("GET", "/login", None).await.unwrap();
@@ -139,9 +133,8 @@ async fn the_demo_runs_a_lift_end_to_end() {
     };
     stop(demo).await;
     // Later runs reuse the state: same account, same token, the counters keep counting.
-    let demo = start(&state).await;
+    let demo = start(state).await;
     online(&demo.client).await;
     assert!(trips(&demo.client).await >= after);
     stop(demo).await;
-    let _ = std::fs::remove_dir_all(&state);
 }

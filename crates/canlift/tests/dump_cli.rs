@@ -1,34 +1,30 @@
 //! `canlift dump` watching a live node: whole SDO transfers and PDOs decoded by mappings it
 //! reads over SDO.
 
-use std::process::Stdio;
 use std::time::Duration;
 
 use canbus::Bus;
 use canopen::driver::SdoClients;
 use canopen::nmt::{NmtCommand, NmtState};
 use canopen::node::{LocalNode, NodeConfig, PdoSetup};
-use canopen::od::{Access, Object, ObjectDictionary, Variable};
-use canopen::types::{DataType, Value};
+use canopen::types::Value;
+use testkit::sample::{self, POSITION};
 use tokio::io::AsyncReadExt;
+
+mod common;
+use common::canlift;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn dump_shows_transfers_and_learned_pdos() {
     let hub = testkit::hub().await;
     let url = testkit::hub_url(&hub, "can0");
-    let mut dump = tokio::process::Command::new(env!("CARGO_BIN_EXE_canlift"))
+    let mut dump = canlift()
         .args(["dump", "--bus", &url, "--read-pdo-mappings"])
-        .stdout(Stdio::piped())
-        .kill_on_drop(true)
         .spawn()
         .unwrap();
     tokio::time::sleep(Duration::from_millis(300)).await;
 
-    let mut od = ObjectDictionary::new();
-    od.insert(Object::var(
-        0x2000,
-        Variable::new("Car position", DataType::Unsigned16, Access::Rw).mappable(),
-    ));
+    let od = sample::dictionary();
     let config = NodeConfig {
         heartbeat_ms: 100,
         software_version: "sim 1.0".into(),
@@ -40,7 +36,7 @@ async fn dump_shows_transfers_and_learned_pdos() {
         transmit: true,
         number: 1,
         cob_id: 0x186,
-        objects: vec![(0x2000, 0)],
+        objects: vec![(POSITION, 0)],
         transmission_type: 254,
         inhibit_100us: 0,
         event_ms: 0,
@@ -52,7 +48,7 @@ async fn dump_shows_transfers_and_learned_pdos() {
     assert_eq!(sdo.read::<String>(6, 0x100A, 0).await.unwrap(), "sim 1.0");
     node.nmt(NmtCommand::Start);
     node.wait_for_state(NmtState::Operational).await;
-    node.set_value(0x2000, 0, &Value::Uint(1234)).unwrap();
+    node.set_value(POSITION, 0, &Value::Uint(1234)).unwrap();
     tokio::time::sleep(Duration::from_millis(300)).await;
 
     let mut stdout = dump.stdout.take().unwrap();

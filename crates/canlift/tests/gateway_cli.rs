@@ -1,7 +1,8 @@
 //! `canlift gateway` from the command line: the README's configuration parses, environment
 //! variables override it, and a configuration that cannot work is refused with its reason.
 
-use std::process::Command;
+mod common;
+use common::canlift;
 
 fn readme_gateway_config() -> String {
     let readme = std::fs::read_to_string(testkit::workspace().join("README.md")).unwrap();
@@ -13,23 +14,17 @@ fn readme_gateway_config() -> String {
     block.split("```").next().unwrap().to_owned()
 }
 
-fn temp(name: &str) -> std::path::PathBuf {
-    let dir = std::env::temp_dir().join(format!("canlift-gwcli-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
-
-#[test]
-fn the_readme_configuration_is_what_the_gateway_reads() {
-    let dir = temp("readme");
-    let path = dir.join("gateway.toml");
+#[tokio::test]
+async fn the_readme_configuration_is_what_the_gateway_reads() {
+    let dir = testkit::scratch();
+    let path = dir.path().join("gateway.toml");
     std::fs::write(&path, readme_gateway_config()).unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_canlift"))
+    let out = canlift()
         .args(["gateway", "--print-config", "--config"])
         .arg(&path)
         .env("CANLIFT_BUS_NODE_ID", "10")
         .output()
+        .await
         .unwrap();
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(
@@ -43,13 +38,12 @@ fn the_readme_configuration_is_what_the_gateway_reads() {
         "environment override: {text}"
     );
     assert!(text.contains("max_in_flight = 16"), "{text}");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
-#[test]
-fn refuses_what_cannot_work() {
-    let dir = temp("refuse");
-    let path = dir.join("gateway.toml");
+#[tokio::test]
+async fn refuses_what_cannot_work() {
+    let dir = testkit::scratch();
+    let path = dir.path().join("gateway.toml");
     for (config, reason) in [
         ("[identity]\nsernum = \"1\"\n[cloud]\nurl = \"ws://127.0.0.1:1/ws\"\n", "TLS only"),
         ("[cloud]\nurl = \"wss://127.0.0.1:1/ws\"\n", "sernum"),
@@ -57,14 +51,14 @@ fn refuses_what_cannot_work() {
         ("[identity]\nsernum = \"1\"\ncolour = \"red\"\n", "colour"),
     ] {
         std::fs::write(&path, config).unwrap();
-        let out = Command::new(env!("CARGO_BIN_EXE_canlift"))
+        let out = canlift()
             .args(["gateway", "--config"])
             .arg(&path)
             .output()
+            .await
             .unwrap();
         let err = String::from_utf8_lossy(&out.stderr);
         assert!(!out.status.success(), "{config}");
         assert!(err.contains(reason), "{config}: {err}");
     }
-    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -4,18 +4,15 @@
 
 use std::time::Duration;
 
-use cloud::config::Config;
-use cloud::server::Portal;
-use cloud::store::Store;
+use testkit::portal::Rig;
+
+mod common;
+use common::{canlift, interrupt};
 
 async fn loadgen(args: &[&str]) -> String {
     let out = tokio::time::timeout(
         Duration::from_secs(120),
-        tokio::process::Command::new(env!("CARGO_BIN_EXE_canlift"))
-            .arg("loadgen")
-            .args(args)
-            .kill_on_drop(true)
-            .output(),
+        canlift().arg("loadgen").args(args).output(),
     )
     .await
     .expect("loadgen finishes")
@@ -31,21 +28,12 @@ async fn loadgen(args: &[&str]) -> String {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn gateways_connect_reconnect_and_push() {
-    let dir = std::env::temp_dir().join(format!("canlift-loadgen-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let mut config = Config::default();
-    config.server.listen = "127.0.0.1:0".parse().unwrap();
-    config.state.dir = dir.join("portal");
-    let portal = Portal::bind(&config).await.unwrap();
-    let port = portal.local_addr().port();
-    let registry = portal.registry();
-    let store = Store::open(&config.database_url()).await.unwrap();
+    let rig = Rig::builder().without_lift().start().await;
+    let store = rig.store().await;
     store.add_account("load", "LOAD").await.unwrap();
-    let (stop, stopped) = tokio::sync::watch::channel(false);
-    let task = tokio::spawn(portal.run(stopped));
-    let url = format!("wss://localhost:{port}/ws");
-    let ca = config.state.dir.join("dev-ca.pem");
-    let state = dir.join("gateways");
+    let url = rig.ws_url();
+    let ca = rig.ca.clone();
+    let state = rig.dir().join("gateways");
     let common = [
         "--portal",
         url.as_str(),
@@ -86,7 +74,7 @@ async fn gateways_connect_reconnect_and_push() {
     }
     // Exiting closed every connection.
     let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
-    while registry.online_count() > 0 {
+    while rig.registry().online_count() > 0 {
         assert!(
             tokio::time::Instant::now() < deadline,
             "loadgen left gateways online"
@@ -97,11 +85,10 @@ async fn gateways_connect_reconnect_and_push() {
     // Changing values: the dashboard's objects are pushed and stored.
     let mut pushing = common.to_vec();
     pushing.extend(["--change-ms", "50"]);
-    let mut child = tokio::process::Command::new(env!("CARGO_BIN_EXE_canlift"))
+    let mut child = canlift()
         .arg("loadgen")
         .args(&pushing)
         .stdout(std::process::Stdio::null())
-        .kill_on_drop(true)
         .spawn()
         .unwrap();
     let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
@@ -119,16 +106,7 @@ async fn gateways_connect_reconnect_and_push() {
         );
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
-    let pid = child.id().unwrap().to_string();
-    let _ = std::process::Command::new("kill")
-        .args(["-INT", &pid])
-        .status();
-    let status = tokio::time::timeout(Duration::from_secs(20), child.wait())
-        .await
-        .expect("loadgen stops on SIGINT")
-        .unwrap();
-    assert!(status.success());
-    stop.send(true).unwrap();
-    task.await.unwrap();
-    let _ = std::fs::remove_dir_all(&dir);
+    let status = interrupt(&mut child, Duration::from_secs(20)).await;
+    assert!(status.success(), "loadgen stops on SIGINT: {status:?}");
+    rig.stop().await;
 }

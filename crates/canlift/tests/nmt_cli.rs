@@ -6,6 +6,9 @@ use std::time::Duration;
 use testkit::{interop_script, python};
 use tokio::io::{AsyncBufReadExt, BufReader};
 
+mod common;
+use common::run;
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn nmt_commands_reach_a_python_canopen_node() {
     let Some(python) = python() else { return };
@@ -31,11 +34,7 @@ async fn nmt_commands_reach_a_python_canopen_node() {
         ("stop", "Stopped"),
         ("preop", "PreOperational"),
     ] {
-        let out = tokio::process::Command::new(env!("CARGO_BIN_EXE_canlift"))
-            .args(["nmt", "--bus", &url, command, "12", "--wait-ms", "3000"])
-            .output()
-            .await
-            .unwrap();
+        let out = run(&["nmt", "--bus", &url, command, "12", "--wait-ms", "3000"]).await;
         assert!(
             out.status.success(),
             "{command}: {}",
@@ -47,11 +46,7 @@ async fn nmt_commands_reach_a_python_canopen_node() {
         );
     }
     // A node that does not exist never confirms.
-    let out = tokio::process::Command::new(env!("CARGO_BIN_EXE_canlift"))
-        .args(["nmt", "--bus", &url, "start", "13", "--wait-ms", "500"])
-        .output()
-        .await
-        .unwrap();
+    let out = run(&["nmt", "--bus", &url, "start", "13", "--wait-ms", "500"]).await;
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("did not report Operational"));
     drop(node.stdin.take());

@@ -1,72 +1,30 @@
 //! The operator CLI against a running portal, gateway and simulated lift: `lifts`, `get`, `put`
 //! (learning datatype and unit first) and `watch` until the trip counter rises.
 
-use std::process::Stdio;
 use std::time::Duration;
 
-use cloud::config::Config;
-use cloud::server::Portal;
-use cloud::store::Store;
-use lift417::sim::{SimConfig, Simulator};
+use testkit::constants::LIFT;
+use testkit::portal::Rig;
 use tokio::io::{AsyncBufReadExt, BufReader};
 
-fn canlift(portal: &str, key: &str, ca: &std::path::Path) -> tokio::process::Command {
-    let mut cmd = tokio::process::Command::new(env!("CARGO_BIN_EXE_canlift"));
-    cmd.env("CANLIFT_PORTAL", portal)
-        .env("CANLIFT_API_KEY", key)
-        .env("CANLIFT_CA", ca)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .kill_on_drop(true);
+mod common;
+
+/// `canlift` for the rig's portal, key and CA.
+fn canlift(rig: &Rig) -> tokio::process::Command {
+    let mut cmd = common::canlift();
+    cmd.env("CANLIFT_PORTAL", rig.url())
+        .env("CANLIFT_API_KEY", &rig.key)
+        .env("CANLIFT_CA", &rig.ca);
     cmd
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn lifts_get_put_watch() {
-    let dir = std::env::temp_dir().join(format!("canlift-opcli-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let mut config = Config::default();
-    config.server.listen = "127.0.0.1:0".parse().unwrap();
-    config.state.dir = dir.join("portal");
-    let portal = Portal::bind(&config).await.unwrap();
-    let port = portal.local_addr().port();
-    let key = Store::open(&config.database_url())
-        .await
-        .unwrap()
-        .add_account("masora", "MAS")
-        .await
-        .unwrap();
-    let (stop, stopped) = tokio::sync::watch::channel(false);
-    let portal_task = tokio::spawn(portal.run(stopped));
-    let bus = "mem://opcli";
-    let sim = Simulator::start(
-        bus,
-        SimConfig {
-            speed: 20.0,
-            ..SimConfig::default()
-        },
-    )
-    .await
-    .unwrap();
-    let ca = config.state.dir.join("dev-ca.pem");
-    let identity = nxg::gateway::Identity {
-        sernum: "OP-1".into(),
-        vendorid: 1050,
-        productcode: 4096,
-        domaintoken: "MAS".into(),
-        ..Default::default()
-    };
-    let portal_ws = format!("wss://localhost:{port}/ws");
-    let gw =
-        gateway::config::Config::for_portal(identity, &portal_ws, &ca, bus, &dir.join("gateway"));
-    let gateway = gateway::Gateway::bus_node(gw).await.unwrap();
-    let (gw_stop, gw_stopped) = tokio::sync::watch::channel(false);
-    let gw_task = tokio::spawn(gateway.run(gw_stopped));
-    let url = format!("https://localhost:{port}");
-    let lift = "1050-4096-OP-1";
+    let rig = Rig::builder().start().await;
+    let lift = LIFT;
     let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
     loop {
-        let out = canlift(&url, &key, &ca)
+        let out = canlift(&rig)
             .args(["lifts", "--json"])
             .output()
             .await
@@ -86,13 +44,9 @@ async fn lifts_get_put_watch() {
         );
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
-    let table = canlift(&url, &key, &ca)
-        .arg("lifts")
-        .output()
-        .await
-        .unwrap();
-    assert!(String::from_utf8_lossy(&table.stdout).contains("1050-4096-OP-1"));
-    let get = canlift(&url, &key, &ca)
+    let table = canlift(&rig).arg("lifts").output().await.unwrap();
+    assert!(String::from_utf8_lossy(&table.stdout).contains(LIFT));
+    let get = canlift(&rig)
         .args(["get", lift, "0x652001", "--naked"])
         .output()
         .await
@@ -100,7 +54,7 @@ async fn lifts_get_put_watch() {
     let answer: serde_json::Value = serde_json::from_slice(&get.stdout).unwrap();
     assert_eq!(answer["object"]["value"][0], "0");
     // watch first, then call the car: the baseline and the new trip count come out.
-    let mut watch = canlift(&url, &key, &ca)
+    let mut watch = canlift(&rig)
         .args(["watch", lift, "0x652001", "--count", "2"])
         .spawn()
         .unwrap();
@@ -111,7 +65,7 @@ async fn lifts_get_put_watch() {
         .unwrap()
         .unwrap();
     assert!(first.ends_with(" 0x652001 0"), "{first}");
-    let put = canlift(&url, &key, &ca)
+    let put = canlift(&rig)
         .args(["put", lift, "0x502200", "2"])
         .output()
         .await
@@ -133,7 +87,7 @@ async fn lifts_get_put_watch() {
         .unwrap()
         .success());
     // Errors are reported with the abort code.
-    let refused = canlift(&url, &key, &ca)
+    let refused = canlift(&rig)
         .args(["put", lift, "0x652001", "5"])
         .output()
         .await
@@ -144,10 +98,5 @@ async fn lifts_get_put_watch() {
         "{}",
         String::from_utf8_lossy(&refused.stderr)
     );
-    gw_stop.send(true).unwrap();
-    gw_task.await.unwrap();
-    stop.send(true).unwrap();
-    portal_task.await.unwrap();
-    sim.stop().await;
-    let _ = std::fs::remove_dir_all(&dir);
+    rig.stop().await;
 }

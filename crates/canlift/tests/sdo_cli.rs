@@ -1,41 +1,22 @@
 //! `canlift sdo` as a user runs it: the binary against a canlift SDO server on a hub.
 
-use std::process::Output;
 use std::sync::{Arc, Mutex};
 
 use canbus::Bus;
 use canopen::driver::serve_sdo;
-use canopen::od::{Access, Object, ObjectDictionary, Variable};
 use canopen::sdo::server::ServerConfig;
-use canopen::types::{DataType, Value};
+use canopen::types::Value;
+use testkit::sample::{self, BLOB, POSITION};
 
-async fn canlift(args: &[&str]) -> Output {
-    tokio::process::Command::new(env!("CARGO_BIN_EXE_canlift"))
-        .args(args)
-        .output()
-        .await
-        .unwrap()
-}
+mod common;
+use common::run as canlift;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn read_and_write_from_the_command_line() {
     let hub = testkit::hub().await;
     let url = testkit::hub_url(&hub, "can0");
-    let mut od = ObjectDictionary::new();
-    od.insert(Object::var(
-        0x1017,
-        Variable::new("Producer heartbeat time", DataType::Unsigned16, Access::Rw)
-            .with_value(Value::Uint(1000)),
-    ));
-    od.insert(Object::var(
-        0x1008,
-        Variable::new("Name", DataType::VisibleString, Access::Ro)
-            .with_value(Value::Text("lift controller".into())),
-    ));
-    od.insert(Object::var(
-        0x2000,
-        Variable::new("Blob", DataType::Domain, Access::Rw),
-    ));
+    let mut od = sample::dictionary();
+    od.set_value(POSITION, 0, &Value::Uint(1000)).unwrap();
     let od = Arc::new(Mutex::new(od));
     let server = serve_sdo(
         Bus::open(&url).await.unwrap(),
@@ -44,26 +25,25 @@ async fn read_and_write_from_the_command_line() {
         ServerConfig::default(),
     );
 
-    let out = canlift(&["sdo", "--bus", &url, "read", "1", "0x1017", "0", "u16"]).await;
+    let out = canlift(&["sdo", "--bus", &url, "read", "1", "0x2000", "0", "u16"]).await;
     assert!(out.status.success(), "{out:?}");
     assert_eq!(String::from_utf8_lossy(&out.stdout), "1000\n");
 
     let out = canlift(&[
-        "sdo", "--bus", &url, "write", "1", "0x1017", "0", "u16", "250",
+        "sdo", "--bus", &url, "write", "1", "0x2000", "0", "u16", "250",
     ])
     .await;
     assert!(out.status.success(), "{out:?}");
     assert_eq!(
-        od.lock().unwrap().get_value(0x1017, 0).unwrap(),
+        od.lock().unwrap().get_value(POSITION, 0).unwrap(),
         Value::Uint(250)
     );
 
     let out = canlift(&["sdo", "--bus", &url, "read", "1", "0x1008", "0", "str"]).await;
     assert_eq!(String::from_utf8_lossy(&out.stdout), "lift controller\n");
 
-    let dir = std::env::temp_dir().join(format!("canlift-sdo-cli-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let (src, dst) = (dir.join("in.bin"), dir.join("out.bin"));
+    let dir = testkit::scratch();
+    let (src, dst) = (dir.path().join("in.bin"), dir.path().join("out.bin"));
     let blob: Vec<u8> = (0..20_000u32).map(|i| (i % 251) as u8).collect();
     std::fs::write(&src, &blob).unwrap();
     let out = canlift(&[
@@ -73,7 +53,7 @@ async fn read_and_write_from_the_command_line() {
         "--block",
         "write",
         "1",
-        "0x2000",
+        "0x2002",
         "0",
         "--file",
         src.to_str().unwrap(),
@@ -87,7 +67,7 @@ async fn read_and_write_from_the_command_line() {
         "--block",
         "read",
         "1",
-        "0x2000",
+        "0x2002",
         "0",
         "--file",
         dst.to_str().unwrap(),
@@ -95,7 +75,10 @@ async fn read_and_write_from_the_command_line() {
     .await;
     assert!(out.status.success(), "{out:?}");
     assert_eq!(std::fs::read(&dst).unwrap(), blob);
-    std::fs::remove_dir_all(&dir).unwrap();
+    assert_eq!(
+        od.lock().unwrap().get_value(BLOB, 0).unwrap(),
+        Value::Bytes(blob)
+    );
 
     // Errors name the object, node and CiA abort code, and fail the command.
     let out = canlift(&[
@@ -109,7 +92,7 @@ async fn read_and_write_from_the_command_line() {
         "{err}"
     );
     let out = canlift(&[
-        "sdo", "--bus", &url, "write", "1", "0x1017", "0", "u16", "70000",
+        "sdo", "--bus", &url, "write", "1", "0x2000", "0", "u16", "70000",
     ])
     .await;
     assert!(!out.status.success());

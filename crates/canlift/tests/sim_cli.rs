@@ -2,43 +2,19 @@
 //! implementation) uses to read and drive the running simulator through the hub, and a clean
 //! stop that keeps the counters.
 
-use std::process::Stdio;
 use std::time::Duration;
 
 use canbus::Bus;
 use canopen::driver::SdoClients;
 use testkit::{interop_script, python};
 
-fn temp_dir(name: &str) -> std::path::PathBuf {
-    let dir = std::env::temp_dir().join(format!("canlift-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
-
-fn canlift() -> tokio::process::Command {
-    let mut cmd = tokio::process::Command::new(env!("CARGO_BIN_EXE_canlift"));
-    cmd.stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .kill_on_drop(true);
-    cmd
-}
-
-async fn stop(mut child: tokio::process::Child) -> std::process::ExitStatus {
-    let pid = child.id().expect("running");
-    // SIGINT, as Ctrl-C would: the simulator stores its counters and exits 0.
-    let _ = std::process::Command::new("kill")
-        .args(["-INT", &pid.to_string()])
-        .status();
-    tokio::time::timeout(Duration::from_secs(10), child.wait())
-        .await
-        .expect("exits after SIGINT")
-        .unwrap()
-}
+mod common;
+use common::{canlift, interrupt};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn export_eds_writes_both_nodes() {
-    let dir = temp_dir("sim-eds");
+    let scratch = testkit::scratch();
+    let dir = scratch.path();
     let eds = dir.join("lift.eds");
     let out = canlift()
         .args(["sim", "--floors", "6", "--export-eds"])
@@ -68,7 +44,6 @@ async fn export_eds_writes_both_nodes() {
         .unwrap();
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("40 floors"));
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -76,7 +51,8 @@ async fn python_canopen_reads_and_calls_the_simulated_lift() {
     let Some(python) = python() else { return };
     let hub = testkit::hub().await;
     let url = testkit::hub_url(&hub, "can0");
-    let dir = temp_dir("sim-python");
+    let scratch = testkit::scratch();
+    let dir = scratch.path();
     let eds = dir.join("lift.eds");
     let export = canlift()
         .args(["sim", "--export-eds"])
@@ -85,7 +61,7 @@ async fn python_canopen_reads_and_calls_the_simulated_lift() {
         .await
         .unwrap();
     assert!(export.status.success());
-    let sim = canlift()
+    let mut sim = canlift()
         .args(["sim", "--bus", &url, "--speed", "20", "--state"])
         .arg(dir.join("state"))
         .spawn()
@@ -135,8 +111,8 @@ async fn python_canopen_reads_and_calls_the_simulated_lift() {
     assert_eq!(facts["trips_after"], "1");
     assert_eq!(facts["position"], "8000");
     assert_eq!(facts["abort"], "0x6090031", "floor 9 is too high");
-    assert!(stop(sim).await.success());
+    // SIGINT, as Ctrl-C would: the simulator stores its counters and exits 0.
+    assert!(interrupt(&mut sim, Duration::from_secs(10)).await.success());
     let stored = std::fs::read_to_string(dir.join("state/node1.params")).unwrap();
     assert!(stored.contains("6520:01 01000000"), "{stored}");
-    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -313,8 +313,8 @@ mod tests {
 
     #[test]
     fn save_restart_restore() {
-        let dir = std::env::temp_dir().join(format!("canlift-storage-{}", std::process::id()));
-        let path = dir.join("node.params");
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("node.params");
         let mut od = dictionary(&path);
         od.set(0x1017, 0, &500u16.to_le_bytes()).unwrap();
         od.set(0x2000, 0, &42u32.to_le_bytes()).unwrap();
@@ -367,10 +367,9 @@ mod tests {
             "group 4 not re-stored"
         );
         assert!(
-            !dir.join(".node.params.tmp").exists(),
+            !dir.path().join(".node.params.tmp").exists(),
             "no temporary file left"
         );
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

@@ -10,6 +10,7 @@ use canopen::node::{wait_event, LocalNode, NodeConfig, NodeEvent};
 use canopen::od::ObjectDictionary;
 use canopen::sdo::abort::AbortCode;
 use canopen::types::Value;
+use testkit::sample::{self, POSITION, SETPOINT, TRIPS};
 use tokio::sync::broadcast;
 
 mod common;
@@ -273,25 +274,15 @@ async fn sync_producer_configured_by_sdo() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn configured_pdos_carry_dictionary_changes() {
     use canopen::node::PdoSetup;
-    use canopen::od::{Access, Object, Variable};
-    use canopen::types::DataType;
     let url = "mem://node-pdo";
-    let mut od = ObjectDictionary::new();
-    od.insert(Object::var(
-        0x2000,
-        Variable::new("Car position", DataType::Unsigned16, Access::Rw).mappable(),
-    ));
-    od.insert(Object::var(
-        0x2100,
-        Variable::new("Setpoint", DataType::Unsigned32, Access::Rw).mappable(),
-    ));
+    let od = sample::dictionary();
     let node = LocalNode::start(Bus::open(url).await.unwrap(), od, NodeConfig::new(6));
     node.wait_for_state(NmtState::PreOperational).await;
     node.configure_pdo(&PdoSetup {
         transmit: true,
         number: 1,
         cob_id: 0x186,
-        objects: vec![(0x2000, 0)],
+        objects: vec![(POSITION, 0)],
         transmission_type: 254,
         inhibit_100us: 0,
         event_ms: 0,
@@ -301,7 +292,7 @@ async fn configured_pdos_carry_dictionary_changes() {
         transmit: false,
         number: 1,
         cob_id: 0x206,
-        objects: vec![(0x2100, 0)],
+        objects: vec![(SETPOINT, 0)],
         transmission_type: 255,
         inhibit_100us: 0,
         event_ms: 0,
@@ -321,7 +312,7 @@ async fn configured_pdos_carry_dictionary_changes() {
         &[0, 0],
         "current value on entering operational"
     );
-    node.set_value(0x2000, 0, &Value::Uint(1234)).unwrap();
+    node.set_value(POSITION, 0, &Value::Uint(1234)).unwrap();
     let f = tokio::time::timeout(WAIT, peer.receiver.recv_frame())
         .await
         .unwrap()
@@ -332,7 +323,7 @@ async fn configured_pdos_carry_dictionary_changes() {
         .unwrap();
     let mut stored = Value::Uint(0);
     for _ in 0..500 {
-        stored = node.value(0x2100, 0).unwrap();
+        stored = node.value(SETPOINT, 0).unwrap();
         if stored == Value::Uint(4321) {
             break;
         }
@@ -344,17 +335,11 @@ async fn configured_pdos_carry_dictionary_changes() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn stored_parameters_survive_restarts_and_resets() {
-    use canopen::od::{Access, Object, Variable};
-    use canopen::types::DataType;
     let url = "mem://node-storage";
-    let dir = std::env::temp_dir().join(format!("canlift-node-storage-{}", std::process::id()));
-    let path = dir.join("node8.params");
+    let dir = testkit::scratch();
+    let path = dir.path().join("node8.params");
     let make = || {
-        let mut od = ObjectDictionary::new();
-        od.insert(Object::var(
-            0x2000,
-            Variable::new("Trip counter", DataType::Unsigned32, Access::Ro).persistent(),
-        ));
+        let od = sample::dictionary();
         let config = NodeConfig {
             storage: Some(path.clone()),
             ..NodeConfig::new(8)
@@ -365,7 +350,7 @@ async fn stored_parameters_survive_restarts_and_resets() {
     let (od, config) = make();
     let node = LocalNode::start(Bus::open(url).await.unwrap(), od, config);
     node.wait_for_state(NmtState::PreOperational).await;
-    node.set_value(0x2000, 0, &Value::Uint(1001)).unwrap();
+    node.set_value(TRIPS, 0, &Value::Uint(1001)).unwrap();
     master.sdo().write(8, 0x1017, 0, 250u16).await.unwrap();
     let err = master
         .sdo()
@@ -381,7 +366,7 @@ async fn stored_parameters_survive_restarts_and_resets() {
     let (od, config) = make();
     let node = LocalNode::start(Bus::open(url).await.unwrap(), od, config);
     node.wait_for_state(NmtState::PreOperational).await;
-    assert_eq!(node.value(0x2000, 0).unwrap(), Value::Uint(1001));
+    assert_eq!(node.value(TRIPS, 0).unwrap(), Value::Uint(1001));
     assert_eq!(master.sdo().read::<u16>(8, 0x1017, 0).await.unwrap(), 250);
     // Reset node returns to the stored values, not to what was changed since.
     master.sdo().write(8, 0x1017, 0, 100u16).await.unwrap();
@@ -394,9 +379,8 @@ async fn stored_parameters_survive_restarts_and_resets() {
     master.nmt(NmtCommand::ResetCommunication, 8).await.unwrap();
     tokio::time::sleep(Duration::from_millis(100)).await;
     assert_eq!(master.sdo().read::<u16>(8, 0x1017, 0).await.unwrap(), 0);
-    assert_eq!(node.value(0x2000, 0).unwrap(), Value::Uint(1001));
+    assert_eq!(node.value(TRIPS, 0).unwrap(), Value::Uint(1001));
     node.stop().await;
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -8,11 +8,9 @@ use std::time::Duration;
 use canbus::hub::HubHandle;
 use canbus::Bus;
 use canopen::driver::{serve_sdo, SdoClients, TransferOptions};
-use canopen::od::{Access, Object, ObjectDictionary, Variable};
 use canopen::sdo::abort::AbortCode;
 use canopen::sdo::client::{ClientConfig, Transfer};
 use canopen::sdo::server::ServerConfig;
-use canopen::types::{DataType, Value};
 use testkit::{interop_script, python};
 use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::Command;
@@ -37,16 +35,7 @@ fn script(python: &std::path::Path, name: &str, hub: &HubHandle, node: u8) -> Co
 async fn python_canopen_client_against_canlift_server() {
     let Some(python) = python() else { return };
     let hub = testkit::hub().await;
-    let mut od = ObjectDictionary::new();
-    od.insert(Object::var(
-        0x1000,
-        Variable::new("Device type", DataType::Unsigned32, Access::Ro)
-            .with_value(Value::Uint(0x0001_01A1)),
-    ));
-    od.insert(Object::var(
-        0x2000,
-        Variable::new("Blob", DataType::Domain, Access::Rw),
-    ));
+    let od = testkit::sample::dictionary();
     let url = testkit::hub_url(&hub, "can0");
     let server = serve_sdo(
         Bus::open(&url).await.unwrap(),
@@ -128,9 +117,8 @@ fn python_canopen_imports_our_exported_eds() {
     let fixture =
         std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/eds/canopennode-style.eds");
     let description = canopen::eds::import_file(&fixture, Some(5)).unwrap();
-    let dir = std::env::temp_dir().join(format!("canlift-eds-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let exported = dir.join("exported.eds");
+    let dir = testkit::scratch();
+    let exported = dir.path().join("exported.eds");
     std::fs::write(&exported, canopen::eds::export(&description, false)).unwrap();
     let out = std::process::Command::new(python)
         .arg(interop_script("read_eds.py"))
@@ -140,7 +128,6 @@ fn python_canopen_imports_our_exported_eds() {
         ])
         .output()
         .unwrap();
-    std::fs::remove_dir_all(&dir).unwrap();
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(
         out.status.success(),

@@ -154,10 +154,10 @@ async fn python_canopen_lss_master_configures_a_canlift_node() {
     let Some(python) = python() else { return };
     let hub = testkit::hub().await;
     let url = testkit::hub_url(&hub, "can0");
-    let dir = std::env::temp_dir().join(format!("canlift-pylss-{}", std::process::id()));
+    let dir = testkit::scratch();
     let config = |serial: u32| NodeConfig {
         identity: [0x41A, 0x1000, 2, serial],
-        storage: Some(dir.join(format!("{serial}.params"))),
+        storage: Some(dir.path().join(format!("{serial}.params"))),
         ..NodeConfig::new(canopen::lss::UNCONFIGURED)
     };
     let master = Master::open(&url, Default::default()).await.unwrap();
@@ -202,6 +202,5 @@ async fn python_canopen_lss_master_configures_a_canlift_node() {
     let _ = child.wait().await;
     low.stop().await;
     high.stop().await;
-    let _ = std::fs::remove_dir_all(&dir);
     hub.shutdown().await;
 }

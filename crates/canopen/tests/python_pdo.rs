@@ -31,9 +31,8 @@ async fn python_canopen_configures_and_uses_our_pdos() {
     }
     let node = LocalNode::start(Bus::open(&url).await.unwrap(), od, NodeConfig::new(10));
     // python-canopen needs the node's dictionary: export it as an EDS.
-    let dir = std::env::temp_dir().join(format!("canlift-pdo-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let eds = dir.join("node10.eds");
+    let dir = testkit::scratch();
+    let eds = dir.path().join("node10.eds");
     let description = DeviceDescription {
         od: node.od().lock().unwrap().clone(),
         ..DeviceDescription::default()
@@ -76,7 +75,6 @@ async fn python_canopen_configures_and_uses_our_pdos() {
     assert_eq!(next!(), "TPDO2 777");
     assert_eq!(next!(), "OK");
     let _ = child.wait().await;
-    std::fs::remove_dir_all(&dir).unwrap();
     node.stop().await;
     hub.shutdown().await;
 }

@@ -4,42 +4,31 @@
 use std::collections::HashMap;
 use std::time::Duration;
 
-use cloud::config::Config;
-use cloud::server::Portal;
-use cloud::store::Store;
 use serde_json::{json, Value};
+use testkit::portal::Rig;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn identity_and_token_rules() {
     let Some(python) = testkit::python() else {
         return;
     };
-    let dir = std::env::temp_dir().join(format!("canlift-pygw-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let mut config = Config::default();
-    config.server.listen = "127.0.0.1:0".parse().unwrap();
-    config.state.dir = dir.clone();
-    config.gateways.connect_timeout_s = 1;
-    config.gateways.heartbeat_s = 1;
-    // The fake gateway has no dictionary: no dashboard subscriptions, so that every message it
-    // gets after CONNACK is the one the token rules predict.
-    config.dashboard.live.clear();
-    let portal = Portal::bind(&config).await.unwrap();
-    let port = portal.local_addr().port();
-    Store::open(&config.database_url())
-        .await
-        .unwrap()
-        .add_account("masora", "MAS")
-        .await
-        .unwrap();
-    let (stop, stopped) = tokio::sync::watch::channel(false);
-    let task = tokio::spawn(portal.run(stopped));
+    let rig = Rig::builder()
+        .without_lift()
+        .portal(|config| {
+            config.gateways.connect_timeout_s = 1;
+            config.gateways.heartbeat_s = 1;
+            // The fake gateway has no dictionary: no dashboard subscriptions, so that every
+            // message it gets after CONNACK is the one the token rules predict.
+            config.dashboard.live.clear();
+        })
+        .start()
+        .await;
     let out = tokio::time::timeout(
         Duration::from_secs(60),
         tokio::process::Command::new(&python)
             .arg(testkit::interop_script("fake_gateway.py"))
-            .arg(format!("wss://localhost:{port}/ws"))
-            .arg(dir.join("dev-ca.pem"))
+            .arg(rig.ws_url())
+            .arg(&rig.ca)
             .output(),
     )
     .await
@@ -74,11 +63,13 @@ async fn identity_and_token_rules() {
     assert_eq!(facts["silent"], "closed");
     assert_eq!(facts["no_subprotocol"], 400);
     // The refusals were recorded.
-    let store = Store::open(&config.database_url()).await.unwrap();
-    let refusals = store.refusals("1050-4096-PY-0001").await.unwrap();
+    let refusals = rig
+        .store()
+        .await
+        .refusals("1050-4096-PY-0001")
+        .await
+        .unwrap();
     assert_eq!(refusals.len(), 2, "{refusals:?}");
     assert!(refusals.iter().any(|r| r.2 == "wrong cloud token"));
-    stop.send(true).unwrap();
-    task.await.unwrap();
-    let _ = std::fs::remove_dir_all(&dir);
+    rig.stop().await;
 }

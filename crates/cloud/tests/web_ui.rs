@@ -10,8 +10,8 @@ use std::time::Duration;
 use fantoccini::{Client, ClientBuilder, Locator};
 use serde_json::{json, Value};
 
-mod common;
-use common::{Rig, LIFT, SERVICE_PASSWORD};
+use testkit::constants::{LIFT, SERVICE_PASSWORD};
+use testkit::portal::Rig;
 
 /// ChromeDriver on a free loopback port, killed when dropped.
 struct Driver {
@@ -168,10 +168,13 @@ async fn operator_uses_the_web_ui() {
     let Some((chromium, chromedriver_path)) = testkit::browser() else {
         return;
     };
-    let rig = Rig::start("web-ui", None, true).await;
+    let rig = Rig::builder()
+        .portal(|c| c.dashboard.live.push("0x5FFF00".into()))
+        .start()
+        .await;
     rig.online().await;
     let driver = chromedriver(&chromedriver_path).await;
-    let profile = rig.dir.join("chromium-profile");
+    let profile = rig.dir().join("chromium-profile");
     let client = browser(&driver, &chromium, &profile).await;
     let base = rig.url();
 

@@ -52,33 +52,29 @@ mod tests {
 
     #[test]
     fn stores_and_loads() {
-        let dir = std::env::temp_dir().join(format!("canlift-token-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        let store = TokenStore::new(&dir);
+        let dir = tempfile::tempdir().unwrap();
+        let store = TokenStore::new(dir.path());
         assert_eq!(store.load(), None);
         store.store("2A98765DE230176C").unwrap();
         assert_eq!(store.load().as_deref(), Some("2A98765DE230176C"));
         store.store("second").unwrap();
         assert_eq!(store.load().as_deref(), Some("second"));
         // No temporary file is left behind.
-        let files: Vec<_> = std::fs::read_dir(&dir).unwrap().collect();
+        let files: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
         assert_eq!(files.len(), 1);
-        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]
     fn a_crash_between_write_and_rename_leaves_the_old_token() {
-        let dir = std::env::temp_dir().join(format!("canlift-token-crash-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        let store = TokenStore::new(&dir);
+        let dir = tempfile::tempdir().unwrap();
+        let store = TokenStore::new(dir.path());
         store.store("old-token").unwrap();
         // What a kill during `store` leaves: a half-written temporary file beside the token.
-        std::fs::write(dir.join(".cloudtoken.tmp"), "new-to").unwrap();
+        std::fs::write(dir.path().join(".cloudtoken.tmp"), "new-to").unwrap();
         assert_eq!(store.load().as_deref(), Some("old-token"));
         // The next store replaces the leftover and the token.
         store.store("new-token").unwrap();
         assert_eq!(store.load().as_deref(), Some("new-token"));
-        assert!(!dir.join(".cloudtoken.tmp").exists());
-        let _ = std::fs::remove_dir_all(&dir);
+        assert!(!dir.path().join(".cloudtoken.tmp").exists());
     }
 }

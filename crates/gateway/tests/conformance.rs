@@ -8,7 +8,6 @@ use std::time::Duration;
 
 use common::*;
 use gateway::Gateway;
-use lift417::sim::{SimConfig, Simulator};
 use serde_json::{json, Value};
 
 const HEARTBEAT: &str = r#"{ "jsonrpc": "2.0", "id": "<ID>", "method": "get_heartbeat" }"#;
@@ -106,20 +105,12 @@ fn done(id: &str) -> Value {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_sample_of_the_specification() {
-    let dir = Scratch::new("conformance");
-    let pki = pki(&dir.0);
+    let dir = testkit::scratch();
+    let pki = pki(dir.path());
     let portal = Portal::start(&pki).await;
     let bus = "mem://conformance";
-    let sim = Simulator::start(
-        bus,
-        SimConfig {
-            speed: 20.0,
-            ..SimConfig::default()
-        },
-    )
-    .await
-    .unwrap();
-    let config = config(&portal.url(), &pki, bus, &dir.0);
+    let sim = testkit::lift::simulator(bus).await;
+    let config = config(&portal.url(), &pki, bus, dir.path());
     let gateway = Gateway::bus_node(config).await.unwrap();
     let running = spawn(gateway);
 
@@ -141,7 +132,7 @@ async fn every_sample_of_the_specification() {
     assert_eq!(ask(&mut ws, HEARTBEAT, &mut notes).await, done("<ID>"));
     // §5.4: stored before confirmed.
     assert_eq!(ask(&mut ws, UPDATE_TOKEN, &mut notes).await, done("<ID>"));
-    let stored = std::fs::read_to_string(dir.0.join("state/cloudtoken")).unwrap();
+    let stored = std::fs::read_to_string(dir.path().join("state/cloudtoken")).unwrap();
     assert_eq!(
         stored.trim_end(),
         "A token string that is maximum 128 characters long."
@@ -315,6 +306,6 @@ async fn every_sample_of_the_specification() {
     let timeout = recv(&mut ws).await;
     assert_eq!(timeout["error"]["code"], 0x0504_0000);
 
-    running.finish().await;
+    running.stop().await;
     sim.stop().await;
 }

@@ -13,8 +13,8 @@ use serde_json::json;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn serves_the_controllers_own_dictionary() {
-    let dir = Scratch::new("embedded");
-    let pki = pki(&dir.0);
+    let dir = testkit::scratch();
+    let pki = pki(dir.path());
     let portal = Portal::start(&pki).await;
     let od = Catalog::builtin()
         .dictionary(Device::Controller, 1, 8)
@@ -24,7 +24,7 @@ async fn serves_the_controllers_own_dictionary() {
         .unwrap()
         .set_value(0x6520, 1, &CoValue::Uint(2510))
         .unwrap();
-    let config = config(&portal.url(), &pki, "mem://unused", &dir.0);
+    let config = config(&portal.url(), &pki, "mem://unused", dir.path());
     let gateway = Gateway::embedded(config, od.clone()).unwrap();
     let running = spawn(gateway);
     let (mut ws, ..) = portal.accept().await;
@@ -69,5 +69,5 @@ async fn serves_the_controllers_own_dictionary() {
         od.lock().unwrap().get_value(0x5022, 0),
         Ok(CoValue::Uint(6))
     );
-    running.finish().await;
+    running.stop().await;
 }

@@ -11,8 +11,8 @@ use serde_json::json;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn eds_metadata_and_a_second_network() {
-    let dir = Scratch::new("nodes");
-    let pki = pki(&dir.0);
+    let dir = testkit::scratch();
+    let pki = pki(dir.path());
     let portal = Portal::start(&pki).await;
     let sim1 = Simulator::start("mem://nodes-1", SimConfig::default())
         .await
@@ -23,9 +23,9 @@ async fn eds_metadata_and_a_second_network() {
         ..SimConfig::default()
     };
     let sim2 = Simulator::start("mem://nodes-2", lifts2).await.unwrap();
-    let eds = dir.0.join("io-node.eds");
+    let eds = dir.path().join("io-node.eds");
     std::fs::write(&eds, export_eds(&SimConfig::default(), Device::Io).unwrap()).unwrap();
-    let mut config = config(&portal.url(), &pki, "mem://nodes-1", &dir.0);
+    let mut config = config(&portal.url(), &pki, "mem://nodes-1", dir.path());
     config.bus.nodes = vec![NodeSection { id: 12, eds }];
     config.networks = vec![NetworkSection {
         net: 2,
@@ -83,25 +83,25 @@ async fn eds_metadata_and_a_second_network() {
         notes[0]["result"],
         json!({"mplex": "0x6D2001", "value": "0", "node": {"id": 1, "net": 2}})
     );
-    running.finish().await;
+    running.stop().await;
     sim1.stop().await;
     sim2.stop().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn mutual_tls_needs_the_client_certificate() {
-    let dir = Scratch::new("mtls");
-    let pki = pki(&dir.0);
+    let dir = testkit::scratch();
+    let pki = pki(dir.path());
     let portal = Portal::start_with(&pki, true).await;
     let sim = Simulator::start("mem://mtls", SimConfig::default())
         .await
         .unwrap();
     // Without a client certificate the handshake fails.
-    let config = config(&portal.url(), &pki, "mem://mtls", &dir.0);
+    let config = config(&portal.url(), &pki, "mem://mtls", dir.path());
     let gateway = Gateway::bus_node(config.clone()).await.unwrap();
     let running = spawn(gateway);
     assert!(!portal.try_tls().await, "no client certificate, no TLS");
-    running.finish().await;
+    running.stop().await;
     // With it the gateway gets through to CONNECT.
     let mut config = config;
     config.cloud.client_cert = Some(pki.client_cert.clone());
@@ -110,6 +110,6 @@ async fn mutual_tls_needs_the_client_certificate() {
     let running = spawn(gateway);
     let (mut ws, ..) = portal.accept().await;
     connack(&mut ws).await;
-    running.finish().await;
+    running.stop().await;
     sim.stop().await;
 }

@@ -9,7 +9,6 @@ use std::time::Duration;
 
 use common::*;
 use gateway::Gateway;
-use lift417::sim::{SimConfig, Simulator};
 use serde_json::{json, Value};
 use tokio::io::{AsyncBufReadExt, BufReader};
 
@@ -18,8 +17,8 @@ async fn a_python_websockets_portal_talks_to_the_gateway() {
     let Some(python) = testkit::python() else {
         return;
     };
-    let dir = Scratch::new("python-portal");
-    let pki = pki(&dir.0);
+    let dir = testkit::scratch();
+    let pki = pki(dir.path());
     let mut portal = tokio::process::Command::new(&python)
         .arg(testkit::interop_script("portal.py"))
         .arg(&pki.cert)
@@ -36,16 +35,8 @@ async fn a_python_websockets_portal_talks_to_the_gateway() {
         .unwrap();
     let port = first.strip_prefix("PORT ").expect("PORT line");
     let bus = "mem://python-portal";
-    let sim = Simulator::start(
-        bus,
-        SimConfig {
-            speed: 20.0,
-            ..SimConfig::default()
-        },
-    )
-    .await
-    .unwrap();
-    let config = config(&format!("wss://localhost:{port}/ws"), &pki, bus, &dir.0);
+    let sim = testkit::lift::simulator(bus).await;
+    let config = config(&format!("wss://localhost:{port}/ws"), &pki, bus, dir.path());
     let gateway = Gateway::bus_node(config).await.unwrap();
     let running = spawn(gateway);
     let mut answers: HashMap<String, Value> = HashMap::new();
@@ -98,6 +89,6 @@ async fn a_python_websockets_portal_talks_to_the_gateway() {
     );
     assert!(notes.contains(&json!({"jsonrpc": "2.0", "method": "canopen_object", "result": {"mplex": "0x652001", "value": "1"}})));
     assert!(portal.wait().await.unwrap().success());
-    running.finish().await;
+    running.stop().await;
     sim.stop().await;
 }

@@ -7,33 +7,25 @@ mod common;
 use common::*;
 use futures_util::StreamExt;
 use gateway::Gateway;
-use lift417::sim::{SimConfig, Simulator};
+use lift417::sim::Simulator;
 use serde_json::{json, Value};
 use tokio_tungstenite::tungstenite::protocol::frame::coding::CloseCode;
 use tokio_tungstenite::tungstenite::Message;
 
 struct Rig {
-    _dir: Scratch,
+    _dir: tempfile::TempDir,
     portal: Portal,
     sim: Simulator,
     running: Running,
 }
 
 async fn rig(name: &str, limits: impl FnOnce(&mut gateway::config::Config)) -> Rig {
-    let dir = Scratch::new(name);
-    let pki = pki(&dir.0);
+    let dir = testkit::scratch();
+    let pki = pki(dir.path());
     let portal = Portal::start(&pki).await;
     let bus = format!("mem://{name}");
-    let sim = Simulator::start(
-        &bus,
-        SimConfig {
-            speed: 20.0,
-            ..SimConfig::default()
-        },
-    )
-    .await
-    .unwrap();
-    let mut config = config(&portal.url(), &pki, &bus, &dir.0);
+    let sim = testkit::lift::simulator(&bus).await;
+    let mut config = config(&portal.url(), &pki, &bus, dir.path());
     limits(&mut config);
     let gateway = Gateway::bus_node(config).await.unwrap();
     Rig {
@@ -46,7 +38,7 @@ async fn rig(name: &str, limits: impl FnOnce(&mut gateway::config::Config)) -> R
 
 impl Rig {
     async fn finish(self) {
-        self.running.finish().await;
+        self.running.stop().await;
         self.sim.stop().await;
     }
 }

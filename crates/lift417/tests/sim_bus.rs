@@ -216,12 +216,11 @@ async fn two_lifts_live_at_the_cia_417_offsets() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn counters_survive_a_restart() {
-    let dir = std::env::temp_dir().join(format!("canlift-sim-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+    let scratch = testkit::scratch();
+    let dir = scratch.path();
     let url = "mem://sim-restart";
     let config = SimConfig {
-        state_dir: Some(dir.clone()),
+        state_dir: Some(dir.to_path_buf()),
         io_node: None,
         ..config()
     };
@@ -247,7 +246,6 @@ async fn counters_survive_a_restart() {
         "drive starts kept"
     );
     sim.stop().await;
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -1,5 +1,22 @@
 //! Helpers shared by the integration tests of several crates: a hub on a loopback port, finding
-//! the interop Python, and reporting skipped tests where CI logs show them.
+//! the interop Python and the browser, reporting skipped tests where CI logs show them, the
+//! constants every test uses for its lift ([`constants`]), a sample dictionary ([`sample`]), and,
+//! behind features, a PostgreSQL database per test (`postgres`), a test PKI (`pki`), the
+//! simulated lift with its gateway (`lift`) and the portal with a lift connected (`portal`).
+
+pub mod constants;
+#[cfg(feature = "lift")]
+pub mod lift;
+#[cfg(feature = "pki")]
+pub mod pki;
+#[cfg(feature = "portal")]
+pub mod portal;
+#[cfg(feature = "postgres")]
+mod postgres;
+pub mod sample;
+
+#[cfg(feature = "postgres")]
+pub use postgres::postgres;
 
 use std::io::Write;
 use std::net::SocketAddr;
@@ -98,36 +115,10 @@ pub fn browser() -> Option<(PathBuf, PathBuf)> {
     }
 }
 
-/// A fresh PostgreSQL database for test `name`, or `None` after printing why the test is
-/// skipped. CANLIFT_TEST_POSTGRES is a URL to an existing database whose user may create
-/// databases (CI sets it after starting Debian's PostgreSQL); with CANLIFT_REQUIRE_POSTGRES=1 a
-/// missing or unreachable server fails the test instead.
-pub async fn postgres(name: &str) -> Option<String> {
-    use sqlx::Connection;
-    let require = std::env::var("CANLIFT_REQUIRE_POSTGRES").as_deref() == Ok("1");
-    let give_up = |reason: String| {
-        if require {
-            panic!("{reason}");
-        }
-        skip(&reason);
-        None
-    };
-    let Ok(admin) = std::env::var("CANLIFT_TEST_POSTGRES") else {
-        return give_up("postgres: CANLIFT_TEST_POSTGRES is not set".into());
-    };
-    let mut conn = match sqlx::PgConnection::connect(&admin).await {
-        Ok(c) => c,
-        Err(e) => return give_up(format!("postgres: {admin}: {e}")),
-    };
-    let db = format!("canlift_{name}_{}", std::process::id());
-    for statement in [
-        format!("DROP DATABASE IF EXISTS {db}"),
-        format!("CREATE DATABASE {db}"),
-    ] {
-        if let Err(e) = sqlx::query(&statement).execute(&mut conn).await {
-            return give_up(format!("postgres: {statement}: {e}"));
-        }
-    }
-    let base = admin.rsplit_once('/').map_or(admin.as_str(), |(b, _)| b);
-    Some(format!("{base}/{db}"))
+/// A scratch directory, removed when dropped.
+pub fn scratch() -> tempfile::TempDir {
+    tempfile::Builder::new()
+        .prefix("canlift-test-")
+        .tempdir()
+        .expect("a scratch directory")
 }

@@ -360,11 +360,11 @@ fn binary_size(exe: &Path, dir: &Path) -> anyhow::Result<()> {
 
 /// Run every gateway measurement.
 pub async fn run(args: GatewayBench) -> anyhow::Result<()> {
-    let dir = std::env::temp_dir().join(format!("canlift-bench-gateway-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let pki = devpki::ensure(&dir)?;
-    let result = measure(&args, &pki, &dir).await;
-    let _ = std::fs::remove_dir_all(&dir);
+    let dir = tempfile::Builder::new()
+        .prefix("canlift-bench-gateway-")
+        .tempdir()?;
+    let pki = devpki::ensure(dir.path())?;
+    let result = measure(&args, &pki, dir.path()).await;
     result
 }
 

@@ -297,11 +297,10 @@ fn database_url(args: &PortalBench, dir: &Path) -> String {
 
 /// `canlift bench portal`.
 pub async fn run(args: PortalBench) -> anyhow::Result<()> {
-    let dir = std::env::temp_dir().join(format!("canlift-bench-portal-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir)?;
-    let result = measure(&args, &dir).await;
-    let _ = std::fs::remove_dir_all(&dir);
+    let dir = tempfile::Builder::new()
+        .prefix("canlift-bench-portal-")
+        .tempdir()?;
+    let result = measure(&args, dir.path()).await;
     result
 }
 

@@ -2,13 +2,11 @@
 //! selects a subprotocol, and a gateway configuration pointing at it.
 #![allow(dead_code)]
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::Arc;
-use std::time::Duration;
 
 use futures_util::{SinkExt, StreamExt};
 use gateway::config::Config;
-use rcgen::{BasicConstraints, CertificateParams, IsCa, Issuer, KeyPair, KeyUsagePurpose};
 use serde_json::Value;
 use tokio::net::{TcpListener, TcpStream};
 use tokio_rustls::server::TlsStream;
@@ -17,71 +15,14 @@ use tokio_tungstenite::tungstenite::http::HeaderValue;
 use tokio_tungstenite::tungstenite::Message;
 use tokio_tungstenite::WebSocketStream;
 
-pub const SERNUM: &str = "180917010200000102";
-/// SHA-1 of "service" and "setup".
-pub const SERVICE_SHA1: &str = "4cf5bc59bee9e1c44c6254b5f84e7f066bd8e5fe";
-pub const SETUP_SHA1: &str = "80437a44a661d141174209119d54125a59a64b2a";
-pub const WAIT: Duration = Duration::from_secs(10);
+#[allow(unused_imports)]
+pub use testkit::constants::{SERNUM, SERVICE_SHA1, SETUP_SHA1, WAIT};
+pub use testkit::lift::RunningGateway as Running;
+pub use testkit::pki::{pki, TestPki};
 
-/// A scratch directory removed on drop.
-pub struct Scratch(pub PathBuf);
-
-impl Scratch {
-    pub fn new(name: &str) -> Scratch {
-        let dir = std::env::temp_dir().join(format!("canlift-{name}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
-        Scratch(dir)
-    }
-}
-
-impl Drop for Scratch {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
-
-/// A CA and a server certificate for localhost and 127.0.0.1, as PEM files in `dir`.
-pub struct TestPki {
-    pub ca: PathBuf,
-    pub cert: PathBuf,
-    pub key: PathBuf,
-    /// A client certificate signed by the same CA, for mutual TLS.
-    pub client_cert: PathBuf,
-    pub client_key: PathBuf,
-}
-
-pub fn pki(dir: &Path) -> TestPki {
-    let mut ca_params = CertificateParams::new(Vec::<String>::new()).unwrap();
-    ca_params.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
-    ca_params.key_usages = vec![
-        KeyUsagePurpose::KeyCertSign,
-        KeyUsagePurpose::DigitalSignature,
-    ];
-    let ca_key = KeyPair::generate().unwrap();
-    let ca_cert = ca_params.self_signed(&ca_key).unwrap();
-    let issuer = Issuer::new(ca_params, ca_key);
-    let params =
-        CertificateParams::new(vec!["localhost".to_owned(), "127.0.0.1".to_owned()]).unwrap();
-    let key = KeyPair::generate().unwrap();
-    let cert = params.signed_by(&key, &issuer).unwrap();
-    let client_params =
-        CertificateParams::new(vec!["gateway-180917010200000102".to_owned()]).unwrap();
-    let client_key = KeyPair::generate().unwrap();
-    let client = client_params.signed_by(&client_key, &issuer).unwrap();
-    let pki = TestPki {
-        ca: dir.join("ca.pem"),
-        cert: dir.join("server.pem"),
-        key: dir.join("server.key"),
-        client_cert: dir.join("client.pem"),
-        client_key: dir.join("client.key"),
-    };
-    std::fs::write(&pki.client_cert, client.pem()).unwrap();
-    std::fs::write(&pki.client_key, client_key.serialize_pem()).unwrap();
-    std::fs::write(&pki.ca, ca_cert.pem()).unwrap();
-    std::fs::write(&pki.cert, cert.pem()).unwrap();
-    std::fs::write(&pki.key, key.serialize_pem()).unwrap();
-    pki
+/// Run `gateway` until [`Running::stop`].
+pub fn spawn(gateway: gateway::Gateway) -> Running {
+    Running::spawn(gateway)
 }
 
 pub type Ws = WebSocketStream<TlsStream<TcpStream>>;
@@ -204,52 +145,10 @@ pub async fn connack(ws: &mut Ws) -> Value {
     connect
 }
 
-/// A gateway configuration for `portal`, the bus at `bus`, state in `dir`.
+/// A gateway configuration for `portal`, the bus at `bus`, state in `dir`: the sample
+/// identity and passwords, and the sample's `Origin` header.
 pub fn config(portal_url: &str, pki: &TestPki, bus: &str, dir: &Path) -> Config {
-    let mut c = Config::default();
-    c.identity.sernum = SERNUM.into();
-    c.identity.vendorid = 1050;
-    c.identity.productcode = 4096;
-    c.identity.liftnum = "40/7289/20399-126".into();
-    c.identity.hardware = "Thor @ NX-T2".into();
-    c.identity.software = "01.23.10".into();
-    c.identity.boardhash =
-        "2354A687AF6DC79B203E754E8E426A87FE188A62983B7AC48F9D5E195B728112".into();
-    c.identity.domaintoken = "MAS".into();
-    c.cloud.url = portal_url.into();
-    c.cloud.ca_file = Some(pki.ca.clone());
+    let mut c = testkit::lift::gateway_config(portal_url, &pki.ca, bus, &dir.join("state"));
     c.cloud.origin = Some("https://192.168.178.101".into());
-    c.state.dir = dir.join("state");
-    c.bus.url = bus.into();
-    c.bus.sdo_timeout_ms = 300;
-    c.bus.poll_ms = 100;
-    c.privileges.service_sha1 = Some(SERVICE_SHA1.into());
-    c.privileges.setup_sha1 = Some(SETUP_SHA1.into());
     c
-}
-
-/// A gateway running in a task.
-pub struct Running {
-    stop: tokio::sync::watch::Sender<bool>,
-    task: tokio::task::JoinHandle<()>,
-}
-
-/// Run `gateway` until [`Running::finish`].
-pub fn spawn(gateway: gateway::Gateway) -> Running {
-    let (stop, stopped) = tokio::sync::watch::channel(false);
-    Running {
-        stop,
-        task: tokio::spawn(gateway.run(stopped)),
-    }
-}
-
-impl Running {
-    /// Stop the gateway and wait until it has.
-    pub async fn finish(self) {
-        self.stop.send(true).unwrap();
-        tokio::time::timeout(WAIT, self.task)
-            .await
-            .expect("gateway stops")
-            .unwrap();
-    }
 }

@@ -1,0 +1,213 @@
+//! The portal with the simulated lift and its gateway connected: what the end-to-end, browser
+//! and CLI tests start.
+//!
+//! ```no_run
+//! # async fn t() {
+//! let rig = testkit::portal::Rig::builder().start().await;
+//! rig.online().await;
+//! let (status, lifts) = rig.call("GET", "/api/v1/lifts", Some(&rig.key), None).await;
+//! # }
+//! ```
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use cloud::config::Config;
+use cloud::server::Portal;
+use cloud::store::Store;
+use serde_json::Value;
+use tokio::sync::watch;
+use tokio::task::JoinHandle;
+
+use crate::constants::*;
+use crate::lift::{gateway_config, Lift};
+
+/// How a [`Rig`] is set up.
+pub struct Builder {
+    database: Option<String>,
+    lift: bool,
+    portal: Box<dyn FnOnce(&mut Config)>,
+    gateway: Box<dyn FnOnce(&mut gateway::config::Config)>,
+}
+
+impl Builder {
+    /// The portal's database (absent: SQLite in the state directory).
+    pub fn database(mut self, url: Option<String>) -> Builder {
+        self.database = url;
+        self
+    }
+
+    /// No lift: the portal alone (for tests that bring their own gateway).
+    pub fn without_lift(mut self) -> Builder {
+        self.lift = false;
+        self
+    }
+
+    /// Change the portal's configuration before it starts.
+    pub fn portal(mut self, f: impl FnOnce(&mut Config) + 'static) -> Builder {
+        self.portal = Box::new(f);
+        self
+    }
+
+    /// Change the gateway's configuration before it starts.
+    pub fn gateway(mut self, f: impl FnOnce(&mut gateway::config::Config) + 'static) -> Builder {
+        self.gateway = Box::new(f);
+        self
+    }
+
+    /// Start the portal (accounts `masora` for the lift's domain and `someone` for another),
+    /// the simulator and the gateway.
+    pub async fn start(self) -> Rig {
+        let dir = crate::scratch();
+        let mut config = Config::default();
+        config.database.url = self.database;
+        config.server.listen = "127.0.0.1:0".parse().expect("an address");
+        config.state.dir = dir.path().join("portal");
+        (self.portal)(&mut config);
+        let portal = Portal::bind(&config).await.expect("the portal binds");
+        let addr = portal.local_addr();
+        let registry = portal.registry();
+        let store = Store::open(&config.database_url())
+            .await
+            .expect("the store opens");
+        let key = store
+            .add_account("masora", DOMAIN)
+            .await
+            .expect("an account");
+        let other_key = store
+            .add_account("someone", "OTH")
+            .await
+            .expect("a second account");
+        let (stop, stopped) = watch::channel(false);
+        let portal_task = tokio::spawn(portal.run(stopped));
+        let ca = config.state.dir.join("dev-ca.pem");
+        let mut lift = None;
+        if self.lift {
+            let bus = format!("mem://rig-{}", addr.port());
+            let ws = format!("wss://localhost:{}/ws", addr.port());
+            let mut gw = gateway_config(&ws, &ca, &bus, &dir.path().join("gateway"));
+            (self.gateway)(&mut gw);
+            lift = Some(Lift::start(&bus, gw).await);
+        }
+        Rig {
+            addr,
+            ca,
+            database_url: config.database_url(),
+            registry,
+            key,
+            other_key,
+            portal: Some((stop, portal_task)),
+            lift,
+            dir,
+        }
+    }
+}
+
+/// Portal, gateway and simulator, running.
+pub struct Rig {
+    /// The portal's address.
+    pub addr: std::net::SocketAddr,
+    /// The development CA the portal serves a certificate of.
+    pub ca: PathBuf,
+    /// The API key of the lift's account.
+    pub key: String,
+    /// The API key of another account.
+    pub other_key: String,
+    database_url: String,
+    registry: std::sync::Arc<cloud::gateways::Registry>,
+    portal: Option<(watch::Sender<bool>, JoinHandle<()>)>,
+    lift: Option<Lift>,
+    dir: tempfile::TempDir,
+}
+
+impl Rig {
+    /// A rig with the defaults.
+    pub fn builder() -> Builder {
+        Builder {
+            database: None,
+            lift: true,
+            portal: Box::new(|_| {}),
+            gateway: Box::new(|_| {}),
+        }
+    }
+
+    /// The scratch directory (the portal's state in `portal/`, the gateway's in `gateway/`).
+    pub fn dir(&self) -> &std::path::Path {
+        self.dir.path()
+    }
+
+    /// The portal's store (another connection to its database).
+    pub async fn store(&self) -> Store {
+        Store::open(&self.database_url)
+            .await
+            .expect("the store opens")
+    }
+
+    /// The live gateways.
+    pub fn registry(&self) -> &cloud::gateways::Registry {
+        &self.registry
+    }
+
+    /// `wss://localhost:PORT/ws`, where gateways connect.
+    pub fn ws_url(&self) -> String {
+        format!("wss://localhost:{}/ws", self.addr.port())
+    }
+
+    /// `https://localhost:PORT`.
+    pub fn url(&self) -> String {
+        format!("https://localhost:{}", self.addr.port())
+    }
+
+    /// One REST call with `key`: (status, JSON body).
+    pub async fn call(
+        &self,
+        method: &str,
+        path: &str,
+        key: Option<&str>,
+        body: Option<Value>,
+    ) -> (u16, Value) {
+        let client = cloud::client::Client::new(&self.url(), key, Some(&self.ca))
+            .expect("a client of the portal");
+        client
+            .call(method, path, body)
+            .await
+            .expect("the portal answers")
+    }
+
+    /// Wait until the lift is online at the portal; the list of lifts.
+    pub async fn online(&self) -> Value {
+        let deadline = tokio::time::Instant::now() + WAIT;
+        loop {
+            let (status, lifts) = self
+                .call("GET", "/api/v1/lifts", Some(&self.key), None)
+                .await;
+            assert_eq!(status, 200, "{lifts}");
+            if lifts[0]["online"] == true {
+                return lifts;
+            }
+            assert!(
+                tokio::time::Instant::now() < deadline,
+                "the gateway did not come online: {lifts}"
+            );
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+
+    /// Stop the gateway (the lift goes offline).
+    pub async fn stop_gateway(&mut self) {
+        if let Some(lift) = &mut self.lift {
+            lift.stop_gateway().await;
+        }
+    }
+
+    /// Stop everything; the scratch directory goes with the rig.
+    pub async fn stop(mut self) {
+        if let Some(lift) = self.lift.take() {
+            lift.stop().await;
+        }
+        if let Some((stop, task)) = self.portal.take() {
+            let _ = stop.send(true);
+            let _ = task.await;
+        }
+    }
+}
