@@ -1,7 +1,7 @@
 //! The [`Bus`]: one endpoint on a CAN bus, whatever carries it.
 //!
 //! An endpoint is a [`BusReceiver`] (one per endpoint, with its own acceptance filters) and any
-//! number of cheap [`BusSender`] clones. Backends are chosen by URL (DESIGN.md §3):
+//! number of cheap [`BusSender`] clones. Backends are chosen by URL (docs/ARCHITECTURE.md §Conventions):
 //! `mem://NAME`, `socketcand://HOST:PORT/CHANNEL`, `socketcan://IFACE`.
 
 use std::fmt;

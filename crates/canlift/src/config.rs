@@ -1,5 +1,5 @@
 //! Daemon configuration: a TOML file, then `CANLIFT_<SECTION>_<KEY>` environment overrides,
-//! then command-line flags (DESIGN.md §3). `--print-config` shows the result with defaults.
+//! then command-line flags (docs/ARCHITECTURE.md §Conventions). `--print-config` shows the result with defaults.
 
 use std::path::Path;
 

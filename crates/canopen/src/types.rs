@@ -1,5 +1,5 @@
 //! CiA 301 data types (§7.1): the static types of table 44 with their little-endian wire
-//! encoding, value ranges, and the text form the NXg connector carries (DESIGN.md §4).
+//! encoding, value ranges, and the text form the NXg connector carries (docs/PROTOCOL.md §Values).
 //!
 //! Text form: integers in decimal, BOOLEAN `0`/`1`, reals as the shortest decimal that reads back
 //! to the same value, VISIBLE_STRING and UNICODE_STRING as text, OCTET_STRING and DOMAIN as hex

@@ -163,7 +163,7 @@ code_enum! {
 }
 
 code_enum! {
-    /// Who may write an object (NXg SW003 §8.4), plus "engineer on site" (DESIGN.md §4), which
+    /// Who may write an object (NXg SW003 §8.4), plus "engineer on site" (docs/PROTOCOL.md §Privileges), which
     /// only a person at the lift can have: it is never granted remotely.
     Privilege: "privilege" {
         /// Any portal user.

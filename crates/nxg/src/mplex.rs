@@ -1,5 +1,6 @@
 //! The object multiplexer of the connector: `"0x"` and six hex digits, index then sub-index
-//! (NXg SW003 §6.1; DESIGN.md §4: case-insensitive on input, upper-case when the gateway writes).
+//! (NXg SW003 §6.1; docs/PROTOCOL.md §Mplex: case-insensitive on input, upper-case when the
+//! gateway writes).
 
 use std::fmt;
 

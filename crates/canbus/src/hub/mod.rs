@@ -2,7 +2,7 @@
 //!
 //! Every channel name is its own bus. Clients are anything that speaks socketcand: canlift's own
 //! `socketcand://` backend, python-can's `socketcand` interface (and so python-canopen), or
-//! socketcand's own tools. The dialect follows DESIGN.md §3: `< hi >` and every `< ok >` are
+//! socketcand's own tools. The dialect follows docs/ARCHITECTURE.md §Conventions: `< hi >` and every `< ok >` are
 //! written alone, frames are held back briefly after the raw-mode `< ok >` (python-can reads the
 //! `< ok >` with one `recv` and compares it exactly), senders do not get their own frames back,
 //! and nothing but frames and `< echo >` is ever written in raw mode.

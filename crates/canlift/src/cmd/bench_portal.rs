@@ -1,4 +1,4 @@
-//! `canlift bench portal`: the cloud portal under load (issue 7). The portal runs as its own
+//! `canlift bench portal`: the cloud portal under load (docs/BENCHMARKS.md). The portal runs as its own
 //! process (`canlift cloud`), so its memory is its own; the gateways are `canlift loadgen`'s
 //! (the real gateway code in embedded mode) in this process, and the operator-latency figure
 //! uses a real gateway in bus-node mode in front of the simulated lift.

@@ -1,4 +1,4 @@
-//! `canlift cloud --config FILE`: the cloud portal (issue 7); `canlift cloud account add` creates
+//! `canlift cloud --config FILE`: the cloud portal (docs/PORTAL.md); `canlift cloud account add` creates
 //! an operator account and prints its API key once.
 
 use std::path::PathBuf;

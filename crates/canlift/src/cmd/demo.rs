@@ -1,4 +1,4 @@
-//! `canlift demo`: everything in one process (DESIGN.md §3): the hub, the simulated lift
+//! `canlift demo`: everything in one process (docs/ARCHITECTURE.md §Conventions): the hub, the simulated lift
 //! controller and I/O node, the gateway in bus-node mode and the portal with a development CA and
 //! SQLite. The first run generates the CA, an account and the gateway's configuration into the
 //! state directory; later runs reuse them, so the lift's counters keep counting.

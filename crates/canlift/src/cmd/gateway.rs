@@ -1,4 +1,4 @@
-//! `canlift gateway --config FILE`: the elevator gateway (issue 6, DESIGN.md §3).
+//! `canlift gateway --config FILE`: the elevator gateway (docs/GATEWAY.md).
 
 use std::path::PathBuf;
 

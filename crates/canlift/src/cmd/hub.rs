@@ -1,4 +1,4 @@
-//! `canlift hub`: the socketcand-compatible virtual CAN bus (DESIGN.md §3).
+//! `canlift hub`: the socketcand-compatible virtual CAN bus (docs/ARCHITECTURE.md §Conventions).
 
 use std::io::Write;
 use std::net::SocketAddr;

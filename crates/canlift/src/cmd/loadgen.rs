@@ -1,5 +1,5 @@
 //! `canlift loadgen`: many elevator gateways against one portal, for the portal's benchmarks
-//! (issue 7). Every one is the real gateway of `crates/gateway` in embedded mode — the same TLS,
+//! (docs/PORTAL.md §Load generator). Every one is the real gateway of `crates/gateway` in embedded mode — the same TLS,
 //! WebSocket, session, token store and reconnect code as `canlift gateway` — sharing one
 //! simulated controller dictionary. Connections are spread over loopback source addresses
 //! 127.0.0.1…127.0.0.N so that tens of thousands do not run out of ephemeral ports.

@@ -1,4 +1,4 @@
-//! `canlift sim`: a simulated CiA 417 lift controller and I/O node on a bus (DESIGN.md §3).
+//! `canlift sim`: a simulated CiA 417 lift controller and I/O node on a bus (docs/SIMULATOR.md).
 
 use std::path::PathBuf;
 use std::time::Duration;

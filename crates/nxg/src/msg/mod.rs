@@ -113,39 +113,24 @@ pub trait Call: Serialize {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 pub struct Heartbeat;
 
-impl Call for Heartbeat {
-    const METHOD: Method = Method::GetHeartbeat;
-    type Answer = Done;
+/// Each request type with its method and answer.
+macro_rules! calls {
+    ($($params:ty => $method:ident, $answer:ty;)*) => {
+        $(impl Call for $params {
+            const METHOD: Method = Method::$method;
+            type Answer = $answer;
+        })*
+    };
 }
 
-impl Call for GetParams {
-    const METHOD: Method = Method::GetCanopenObject;
-    type Answer = ObjectAnswer;
-}
-
-impl Call for PutParams {
-    const METHOD: Method = Method::PutCanopenObject;
-    type Answer = PutAnswer;
-}
-
-impl Call for ElevateParams {
-    const METHOD: Method = Method::ElevatePrivilege;
-    type Answer = ElevateAnswer;
-}
-
-impl Call for RegParams {
-    const METHOD: Method = Method::RegCanopenObject;
-    type Answer = Done;
-}
-
-impl Call for UnregParams {
-    const METHOD: Method = Method::UnregCanopenObject;
-    type Answer = Done;
-}
-
-impl Call for TokenParams {
-    const METHOD: Method = Method::UpdateUniqueToken;
-    type Answer = Done;
+calls! {
+    Heartbeat => GetHeartbeat, Done;
+    GetParams => GetCanopenObject, ObjectAnswer;
+    PutParams => PutCanopenObject, PutAnswer;
+    ElevateParams => ElevatePrivilege, ElevateAnswer;
+    RegParams => RegCanopenObject, Done;
+    UnregParams => UnregCanopenObject, Done;
+    TokenParams => UpdateUniqueToken, Done;
 }
 
 /// Read a method's parameters; the error names the field at fault (`object.mplex: …`), for a
