@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use anyhow::{bail, Context};
+use anyhow::{anyhow, bail, Context};
 use serde::de::DeserializeOwned;
 use serde::Serialize;
 
@@ -33,17 +33,21 @@ pub fn load<T: DeserializeOwned + Serialize + Default>(
 }
 
 /// Load a whole multi-section document (a daemon with several sections, like the gateway) into
-/// `T`, applying environment overrides to each of `sections`.
+/// `T`, applying environment overrides to each of `sections`. A file that does not fit `T` is
+/// refused with `FILE:LINE: reason`.
 pub fn load_document<T: DeserializeOwned>(
     file: Option<&Path>,
     sections: &[&str],
 ) -> anyhow::Result<T> {
-    let mut doc: toml::Table = match file {
-        Some(path) => {
-            let text = std::fs::read_to_string(path)
-                .with_context(|| format!("reading {}", path.display()))?;
-            toml::from_str(&text).with_context(|| format!("parsing {}", path.display()))?
-        }
+    let text = match file {
+        Some(path) => Some(
+            std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?,
+        ),
+        None => None,
+    };
+    let source = file.zip(text.as_deref());
+    let mut doc: toml::Table = match source {
+        Some((path, text)) => toml::from_str(text).map_err(|e| anyhow!(located(path, text, &e)))?,
         None => toml::Table::new(),
     };
     for section in sections {
@@ -55,7 +59,24 @@ pub fn load_document<T: DeserializeOwned>(
         };
         apply_env(table, section, std::env::vars())?;
     }
-    T::deserialize(toml::Value::Table(doc)).context("invalid configuration")
+    T::deserialize(toml::Value::Table(doc)).map_err(|e| {
+        // The file's own error has a place; else an environment override is at fault.
+        match source.and_then(|(path, text)| {
+            let own = toml::from_str::<T>(text).err()?;
+            Some(located(path, text, &own))
+        }) {
+            Some(message) => anyhow!(message),
+            None => anyhow!(e).context("invalid configuration (environment overrides)"),
+        }
+    })
+}
+
+/// A TOML error as `FILE:LINE: reason`.
+fn located(path: &Path, text: &str, e: &toml::de::Error) -> String {
+    let line = e.span().map_or(0, |span| {
+        text[..span.start.min(text.len())].matches('\n').count() + 1
+    });
+    format!("{}:{line}: {}", path.display(), e.message())
 }
 
 /// Apply `CANLIFT_<SECTION>_<KEY>=VALUE` overrides. A value is read as TOML (numbers, booleans,
@@ -133,5 +154,29 @@ mod tests {
         std::fs::write(&path, "[hub]\nbitrat = 5\n").unwrap();
         let err = load::<Sample>(Some(&path), "hub").unwrap_err();
         assert!(format!("{err:#}").contains("bitrat"), "{err:#}");
+    }
+
+    #[derive(Debug, Deserialize)]
+    #[serde(deny_unknown_fields)]
+    struct Document {
+        #[serde(default)]
+        hub: Option<Sample>,
+    }
+
+    #[test]
+    fn document_errors_name_the_file_and_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("d.toml");
+        std::fs::write(&path, "[hub]\nlisten = \"a:1\"\n").unwrap();
+        let doc = load_document::<Document>(Some(&path), &["hub"]).unwrap();
+        assert_eq!(doc.hub.map(|h| h.listen).as_deref(), Some("a:1"));
+        std::fs::write(&path, "[hub]\nlisten = \"a:1\"\n\nbitrat = 5\n").unwrap();
+        let err = load_document::<Document>(Some(&path), &["hub"]).unwrap_err();
+        let at = format!("{}:4: unknown field `bitrat`", path.display());
+        assert!(format!("{err:#}").starts_with(&at), "{err:#}");
+        std::fs::write(&path, "[hub]\nlisten = \"a:1\n").unwrap();
+        let err = load_document::<Document>(Some(&path), &["hub"]).unwrap_err();
+        let at = format!("{}:2: ", path.display());
+        assert!(format!("{err:#}").starts_with(&at), "{err:#}");
     }
 }

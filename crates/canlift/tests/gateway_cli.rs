@@ -38,6 +38,12 @@ async fn the_readme_configuration_is_what_the_gateway_reads() {
         "environment override: {text}"
     );
     assert!(text.contains("max_in_flight = 16"), "{text}");
+    assert!(
+        text.contains("[policy]")
+            && text.contains("index = \"0x1017\"")
+            && text.contains("node = 12"),
+        "the write policy: {text}"
+    );
 }
 
 #[tokio::test]

@@ -1,10 +1,11 @@
 //! The gateway's configuration (docs/GATEWAY.md): sections `[identity]`, `[cloud]`,
-//! `[state]`, `[bus]` (with `[[bus.nodes]]`), `[[networks]]`, `[privileges]`, `[limits]`.
+//! `[state]`, `[bus]` (with `[[bus.nodes]]`), `[[networks]]`, `[privileges]`, `[limits]`,
+//! `[policy]`.
 
 use std::path::PathBuf;
 use std::time::Duration;
 
-use nxg::gateway::{Identity, Settings};
+use nxg::gateway::{Identity, Policy, Settings};
 use serde::{Deserialize, Serialize};
 
 /// `[identity]`: what CONNECT says (NXg SW003 §5.2.1).
@@ -80,14 +81,20 @@ impl Default for StateSection {
     }
 }
 
-/// `[[bus.nodes]]` / `[[networks.nodes]]`: metadata of a node from its EDS.
+/// `[[bus.nodes]]` / `[[networks.nodes]]`: what describes a node — the lift controller or any
+/// other (docs/GATEWAY.md §Metadata).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct NodeSection {
     /// Node-ID.
     pub id: u8,
-    /// EDS or DCF file.
-    pub eds: PathBuf,
+    /// EDS or DCF file: which objects exist, their types, access and limits.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub eds: Option<PathBuf>,
+    /// The vendor's NXg metadata (the catalog's format): names and hints per language, forms,
+    /// units, privileges, lists.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub metadata: Option<PathBuf>,
 }
 
 /// `[bus]`: network 1, where the gateway is a node.
@@ -144,6 +151,9 @@ pub struct PrivilegesSection {
     pub setup_sha1: Option<String>,
     /// Seconds a grant lasts.
     pub duration_s: u64,
+    /// Seconds the third wrong hash for a level locks its elevation (doubling with each
+    /// further one, up to an hour).
+    pub lockout_s: u64,
 }
 
 impl Default for PrivilegesSection {
@@ -152,6 +162,7 @@ impl Default for PrivilegesSection {
             service_sha1: None,
             setup_sha1: None,
             duration_s: 300,
+            lockout_s: 30,
         }
     }
 }
@@ -199,6 +210,8 @@ pub struct Config {
     pub privileges: PrivilegesSection,
     /// `[limits]`.
     pub limits: LimitsSection,
+    /// `[policy]`: what the cloud may write and see.
+    pub policy: Policy,
 }
 
 /// A configuration that cannot work.
@@ -261,8 +274,32 @@ impl Config {
             }
             nets.push(n.net);
         }
+        let node_sections = self
+            .bus
+            .nodes
+            .iter()
+            .chain(self.networks.iter().flat_map(|n| &n.nodes));
+        for n in node_sections {
+            if !(1..=127).contains(&n.id) {
+                return err("[[bus.nodes]] and [[networks.nodes]]: id is a node-ID 1–127");
+            }
+            if n.eds.is_none() && n.metadata.is_none() {
+                return Err(ConfigError(format!(
+                    "node {}: give eds, metadata or both",
+                    n.id
+                )));
+            }
+        }
         if self.limits.max_in_flight == 0 || self.limits.max_message_bytes < 1024 {
             return err("limits.max_in_flight ≥ 1 and limits.max_message_bytes ≥ 1024");
+        }
+        if self.privileges.lockout_s == 0 {
+            return err("privileges.lockout_s ≥ 1");
+        }
+        if self.policy.default_privilege > 3 {
+            return err(
+                "policy.default_privilege is 0 (user), 1 (service), 2 (setup) or 3 (never)",
+            );
         }
         Ok(())
     }
@@ -286,6 +323,7 @@ impl Config {
             connect_timeout: Duration::from_secs(self.cloud.connect_timeout_s.max(1)),
             lift_controller: self.bus.lift_controller,
             nets,
+            policy: self.policy.clone(),
         }
     }
 }

@@ -107,6 +107,7 @@ pub async fn run(shared: &Shared, shutdown: &mut tokio::sync::watch::Receiver<bo
         }
     };
     let _ = tcp.set_nodelay(true);
+    let local = tcp.local_addr().ok();
     let server_name = match rustls::pki_types::ServerName::try_from(host.clone()) {
         Ok(n) => n,
         Err(e) => return ended(false, format!("{host}: {e}")),
@@ -146,7 +147,7 @@ pub async fn run(shared: &Shared, shutdown: &mut tokio::sync::watch::Receiver<bo
             format!("the portal selected neither cloud nor lift ({selected:?})"),
         );
     }
-    tracing::info!(url = %cloud.url, subprotocol = selected, "connected; sending CONNECT");
+    tracing::info!(url = %cloud.url, ?local, subprotocol = selected, "connected; sending CONNECT");
     serve(shared, ws, shutdown).await
 }
 
@@ -161,7 +162,7 @@ where
     let now = Instant::now();
     let mut session = Session::new(
         shared.config.settings(),
-        shared.metadata.clone(),
+        shared.context.clone(),
         shared.token.load(),
         now,
     );
@@ -190,6 +191,14 @@ where
                 Output::Start(id, job) => jobs.push_back((id, job)),
                 Output::Watch(target, index, sub) => feed.watch(target, index, sub),
                 Output::Unwatch(target, index, sub) => feed.unwatch(target, index, sub),
+                Output::Lockout(state) => {
+                    let store = shared.lockout.clone();
+                    tokio::task::spawn_blocking(move || {
+                        if let Err(e) = store.store(&state) {
+                            tracing::error!(error = %e, "elevation lock-out not stored");
+                        }
+                    });
+                }
             }
         }
         // Jobs run at most `max_in_flight` at once (with the subscriptions' first reads there

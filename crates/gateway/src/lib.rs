@@ -16,11 +16,12 @@ pub mod access;
 pub mod config;
 pub mod connection;
 pub mod feed;
+pub mod lockout;
 pub mod metadata;
 pub mod token;
 
 use std::collections::HashMap;
-use std::sync::Arc;
+use std::sync::{Arc, PoisonError};
 use std::time::{Duration, Instant};
 
 use canbus::backoff::Backoff;
@@ -29,11 +30,12 @@ use canopen::driver::{SdoClients, SharedDictionary};
 use canopen::node::{LocalNode, NodeConfig};
 use canopen::od::ObjectDictionary;
 use canopen::sdo::client::ClientConfig;
-use nxg::gateway::{Metadata, Target};
+use nxg::gateway::{Context, Target};
 use tokio::sync::{mpsc, watch};
+use tracing::Instrument;
 
 use crate::access::Backend;
-use crate::config::{Config, NodeSection};
+use crate::config::Config;
 use crate::feed::{Feed, LocalChanges, Update};
 use crate::metadata::BusMetadata;
 use crate::token::TokenStore;
@@ -58,6 +60,9 @@ pub enum GatewayError {
     /// An EDS could not be read.
     #[error(transparent)]
     Eds(#[from] canopen::eds::EdsError),
+    /// A vendor metadata file is malformed (`FILE:LINE: reason`).
+    #[error("{0}")]
+    Metadata(String),
 }
 
 enum Mode {
@@ -76,7 +81,8 @@ pub struct Shared {
     config: Config,
     tls: Arc<rustls::ClientConfig>,
     token: TokenStore,
-    metadata: Arc<dyn Metadata>,
+    context: Context,
+    lockout: lockout::LockoutStore,
     backend: Backend,
     mode: Mode,
     /// Whether a connection is in service (CONNACK came), for [`Gateway::online`].
@@ -115,29 +121,6 @@ pub struct Gateway {
     node: Option<LocalNode>,
 }
 
-fn load_eds(
-    net: u8,
-    nodes: &[NodeSection],
-    into: &mut HashMap<Target, ObjectDictionary>,
-) -> Result<(), GatewayError> {
-    for n in nodes {
-        let description = canopen::eds::import_file(&n.eds, Some(n.id))?;
-        into.insert(Target { net, node: n.id }, description.od);
-    }
-    Ok(())
-}
-
-/// The catalog for the lift controller, EDS files for the nodes that have one.
-fn metadata(config: &Config, eds: HashMap<Target, ObjectDictionary>) -> BusMetadata {
-    BusMetadata {
-        controller: Some(Target {
-            net: 1,
-            node: config.bus.lift_controller,
-        }),
-        nodes: eds,
-    }
-}
-
 async fn open(url: &str) -> Result<Bus, GatewayError> {
     Bus::open(url).await.map_err(|error| GatewayError::Bus {
         url: url.to_owned(),
@@ -150,6 +133,8 @@ impl Gateway {
     /// nodes of every network by SDO.
     pub async fn bus_node(config: Config) -> Result<Gateway, GatewayError> {
         config.validate()?;
+        // The description files first: a malformed one stops the gateway at once.
+        let metadata = BusMetadata::load(&config)?;
         let tls = config.cloud.tls()?;
         let client = ClientConfig {
             timeout: Duration::from_millis(config.bus.sdo_timeout_ms.max(10)),
@@ -161,14 +146,11 @@ impl Gateway {
         for n in &config.networks {
             nets.insert(n.net, SdoClients::new(open(&n.url).await?, client.clone()));
         }
-        let mut eds = HashMap::new();
-        load_eds(1, &config.bus.nodes, &mut eds)?;
-        for n in &config.networks {
-            load_eds(n.net, &n.nodes, &mut eds)?;
-        }
         let node_config = NodeConfig {
             device_type: 417,
             identity: [config.identity.vendorid, config.identity.productcode, 1, 0],
+            device_name: "canlift elevator gateway".into(),
+            hardware_version: config.identity.hardware.clone(),
             software_version: config.identity.software.clone(),
             heartbeat_ms: 1000,
             pdos: (0, 0),
@@ -187,7 +169,7 @@ impl Gateway {
         Ok(Gateway::assemble(
             config,
             tls,
-            eds,
+            metadata,
             Backend::Bus(nets),
             mode,
             Some(node),
@@ -195,9 +177,18 @@ impl Gateway {
     }
 
     /// Embedded mode: serve `od`, the dictionary of the controller the gateway is linked into
-    /// (node `bus.lift_controller`); metadata comes from the catalog.
+    /// (node `bus.lift_controller`); metadata as in bus-node mode (docs/GATEWAY.md §Metadata).
     pub fn embedded(config: Config, od: SharedDictionary) -> Result<Gateway, GatewayError> {
         config.validate()?;
+        // The controller's own dictionary is its EDS, unless the configuration names one.
+        let snapshot = od.lock().unwrap_or_else(PoisonError::into_inner).clone();
+        let metadata = BusMetadata::load(&config)?.with_dictionary(
+            Target {
+                net: 1,
+                node: config.bus.lift_controller,
+            },
+            snapshot,
+        );
         let tls = config.cloud.tls()?;
         let backend = Backend::Local {
             od: od.clone(),
@@ -208,27 +199,30 @@ impl Gateway {
             od,
         };
         Ok(Gateway::assemble(
-            config,
-            tls,
-            HashMap::new(),
-            backend,
-            mode,
-            None,
+            config, tls, metadata, backend, mode, None,
         ))
     }
 
     fn assemble(
         config: Config,
         tls: Arc<rustls::ClientConfig>,
-        eds: HashMap<Target, ObjectDictionary>,
+        metadata: BusMetadata,
         backend: Backend,
         mode: Mode,
         node: Option<LocalNode>,
     ) -> Gateway {
+        tracing::info!(policy = %config.policy.summary(), "write policy");
+        let lockout = lockout::LockoutStore::new(
+            &config.state.dir,
+            Duration::from_secs(config.privileges.lockout_s),
+        );
+        let mut context = Context::new(Arc::new(metadata));
+        context.lockout = Arc::new(std::sync::Mutex::new(lockout.load()));
         Gateway {
             shared: Arc::new(Shared {
                 token: TokenStore::new(&config.state.dir),
-                metadata: Arc::new(metadata(&config, eds)),
+                context,
+                lockout,
                 config,
                 tls,
                 backend,
@@ -249,12 +243,16 @@ impl Gateway {
     pub async fn run(self, mut shutdown: watch::Receiver<bool>) {
         // docs/PROTOCOL.md: 1 s growing to 5 min, full jitter, reset after a stable minute.
         let mut backoff = Backoff::new(Duration::from_secs(1), Duration::from_secs(300));
-        loop {
+        for number in 1u64.. {
             if *shutdown.borrow() {
                 break;
             }
             let started = Instant::now();
-            let ended = connection::run(&self.shared, &mut shutdown).await;
+            // Every log line of a connection names it (refused puts, elevation).
+            let span = tracing::info_span!("connection", n = number);
+            let ended = connection::run(&self.shared, &mut shutdown)
+                .instrument(span)
+                .await;
             self.shared.online.send_replace(false);
             if ended.shutdown {
                 break;

@@ -39,9 +39,6 @@ impl TokenStore {
 
     /// Store `token` atomically.
     pub fn store(&self, token: &str) -> std::io::Result<()> {
-        if let Some(dir) = self.path.parent() {
-            std::fs::create_dir_all(dir)?;
-        }
         canopen::storage::write_atomically(&self.path, &format!("{token}\n"))
     }
 }

@@ -276,11 +276,23 @@ async fn every_sample_of_the_specification() {
     assert_eq!(value & 0xFF, 0x02, "standard hall call");
     assert_eq!((value >> 24) & 0xFF, 1, "floor 1");
     assert_eq!(other["result"]["object"]["datatype"], 25);
-    // §6.6.1: a put to another node needs setup rights.
+    // Described by its EDS, named by the CiA 417 catalog.
+    assert_eq!(other["result"]["object"]["name"], "Virtual input 1");
+    assert_eq!(other["result"]["object"]["objcode"], 8);
+    // §6.6.1: the I/O node's EDS has no 5022h.
     let put12 = ask(&mut ws, PUT_OTHER_NODE, &mut notes).await;
-    assert_eq!(put12["error"]["code"], 0x0800_0021);
+    assert_eq!(
+        put12["error"]["code"], 0x0602_0000,
+        "the I/O node has no 5022h"
+    );
     assert_eq!(put12["error"]["data"], "0x502200");
-    // §6.4.2 with the right hash, then the put reaches node 12 (which has no 5022h).
+    // A put to another node needs setup rights: the simulated button press (2000h).
+    let press = PUT_OTHER_NODE
+        .replace("0x502200", "0x200000")
+        .replace(r#""datatype": 7"#, r#""datatype": 6"#);
+    let refused = ask(&mut ws, &press, &mut notes).await;
+    assert_eq!(refused["error"]["code"], 0x0800_0021);
+    // §6.4.2 with the right hash, then the put reaches node 12.
     let elevate = ELEVATE
         .replace(
             "<The unsalted SHA1 password hash for the desired priv.>",
@@ -291,11 +303,8 @@ async fn every_sample_of_the_specification() {
         ask(&mut ws, &elevate, &mut notes).await["result"],
         json!({"duration": 300})
     );
-    let put12 = ask(&mut ws, PUT_OTHER_NODE, &mut notes).await;
-    assert_eq!(
-        put12["error"]["code"], 0x0602_0000,
-        "the I/O node has no 5022h"
-    );
+    let pressed = ask(&mut ws, &press, &mut notes).await;
+    assert!(pressed.get("error").is_none(), "{pressed}");
     // A node that does not answer: SDO timeout, and nothing else stalls.
     let silent = GET_OTHER_NODE.replace(r#""id": 12"#, r#""id": 33"#);
     send(&mut ws, &silent).await;

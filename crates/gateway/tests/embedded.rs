@@ -24,6 +24,15 @@ async fn serves_the_controllers_own_dictionary() {
         .unwrap()
         .set_value(0x6520, 1, &CoValue::Uint(2510))
         .unwrap();
+    od.lock().unwrap().insert(canopen::od::Object::var(
+        0x2F00,
+        canopen::od::Variable::new(
+            "Door hold time",
+            canopen::types::DataType::Unsigned16,
+            canopen::od::Access::Rw,
+        )
+        .with_value(CoValue::Uint(30)),
+    ));
     let config = config(&portal.url(), &pki, "mem://unused", dir.path());
     let gateway = Gateway::embedded(config, od.clone()).unwrap();
     let running = spawn(gateway);
@@ -68,6 +77,21 @@ async fn serves_the_controllers_own_dictionary() {
     assert_eq!(
         od.lock().unwrap().get_value(0x5022, 0),
         Ok(CoValue::Uint(6))
+    );
+    // The dictionary says what exists: a vendor object of its own is described by its name,
+    // a catalog object it lacks does not exist.
+    let get = |mplex: &str| {
+        format!(
+            r#"{{"jsonrpc":"2.0","id":4,"method":"get_canopen_object","params":{{"object":{{"mplex":"{mplex}"}}}}}}"#
+        )
+    };
+    let own = ask(&mut ws, &get("0x2F0000"), &mut notes).await;
+    assert_eq!(own["result"]["object"]["name"], "Door hold time", "{own}");
+    assert_eq!(own["result"]["object"]["value"], json!(["30"]));
+    let lacking = ask(&mut ws, &get("0x6D2001"), &mut notes).await;
+    assert_eq!(
+        lacking["error"]["code"], 0x0602_0000,
+        "lift 2's counter: {lacking}"
     );
     running.stop().await;
 }

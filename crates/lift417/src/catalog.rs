@@ -32,9 +32,14 @@ pub const MANUFACTURER_LIFT_STRIDE: u16 = 0x100;
 /// Why a catalog could not be loaded.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum CatalogError {
-    /// The TOML is malformed or has a key of the wrong type.
-    #[error("catalog syntax: {0}")]
-    Syntax(String),
+    /// The TOML is malformed, has an unknown key or a key of the wrong type.
+    #[error("line {line}: {reason}")]
+    Syntax {
+        /// Where (1-based; 0 when unknown).
+        line: usize,
+        /// What is wrong.
+        reason: String,
+    },
     /// An object or entry is inconsistent.
     #[error("catalog object {index:04X}h: {reason}")]
     Object {
@@ -43,6 +48,51 @@ pub enum CatalogError {
         /// What is wrong.
         reason: String,
     },
+}
+
+/// The line of a TOML error: where its span starts, or, for an unknown key (whose span is its
+/// table's), the line of that key in the table.
+fn error_line(text: &str, span: std::ops::Range<usize>, message: &str) -> usize {
+    let start = span.start.min(text.len());
+    let first = text[..start].matches('\n').count() + 1;
+    let key = message
+        .strip_prefix("unknown field `")
+        .and_then(|rest| rest.split('`').next());
+    let Some(key) = key else {
+        return first;
+    };
+    text[start..]
+        .lines()
+        .enumerate()
+        .take_while(|(i, l)| *i == 0 || !l.trim_start().starts_with('['))
+        .map(|(_, l)| l)
+        .position(|l| {
+            l.trim_start()
+                .strip_prefix(key)
+                .is_some_and(|rest| rest.trim_start().starts_with('='))
+        })
+        .map_or(first, |i| first + i)
+}
+
+impl CatalogError {
+    /// The error as `FILE:LINE: reason`, the line found in `text` (the file's content): the
+    /// object's `index = …` line for an inconsistent object.
+    pub fn located(&self, file: &str, text: &str) -> String {
+        match self {
+            CatalogError::Syntax { line, reason } => format!("{file}:{line}: {reason}"),
+            CatalogError::Object { index, reason } => {
+                let wanted = format!("0x{index:04x}");
+                let line = text
+                    .lines()
+                    .position(|l| {
+                        let l = l.trim().to_ascii_lowercase().replace(' ', "");
+                        l.starts_with("index=") && l.contains(&wanted)
+                    })
+                    .map_or(0, |i| i + 1);
+                format!("{file}:{line}: object {index:04X}h: {reason}")
+            }
+        }
+    }
 }
 
 /// The texts with `{n}` (object number) and `{i}` (sub-index) filled in.
@@ -168,12 +218,41 @@ pub struct Catalog {
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RawCatalog {
+    #[serde(default = "english")]
     languages: Vec<String>,
     #[serde(default)]
     fallback: BTreeMap<String, String>,
+    #[serde(default = "count_name")]
     count_name: Texts,
+    #[serde(default = "count_hint")]
     count_hint: Texts,
+    #[serde(default)]
     object: Vec<RawObject>,
+}
+
+/// A file that names no languages is in English.
+fn english() -> Vec<String> {
+    vec!["en".to_owned()]
+}
+
+fn texts(en: &str, de: &str) -> Texts {
+    Texts::from(BTreeMap::from([
+        ("en".to_owned(), en.to_owned()),
+        ("de".to_owned(), de.to_owned()),
+    ]))
+}
+
+/// The name of sub-index 0 where a file gives none.
+fn count_name() -> Texts {
+    texts("Number of entries", "Anzahl der Einträge")
+}
+
+/// The hint of sub-index 0 where a file gives none.
+fn count_hint() -> Texts {
+    texts(
+        "The highest sub-index of this object.",
+        "Der höchste Subindex dieses Objekts.",
+    )
 }
 
 /// Attributes an object passes down to its entries and an entry may override.
@@ -235,7 +314,8 @@ struct RawSub {
 struct RawObject {
     index: u16,
     code: String,
-    name: Texts,
+    name: Option<Texts>,
+    #[serde(default)]
     hint: Texts,
     repeat: Option<u16>,
     first: Option<u16>,
@@ -344,7 +424,13 @@ impl RawObject {
                 .checked_add(k)
                 .ok_or_else(|| object_error(self.index, "repeat runs past FFFFh"))?;
             let n = first + k;
-            let name = expand(&self.name, n, 0);
+            let name = expand(
+                self.name
+                    .as_ref()
+                    .ok_or_else(|| object_error(self.index, "no name"))?,
+                n,
+                0,
+            );
             let hint = expand(&self.hint, n, 0);
             let mut entries = BTreeMap::new();
             let mut element = None;
@@ -451,8 +537,12 @@ impl RawObject {
 impl Catalog {
     /// Parse a catalog from its TOML text; objects must not overlap for any lift.
     pub fn from_toml(text: &str) -> Result<Catalog, CatalogError> {
-        let raw: RawCatalog =
-            toml::from_str(text).map_err(|e| CatalogError::Syntax(e.to_string()))?;
+        let raw: RawCatalog = toml::from_str(text).map_err(|e| CatalogError::Syntax {
+            line: e
+                .span()
+                .map_or(0, |span| error_line(text, span, e.message())),
+            reason: e.message().to_owned(),
+        })?;
         let mut objects = BTreeMap::new();
         for o in &raw.object {
             for object in o.expand(&raw.count_name, &raw.count_hint)? {
@@ -562,19 +652,29 @@ impl Catalog {
         )
     }
 
-    /// What a gateway reports about (`index`, `sub`) of a lift controller built on this
-    /// catalog, for any lift (NXg §6.1.1).
-    pub fn describe(&self, index: u16, sub: u8) -> Lookup {
+    /// The object behind `index` on `device` (any device: `None`).
+    fn object_on(&self, device: Option<Device>, index: u16) -> Option<&CatalogObject> {
+        self.object_for(index)
+            .map(|(_, o)| o)
+            .filter(|o| device.is_none_or(|d| o.devices.contains(&d)))
+    }
+
+    /// What a gateway reports about (`index`, `sub`) of `device` built on this catalog (any
+    /// device: `None`), for any lift (NXg §6.1.1).
+    pub fn describe(&self, device: Option<Device>, index: u16, sub: u8) -> Lookup {
+        if self.object_on(device, index).is_none() {
+            return Lookup::NoObject;
+        }
         match self.lookup(index, sub) {
             Some(found) => Lookup::Found(Box::new(found.entry.into_owned().description)),
-            None if self.object_for(index).is_some() => Lookup::NoSub,
-            None => Lookup::NoObject,
+            None => Lookup::NoSub,
         }
     }
 
-    /// The name and hint of the whole object at `index` (for a `compact` read, NXg §6.2).
-    pub fn object_texts(&self, index: u16) -> Option<(Texts, Texts)> {
-        let (_, object) = self.object_for(index)?;
+    /// The name and hint of the whole object at `index` of `device` (any device: `None`), for
+    /// a `compact` read (NXg §6.2).
+    pub fn object_texts(&self, device: Option<Device>, index: u16) -> Option<(Texts, Texts)> {
+        let object = self.object_on(device, index)?;
         Some((object.name.clone(), object.hint.clone()))
     }
 

@@ -392,6 +392,16 @@ impl Texts {
             .map(|(l, t)| (l.as_str(), t.as_str()))
     }
 
+    /// These texts with `other`'s on top: a language both have takes `other`'s text.
+    pub fn overlay(&self, other: &Texts) -> Texts {
+        if other.is_empty() {
+            return self.clone();
+        }
+        let mut map = (*self.0).clone();
+        map.extend(other.0.iter().map(|(l, t)| (l.clone(), t.clone())));
+        Texts(Arc::new(map))
+    }
+
     /// The texts with every `key` replaced by `value`; shared when none contains it.
     pub fn fill(&self, key: &str, value: u16) -> Texts {
         if !self.0.values().any(|t| t.contains(key)) {
@@ -631,6 +641,16 @@ mod tests {
         assert_eq!(t.get("DE"), Some("Etage {n}"));
         assert_eq!(t.first_of(["fr", "de"]), Some(("de", "Etage {n}")));
         assert_eq!(t.fill("{n}", 3).get("en"), Some("Floor 3"));
+        let eds = Texts::english("Door hold time");
+        let vendor = Texts::from(BTreeMap::from([(
+            "de".to_owned(),
+            "Türoffenhaltezeit".to_owned(),
+        )]));
+        let both = eds.overlay(&vendor);
+        assert_eq!(
+            (both.get("en"), both.get("de")),
+            (Some("Door hold time"), Some("Türoffenhaltezeit"))
+        );
         assert_eq!(
             Bound::Int(4_294_967_295).to_json(),
             Some(4_294_967_295u64.into())

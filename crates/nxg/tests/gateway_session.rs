@@ -8,8 +8,8 @@ use canopen::sdo::abort::AbortCode;
 use lift417::catalog::Catalog;
 use nxg::errors::rpc_codes;
 use nxg::gateway::{
-    CloseReason, Identity, Job, JobResult, Lookup, Metadata, Output, Phase, Session, Settings,
-    Target,
+    CloseReason, Context, Identity, Job, JobResult, LevelState, Lookup, Metadata, Output, Phase,
+    Policy, Session, Settings, Target,
 };
 use nxg::meta::Texts;
 use serde_json::{json, Value};
@@ -42,23 +42,25 @@ fn settings() -> Settings {
         connect_timeout: Duration::from_secs(10),
         lift_controller: 1,
         nets: vec![1],
+        policy: Policy::default(),
     }
 }
 
-/// The catalog for the lift controller (node 1), nothing for other nodes.
+/// The catalog for the lift controller (node 1) and for node 13 (as if its EDS had been merged
+/// with the catalog), nothing for other nodes.
 struct ControllerCatalog;
 
 impl Metadata for ControllerCatalog {
     fn lookup(&self, target: Target, index: u16, sub: u8) -> Lookup {
-        if target == (Target { net: 1, node: 1 }) {
-            Catalog::builtin().describe(index, sub)
+        if target.net == 1 && matches!(target.node, 1 | 13) {
+            Catalog::builtin().describe(None, index, sub)
         } else {
             Lookup::Unknown
         }
     }
 
     fn object_texts(&self, _: Target, index: u16) -> Option<(Texts, Texts)> {
-        Catalog::builtin().object_texts(index)
+        Catalog::builtin().object_texts(None, index)
     }
 
     fn text<'a>(&'a self, texts: &'a Texts, p: &str, a: &str) -> Option<(&'a str, &'a str)> {
@@ -66,8 +68,8 @@ impl Metadata for ControllerCatalog {
     }
 }
 
-fn metadata() -> Arc<dyn Metadata> {
-    Arc::new(ControllerCatalog)
+fn metadata() -> Context {
+    Context::new(Arc::new(ControllerCatalog))
 }
 
 struct Portal {
@@ -77,8 +79,13 @@ struct Portal {
 
 impl Portal {
     fn connected() -> Portal {
+        Portal::connected_with(settings(), metadata())
+    }
+
+    /// A session in service with `settings`, sharing `context` (a reconnection shares it).
+    fn connected_with(settings: Settings, context: Context) -> Portal {
         let now = Instant::now();
-        let mut session = Session::new(settings(), metadata(), None, now);
+        let mut session = Session::new(settings, context, None, now);
         assert!(session
             .text(
                 r#"{"jsonrpc":"2.0","id":1,"result":"CONNACK","api":1}"#,
@@ -445,6 +452,7 @@ fn privileges_are_granted_expire_and_lock_out() {
         assert_eq!(code(&p.ask(&elevate(1, "bad"), &[])), 0x0800_0020);
     }
     let locked = p.ask(&elevate(1, SERVICE_SHA1), &[]);
+    assert_eq!(code(&locked), 0x0800_0022, "present device state");
     assert!(
         locked["error"]["message"]
             .as_str()
@@ -460,7 +468,7 @@ fn privileges_are_granted_expire_and_lock_out() {
 }
 
 #[test]
-fn other_nodes_need_their_datatype_and_setup_rights_to_write() {
+fn other_nodes_are_read_with_their_datatype_and_written_only_when_described() {
     let mut p = Portal::connected();
     let get = r#"{"jsonrpc":"2.0","id":"<ID>","method":"get_canopen_object","params":{"lang":{"preferred_language":"en","alternate_language":"de"},"node":{"id":12,"net":1,"datatype":25},"object":{"mplex":"0x610001","compact":false}}}"#;
     let out = p.send(get);
@@ -481,14 +489,19 @@ fn other_nodes_need_their_datatype_and_setup_rights_to_write() {
     let put12 = format!(
         r#"{{"jsonrpc":"2.0","method":"put_canopen_object","id":"<ID>","params":{{"sernum":"{SERNUM}","node":{{"id":12,"net":1}},"object":{{"mplex":"0x502200","datatype":7,"physunit":0,"value":"4"}}}}}}"#
     );
+    // Node 12 has no description: never written, whatever the caller's rights.
+    assert_eq!(code(&p.ask(&put12, &[])), 0x0601_0002, "undescribed");
+    // Node 13 is described: writing it needs setup rights.
+    let put13 = put12.replace(r#""id":12"#, r#""id":13"#);
     assert_eq!(
-        code(&p.ask(&put12, &[])),
+        code(&p.ask(&put13, &[])),
         0x0800_0021,
         "setup rights needed"
     );
     p.ask(&elevate(2, SETUP_SHA1), &[]);
-    assert!(p.ask(&put12, &[]).get("result").is_some());
-    let net2 = put12.replace(r#""net":1"#, r#""net":2"#);
+    assert!(p.ask(&put13, &[]).get("result").is_some());
+    assert_eq!(code(&p.ask(&put12, &[])), 0x0601_0002, "still undescribed");
+    let net2 = put13.replace(r#""net":1"#, r#""net":2"#);
     assert_eq!(
         p.ask(&net2, &[])["error"]["code"],
         rpc_codes::INVALID_PARAMS
@@ -750,5 +763,94 @@ fn errors_are_in_the_language_of_their_request() {
     assert_eq!(
         after["error"]["message"],
         "Attempt to write a read only object."
+    );
+}
+
+#[test]
+fn elevation_cannot_be_gamed() {
+    let context = metadata();
+    let mut p = Portal::connected_with(settings(), context.clone());
+    // Two wrong hashes; a grant of privilege 0 does not reset the count.
+    for _ in 0..2 {
+        assert_eq!(code(&p.ask(&elevate(1, "bad"), &[])), 0x0800_0020);
+    }
+    assert!(p.ask(&elevate(0, "anything"), &[]).get("result").is_some());
+    let out = p.send(&elevate(1, "bad"));
+    assert_eq!(code(&sent(&out)[0]), 0x0800_0020);
+    // The lock-out is handed out to be stored.
+    assert!(out.contains(&Output::Lockout(nxg::gateway::LockoutState {
+        service: LevelState {
+            failures: 3,
+            locked_s: 30
+        },
+        setup: LevelState::default(),
+    })));
+    // Locked: even the right hash answers 08000022h, and the setup level is not affected.
+    assert_eq!(code(&p.ask(&elevate(1, SERVICE_SHA1), &[])), 0x0800_0022);
+    assert!(p.ask(&elevate(2, SETUP_SHA1), &[]).get("result").is_some());
+    // A reconnection shares the gateway's lock-out.
+    let mut again = Portal::connected_with(settings(), context.clone());
+    again.now = p.now;
+    let e = again.ask(&elevate(1, SERVICE_SHA1), &[]);
+    assert_eq!(code(&e), 0x0800_0022, "{e}");
+    // After the lock, the right hash works and ends the count.
+    again.now += Duration::from_secs(31);
+    assert!(again
+        .ask(&elevate(1, SERVICE_SHA1), &[])
+        .get("result")
+        .is_some());
+    assert_eq!(code(&again.ask(&elevate(1, "bad"), &[])), 0x0800_0020);
+}
+
+#[test]
+fn a_level_without_a_password_is_never_granted_and_says_so() {
+    let mut s = settings();
+    s.service_sha1 = None;
+    let mut p = Portal::connected_with(s, metadata());
+    let e = p.ask(&elevate(1, SERVICE_SHA1), &[]);
+    assert_eq!(code(&e), 0x0800_0021);
+    assert_eq!(
+        e["error"]["message"],
+        "This gateway grants no service rights."
+    );
+    // Not a wrong hash: nothing is counted.
+    for _ in 0..5 {
+        p.ask(&elevate(1, SERVICE_SHA1), &[]);
+    }
+    assert!(p.ask(&elevate(2, SETUP_SHA1), &[]).get("result").is_some());
+}
+
+#[test]
+fn the_owners_policy_refuses_and_hides() {
+    let policy = |text: &str| -> Policy { nxg::msg::read(text).unwrap() };
+    let with = |text: &str| {
+        let mut s = settings();
+        s.policy = policy(text);
+        Portal::connected_with(s, metadata())
+    };
+    let call = put("0x502200", 7, 0, "4");
+    // Read-only: every put refused, reads unaffected.
+    let mut p = with(r#"{"remote_writes":"read-only"}"#);
+    assert_eq!(code(&p.ask(&call, &[])), 0x0601_0002);
+    assert!(p
+        .ask(GET_TRIP, &[&7u32.to_le_bytes()])
+        .get("result")
+        .is_some());
+    // Deny: that object only.
+    let mut p = with(r#"{"deny":["0x5022"]}"#);
+    assert_eq!(code(&p.ask(&call, &[])), 0x0601_0002);
+    assert_eq!(
+        code(&p.ask(&put("0x411200", 5, 0, "1"), &[])),
+        0x0800_0021,
+        "other objects pass the policy and meet the usual checks"
+    );
+    // Hide: get, put and registration answer 06020000h.
+    let mut p = with(r#"{"hide":["0x6520"]}"#);
+    assert_eq!(code(&p.ask(GET_TRIP, &[])), 0x0602_0000);
+    let reg = r#"{"jsonrpc":"2.0","method":"reg_canopen_object","id":"r","params":{"mplex":["0x652001"]}}"#;
+    assert_eq!(code(&p.ask(reg, &[])), 0x0602_0000);
+    assert!(
+        p.ask(&call, &[]).get("result").is_some(),
+        "others unaffected"
     );
 }

@@ -2,7 +2,8 @@
 //! the interop Python and the browser, reporting skipped tests where CI logs show them, the
 //! constants every test uses for its lift ([`constants`]), a sample dictionary ([`sample`]), and,
 //! behind features, a PostgreSQL database per test (`postgres`), a test PKI (`pki`), the
-//! simulated lift with its gateway (`lift`) and the portal with a lift connected (`portal`).
+//! simulated lift with its gateway (`lift`), the portal with a lift connected (`portal`) and a
+//! scripted portal for exact JSON-RPC exchanges with a gateway (`scripted`).
 
 pub mod constants;
 #[cfg(feature = "lift")]
@@ -14,6 +15,8 @@ pub mod portal;
 #[cfg(feature = "postgres")]
 mod postgres;
 pub mod sample;
+#[cfg(feature = "scripted")]
+pub mod scripted;
 
 #[cfg(feature = "postgres")]
 pub use postgres::postgres;

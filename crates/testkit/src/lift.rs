@@ -3,8 +3,9 @@
 
 use std::path::Path;
 
-use gateway::config::Config;
+use gateway::config::{Config, NodeSection};
 use gateway::Gateway;
+use lift417::catalog::Device;
 use lift417::sim::{SimConfig, Simulator};
 use tokio::sync::watch;
 use tokio::task::JoinHandle;
@@ -27,14 +28,27 @@ pub fn identity() -> nxg::gateway::Identity {
 }
 
 /// A gateway configuration for the portal at `portal` (`wss://…/ws`) trusting `ca`, on `bus`,
-/// with its state in `state`: the sample identity, both passwords, a short SDO timeout and
-/// fast polling.
+/// with its state in `state`: the sample identity, both passwords, a short SDO timeout, fast
+/// polling, and the simulated I/O node described by the EDS the simulator exports (written
+/// into `state`).
 pub fn gateway_config(portal: &str, ca: &Path, bus: &str, state: &Path) -> Config {
     let mut c = Config::for_portal(identity(), portal, ca, bus, state);
     c.bus.sdo_timeout_ms = 300;
     c.bus.poll_ms = 100;
     c.privileges.service_sha1 = Some(SERVICE_SHA1.into());
     c.privileges.setup_sha1 = Some(SETUP_SHA1.into());
+    let sim = SimConfig::default();
+    if let Some(id) = sim.io_node {
+        let eds = state.join(format!("io-node-{id}.eds"));
+        let text = lift417::sim::export_eds(&sim, Device::Io).expect("the I/O node's EDS");
+        std::fs::create_dir_all(state).expect("the state directory");
+        std::fs::write(&eds, text).expect("the I/O node's EDS is written");
+        c.bus.nodes.push(NodeSection {
+            id,
+            eds: Some(eds),
+            metadata: None,
+        });
+    }
     c
 }
 

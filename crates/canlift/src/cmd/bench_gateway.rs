@@ -1,6 +1,7 @@
 //! `canlift bench gateway`: the elevator gateway measured from a portal's seat — request latency
-//! and rate for naked, stripped and full gets (on a local dictionary, and by SDO through the hub
-//! to the simulated lift), notifications per second, the resident memory of a gateway process
+//! and rate for naked, stripped and full gets (on a local dictionary, the same with the
+//! controller described by an EDS and a vendor file, and by SDO through the hub to the simulated
+//! lift), the cost of one metadata lookup per source, notifications per second, the resident memory of a gateway process
 //! idle and with many subscriptions, and the size of the stripped binary.
 
 use std::path::{Path, PathBuf};
@@ -10,10 +11,12 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use futures_util::{SinkExt, StreamExt};
-use gateway::config::Config;
+use gateway::config::{Config, NodeSection};
+use gateway::metadata::BusMetadata;
 use gateway::Gateway;
 use lift417::catalog::{Catalog, Device};
-use lift417::sim::{SimConfig, Simulator};
+use lift417::sim::{export_eds, SimConfig, Simulator};
+use nxg::gateway::{Metadata, Target};
 use serde_json::{json, Value};
 use tokio::net::{TcpListener, TcpStream};
 use tokio_rustls::server::TlsStream;
@@ -218,6 +221,67 @@ async fn notifications(
     Ok(())
 }
 
+/// The simulated controller's exported EDS and a vendor metadata file naming 6520h sub 1, as
+/// `[[bus.nodes]]` for the controller.
+fn described_controller(dir: &Path) -> anyhow::Result<NodeSection> {
+    let eds = dir.join("controller.eds");
+    std::fs::write(&eds, export_eds(&SimConfig::default(), Device::Controller)?)?;
+    let metadata = dir.join("controller-nxg.toml");
+    std::fs::write(
+        &metadata,
+        r#"languages = ["en", "de"]
+
+[[object]]
+index = 0x6520
+code = "array"
+name = { en = "Counters", de = "Zähler" }
+type = 7
+form = 10
+access = "ro"
+len = 2
+item = { en = "Counter {i}", de = "Zähler {i}" }
+sub = [{ sub = 1, name = { en = "Trips", de = "Fahrten" } }]
+"#,
+    )?;
+    Ok(NodeSection {
+        id: 1,
+        eds: Some(eds),
+        metadata: Some(metadata),
+    })
+}
+
+/// The cost of describing 6520h sub 1 (what a full get looks up) by each source of metadata,
+/// without the connection around it.
+fn metadata_lookups(pki: &DevPki, described: &NodeSection) -> anyhow::Result<()> {
+    let controller = Target { net: 1, node: 1 };
+    let mut c = config("wss://unused/ws", pki, "mem://unused", Path::new("unused"));
+    let catalog_only = BusMetadata::load(&c)?;
+    c.bus.nodes = vec![NodeSection {
+        metadata: None,
+        ..described.clone()
+    }];
+    let with_eds = BusMetadata::load(&c)?;
+    c.bus.nodes = vec![described.clone()];
+    let with_vendor = BusMetadata::load(&c)?;
+    const N: u32 = 200_000;
+    for (what, m) in [
+        ("catalog", &catalog_only),
+        ("EDS + catalog", &with_eds),
+        ("EDS + vendor file", &with_vendor),
+    ] {
+        let started = Instant::now();
+        for _ in 0..N {
+            std::hint::black_box(m.lookup(controller, std::hint::black_box(0x6520), 1));
+        }
+        let per = started.elapsed() / N;
+        println!(
+            "metadata lookup        {what:<18} {:>6} ns per description",
+            per.as_nanos()
+        );
+    }
+    Ok(())
+}
+
 /// A canlift daemon (`gateway`, `cloud`) started by a benchmark as a process of its own, so its
 /// memory is its own: quiet, and killed if the benchmark fails.
 pub(crate) struct Daemon {
@@ -381,9 +445,22 @@ async fn measure(args: &GatewayBench, pki: &DevPki, dir: &Path) -> anyhow::Resul
     let task = tokio::spawn(gateway.run(stopped));
     let mut ws = portal.accept().await?;
     requests(&mut ws, "local dictionary", args).await?;
-    notifications(&mut ws, od, args.seconds).await?;
+    notifications(&mut ws, od.clone(), args.seconds).await?;
     let _ = stop.send(true);
     let _ = task.await;
+    // The same with the controller described by an EDS and a vendor metadata file.
+    let described = described_controller(dir)?;
+    let portal = Portal::start(pki).await?;
+    let mut c = config(&portal.url()?, pki, "mem://unused", &dir.join("eds"));
+    c.bus.nodes = vec![described.clone()];
+    let gateway = Gateway::embedded(c, od)?;
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let task = tokio::spawn(gateway.run(stopped));
+    let mut ws = portal.accept().await?;
+    requests(&mut ws, "local + EDS + vendor", args).await?;
+    let _ = stop.send(true);
+    let _ = task.await;
+    metadata_lookups(pki, &described)?;
     // By SDO through the hub to the simulated lift (bus-node mode).
     let hub = canbus::hub::Hub::bind(canbus::hub::HubConfig {
         listen: std::net::SocketAddr::from(([127, 0, 0, 1], 0)),

@@ -11,7 +11,8 @@ use anyhow::Context;
 use canbus::hub::{Hub, HubConfig};
 use cloud::server::Portal;
 use cloud::store::Store;
-use lift417::sim::{SimConfig, Simulator};
+use lift417::catalog::Device;
+use lift417::sim::{export_eds, SimConfig, Simulator};
 
 /// Command-line arguments of `canlift demo`.
 #[derive(Debug, clap::Args)]
@@ -91,17 +92,15 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
     let (stop, stopped) = tokio::sync::watch::channel(false);
     let portal_task = tokio::spawn(portal.run(stopped.clone()));
     // The lift.
-    let sim = Simulator::start(
-        &bus,
-        SimConfig {
-            speed: args.speed,
-            state_dir: Some(dir.join("lift")),
-            passengers: (args.passengers > 0.0).then(|| Duration::from_secs_f64(args.passengers)),
-            ..SimConfig::default()
-        },
-    )
-    .await
-    .context("starting the simulated lift")?;
+    let sim_config = SimConfig {
+        speed: args.speed,
+        state_dir: Some(dir.join("lift")),
+        passengers: (args.passengers > 0.0).then(|| Duration::from_secs_f64(args.passengers)),
+        ..SimConfig::default()
+    };
+    let sim = Simulator::start(&bus, sim_config.clone())
+        .await
+        .context("starting the simulated lift")?;
     // The gateway, with a configuration a user can reuse for `canlift gateway`.
     let ca = portal_config.state.dir.join("dev-ca.pem");
     let identity = nxg::gateway::Identity {
@@ -114,8 +113,19 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
         ..Default::default()
     };
     let portal_ws = format!("wss://localhost:{}/ws", portal_addr.port());
-    let gw =
+    let mut gw =
         gateway::config::Config::for_portal(identity, &portal_ws, &ca, &bus, &dir.join("gateway"));
+    // The I/O node described by its EDS, as an integrator would (docs/GATEWAY.md §Metadata).
+    if let Some(id) = sim_config.io_node {
+        let eds = dir.join(format!("io-node-{id}.eds"));
+        std::fs::write(&eds, export_eds(&sim_config, Device::Io)?)
+            .with_context(|| format!("writing {}", eds.display()))?;
+        gw.bus.nodes.push(gateway::config::NodeSection {
+            id,
+            eds: Some(eds),
+            metadata: None,
+        });
+    }
     let gateway_toml = dir.join("gateway.toml");
     std::fs::write(&gateway_toml, toml::to_string_pretty(&gw)?)?;
     let gateway = gateway::Gateway::bus_node(gw)

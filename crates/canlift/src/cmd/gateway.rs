@@ -10,7 +10,7 @@ use gateway::Gateway;
 #[derive(Debug, clap::Args)]
 pub struct GatewayArgs {
     /// Configuration file (TOML: `[identity]`, `[cloud]`, `[state]`, `[bus]`, `[[networks]]`,
-    /// `[privileges]`, `[limits]`).
+    /// `[privileges]`, `[limits]`, `[policy]`).
     #[arg(long)]
     config: Option<PathBuf>,
     /// Print the effective configuration and exit.
@@ -19,7 +19,15 @@ pub struct GatewayArgs {
 }
 
 /// The sections that take `CANLIFT_<SECTION>_<KEY>` overrides.
-const SECTIONS: [&str; 6] = ["identity", "cloud", "state", "bus", "privileges", "limits"];
+const SECTIONS: [&str; 7] = [
+    "identity",
+    "cloud",
+    "state",
+    "bus",
+    "privileges",
+    "limits",
+    "policy",
+];
 
 /// Run the gateway until Ctrl-C or SIGTERM.
 pub async fn run(args: GatewayArgs) -> anyhow::Result<()> {

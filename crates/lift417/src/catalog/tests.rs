@@ -298,8 +298,21 @@ fn loading_refuses_overlaps_and_unknown_codes() {
         .to_string()
         .contains("99"));
     let syntax = format!("{HEADER}{}", object("0x2001", "colour = 1"));
-    assert!(matches!(
-        Catalog::from_toml(&syntax),
-        Err(CatalogError::Syntax(_))
-    ));
+    let err = Catalog::from_toml(&syntax).unwrap_err();
+    assert!(matches!(err, CatalogError::Syntax { .. }));
+    // Errors name the file's line: the unknown key's, or the inconsistent object's.
+    let line = syntax
+        .lines()
+        .position(|l| l.starts_with("colour"))
+        .unwrap()
+        + 1;
+    assert_eq!(
+        err.located("vendor.toml", &syntax),
+        format!("vendor.toml:{line}: unknown field `colour`")
+    );
+    let err = Catalog::from_toml(&unit).unwrap_err();
+    let line = unit.lines().position(|l| l.contains("0x2001")).unwrap() + 1;
+    assert!(err
+        .located("v.toml", &unit)
+        .starts_with(&format!("v.toml:{line}: object 2001h")));
 }

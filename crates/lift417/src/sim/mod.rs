@@ -135,10 +135,12 @@ impl SimConfig {
         Ok(())
     }
 
-    fn node_config(&self, node_id: u8, device: u32, product: u32) -> NodeConfig {
+    fn node_config(&self, node_id: u8, device: u32, product: u32, name: &str) -> NodeConfig {
         NodeConfig {
             device_type: device << 16 | PROFILE_417,
             identity: [1050, product, 1, u32::from(node_id)],
+            device_name: name.into(),
+            hardware_version: "canlift simulator".into(),
             software_version: format!("canlift {}", env!("CARGO_PKG_VERSION")),
             heartbeat_ms: self.heartbeat_ms,
             pdos: (4, 3 * u16::from(self.lifts)),
@@ -151,16 +153,21 @@ impl SimConfig {
     }
 
     fn controller_config(&self) -> NodeConfig {
-        self.node_config(self.node_id, CONTROLLER_DEVICE, 0x417_0001)
+        self.node_config(self.node_id, CONTROLLER_DEVICE, 0x417_0001, CONTROLLER_NAME)
     }
 
     fn io_config(&self, id: u8) -> NodeConfig {
         NodeConfig {
             pdos: (4, 4),
-            ..self.node_config(id, IO_DEVICE, 0x417_0008)
+            ..self.node_config(id, IO_DEVICE, 0x417_0008, IO_NAME)
         }
     }
 }
+
+/// 1008h of the simulated controller (and its EDS's ProductName).
+const CONTROLLER_NAME: &str = "canlift simulated lift controller";
+/// 1008h of the simulated I/O node.
+const IO_NAME: &str = "canlift simulated I/O node";
 
 /// The dictionary of the controller as the simulator starts it: the catalog with floor levels.
 fn controller_dictionary(config: &SimConfig) -> Result<ObjectDictionary, SimError> {
@@ -879,15 +886,11 @@ pub fn export_eds(config: &SimConfig, device: Device) -> Result<String, SimError
         Device::Controller => (
             controller_dictionary(config)?,
             config.controller_config(),
-            "canlift simulated lift controller",
+            CONTROLLER_NAME,
         ),
         Device::Io => {
             let id = config.io_node.unwrap_or(12);
-            (
-                io_dictionary(config)?,
-                config.io_config(id),
-                "canlift simulated I/O node",
-            )
+            (io_dictionary(config)?, config.io_config(id), IO_NAME)
         }
     };
     add_communication_objects(&mut od, &node);

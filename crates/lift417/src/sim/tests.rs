@@ -91,4 +91,14 @@ fn the_exported_eds_describes_the_running_dictionary() {
     let io = canopen::eds::import("io.eds", &io, Some(12)).unwrap().od;
     assert_eq!(io.get_value(0x1000, 0), Ok(Value::Uint(0x0008_01A1)));
     assert!(io.object(0x2000).is_some());
+    // Identity like any real device: 1008h, 1009h, 100Ah.
+    for (od, name) in [(&od, CONTROLLER_NAME), (&io, IO_NAME)] {
+        assert_eq!(od.get_value(0x1008, 0), Ok(Value::Text(name.into())));
+        assert_eq!(
+            od.get_value(0x1009, 0),
+            Ok(Value::Text("canlift simulator".into()))
+        );
+        let software = format!("canlift {}", env!("CARGO_PKG_VERSION"));
+        assert_eq!(od.get_value(0x100A, 0), Ok(Value::Text(software)));
+    }
 }

@@ -7,7 +7,7 @@
 //! subscriptions with inhibit and threshold, bounded work in flight, the dead-connection timer.
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
-use std::sync::Arc;
+use std::sync::PoisonError;
 use std::time::{Duration, Instant};
 
 use canopen::sdo::abort::AbortCode;
@@ -15,8 +15,10 @@ use canopen::types::{self, DataType as CiaType};
 use serde_json::value::RawValue;
 
 use super::answer::{self, Form, Langs, Refusal};
-use super::metadata::{bare, Lookup, Metadata, Target};
+use super::lockout::{Failed, LockoutState};
+use super::metadata::{bare, Lookup, Target};
 use super::settings::Settings;
+use super::Context;
 use crate::digest;
 use crate::errors::{rpc_codes, ErrorCode};
 use crate::meta::{Access, DataType, Description, Privilege};
@@ -110,6 +112,8 @@ pub enum Output {
     Watch(Target, u16, u8),
     /// Stop feeding it.
     Unwatch(Target, u16, u8),
+    /// The elevation lock-out changed: store it, so that a restart keeps it.
+    Lockout(LockoutState),
 }
 
 /// Where the connection stands.
@@ -184,14 +188,10 @@ impl From<Refusal> for Failure {
 
 type Outcome = Result<Vec<Output>, Failure>;
 
-const LOCKOUT_AFTER: u32 = 3;
-const LOCKOUT_BASE: Duration = Duration::from_secs(30);
-const LOCKOUT_CAP: Duration = Duration::from_secs(3600);
-
 /// One connection's protocol state.
 pub struct Session {
     settings: Settings,
-    metadata: Arc<dyn Metadata>,
+    context: Context,
     token: Option<String>,
     phase: Phase,
     started: Instant,
@@ -201,22 +201,15 @@ pub struct Session {
     in_flight: usize,
     queue: VecDeque<Queued>,
     grant: Option<Grant>,
-    failures: u32,
-    locked_until: Option<Instant>,
     subscriptions: BTreeMap<(Target, u16, u8), Subscription>,
 }
 
 impl Session {
     /// A session that will CONNECT with `token` (the stored cloud token, if any).
-    pub fn new(
-        settings: Settings,
-        metadata: Arc<dyn Metadata>,
-        token: Option<String>,
-        now: Instant,
-    ) -> Self {
+    pub fn new(settings: Settings, context: Context, token: Option<String>, now: Instant) -> Self {
         Session {
             settings,
-            metadata,
+            context,
             token,
             phase: Phase::Connecting,
             started: now,
@@ -226,8 +219,6 @@ impl Session {
             in_flight: 0,
             queue: VecDeque::new(),
             grant: None,
-            failures: 0,
-            locked_until: None,
             subscriptions: BTreeMap::new(),
         }
     }
@@ -421,7 +412,13 @@ impl Session {
                 .map_err(Failure::Params)
                 .and_then(|p| {
                     lang = languages(p.lang.as_ref());
-                    self.put(&id, p, &lang, now)
+                    let (node, mplex) = (p.node.map(|n| n.id.get()), p.object.mplex.text.clone());
+                    self.put(&id, p, &lang, now).inspect_err(|f| {
+                        if let Failure::Nxg(r) = f {
+                            let why = r.detail.as_deref().unwrap_or(r.code.message("en"));
+                            tracing::info!(?id, ?node, %mplex, code = %r.code, why, "put refused");
+                        }
+                    })
                 }),
             Method::ElevatePrivilege => msg::params(params)
                 .map_err(Failure::Params)
@@ -514,7 +511,14 @@ impl Session {
         m: &MplexText,
         datatype: Option<u32>,
     ) -> Result<Description, Failure> {
-        match self.metadata.lookup(target, m.mplex.index, m.mplex.sub) {
+        if self.settings.policy.hidden(target, m.mplex.index) {
+            return Err(Refusal::new(ErrorCode::NO_OBJECT, m.text.as_str()).into());
+        }
+        match self
+            .context
+            .metadata
+            .lookup(target, m.mplex.index, m.mplex.sub)
+        {
             Lookup::Found(d) => Ok(*d),
             Lookup::NoSub => Err(Refusal::new(ErrorCode::NO_SUB_INDEX, m.text.as_str()).into()),
             Lookup::NoObject => Err(Refusal::new(ErrorCode::NO_OBJECT, m.text.as_str()).into()),
@@ -547,7 +551,7 @@ impl Session {
         let m = object.mplex.mplex;
         let compact = object.compact && m.sub == 1;
         let job = if compact {
-            if let Some((name, hint)) = self.metadata.object_texts(target, m.index) {
+            if let Some((name, hint)) = self.context.metadata.object_texts(target, m.index) {
                 description.name = name;
                 description.hint = hint;
             }
@@ -583,7 +587,22 @@ impl Session {
         let object = p.object;
         let mplex = object.mplex.text.as_str();
         let (target, other_node) = self.target(p.node.as_ref())?;
+        let index = object.mplex.mplex.index;
+        let described = !matches!(
+            self.context
+                .metadata
+                .lookup(target, index, object.mplex.mplex.sub),
+            Lookup::Unknown
+        );
         let d = self.describe(target, &object.mplex, Some(object.datatype))?;
+        let controller = self.controller();
+        if let Err((code, why)) = self
+            .settings
+            .policy
+            .check_write(target, controller, index, described)
+        {
+            return Err(Refusal::detailed(code, mplex, why).into());
+        }
         let refuse = |code: ErrorCode| Err(Refusal::new(code, mplex).into());
         if !d.access.writable() {
             return refuse(ErrorCode::READ_ONLY);
@@ -633,50 +652,88 @@ impl Session {
             )
             .into());
         }
-        if let Some(until) = self.locked_until.filter(|u| now < *u) {
+        let duration = self.settings.privilege_duration;
+        let grant = |session: &mut Session| {
+            session.grant = Some(Grant {
+                level,
+                until: now + duration,
+            });
+            let answer = ElevateAnswer {
+                duration: duration.as_secs(),
+            };
+            Output::Send(msg::response(id.as_ref(), &answer))
+        };
+        if level == Privilege::User {
+            // Back to user rights; the failure counts stay as they are.
+            return Ok(vec![grant(self)]);
+        }
+        let expected = match level {
+            Privilege::Service => self.settings.service_sha1.clone(),
+            _ => self.settings.setup_sha1.clone(),
+        };
+        let Some(expected) = expected else {
             return Err(Refusal::detailed(
-                ErrorCode::IDENTITY,
+                ErrorCode::PRIVILEGE,
+                data,
+                format!("This gateway grants no {} rights.", level.text()),
+            )
+            .into());
+        };
+        let lockout = self.context.lockout.clone();
+        let mut lockout = lockout.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some(left) = lockout.locked(level, now) {
+            let seconds = left.as_secs().max(1);
+            tracing::warn!(
+                level = level.text(),
+                seconds,
+                "elevation refused: locked out"
+            );
+            return Err(Refusal::detailed(
+                ErrorCode::DEVICE_STATE,
                 data,
                 format!(
-                    "Too many wrong password hashes; elevation is locked for {} s.",
-                    until.duration_since(now).as_secs().max(1)
+                    "Elevation to {} rights is locked for {seconds} s after wrong password hashes.",
+                    level.text()
                 ),
             )
             .into());
         }
-        let expected = match level {
-            Privilege::User => None,
-            Privilege::Service => self.settings.service_sha1.as_deref(),
-            _ => self.settings.setup_sha1.as_deref(),
-        };
-        let ok =
-            level == Privilege::User || expected.is_some_and(|e| digest::matches(e, &p.passhash));
-        if !ok {
-            self.failures += 1;
-            if self.failures >= LOCKOUT_AFTER {
-                // 30 s after the third failure, doubling with each further one, up to an hour.
-                let exponent = (self.failures - LOCKOUT_AFTER).min(7);
-                let lock = (LOCKOUT_BASE * 2u32.pow(exponent)).min(LOCKOUT_CAP);
-                self.locked_until = Some(now + lock);
+        if !digest::matches(&expected, &p.passhash) {
+            match lockout.failure(level, now) {
+                Failed::Counted(n) => {
+                    tracing::warn!(
+                        level = level.text(),
+                        failures = n,
+                        "elevation refused: wrong password hash"
+                    )
+                }
+                Failed::Locked(lock) => tracing::warn!(
+                    level = level.text(),
+                    seconds = lock.as_secs(),
+                    "elevation refused: wrong password hash; locked out"
+                ),
             }
-            return Err(Refusal::detailed(
+            let state = lockout.state(now);
+            let refusal = Refusal::detailed(
                 ErrorCode::IDENTITY,
                 data,
                 "The password hash does not match.",
-            )
-            .into());
+            );
+            let out = Output::Send(msg::error_response(
+                id.as_ref(),
+                &refusal.to_error(&Langs::default()),
+            ));
+            return Ok(vec![out, Output::Lockout(state)]);
         }
-        self.failures = 0;
-        self.locked_until = None;
-        let duration = self.settings.privilege_duration;
-        self.grant = Some(Grant {
-            level,
-            until: now + duration,
-        });
-        let answer = ElevateAnswer {
-            duration: duration.as_secs(),
-        };
-        Ok(vec![Output::Send(msg::response(id.as_ref(), &answer))])
+        lockout.success(level);
+        let state = lockout.state(now);
+        drop(lockout);
+        tracing::info!(
+            level = level.text(),
+            seconds = duration.as_secs(),
+            "privilege granted"
+        );
+        Ok(vec![grant(self), Output::Lockout(state)])
     }
 
     fn register(&mut self, id: &Option<Id>, p: RegParams) -> Outcome {
@@ -781,7 +838,8 @@ impl Session {
                 self.in_flight -= 1;
                 let answer = match result {
                     JobResult::Read(values) => {
-                        answer::object(&*self.metadata, &description, form, &lang, &mplex, &values)
+                        let metadata = &*self.context.metadata;
+                        answer::object(metadata, &description, form, &lang, &mplex, &values)
                             .map_err(|code| Refusal::new(code, mplex.as_str()))
                     }
                     JobResult::Failed(code) => Err(Refusal::new(code, mplex.as_str())),

@@ -91,4 +91,6 @@ pub struct Settings {
     pub lift_controller: u8,
     /// The CAN networks configured (1 is the bus of `[bus]`).
     pub nets: Vec<u8>,
+    /// What the owner lets the cloud write and see.
+    pub policy: super::Policy,
 }

@@ -1,0 +1,300 @@
+//! The write policy the lift's owner sets (`[policy]` of the gateway's configuration): NXg §6.3
+//! lets a gateway limit writes heavily, and for a lift this is the main safety lever.
+//!
+//! - `remote_writes = "read-only"` refuses every put (06010002h);
+//! - `deny` refuses puts to the objects it lists (06010002h; they stay readable);
+//! - `hide` makes objects invisible: get, put and registration answer 06020000h;
+//! - on nodes other than the lift controller, the communication objects 1000h–1FFFh (PDO
+//!   parameters, heartbeat, store/restore, program control) are not written unless `allow`
+//!   lists them;
+//! - an object without a description (no EDS, catalog or vendor metadata) is never written;
+//! - `default_privilege` is what writing an object needs when no metadata says.
+//!
+//! A rule is an index (`"0x5022"`), a range (`"0x1010-0x1FFF"`), or a table with a node:
+//! `{ index = "0x1010-0x1FFF", node = 12 }`.
+
+use std::fmt;
+use std::ops::RangeInclusive;
+
+use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+use super::metadata::Target;
+use crate::errors::ErrorCode;
+use crate::meta::Privilege;
+
+/// Whether the cloud may write at all.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RemoteWrites {
+    /// Writes are checked object by object.
+    #[default]
+    Allowed,
+    /// Every put is refused.
+    ReadOnly,
+}
+
+/// Objects by index (one or a range), on every node or on one.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Rule {
+    /// The indices.
+    pub indices: RangeInclusive<u16>,
+    /// Only on this node (any network); every node when absent.
+    pub node: Option<u8>,
+}
+
+impl Rule {
+    fn matches(&self, target: Target, index: u16) -> bool {
+        self.indices.contains(&index) && self.node.is_none_or(|n| n == target.node)
+    }
+
+    fn parse_indices(text: &str) -> Result<RangeInclusive<u16>, String> {
+        let number = |t: &str| {
+            let t = t.trim();
+            t.strip_prefix("0x")
+                .or_else(|| t.strip_prefix("0X"))
+                .and_then(|h| u16::from_str_radix(h, 16).ok())
+                .ok_or_else(|| format!("{t:?} is not an index (0x and four hex digits)"))
+        };
+        match text.split_once('-') {
+            Some((from, to)) => {
+                let (from, to) = (number(from)?, number(to)?);
+                if from > to {
+                    return Err(format!(
+                        "range {text:?}: from {from:04X}h is above to {to:04X}h"
+                    ));
+                }
+                Ok(from..=to)
+            }
+            None => number(text).map(|i| i..=i),
+        }
+    }
+}
+
+impl fmt::Display for Rule {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let (from, to) = (self.indices.start(), self.indices.end());
+        if from == to {
+            write!(f, "0x{from:04X}")?;
+        } else {
+            write!(f, "0x{from:04X}-0x{to:04X}")?;
+        }
+        match self.node {
+            Some(n) => write!(f, " on node {n}"),
+            None => Ok(()),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for Rule {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Rule, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Raw {
+            Text(String),
+            Table { index: String, node: Option<u8> },
+        }
+        let (text, node) = match Raw::deserialize(d)? {
+            Raw::Text(t) => (t, None),
+            Raw::Table { index, node } => (index, node),
+        };
+        if node.is_some_and(|n| !(1..=127).contains(&n)) {
+            return Err(serde::de::Error::custom("node is a node-ID 1–127"));
+        }
+        let indices = Rule::parse_indices(&text).map_err(serde::de::Error::custom)?;
+        Ok(Rule { indices, node })
+    }
+}
+
+impl Serialize for Rule {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        use serde::ser::SerializeMap;
+        let (from, to) = (self.indices.start(), self.indices.end());
+        let index = if from == to {
+            format!("0x{from:04X}")
+        } else {
+            format!("0x{from:04X}-0x{to:04X}")
+        };
+        match self.node {
+            None => s.serialize_str(&index),
+            Some(node) => {
+                let mut map = s.serialize_map(Some(2))?;
+                map.serialize_entry("index", &index)?;
+                map.serialize_entry("node", &node)?;
+                map.end()
+            }
+        }
+    }
+}
+
+/// `[policy]`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Policy {
+    /// `"allowed"` or `"read-only"`.
+    pub remote_writes: RemoteWrites,
+    /// Objects never written remotely (they stay readable).
+    pub deny: Vec<Rule>,
+    /// Objects written although the defaults protect them (communication objects of other
+    /// nodes).
+    pub allow: Vec<Rule>,
+    /// Objects the connector does not show at all.
+    pub hide: Vec<Rule>,
+    /// The privilege writing needs where no metadata says (0 user, 1 service, 2 setup, 3 never).
+    pub default_privilege: u8,
+}
+
+impl Default for Policy {
+    fn default() -> Self {
+        Policy {
+            remote_writes: RemoteWrites::Allowed,
+            deny: Vec::new(),
+            allow: Vec::new(),
+            hide: Vec::new(),
+            default_privilege: Privilege::Setup.code(),
+        }
+    }
+}
+
+/// The communication profile area (CiA 301 §7.5.2).
+const COMMUNICATION: RangeInclusive<u16> = 0x1000..=0x1FFF;
+
+impl Policy {
+    /// Whether the connector hides `index` of `target`.
+    pub fn hidden(&self, target: Target, index: u16) -> bool {
+        self.hide.iter().any(|r| r.matches(target, index))
+    }
+
+    /// The privilege writing needs where no metadata says.
+    pub fn default_privilege(&self) -> Privilege {
+        Privilege::from_code(u32::from(self.default_privilege)).unwrap_or(Privilege::Setup)
+    }
+
+    /// Whether a put of `index` on `target` may go ahead (`controller`: the lift controller;
+    /// `described`: some metadata describes the object). The refusal says why, for the log.
+    pub fn check_write(
+        &self,
+        target: Target,
+        controller: Target,
+        index: u16,
+        described: bool,
+    ) -> Result<(), (ErrorCode, String)> {
+        let refuse = |why: String| Err((ErrorCode::READ_ONLY, why));
+        if self.remote_writes == RemoteWrites::ReadOnly {
+            return refuse("remote writes are off (policy remote_writes = read-only)".into());
+        }
+        if let Some(rule) = self.deny.iter().find(|r| r.matches(target, index)) {
+            return refuse(format!("denied by policy rule {rule}"));
+        }
+        if !described {
+            return refuse("no description of the object: never written remotely".into());
+        }
+        let allowed = self.allow.iter().any(|r| r.matches(target, index));
+        if target != controller && COMMUNICATION.contains(&index) && !allowed {
+            return refuse(format!(
+                "communication object of node {}: not written unless the policy allows it",
+                target.node
+            ));
+        }
+        Ok(())
+    }
+
+    /// A line for the log at start.
+    pub fn summary(&self) -> String {
+        let list = |rules: &[Rule]| {
+            if rules.is_empty() {
+                "none".to_owned()
+            } else {
+                rules
+                    .iter()
+                    .map(ToString::to_string)
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            }
+        };
+        format!(
+            "remote writes {}; deny {}; allow {}; hide {}; default privilege {}",
+            match self.remote_writes {
+                RemoteWrites::Allowed => "allowed",
+                RemoteWrites::ReadOnly => "read-only",
+            },
+            list(&self.deny),
+            list(&self.allow),
+            list(&self.hide),
+            self.default_privilege().text()
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn policy(text: &str) -> Result<Policy, String> {
+        crate::msg::read::<Policy>(text)
+    }
+
+    const CONTROLLER: Target = Target { net: 1, node: 1 };
+    const IO: Target = Target { net: 1, node: 12 };
+
+    #[test]
+    fn rules_read_and_check() {
+        let p = policy(
+            r#"{"deny":["0x5022","0x4100-0x41FF"],"allow":[{"index":"0x1017","node":12}],
+               "hide":[{"index":"0x2000-0x20FF","node":1}]}"#,
+        )
+        .unwrap();
+        assert!(p.hidden(CONTROLLER, 0x2010) && !p.hidden(IO, 0x2010));
+        let code = |r: Result<(), (ErrorCode, String)>| r.map_err(|e| e.0);
+        assert_eq!(
+            code(p.check_write(CONTROLLER, CONTROLLER, 0x5022, true)),
+            Err(ErrorCode::READ_ONLY)
+        );
+        assert_eq!(
+            code(p.check_write(CONTROLLER, CONTROLLER, 0x4113, true)),
+            Err(ErrorCode::READ_ONLY)
+        );
+        assert_eq!(
+            code(p.check_write(CONTROLLER, CONTROLLER, 0x4200, true)),
+            Ok(())
+        );
+        // Communication objects of other nodes only when allowed; the controller's by metadata.
+        assert_eq!(
+            code(p.check_write(IO, CONTROLLER, 0x1016, true)),
+            Err(ErrorCode::READ_ONLY)
+        );
+        assert_eq!(code(p.check_write(IO, CONTROLLER, 0x1017, true)), Ok(()));
+        assert_eq!(
+            code(p.check_write(CONTROLLER, CONTROLLER, 0x1017, true)),
+            Ok(())
+        );
+        // Nothing without a description.
+        assert_eq!(
+            code(p.check_write(IO, CONTROLLER, 0x6200, false)),
+            Err(ErrorCode::READ_ONLY)
+        );
+        let ro = policy(r#"{"remote_writes":"read-only"}"#).unwrap();
+        assert_eq!(
+            code(ro.check_write(CONTROLLER, CONTROLLER, 0x5022, true)),
+            Err(ErrorCode::READ_ONLY)
+        );
+        assert_eq!(Policy::default().default_privilege(), Privilege::Setup);
+        assert!(
+            p.summary().contains("deny 0x5022, 0x4100-0x41FF"),
+            "{}",
+            p.summary()
+        );
+    }
+
+    #[test]
+    fn bad_rules_are_named() {
+        let e = policy(r#"{"deny":["0x2000-0x1000"]}"#).unwrap_err();
+        assert!(e.contains("deny") && e.contains("above"), "{e}");
+        assert!(policy(r#"{"deny":["5022"]}"#).is_err());
+        assert!(policy(r#"{"hide":[{"index":"0x2000","node":200}]}"#).is_err());
+        assert!(policy(r#"{"colour":"red"}"#).is_err());
+        // Rules write back as they read.
+        let p = policy(r#"{"allow":[{"index":"0x1017","node":12}],"deny":["0x5022"]}"#).unwrap();
+        let again: Policy = crate::msg::read(&serde_json::to_string(&p).unwrap()).unwrap();
+        assert_eq!(again, p);
+    }
+}
