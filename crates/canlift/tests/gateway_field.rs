@@ -170,15 +170,10 @@ impl Field {
         c.privileges.setup_sha1 = Some(SETUP_SHA1.into());
         c.bus.nodes = vec![
             NodeSection {
-                id: CONTROLLER,
-                eds: Some(fixture("controller.eds")),
                 metadata: Some(fixture("controller-nxg.toml")),
+                ..NodeSection::with_eds(CONTROLLER, fixture("controller.eds"))
             },
-            NodeSection {
-                id: OTHER,
-                eds: Some(fixture("controller.eds")),
-                metadata: None,
-            },
+            NodeSection::with_eds(OTHER, fixture("controller.eds")),
         ];
         edit(&mut c);
         let path = self.dir.path().join("gateway.toml");
@@ -646,11 +641,7 @@ async fn malformed_files_stop_the_gateway_with_file_line_and_reason() {
     let eds = std::fs::read_to_string(fixture("controller.eds")).unwrap();
     let broken = eds.replacen("HighLimit=600", "HighLimit=six hundred", 1);
     let broken_eds = write("broken.eds", &broken);
-    let config = gateway_toml(vec![NodeSection {
-        id: 1,
-        eds: Some(broken_eds.clone()),
-        metadata: None,
-    }]);
+    let config = gateway_toml(vec![NodeSection::with_eds(1, broken_eds.clone())]);
     let err = refused(&config).await;
     let at = format!(
         "{}:{}:",
@@ -663,9 +654,8 @@ async fn malformed_files_stop_the_gateway_with_file_line_and_reason() {
     let typo = vendor.replacen("form = 15", "from = 15", 1);
     let typo_toml = write("typo.toml", &typo);
     let config = gateway_toml(vec![NodeSection {
-        id: 1,
-        eds: Some(fixture("controller.eds")),
         metadata: Some(typo_toml.clone()),
+        ..NodeSection::with_eds(1, fixture("controller.eds"))
     }]);
     let err = refused(&config).await;
     let at = format!("{}:{}:", typo_toml.display(), line_of(&typo, "from = 15"));

@@ -21,6 +21,74 @@ pub mod codes {
     pub const RPDO_TIMEOUT: u16 = 0x8250;
 }
 
+/// What an emergency error code means (CiA 301 §7.2.7.1, table of error codes), in English
+/// and German: the code itself where the table names it, else its class (the most specific
+/// of the high byte and the high nibble).
+pub fn describe(code: u16) -> (&'static str, &'static str) {
+    let exact = match code {
+        0x0000 => Some((
+            "Error reset or no error",
+            "Fehler zurückgesetzt oder kein Fehler",
+        )),
+        0x8110 => Some((
+            "CAN overrun: messages lost",
+            "CAN-Überlauf: Nachrichten verloren",
+        )),
+        0x8120 => Some((
+            "CAN in error passive mode",
+            "CAN im Zustand „error passive“",
+        )),
+        0x8130 => Some((
+            "Life guard or heartbeat error",
+            "Node-Guarding- oder Heartbeat-Fehler",
+        )),
+        0x8140 => Some(("Recovered from bus off", "Bus-off überwunden")),
+        0x8150 => Some(("CAN-ID collision", "CAN-ID-Kollision")),
+        0x8210 => Some((
+            "PDO not processed: length error",
+            "PDO wegen Längenfehler nicht verarbeitet",
+        )),
+        0x8220 => Some(("PDO length exceeded", "PDO-Länge überschritten")),
+        0x8230 => Some((
+            "MPDO destination not available",
+            "MPDO-Zielobjekt nicht vorhanden",
+        )),
+        0x8240 => Some(("Unexpected SYNC data length", "Unerwartete SYNC-Datenlänge")),
+        0x8250 => Some(("RPDO timeout", "RPDO-Zeitüberschreitung")),
+        _ => None,
+    };
+    let class = || match code >> 8 {
+        0x21 => ("Current, device input side", "Strom, Geräteeingang"),
+        0x22 => ("Current inside the device", "Strom im Gerät"),
+        0x23 => ("Current, device output side", "Strom, Geräteausgang"),
+        0x31 => ("Mains voltage", "Netzspannung"),
+        0x32 => ("Voltage inside the device", "Spannung im Gerät"),
+        0x33 => ("Output voltage", "Ausgangsspannung"),
+        0x41 => ("Ambient temperature", "Umgebungstemperatur"),
+        0x42 => ("Device temperature", "Gerätetemperatur"),
+        0x61 => ("Internal software", "Interne Software"),
+        0x62 => ("User software", "Anwendersoftware"),
+        0x63 => ("Data set", "Datensatz"),
+        0x81 => ("Communication", "Kommunikation"),
+        0x82 => ("Protocol error", "Protokollfehler"),
+        0xF0 => ("Additional functions", "Zusatzfunktionen"),
+        0xFF => ("Device specific", "Gerätespezifisch"),
+        _ => match code >> 12 {
+            0x1 => ("Generic error", "Allgemeiner Fehler"),
+            0x2 => ("Current", "Strom"),
+            0x3 => ("Voltage", "Spannung"),
+            0x4 => ("Temperature", "Temperatur"),
+            0x5 => ("Device hardware", "Gerätehardware"),
+            0x6 => ("Device software", "Gerätesoftware"),
+            0x7 => ("Additional modules", "Zusatzmodule"),
+            0x8 => ("Monitoring", "Überwachung"),
+            0x9 => ("External error", "Externer Fehler"),
+            _ => ("Unknown error code", "Unbekannter Fehlercode"),
+        },
+    };
+    exact.unwrap_or_else(class)
+}
+
 /// One EMCY message.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct EmcyMessage {
@@ -208,6 +276,16 @@ impl EmcyProducer {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn codes_are_described_by_the_most_specific_entry() {
+        assert_eq!(describe(0x8130).0, "Life guard or heartbeat error");
+        assert_eq!(describe(0x2310).0, "Current, device output side");
+        assert_eq!(describe(0x2000).0, "Current");
+        assert_eq!(describe(0x5530).1, "Gerätehardware");
+        assert_eq!(describe(0xFF42).0, "Device specific");
+        assert_eq!(describe(0xA000).0, "Unknown error code");
+    }
 
     /// What one call sends (the tests expect at most one frame at a time).
     fn next(p: &mut EmcyProducer, now: Instant) -> Option<Frame> {

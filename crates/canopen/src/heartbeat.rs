@@ -215,6 +215,16 @@ impl HeartbeatConsumer {
         }
     }
 
+    /// Start every running consumer timer again from `now` (after a time in which nothing
+    /// could be heard, such as a lost link): nodes heard before get a full consumer time.
+    pub fn rearm(&mut self, now: Instant) {
+        for entry in self.nodes.values_mut() {
+            if entry.state != NodeState::Offline && entry.last_seen.is_some() {
+                entry.deadline = entry.consumer_time.map(|t| now + t);
+            }
+        }
+    }
+
     /// Mark nodes whose consumer time has passed as offline.
     pub fn handle_timeout(&mut self, now: Instant, events: &mut Vec<HeartbeatEvent>) {
         for (node, entry) in &mut self.nodes {

@@ -4,8 +4,9 @@
 //! frames and its next deadline: data types ([`types`]), the object dictionary ([`od`]), CiA 306
 //! files ([`eds`]), SDO ([`sdo`]), NMT ([`nmt`]), heartbeat ([`heartbeat`]), node and life
 //! guarding ([`guarding`]), EMCY ([`emcy`]), SYNC ([`sync`]), TIME ([`time`]), PDO ([`pdo`]),
-//! LSS ([`lss`]) and parameter storage ([`storage`]); the pre-defined connection set ([`cob`])
-//! and bus-monitor decoding ([`monitor`]).
+//! LSS ([`lss`]) and parameter storage ([`storage`]); the pre-defined connection set ([`cob`]),
+//! bus-monitor decoding ([`monitor`]) and network supervision — node states, EMCY, bus state —
+//! ([`supervisor`]).
 //!
 //! [`node::Node`] composes them into a device, sans-IO too; [`objects`] names the
 //! communication objects.
@@ -36,6 +37,7 @@ pub mod od;
 pub mod pdo;
 pub mod sdo;
 pub mod storage;
+pub mod supervisor;
 pub mod sync;
 mod tick;
 pub mod time;

@@ -106,7 +106,7 @@ impl GatewaysSection {
     /// The session settings.
     pub fn settings(&self) -> Settings {
         Settings {
-            api: 1,
+            api: nxg::msg::API,
             connect_timeout: Duration::from_secs(self.connect_timeout_s.max(1)),
             heartbeat: Duration::from_secs(self.heartbeat_s.max(1)),
             request_timeout: Duration::from_secs(self.request_timeout_s.max(1)),

@@ -95,6 +95,22 @@ pub struct NodeSection {
     /// units, privileges, lists.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub metadata: Option<PathBuf>,
+    /// Its heartbeat period (ms) for supervision, instead of reading its 1017h; 0: do not
+    /// supervise it (docs/PROTOCOL.md §Events).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub heartbeat_ms: Option<u16>,
+}
+
+impl NodeSection {
+    /// A node described by `eds` alone.
+    pub fn with_eds(id: u8, eds: PathBuf) -> NodeSection {
+        NodeSection {
+            id,
+            eds: Some(eds),
+            metadata: None,
+            heartbeat_ms: None,
+        }
+    }
 }
 
 /// `[bus]`: network 1, where the gateway is a node.
@@ -179,6 +195,8 @@ pub struct LimitsSection {
     pub max_queued: usize,
     /// Subscriptions per connection.
     pub max_subscriptions: usize,
+    /// Bus events kept while no portal takes them (the oldest go first, counted in the log).
+    pub max_queued_events: usize,
 }
 
 impl Default for LimitsSection {
@@ -188,6 +206,7 @@ impl Default for LimitsSection {
             max_in_flight: 16,
             max_queued: 256,
             max_subscriptions: 1024,
+            max_queued_events: nxg::gateway::QUEUED_EVENTS,
         }
     }
 }
@@ -283,9 +302,9 @@ impl Config {
             if !(1..=127).contains(&n.id) {
                 return err("[[bus.nodes]] and [[networks.nodes]]: id is a node-ID 1–127");
             }
-            if n.eds.is_none() && n.metadata.is_none() {
+            if n.eds.is_none() && n.metadata.is_none() && n.heartbeat_ms.is_none() {
                 return Err(ConfigError(format!(
-                    "node {}: give eds, metadata or both",
+                    "node {}: give eds, metadata or heartbeat_ms",
                     n.id
                 )));
             }

@@ -260,6 +260,7 @@ where
             }
             Some((target, index, sub, bytes)) = feed_rx.recv() => session.bytes(target, index, sub, &bytes, Instant::now()),
             _ = timer => session.timeout(Instant::now()),
+            _ = shared.events_ready.notified() => session.deliver_events(),
             _ = ping.tick() => {
                 if let Err(e) = ws.send(Message::Ping(Vec::new().into())).await {
                     return ended(served, format!("ping failed: {e}"));

@@ -18,6 +18,7 @@ pub mod connection;
 pub mod feed;
 pub mod lockout;
 pub mod metadata;
+pub mod supervision;
 pub mod token;
 
 use std::collections::HashMap;
@@ -87,6 +88,8 @@ pub struct Shared {
     mode: Mode,
     /// Whether a connection is in service (CONNACK came), for [`Gateway::online`].
     online: watch::Sender<bool>,
+    /// Woken when bus events were queued for the portal.
+    events_ready: Arc<tokio::sync::Notify>,
 }
 
 impl Shared {
@@ -119,6 +122,8 @@ impl Shared {
 pub struct Gateway {
     shared: Arc<Shared>,
     node: Option<LocalNode>,
+    /// The watch over each network (bus-node mode).
+    supervisors: Vec<tokio::task::JoinHandle<()>>,
 }
 
 async fn open(url: &str) -> Result<Bus, GatewayError> {
@@ -162,18 +167,40 @@ impl Gateway {
             node_config,
         );
         node.nmt(canopen::nmt::NmtCommand::Start);
+        let mut networks = Vec::new();
+        let sections =
+            std::iter::once((1u8, &config.bus.url, &config.bus.nodes, config.bus.node_id))
+                .chain(config.networks.iter().map(|n| (n.net, &n.url, &n.nodes, 0)));
+        for (net, url, nodes, own) in sections {
+            let Some(sdo) = nets.get(&net).cloned() else {
+                continue;
+            };
+            networks.push(supervision::Network {
+                net,
+                bus: open(url).await?,
+                sdo,
+                own,
+                configured: nodes
+                    .iter()
+                    .filter_map(|n| n.heartbeat_ms.map(|ms| (n.id, ms)))
+                    .collect(),
+            });
+        }
         let mode = Mode::Bus {
             sdo,
             url: config.bus.url.clone(),
         };
-        Ok(Gateway::assemble(
-            config,
-            tls,
-            metadata,
-            Backend::Bus(nets),
-            mode,
-            Some(node),
-        ))
+        let mut gateway =
+            Gateway::assemble(config, tls, metadata, Backend::Bus(nets), mode, Some(node));
+        let sink = supervision::Sink {
+            queue: gateway.shared.context.events.clone(),
+            ready: gateway.shared.events_ready.clone(),
+        };
+        gateway.supervisors = networks
+            .into_iter()
+            .map(|n| supervision::spawn(n, sink.clone()))
+            .collect();
+        Ok(gateway)
     }
 
     /// Embedded mode: serve `od`, the dictionary of the controller the gateway is linked into
@@ -218,6 +245,9 @@ impl Gateway {
         );
         let mut context = Context::new(Arc::new(metadata));
         context.lockout = Arc::new(std::sync::Mutex::new(lockout.load()));
+        context.events = Arc::new(std::sync::Mutex::new(nxg::gateway::EventQueue::new(
+            config.limits.max_queued_events,
+        )));
         Gateway {
             shared: Arc::new(Shared {
                 token: TokenStore::new(&config.state.dir),
@@ -228,8 +258,10 @@ impl Gateway {
                 backend,
                 mode,
                 online: watch::channel(false).0,
+                events_ready: Arc::default(),
             }),
             node,
+            supervisors: Vec::new(),
         }
     }
 
@@ -240,7 +272,7 @@ impl Gateway {
     }
 
     /// Connect, serve, and reconnect until `shutdown` turns true.
-    pub async fn run(self, mut shutdown: watch::Receiver<bool>) {
+    pub async fn run(mut self, mut shutdown: watch::Receiver<bool>) {
         // docs/PROTOCOL.md: 1 s growing to 5 min, full jitter, reset after a stable minute.
         let mut backoff = Backoff::new(Duration::from_secs(1), Duration::from_secs(300));
         for number in 1u64.. {
@@ -267,9 +299,21 @@ impl Gateway {
                 _ = shutdown.changed() => break,
             }
         }
-        if let Some(node) = self.node {
+        for supervisor in self.supervisors.drain(..) {
+            supervisor.abort();
+        }
+        if let Some(node) = self.node.take() {
             node.stop().await;
         }
         tracing::info!("gateway stopped");
+    }
+}
+
+impl Drop for Gateway {
+    /// A gateway dropped without running leaves no task behind.
+    fn drop(&mut self) {
+        for supervisor in &self.supervisors {
+            supervisor.abort();
+        }
     }
 }

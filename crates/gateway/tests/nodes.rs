@@ -26,11 +26,7 @@ async fn eds_metadata_and_a_second_network() {
     let eds = dir.path().join("io-node.eds");
     std::fs::write(&eds, export_eds(&SimConfig::default(), Device::Io).unwrap()).unwrap();
     let mut config = config(&portal.url(), &pki, "mem://nodes-1", dir.path());
-    config.bus.nodes = vec![NodeSection {
-        id: 12,
-        eds: Some(eds),
-        metadata: None,
-    }];
+    config.bus.nodes = vec![NodeSection::with_eds(12, eds)];
     config.networks = vec![NetworkSection {
         net: 2,
         url: "mem://nodes-2".into(),

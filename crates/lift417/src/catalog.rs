@@ -235,21 +235,14 @@ fn english() -> Vec<String> {
     vec!["en".to_owned()]
 }
 
-fn texts(en: &str, de: &str) -> Texts {
-    Texts::from(BTreeMap::from([
-        ("en".to_owned(), en.to_owned()),
-        ("de".to_owned(), de.to_owned()),
-    ]))
-}
-
 /// The name of sub-index 0 where a file gives none.
 fn count_name() -> Texts {
-    texts("Number of entries", "Anzahl der Einträge")
+    Texts::en_de("Number of entries", "Anzahl der Einträge")
 }
 
 /// The hint of sub-index 0 where a file gives none.
 fn count_hint() -> Texts {
-    texts(
+    Texts::en_de(
         "The highest sub-index of this object.",
         "Der höchste Subindex dieses Objekts.",
     )

@@ -367,6 +367,14 @@ impl Texts {
         )])))
     }
 
+    /// A text in English and German (canlift's own vocabulary: profile tables, EMCY texts).
+    pub fn en_de(en: &str, de: &str) -> Texts {
+        Texts(Arc::new(BTreeMap::from([
+            ("en".to_owned(), en.to_owned()),
+            ("de".to_owned(), de.to_owned()),
+        ])))
+    }
+
     /// The languages present.
     pub fn languages(&self) -> impl Iterator<Item = &str> {
         self.0.keys().map(String::as_str)

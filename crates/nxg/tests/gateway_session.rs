@@ -8,10 +8,11 @@ use canopen::sdo::abort::AbortCode;
 use lift417::catalog::Catalog;
 use nxg::errors::rpc_codes;
 use nxg::gateway::{
-    CloseReason, Context, Identity, Job, JobResult, LevelState, Lookup, Metadata, Output, Phase,
-    Policy, Session, Settings, Target,
+    BusEvent, CloseReason, Context, Happening, Identity, Job, JobResult, LevelState, Lookup,
+    Metadata, Output, Phase, Policy, Session, Settings, Target,
 };
 use nxg::meta::Texts;
+use nxg::msg::{BusState, NodeId, NodeRef, NodeState};
 use serde_json::{json, Value};
 
 const SERNUM: &str = "180917010200000102";
@@ -84,15 +85,17 @@ impl Portal {
 
     /// A session in service with `settings`, sharing `context` (a reconnection shares it).
     fn connected_with(settings: Settings, context: Context) -> Portal {
+        Portal::connected_at(settings, context, 1)
+    }
+
+    /// The same, with the portal's CONNACK offering `api`.
+    fn connected_at(settings: Settings, context: Context, api: u32) -> Portal {
         let now = Instant::now();
+        let agreed = api.min(settings.identity.api);
         let mut session = Session::new(settings, context, None, now);
-        assert!(session
-            .text(
-                r#"{"jsonrpc":"2.0","id":1,"result":"CONNACK","api":1}"#,
-                now
-            )
-            .is_empty());
-        assert_eq!(session.phase(), Phase::Connected(1));
+        let connack = format!(r#"{{"jsonrpc":"2.0","id":1,"result":"CONNACK","api":{api}}}"#);
+        assert!(session.text(&connack, now).is_empty());
+        assert_eq!(session.phase(), Phase::Connected(agreed));
         Portal { session, now }
     }
 
@@ -852,5 +855,102 @@ fn the_owners_policy_refuses_and_hides() {
     assert!(
         p.ask(&call, &[]).get("result").is_some(),
         "others unaffected"
+    );
+}
+
+fn node(id: u8) -> NodeRef {
+    NodeRef::new(NodeId::new(id).unwrap(), 1)
+}
+
+fn event(time_ms: i64, what: Happening) -> BusEvent {
+    BusEvent { time_ms, what }
+}
+
+fn door_blocked(time_ms: i64) -> BusEvent {
+    let text = Texts::from(std::collections::BTreeMap::from([
+        ("en".to_owned(), "Door blocked".to_owned()),
+        ("de".to_owned(), "Tür blockiert".to_owned()),
+    ]));
+    event(
+        time_ms,
+        Happening::Emcy {
+            node: node(1),
+            code: 0xFF01,
+            register: 0x21,
+            data: [0; 5],
+            text,
+        },
+    )
+}
+
+const REG_EVENTS: &str = r#"{"jsonrpc":"2.0","id":"5","method":"reg_canopen_event","params":{"events":["emcy","state"],"lang":{"preferred_language":"de","alternate_language":"en"}}}"#;
+
+#[test]
+fn bus_events_are_api_2_wait_for_a_portal_and_keep_their_order() {
+    let context = metadata();
+    let queue = |e: BusEvent| context.events.lock().unwrap().push(e);
+    // Seen while no portal was there.
+    queue(door_blocked(1_000));
+    queue(event(
+        2_000,
+        Happening::Bus {
+            net: 1,
+            state: BusState::BusOff,
+        },
+    ));
+    queue(event(
+        3_000,
+        Happening::State {
+            node: node(12),
+            state: NodeState::Offline,
+        },
+    ));
+    // An api-1 portal: the methods do not exist, and nothing is pushed.
+    let mut old = Portal::connected_with(settings(), context.clone());
+    assert_eq!(
+        old.ask(REG_EVENTS, &[])["error"]["code"],
+        rpc_codes::METHOD_NOT_FOUND
+    );
+    assert!(old.session.deliver_events().is_empty());
+    // api 2 offered by both: registered, then what waited, in order, in German; the bus
+    // event was not asked for.
+    let mut s = settings();
+    s.identity.api = 2;
+    let mut p = Portal::connected_at(s.clone(), context.clone(), 2);
+    assert!(p.session.deliver_events().is_empty(), "nothing unsolicited");
+    let out = sent(&p.send(REG_EVENTS));
+    assert_eq!(
+        out[0],
+        json!({"jsonrpc":"2.0","id":"5","result":{"done":0}})
+    );
+    assert_eq!(
+        out[1],
+        json!({"jsonrpc":"2.0","method":"canopen_event","result":{"event":{"type":"emcy",
+            "node":{"id":1,"net":1},"time":"1970-01-01T00:00:01.000Z","code":"0xFF01",
+            "register":"0x21","data":"0000000000","text":"Tür blockiert"}}})
+    );
+    assert_eq!(
+        out[2]["result"]["event"],
+        json!({"type":"state","node":{"id":12,"net":1},"time":"1970-01-01T00:00:03.000Z","state":"offline"})
+    );
+    assert_eq!(out.len(), 3);
+    // Live events as they come.
+    queue(door_blocked(4_000));
+    assert_eq!(sent(&p.session.deliver_events()).len(), 1);
+    // Unknown kinds are bad parameters; unregistered, events wait again.
+    let bad =
+        r#"{"jsonrpc":"2.0","id":"6","method":"reg_canopen_event","params":{"events":["door"]}}"#;
+    assert_eq!(p.ask(bad, &[])["error"]["code"], rpc_codes::INVALID_PARAMS);
+    let unreg = r#"{"jsonrpc":"2.0","id":"7","method":"unreg_canopen_event","params":{}}"#;
+    assert_eq!(p.ask(unreg, &[])["result"], json!({"done":0}));
+    queue(door_blocked(5_000));
+    assert!(p.session.deliver_events().is_empty());
+    // The next portal (a reconnection) gets it.
+    let mut again = Portal::connected_at(s, context.clone(), 3);
+    let out = sent(&again.send(REG_EVENTS));
+    assert_eq!(out.len(), 2);
+    assert_eq!(
+        out[1]["result"]["event"]["time"],
+        "1970-01-01T00:00:05.000Z"
     );
 }

@@ -43,11 +43,7 @@ pub fn gateway_config(portal: &str, ca: &Path, bus: &str, state: &Path) -> Confi
         let text = lift417::sim::export_eds(&sim, Device::Io).expect("the I/O node's EDS");
         std::fs::create_dir_all(state).expect("the state directory");
         std::fs::write(&eds, text).expect("the I/O node's EDS is written");
-        c.bus.nodes.push(NodeSection {
-            id,
-            eds: Some(eds),
-            metadata: None,
-        });
+        c.bus.nodes.push(NodeSection::with_eds(id, eds));
     }
     c
 }

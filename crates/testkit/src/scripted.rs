@@ -134,16 +134,26 @@ pub async fn ask(ws: &mut Ws, text: &str, notes: &mut Vec<Value>) -> Value {
     }
 }
 
-/// Receive CONNECT and answer it like the specification's sample.
+/// Receive CONNECT and answer it like the specification's sample (api 1).
 pub async fn connack(ws: &mut Ws) -> Value {
+    connack_api(ws, 1).await
+}
+
+/// Receive CONNECT and answer it with CONNACK offering `api`.
+pub async fn connack_api(ws: &mut Ws, api: u32) -> Value {
     let connect = recv(ws).await;
     assert_eq!(connect["method"], "CONNECT");
     let answer = format!(
-        r#"{{"jsonrpc":"2.0","id":{},"result":"CONNACK","api":1}}"#,
+        r#"{{"jsonrpc":"2.0","id":{},"result":"CONNACK","api":{api}}}"#,
         connect["id"]
     );
     send(ws, &answer).await;
     connect
+}
+
+/// The next text message within `wait`, if one comes.
+pub async fn recv_within(ws: &mut Ws, wait: std::time::Duration) -> Option<Value> {
+    tokio::time::timeout(wait, recv(ws)).await.ok()
 }
 
 /// A gateway configuration for `portal`, the bus at `bus`, state in `dir`: the sample

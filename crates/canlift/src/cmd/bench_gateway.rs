@@ -244,9 +244,8 @@ sub = [{ sub = 1, name = { en = "Trips", de = "Fahrten" } }]
 "#,
     )?;
     Ok(NodeSection {
-        id: 1,
-        eds: Some(eds),
         metadata: Some(metadata),
+        ..NodeSection::with_eds(1, eds)
     })
 }
 

@@ -120,11 +120,9 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
         let eds = dir.join(format!("io-node-{id}.eds"));
         std::fs::write(&eds, export_eds(&sim_config, Device::Io)?)
             .with_context(|| format!("writing {}", eds.display()))?;
-        gw.bus.nodes.push(gateway::config::NodeSection {
-            id,
-            eds: Some(eds),
-            metadata: None,
-        });
+        gw.bus
+            .nodes
+            .push(gateway::config::NodeSection::with_eds(id, eds));
     }
     let gateway_toml = dir.join("gateway.toml");
     std::fs::write(&gateway_toml, toml::to_string_pretty(&gw)?)?;

@@ -105,7 +105,9 @@ fn format_line(
     let meaning = match (decode, layouts.get(&frame.id())) {
         (false, _) => String::new(),
         (true, Some(layout)) => decode_pdo(layout, frame.data()),
-        (true, None) => canopen::monitor::decode(frame).to_string(),
+        (true, None) => canopen::monitor::decode(frame)
+            .explained(lift417::emcy::describe)
+            .to_string(),
     };
     if meaning.is_empty() {
         line.push_str(&body);
@@ -213,6 +215,13 @@ mod tests {
         let line = format_line("x", &f.with_timestamp(at), true, false, &Layouts::new());
         assert!(
             line.starts_with("(1700000000.000001)      x  181"),
+            "{line}"
+        );
+        // EMCY codes of the lift profile are named.
+        let emcy = Frame::standard(0x081, &[0x01, 0xFF, 0x21, 0, 0, 0, 0, 0]).unwrap();
+        let line = format_line("can0", &emcy, false, true, &Layouts::new());
+        assert!(
+            line.ends_with("EMCY node 1: code FF01 Door blocked, register 21, data 00 00 00 00 00"),
             "{line}"
         );
     }

@@ -34,7 +34,7 @@ pub struct SimArgs {
     /// Directory for stored parameters and counters (kept across restarts).
     #[arg(long)]
     state: Option<PathBuf>,
-    /// Start lift 1 with faults: door-blocked, overload, drive (comma-separated).
+    /// Start lift 1 with faults: door-blocked, overload, drive, io-offline (comma-separated).
     #[arg(long, value_delimiter = ',')]
     fault: Vec<FaultArg>,
     /// Simulated passengers press a button about every this many simulated seconds.
@@ -57,6 +57,8 @@ enum FaultArg {
     Overload,
     /// The drive has failed.
     Drive,
+    /// The I/O node has lost its supply: silent until the fault is cleared (0x5030 bit 3).
+    IoOffline,
 }
 
 impl SimArgs {
@@ -66,6 +68,7 @@ impl SimArgs {
                 FaultArg::DoorBlocked => 1,
                 FaultArg::Overload => 2,
                 FaultArg::Drive => 4,
+                FaultArg::IoOffline => lift417::sim::IO_OFFLINE,
             }
         });
         let passengers = match self.passengers {

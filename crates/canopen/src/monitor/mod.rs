@@ -187,9 +187,35 @@ pub(crate) fn hex(data: &[u8]) -> String {
         .join(" ")
 }
 
+/// What an EMCY code means: (English, German).
+pub type EmcyText = fn(u16) -> (&'static str, &'static str);
+
+impl Meaning {
+    /// The meaning with EMCY codes explained by `emcy_text` (a profile knows its own codes
+    /// beyond the CiA 301 classes [`Meaning`]'s `Display` names).
+    pub fn explained(&self, emcy_text: EmcyText) -> Explained<'_> {
+        Explained {
+            meaning: self,
+            emcy_text,
+        }
+    }
+}
+
+/// A [`Meaning`] written with a profile's EMCY texts.
+pub struct Explained<'a> {
+    meaning: &'a Meaning,
+    emcy_text: EmcyText,
+}
+
 impl fmt::Display for Meaning {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
+        self.explained(crate::emcy::describe).fmt(f)
+    }
+}
+
+impl fmt::Display for Explained<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.meaning {
             Meaning::Nmt { command, node: 0 } => {
                 write!(f, "NMT {} all nodes", nmt_command(*command))
             }
@@ -211,7 +237,8 @@ impl fmt::Display for Meaning {
                 manufacturer,
             } => write!(
                 f,
-                "EMCY node {node}: code {code:04X}, register {register:02X}, data {}",
+                "EMCY node {node}: code {code:04X} {}, register {register:02X}, data {}",
+                (self.emcy_text)(*code).0,
                 hex(manufacturer)
             ),
             Meaning::Time { ms, days } => {
@@ -273,7 +300,7 @@ mod tests {
         assert_eq!(text(0x080, &[7]), "SYNC counter 7");
         assert_eq!(
             text(0x081, &[0x30, 0x81, 0x11, 0, 0x0C, 0, 0, 0]),
-            "EMCY node 1: code 8130, register 11, data 00 0C 00 00 00"
+            "EMCY node 1: code 8130 Life guard or heartbeat error, register 11, data 00 0C 00 00 00"
         );
         assert_eq!(
             text(0x081, &[0; 8]),

@@ -21,6 +21,7 @@ use crate::types::Value;
 pub struct LocalNode {
     od: SharedDictionary,
     commands: mpsc::UnboundedSender<NodeCommand>,
+    power: watch::Sender<bool>,
     state: watch::Receiver<NmtState>,
     events: broadcast::Sender<NodeEvent>,
     task: JoinHandle<()>,
@@ -42,17 +43,20 @@ impl LocalNode {
         let (commands, command_rx) = mpsc::unbounded_channel();
         let (state_tx, state) = watch::channel(NmtState::Initialising);
         let (events, _) = broadcast::channel(1024);
+        let (power, power_rx) = watch::channel(true);
         let shell = Shell {
             node,
             od: od.clone(),
             events: events.clone(),
             state: state_tx,
             out: NodeOutput::default(),
+            powered: true,
         };
-        let task = tokio::spawn(shell.run(bus, command_rx, change_rx));
+        let task = tokio::spawn(shell.run(bus, command_rx, change_rx, power_rx));
         LocalNode {
             od,
             commands,
+            power,
             state,
             events,
             task,
@@ -126,6 +130,14 @@ impl LocalNode {
         super::configure_pdo(&mut od, setup)
     }
 
+    /// Cut or restore the device's supply, as a simulated failure: while off it neither sends
+    /// nor hears anything (its heartbeat stops, SDO requests go unanswered); back on, it boots
+    /// as at power-on (NMT reset node: boot-up message, pre-operational).
+    pub fn set_powered(&self, on: bool) {
+        self.power
+            .send_if_modified(|p| std::mem::replace(p, on) != on);
+    }
+
     /// Send TPDO `number` now (subject to its inhibit time; types 0–240 at the next SYNC).
     pub fn send_pdo(&self, number: u16) {
         let _ = self.commands.send(NodeCommand::SendPdo(number));
@@ -151,6 +163,8 @@ struct Shell {
     events: broadcast::Sender<NodeEvent>,
     state: watch::Sender<NmtState>,
     out: NodeOutput,
+    /// Off: nothing is sent or heard ([`LocalNode::set_powered`]).
+    powered: bool,
 }
 
 impl Shell {
@@ -162,6 +176,9 @@ impl Shell {
 
     /// Send the frames and publish the events and the state of the steps so far.
     async fn flush(&mut self, sender: &BusSender) -> bool {
+        if !self.powered {
+            self.out.frames.clear();
+        }
         for event in self.out.events.drain(..) {
             let _ = self.events.send(event);
         }
@@ -185,6 +202,7 @@ impl Shell {
         bus: Bus,
         mut commands: mpsc::UnboundedReceiver<NodeCommand>,
         mut changes: mpsc::UnboundedReceiver<(u16, u8)>,
+        mut power: watch::Receiver<bool>,
     ) {
         let (sender, mut receiver) = bus.split();
         // Microsecond wake-ups for SYNC periods and inhibit times; tokio's timer as fallback.
@@ -209,7 +227,7 @@ impl Shell {
                 biased;
                 _ = wake => self.step(|node, od, out| node.handle_timeout(od, Instant::now(), out)),
                 event = receiver.recv() => match event {
-                    Some(canbus::BusEvent::Frame(f)) => {
+                    Some(canbus::BusEvent::Frame(f)) if self.powered => {
                         self.step(|node, od, out| node.handle_frame(od, &f, Instant::now(), out))
                     }
                     Some(_) => {}
@@ -220,6 +238,15 @@ impl Shell {
                 }
                 Some(command) = commands.recv() => {
                     self.step(|node, od, out| node.handle_command(od, command, Instant::now(), out))
+                }
+                Ok(()) = power.changed() => {
+                    let on = *power.borrow_and_update();
+                    if on && !self.powered {
+                        let reset = NodeCommand::Nmt(crate::nmt::NmtCommand::ResetNode);
+                        self.powered = true;
+                        self.step(|node, od, out| node.handle_command(od, reset, Instant::now(), out));
+                    }
+                    self.powered = on;
                 }
             }
         }

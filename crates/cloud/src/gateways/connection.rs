@@ -95,6 +95,7 @@ impl Connection {
                     Output::TokenConfirmed(token) => self.token_confirmed(&token).await,
                     Output::Answer(request, answer) => self.answer(request, answer),
                     Output::Notification(n) => self.notification(n),
+                    Output::Event(_) => {}
                 }
             }
         }

@@ -8,8 +8,6 @@ use nxg::meta::{
     Access, DataType, Description, FormType, Hints, ObjCode, PhysUnit, Privilege, Texts,
 };
 
-use crate::metadata::texts;
-
 /// One sub-object's description in the table: names, type, access, form, unit, privilege.
 #[derive(Clone, Copy)]
 struct Sub {
@@ -580,7 +578,7 @@ pub fn describe(index: u16, sub: u8) -> Option<Option<Description>> {
         d.formtype = s.form;
         d.physunit = s.unit;
         d.privilege = s.privilege;
-        d.name = texts(&fill(s.en, n, sub), &fill(s.de, n, sub));
+        d.name = Texts::en_de(&fill(s.en, n, sub), &fill(s.de, n, sub));
         d.hint = Texts::default();
         d.hints = Hints::default();
         d
@@ -590,7 +588,10 @@ pub fn describe(index: u16, sub: u8) -> Option<Option<Description>> {
 /// The names of the whole object (for a `compact` read).
 pub fn object_texts(index: u16) -> Option<(Texts, Texts)> {
     let (en, de, _, n) = object(index)?;
-    Some((texts(&fill(en, n, 0), &fill(de, n, 0)), Texts::default()))
+    Some((
+        Texts::en_de(&fill(en, n, 0), &fill(de, n, 0)),
+        Texts::default(),
+    ))
 }
 
 #[cfg(test)]

@@ -16,7 +16,7 @@
 
 mod cia301;
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::HashMap;
 use std::path::Path;
 
 use canopen::od::ObjectDictionary;
@@ -39,14 +39,6 @@ fn same_object(index: u16, catalog: &Texts, eds: &Texts) -> bool {
     !MANUFACTURER.contains(&index)
         || matches!((catalog.get("en"), eds.get("en")),
             (Some(a), Some(b)) if a.trim().eq_ignore_ascii_case(b.trim()))
-}
-
-/// Texts in English and German.
-pub(crate) fn texts(en: &str, de: &str) -> Texts {
-    Texts::from(BTreeMap::from([
-        ("en".to_owned(), en.to_owned()),
-        ("de".to_owned(), de.to_owned()),
-    ]))
 }
 
 /// What describes one node.

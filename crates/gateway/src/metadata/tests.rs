@@ -20,7 +20,12 @@ fn fixture(name: &str) -> PathBuf {
 }
 
 fn node(id: u8, eds: Option<PathBuf>, metadata: Option<PathBuf>) -> NodeSection {
-    NodeSection { id, eds, metadata }
+    NodeSection {
+        id,
+        eds,
+        metadata,
+        heartbeat_ms: None,
+    }
 }
 
 fn load(nodes: Vec<NodeSection>) -> Result<BusMetadata, GatewayError> {

@@ -307,7 +307,10 @@ fn passenger_call(lift: u8, floors: u8, data: &[u8]) -> Result<Input, AbortCode>
     Ok(Input::Call(lift, floor, CallKind::Car))
 }
 
-/// 0x5030: fault injection bits.
+/// 0x5030 bit 3: the I/O node has lost its supply (silent: no heartbeat, no answers).
+pub const IO_OFFLINE: u8 = 0x08;
+
+/// 0x5030: fault injection bits (bits 0–2 the lift's faults, bit 3 the I/O node offline).
 fn fault_injection(lift: u8, data: &[u8]) -> Result<Input, AbortCode> {
     let bits = *data.first().ok_or(AbortCode::LENGTH_MISMATCH)?;
     Ok(Input::Inject(lift, bits))
@@ -525,10 +528,13 @@ struct Runner {
     next_passenger: f64,
     sim_s: f64,
     rng: u64,
+    /// The I/O node has its supply (0x5030 bit 3 clear).
+    io_powered: bool,
 }
 
 impl Runner {
     fn new(config: SimConfig, controller: Arc<LocalNode>, io: Option<Arc<LocalNode>>) -> Runner {
+        let io_powered = config.faults & IO_OFFLINE == 0;
         let mut lifts = Vec::new();
         for lift in 1..=config.lifts {
             let counters = read_counters(&controller, lift);
@@ -544,6 +550,9 @@ impl Runner {
                     0,
                     &Value::Uint(config.faults.into()),
                 );
+                if let Some(io) = &io {
+                    io.set_powered(io_powered);
+                }
             }
             lifts.push(model);
         }
@@ -560,6 +569,7 @@ impl Runner {
             next_passenger: 0.0,
             sim_s: 0.0,
             rng,
+            io_powered,
         }
     }
 
@@ -594,6 +604,9 @@ impl Runner {
                 if let Some(l) = self.lifts.get_mut(usize::from(lift) - 1) {
                     l.inject(bits);
                 }
+                if lift == 1 {
+                    self.power_io(bits & IO_OFFLINE == 0);
+                }
             }
             Input::Mapped6010 => {
                 let value = self.controller.value(0x6010, 0);
@@ -608,6 +621,26 @@ impl Runner {
                 }
             }
             Input::Press(floor, kind, lift) => self.press(lift, floor, kind),
+        }
+    }
+
+    /// The I/O node loses or regains its supply (0x5030 bit 3). Back on it boots, and — a
+    /// self-starting device, as at the simulator's start — goes operational by itself.
+    fn power_io(&mut self, on: bool) {
+        let Some(io) = self.io.clone() else {
+            return;
+        };
+        if on == self.io_powered {
+            return;
+        }
+        self.io_powered = on;
+        tracing::warn!(node = io.node_id(), on, "I/O node supply");
+        io.set_powered(on);
+        if on && self.config.autostart {
+            tokio::spawn(async move {
+                io.wait_for_state(NmtState::PreOperational).await;
+                io.nmt(NmtCommand::Start);
+            });
         }
     }
 

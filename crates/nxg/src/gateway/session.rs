@@ -6,7 +6,7 @@
 //! negotiation, privileges with expiry and lock-out, the checks of `put_canopen_object`,
 //! subscriptions with inhibit and threshold, bounded work in flight, the dead-connection timer.
 
-use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::sync::PoisonError;
 use std::time::{Duration, Instant};
 
@@ -23,8 +23,9 @@ use crate::digest;
 use crate::errors::{rpc_codes, ErrorCode};
 use crate::meta::{Access, DataType, Description, Privilege};
 use crate::msg::{
-    self, Done, ElevateAnswer, ElevateParams, ErrorObject, GetParams, Id, Incoming, Method,
-    MplexText, NodeRef, Notification, PutAnswer, PutParams, RegParams, TokenParams, UnregParams,
+    self, Done, ElevateAnswer, ElevateParams, ErrorObject, EventKind, EventNotification, GetParams,
+    Id, Incoming, Method, MplexText, NodeRef, Notification, PutAnswer, PutParams, RegEventParams,
+    RegParams, TokenParams, UnregEventParams, UnregParams,
 };
 
 /// A dictionary access the driver runs and reports back with [`Session::complete`].
@@ -168,6 +169,13 @@ struct Subscription {
     pending: Option<String>,
 }
 
+/// What a portal registered with `reg_canopen_event`.
+#[derive(Debug, Clone)]
+struct EventSubscription {
+    kinds: BTreeSet<EventKind>,
+    lang: Langs,
+}
+
 #[derive(Debug, Clone, Copy)]
 struct Grant {
     level: Privilege,
@@ -202,6 +210,7 @@ pub struct Session {
     queue: VecDeque<Queued>,
     grant: Option<Grant>,
     subscriptions: BTreeMap<(Target, u16, u8), Subscription>,
+    events: Option<EventSubscription>,
 }
 
 impl Session {
@@ -220,6 +229,7 @@ impl Session {
             queue: VecDeque::new(),
             grant: None,
             subscriptions: BTreeMap::new(),
+            events: None,
         }
     }
 
@@ -341,11 +351,13 @@ impl Session {
                     ErrorObject::rpc(rpc_codes::INVALID_REQUEST, "not connected: CONNACK first");
                 vec![Output::Send(msg::error_response(id.as_ref(), &error))]
             }
-            (Phase::Connected(_), Incoming::Request { id, method, params }) => {
-                let Some(method) = Method::from_name(&method) else {
+            (Phase::Connected(api), Incoming::Request { id, method, params }) => {
+                // A method of a later API than the one in force is as unknown as any other.
+                let Some(method) = Method::from_name(&method).filter(|m| m.since_api() <= api)
+                else {
                     let error = ErrorObject::rpc(
                         rpc_codes::METHOD_NOT_FOUND,
-                        format!("unknown method {method:?}"),
+                        format!("unknown method {method:?} (api {api} in force)"),
                     );
                     return vec![Output::Send(msg::error_response(id.as_ref(), &error))];
                 };
@@ -429,7 +441,14 @@ impl Session {
             Method::UnregCanopenObject => msg::params(params)
                 .map_err(Failure::Params)
                 .and_then(|p| self.unregister(&id, p)),
-            Method::Connect | Method::CanopenObject => {
+            Method::RegCanopenEvent => msg::params::<RegEventParams>(params)
+                .map_err(Failure::Params)
+                .map(|p| self.register_events(&id, p)),
+            Method::UnregCanopenEvent => params
+                .map_or(Ok(UnregEventParams::default()), |p| msg::read(p.get()))
+                .map_err(Failure::Params)
+                .map(|p| self.unregister_events(&id, p)),
+            Method::Connect | Method::CanopenObject | Method::CanopenEvent => {
                 let error = ErrorObject::rpc(
                     rpc_codes::METHOD_NOT_FOUND,
                     format!("{method} is not a request a gateway serves"),
@@ -448,6 +467,74 @@ impl Session {
                 &refusal.to_error(&lang),
             ))],
         }
+    }
+
+    /// `reg_canopen_event` (api ≥ 2): the kinds are added to those registered, and what waited
+    /// for a portal follows the answer.
+    fn register_events(&mut self, id: &Option<Id>, p: RegEventParams) -> Vec<Output> {
+        let lang = languages(p.lang.as_ref());
+        let subscription = self.events.get_or_insert_with(|| EventSubscription {
+            kinds: BTreeSet::new(),
+            lang: lang.clone(),
+        });
+        subscription.kinds.extend(p.events);
+        subscription.lang = lang;
+        let mut out = vec![Output::Send(msg::response(id.as_ref(), &Done::OK))];
+        out.extend(self.deliver_events());
+        out
+    }
+
+    /// `unreg_canopen_event` (api ≥ 2): the kinds named, or all.
+    fn unregister_events(&mut self, id: &Option<Id>, p: UnregEventParams) -> Vec<Output> {
+        match (p.events, self.events.as_mut()) {
+            (Some(kinds), Some(subscription)) => {
+                for kind in kinds {
+                    subscription.kinds.remove(&kind);
+                }
+                if subscription.kinds.is_empty() {
+                    self.events = None;
+                }
+            }
+            (None, _) => self.events = None,
+            (Some(_), None) => {}
+        }
+        vec![Output::Send(msg::response(id.as_ref(), &Done::OK))]
+    }
+
+    /// Bus events waiting in the gateway's queue, as `canopen_event` notifications — once a
+    /// portal has registered (until then they wait; kinds it did not register are dropped).
+    /// The driver calls this whenever it has queued events.
+    pub fn deliver_events(&mut self) -> Vec<Output> {
+        let Some(subscription) = &self.events else {
+            return Vec::new();
+        };
+        if !matches!(self.phase, Phase::Connected(_)) {
+            return Vec::new();
+        }
+        let (events, dropped) = self
+            .context
+            .events
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .take();
+        if dropped > 0 {
+            tracing::warn!(
+                dropped,
+                "bus events lost while no portal took them (queue full)"
+            );
+        }
+        let metadata = self.context.metadata.as_ref();
+        let lang = &subscription.lang;
+        events
+            .iter()
+            .filter(|e| subscription.kinds.contains(&e.kind()))
+            .map(|e| {
+                let payload = EventNotification {
+                    event: e.to_wire(metadata, &lang.preferred, &lang.alternate),
+                };
+                Output::Send(msg::notification(Method::CanopenEvent, &payload))
+            })
+            .collect()
     }
 
     fn start(&mut self, job: Job, waiting: Waiting) -> Output {

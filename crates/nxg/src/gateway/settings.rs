@@ -26,7 +26,7 @@ pub struct Identity {
     pub boardhash: String,
     /// Which account the unit belongs to.
     pub domaintoken: String,
-    /// Highest API version supported.
+    /// Highest API version offered: 2 (bus events, docs/PROTOCOL.md §Events) unless set lower.
     pub api: u32,
 }
 
@@ -41,7 +41,7 @@ impl Default for Identity {
             software: format!("canlift {}", env!("CARGO_PKG_VERSION")),
             boardhash: String::new(),
             domaintoken: String::new(),
-            api: 1,
+            api: crate::msg::API,
         }
     }
 }

@@ -7,6 +7,7 @@
 mod connect;
 mod envelope;
 mod error;
+mod event;
 mod object;
 
 use serde::de::DeserializeOwned;
@@ -20,10 +21,18 @@ pub use envelope::{
     connack, error_response, notification, parse, request, response, Id, Incoming, Rejected,
 };
 pub use error::ErrorObject;
+pub use event::{
+    format_time, parse_time, BusState, Event, EventKind, EventNotification, NodeState,
+    RegEventParams, UnregEventParams,
+};
 pub use object::{
     AnswerLang, GetObject, GetParams, Lang, MplexText, NodeId, NodeRef, Notification, ObjectAnswer,
     ObjectData, PutAnswer, PutObject, PutParams, RegParams, UnregParams, Written,
 };
+
+/// The highest API version canlift speaks: 1 is NXg SW003 v1.0.0, 2 adds bus events
+/// (docs/PROTOCOL.md §Events). Each side offers its highest; the lower of both is in force.
+pub const API: u32 = 2;
 
 /// The methods of the connector, each listed once (NXg SW003 §5–§7).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -46,11 +55,17 @@ pub enum Method {
     UnregCanopenObject,
     /// Gateway → portal notification: a subscribed object changed (§7.3).
     CanopenObject,
+    /// Portal → gateway (api ≥ 2): push bus events (docs/PROTOCOL.md §Events).
+    RegCanopenEvent,
+    /// Portal → gateway (api ≥ 2): stop pushing bus events.
+    UnregCanopenEvent,
+    /// Gateway → portal notification (api ≥ 2): a bus event.
+    CanopenEvent,
 }
 
 impl Method {
     /// Every method.
-    pub const ALL: [Method; 9] = [
+    pub const ALL: [Method; 12] = [
         Method::Connect,
         Method::GetHeartbeat,
         Method::UpdateUniqueToken,
@@ -60,6 +75,9 @@ impl Method {
         Method::RegCanopenObject,
         Method::UnregCanopenObject,
         Method::CanopenObject,
+        Method::RegCanopenEvent,
+        Method::UnregCanopenEvent,
+        Method::CanopenEvent,
     ];
 
     /// The name on the wire.
@@ -74,6 +92,17 @@ impl Method {
             Method::RegCanopenObject => "reg_canopen_object",
             Method::UnregCanopenObject => "unreg_canopen_object",
             Method::CanopenObject => "canopen_object",
+            Method::RegCanopenEvent => "reg_canopen_event",
+            Method::UnregCanopenEvent => "unreg_canopen_event",
+            Method::CanopenEvent => "canopen_event",
+        }
+    }
+
+    /// The lowest API version that has the method (the bus events are api 2).
+    pub fn since_api(self) -> u32 {
+        match self {
+            Method::RegCanopenEvent | Method::UnregCanopenEvent | Method::CanopenEvent => 2,
+            _ => 1,
         }
     }
 
@@ -131,6 +160,8 @@ calls! {
     RegParams => RegCanopenObject, Done;
     UnregParams => UnregCanopenObject, Done;
     TokenParams => UpdateUniqueToken, Done;
+    RegEventParams => RegCanopenEvent, Done;
+    UnregEventParams => UnregCanopenEvent, Done;
 }
 
 /// Read a method's parameters; the error names the field at fault (`object.mplex: …`), for a

@@ -13,7 +13,10 @@ use std::time::{Duration, Instant};
 use serde_json::value::RawValue;
 
 use crate::errors::rpc_codes;
-use crate::msg::{self, Connect, ErrorObject, Id, Incoming, Method, Notification, TokenParams};
+use crate::msg::{
+    self, Connect, ErrorObject, Event, EventNotification, Id, Incoming, Method, Notification,
+    TokenParams,
+};
 
 /// Limits and timers of a portal connection.
 #[derive(Debug, Clone, PartialEq)]
@@ -95,6 +98,8 @@ pub enum Output {
     Answer(RequestId, Result<String, Failure>),
     /// A `canopen_object` notification.
     Notification(Notification),
+    /// A `canopen_event` notification (api ≥ 2, docs/PROTOCOL.md §Events).
+    Event(Event),
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -306,15 +311,25 @@ impl Session {
             (Phase::Serving, Incoming::Response { id, outcome, .. }) => {
                 self.response(id, outcome, now)
             }
-            (Phase::Serving, Incoming::Notification { method, params })
-                if Method::from_name(&method) == Some(Method::CanopenObject) =>
-            {
-                match msg::params::<Notification>(params) {
-                    Ok(n) => vec![Output::Notification(n)],
-                    Err(why) => {
-                        tracing::debug!(%why, "malformed canopen_object notification ignored");
-                        Vec::new()
+            (Phase::Serving, Incoming::Notification { method, params }) => {
+                match Method::from_name(&method) {
+                    Some(Method::CanopenObject) => match msg::params::<Notification>(params) {
+                        Ok(n) => vec![Output::Notification(n)],
+                        Err(why) => {
+                            tracing::debug!(%why, "malformed canopen_object notification ignored");
+                            Vec::new()
+                        }
+                    },
+                    Some(Method::CanopenEvent) if self.api >= 2 => {
+                        match msg::params::<EventNotification>(params) {
+                            Ok(n) => vec![Output::Event(n.event)],
+                            Err(why) => {
+                                tracing::debug!(%why, "malformed canopen_event notification ignored");
+                                Vec::new()
+                            }
+                        }
                     }
+                    _ => Vec::new(),
                 }
             }
             (Phase::Serving, Incoming::Request { id, .. }) => {

@@ -1,0 +1,183 @@
+//! The gateway's watch over its networks (docs/PROTOCOL.md §Events): one task per network runs
+//! the sans-IO [`Supervisor`] on a bus endpoint of its own — EMCY, NMT states and heartbeat
+//! silence of every node, the network's state — reads each newly heard node's heartbeat period
+//! (1017h) by SDO, and queues what happened as bus events with their time and the EMCY texts,
+//! for the portal that registers for them (api 2).
+
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::{Instant, SystemTime, UNIX_EPOCH};
+
+use canbus::{Bus, BusEvent as Link, Filter, ERR_FLAG};
+use canopen::driver::SdoClients;
+use canopen::supervisor::{BusCondition, NodeStatus, Supervision, Supervisor};
+use nxg::gateway::{BusEvent, EventQueue, Happening};
+use nxg::msg::{BusState, NodeId, NodeRef, NodeState};
+use tokio::sync::{mpsc, Notify};
+use tokio::task::JoinHandle;
+
+/// Where a network's supervision delivers.
+#[derive(Clone)]
+pub struct Sink {
+    /// The gateway's queue of undelivered events.
+    pub queue: Arc<Mutex<EventQueue>>,
+    /// Woken whenever something was queued.
+    pub ready: Arc<Notify>,
+}
+
+impl Sink {
+    fn push(&self, what: Happening) {
+        let time_ms = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX));
+        self.queue
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .push(BusEvent { time_ms, what });
+        self.ready.notify_one();
+    }
+}
+
+/// One network to watch.
+pub struct Network {
+    /// Its `net` number.
+    pub net: u8,
+    /// A bus endpoint of the supervision's own.
+    pub bus: Bus,
+    /// SDO to read heartbeat periods.
+    pub sdo: SdoClients,
+    /// The gateway's own node-ID there (0: none).
+    pub own: u8,
+    /// Heartbeat periods from the configuration (ms; 0: not supervised).
+    pub configured: Vec<(u8, u16)>,
+}
+
+/// Watch `network` until the task is aborted.
+pub fn spawn(network: Network, sink: Sink) -> JoinHandle<()> {
+    tokio::spawn(run(network, sink))
+}
+
+async fn run(network: Network, sink: Sink) {
+    let Network {
+        net,
+        bus,
+        sdo,
+        own,
+        configured,
+    } = network;
+    let (_sender, mut receiver) = bus.split();
+    // EMCY 081h–0FFh, NMT error control 701h–77Fh, error frames.
+    receiver.set_filters(&[
+        Filter::standard(0x080, 0x780),
+        Filter::standard(0x700, 0x780),
+        Filter {
+            id: ERR_FLAG,
+            mask: ERR_FLAG,
+        },
+    ]);
+    let mut supervisor = Supervisor::new(own, configured);
+    let (periods_tx, mut periods) = mpsc::unbounded_channel::<(u8, Option<u16>)>();
+    let mut out = Vec::new();
+    loop {
+        for s in out.drain(..) {
+            match s {
+                Supervision::ReadPeriod(node) => {
+                    let (sdo, tx) = (sdo.clone(), periods_tx.clone());
+                    tokio::spawn(async move {
+                        let ms = sdo.read::<u16>(node, 0x1017, 0).await.ok();
+                        let _ = tx.send((node, ms));
+                    });
+                }
+                other => {
+                    if let Some(what) = happening(net, other) {
+                        log(&what);
+                        sink.push(what);
+                    }
+                }
+            }
+        }
+        let deadline = supervisor
+            .poll_timeout()
+            .map(tokio::time::Instant::from_std);
+        let timer = async {
+            match deadline {
+                Some(d) => tokio::time::sleep_until(d).await,
+                None => std::future::pending().await,
+            }
+        };
+        tokio::select! {
+            event = receiver.recv() => {
+                let now = Instant::now();
+                match event {
+                    Some(Link::Frame(frame)) => supervisor.handle_frame(&frame, now, &mut out),
+                    Some(Link::LinkDown { .. }) => supervisor.link(false, now, &mut out),
+                    Some(Link::LinkUp) => supervisor.link(true, now, &mut out),
+                    Some(Link::Overrun { .. }) => supervisor.overrun(&mut out),
+                    None => return,
+                }
+            }
+            Some((node, ms)) = periods.recv() => supervisor.period(node, ms),
+            _ = timer => supervisor.handle_timeout(Instant::now(), &mut out),
+        }
+    }
+}
+
+/// A supervision result as an event of network `net`.
+fn happening(net: u8, s: Supervision) -> Option<Happening> {
+    let node = |id: u8| NodeId::new(id).map(|id| NodeRef::new(id, net));
+    Some(match s {
+        Supervision::Emcy { node: id, message } => Happening::Emcy {
+            node: node(id)?,
+            code: message.code,
+            register: message.register,
+            data: message.manufacturer,
+            text: lift417::emcy::text(message.code),
+        },
+        Supervision::Node { node: id, status } => Happening::State {
+            node: node(id)?,
+            state: match status {
+                NodeStatus::BootUp => NodeState::BootUp,
+                NodeStatus::PreOperational => NodeState::PreOperational,
+                NodeStatus::Operational => NodeState::Operational,
+                NodeStatus::Stopped => NodeState::Stopped,
+                NodeStatus::Offline => NodeState::Offline,
+            },
+        },
+        Supervision::Bus(condition) => Happening::Bus {
+            net,
+            state: match condition {
+                BusCondition::ErrorActive => BusState::ErrorActive,
+                BusCondition::ErrorPassive => BusState::ErrorPassive,
+                BusCondition::BusOff => BusState::BusOff,
+                BusCondition::Overrun => BusState::Overrun,
+                BusCondition::Offline => BusState::Offline,
+            },
+        },
+        Supervision::ReadPeriod(_) => return None,
+    })
+}
+
+fn log(what: &Happening) {
+    match what {
+        Happening::Emcy {
+            node, code, text, ..
+        } => {
+            let text = text.get("en").unwrap_or_default();
+            tracing::warn!(
+                node = node.id.get(),
+                net = node.net,
+                code = format!("{code:04X}h"),
+                text,
+                "EMCY"
+            );
+        }
+        Happening::State { node, state } => {
+            tracing::info!(
+                node = node.id.get(),
+                net = node.net,
+                state = state.name(),
+                "node state"
+            );
+        }
+        Happening::Bus { net, state } => tracing::warn!(net, state = state.name(), "network state"),
+    }
+}
