@@ -1,13 +1,17 @@
 //! The portal's configuration (docs/PORTAL.md §Configuration): `[server]`, `[state]`,
-//! `[database]`, `[gateways]`, `[dashboard]`.
+//! `[database]`, `[gateways]`, `[dashboard]`, `[alarms]`.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 
 use nxg::mplex::Mplex;
+use nxg::msg::EventKind;
 use nxg::portal::Settings;
 use serde::{Deserialize, Serialize};
+
+use crate::alarms::rules::Severities;
+use crate::alarms::Severity;
 
 /// `[server]`: the one TLS port.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -60,6 +64,8 @@ pub struct DatabaseSection {
     pub url: Option<String>,
     /// Days telemetry is kept (older values are deleted every hour); 0 keeps it forever.
     pub telemetry_days: u32,
+    /// Days bus events are kept (the same way); 0 keeps them forever.
+    pub events_days: u32,
 }
 
 impl Default for DatabaseSection {
@@ -67,6 +73,7 @@ impl Default for DatabaseSection {
         DatabaseSection {
             url: None,
             telemetry_days: 30,
+            events_days: 90,
         }
     }
 }
@@ -128,6 +135,9 @@ pub struct DashboardSection {
     pub inhibit_ms: u64,
     /// The lift page's parameter table.
     pub parameters: Vec<String>,
+    /// Bus event kinds registered on every gateway that speaks api 2 (docs/PROTOCOL.md
+    /// §Events); empty: none.
+    pub events: Vec<EventKind>,
 }
 
 /// The dashboard as the portal uses it: the objects read once, when the portal starts.
@@ -139,6 +149,8 @@ pub struct Dashboard {
     pub inhibit_ms: u64,
     /// The lift page's parameter table.
     pub parameters: Vec<Mplex>,
+    /// Bus event kinds registered on api-2 gateways.
+    pub events: Vec<EventKind>,
 }
 
 impl DashboardSection {
@@ -153,6 +165,7 @@ impl DashboardSection {
             live: read("live", &self.live)?,
             inhibit_ms: self.inhibit_ms,
             parameters: read("parameters", &self.parameters)?,
+            events: self.events.clone(),
         })
     }
 }
@@ -169,6 +182,95 @@ impl Default for DashboardSection {
             parameters: list(&[
                 "0x411300", "0x411400", "0x411500", "0x411200", "0x502200", "0x640801", "0x503000",
             ]),
+            events: EventKind::ALL.to_vec(),
+        }
+    }
+}
+
+/// `[alarms.severity]`: how urgent each condition is (`minor`, `major`, `critical`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
+pub struct SeveritySection {
+    /// The gateway has been offline for `offline_after_s`.
+    pub lift_offline: Severity,
+    /// A network is bus-off.
+    pub bus_off: Severity,
+    /// A network cannot be reached by its gateway.
+    pub bus_offline: Severity,
+    /// A network is error-passive.
+    pub error_passive: Severity,
+    /// A node's heartbeat stopped.
+    pub node_offline: Severity,
+    /// A node reported an error by EMCY.
+    pub emcy: Severity,
+}
+
+impl Default for SeveritySection {
+    fn default() -> Self {
+        let s = Severities::default();
+        SeveritySection {
+            lift_offline: s.lift_offline,
+            bus_off: s.bus_off,
+            bus_offline: s.bus_offline,
+            error_passive: s.error_passive,
+            node_offline: s.node_offline,
+            emcy: s.emcy,
+        }
+    }
+}
+
+impl SeveritySection {
+    /// The rules' severities.
+    pub fn severities(&self) -> Severities {
+        Severities {
+            lift_offline: self.lift_offline,
+            bus_off: self.bus_off,
+            bus_offline: self.bus_offline,
+            error_passive: self.error_passive,
+            node_offline: self.node_offline,
+            emcy: self.emcy,
+        }
+    }
+}
+
+/// `[[alarms.webhooks]]`: a receiver of alarm changes.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WebhookSection {
+    /// `https://…` (or `http://` to a receiver on this host or its network).
+    pub url: String,
+    /// The key of the body's HMAC-SHA256 in `X-Canlift-Signature`.
+    pub secret: String,
+    /// Changes of less severe alarms are not sent.
+    #[serde(default = "major")]
+    pub min_severity: Severity,
+    /// PEM CA certificates to trust for this receiver; absent: the system's roots.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ca_file: Option<PathBuf>,
+}
+
+fn major() -> Severity {
+    Severity::Major
+}
+
+/// `[alarms]`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AlarmsSection {
+    /// Seconds a gateway may be offline before its lift has a `lift-offline` alarm.
+    pub offline_after_s: u64,
+    /// Severities per condition.
+    pub severity: SeveritySection,
+    /// Receivers of alarm changes.
+    pub webhooks: Vec<WebhookSection>,
+}
+
+impl Default for AlarmsSection {
+    fn default() -> Self {
+        AlarmsSection {
+            offline_after_s: 120,
+            severity: SeveritySection::default(),
+            webhooks: Vec::new(),
         }
     }
 }
@@ -187,6 +289,8 @@ pub struct Config {
     pub gateways: GatewaysSection,
     /// `[dashboard]`.
     pub dashboard: DashboardSection,
+    /// `[alarms]`.
+    pub alarms: AlarmsSection,
 }
 
 impl Config {

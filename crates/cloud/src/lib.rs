@@ -1,10 +1,12 @@
 //! The cloud portal: the server side of the NXg CANopen-Lift Connector — the gateways'
-//! connections and registry ([`gateways`]), the store ([`store`]), the operator REST API
+//! connections and registry ([`gateways`]), bus events and alarms with their webhooks
+//! ([`alarms`]), the store ([`store`]), the operator REST API
 //! ([`api`], its bodies in [`rest`]) with its client ([`client`]), the web UI ([`web`]) and
 //! the one TLS port serving them all ([`server`]).
 
 #![warn(missing_docs)]
 
+pub mod alarms;
 pub mod api;
 pub mod client;
 pub mod config;

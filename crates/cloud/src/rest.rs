@@ -145,3 +145,73 @@ pub struct OnlineEvent {
     /// Connected now.
     pub online: bool,
 }
+
+/// Server-Sent Event `event`: a bus event of the lift (docs/PROTOCOL.md §Events).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct BusEventEvent {
+    /// Lift id.
+    pub lift: String,
+    /// The event as the gateway pushed it.
+    pub event: nxg::msg::Event,
+}
+
+/// Which alarms `GET /api/v1/alarms` lists.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum AlarmState {
+    /// Those whose condition still holds (the default).
+    #[default]
+    Active,
+    /// All, newest first.
+    All,
+}
+
+/// The query of `GET /api/v1/alarms`.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AlarmsQuery {
+    /// `active` (default) or `all`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub state: Option<AlarmState>,
+    /// One lift's only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lift: Option<String>,
+    /// At most this many (default 500, at most 10,000).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub limit: Option<u32>,
+}
+
+/// The answer of `GET /api/v1/alarms`, newest first.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct AlarmList {
+    /// The alarms.
+    pub alarms: Vec<crate::alarms::Alarm>,
+}
+
+/// The body of `POST /api/v1/alarms/{id}/ack`.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AckBody {
+    /// What the person taking the alarm on says (may be empty).
+    #[serde(default)]
+    pub comment: String,
+}
+
+/// The query of `GET /api/v1/lifts/{id}/event-log`.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EventLogQuery {
+    /// From this time on (RFC 3339, or ms since the epoch); absent: the newest.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub since: Option<String>,
+    /// At most this many (default 100, at most 10,000).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub limit: Option<u32>,
+}
+
+/// The answer of `GET /api/v1/lifts/{id}/event-log`, oldest first.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct EventLog {
+    /// The events as the gateway pushed them.
+    pub events: Vec<nxg::msg::Event>,
+}

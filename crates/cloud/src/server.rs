@@ -15,6 +15,8 @@ use hyper_util::service::TowerToHyperService;
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
 
+use crate::alarms::rules::Rules;
+use crate::alarms::{service, webhook, Alarms};
 use crate::api::{self, App};
 use crate::config::Config;
 use crate::gateways::{self, telemetry, Registry, Shared};
@@ -80,6 +82,10 @@ pub struct Portal {
     tls: tokio_rustls::TlsAcceptor,
     router: Router,
     registry: Arc<Registry>,
+    /// Background work (telemetry, events, alarms, webhooks), ended with the portal.
+    tasks: Vec<tokio::task::JoinHandle<()>>,
+    /// Closes the gateways' connections when the portal stops.
+    closing: watch::Sender<bool>,
 }
 
 fn server_tls(config: &Config) -> Result<Arc<rustls::ServerConfig>, ServerError> {
@@ -113,15 +119,25 @@ impl Portal {
         let dashboard = Arc::new(config.dashboard.dashboard().map_err(ServerError::Other)?);
         let (telemetry, telemetry_rx) = mpsc::channel(65536);
         let counters = Arc::new(gateways::TelemetryCounters::default());
-        tokio::spawn(telemetry::retention(
-            store.clone(),
-            config.database.telemetry_days,
-        ));
-        tokio::spawn(telemetry::writer(
-            store.clone(),
-            telemetry_rx,
-            counters.clone(),
-        ));
+        let mut tasks = vec![
+            tokio::spawn(telemetry::retention(
+                telemetry::Kept::Telemetry,
+                store.clone(),
+                config.database.telemetry_days,
+            )),
+            tokio::spawn(telemetry::writer(
+                store.clone(),
+                telemetry_rx,
+                counters.clone(),
+            )),
+            tokio::spawn(telemetry::retention(
+                telemetry::Kept::Events,
+                store.clone(),
+                config.database.events_days,
+            )),
+        ];
+        let alarms = start_alarms(config, &store, &registry, &mut tasks)?;
+        let (closing, closing_rx) = watch::channel(false);
         let metrics = Arc::new(Metrics::default());
         let ws_state = Arc::new(WsState {
             shared: Shared {
@@ -131,6 +147,8 @@ impl Portal {
                 telemetry,
                 counters: counters.clone(),
                 dashboard: dashboard.clone(),
+                alarms: alarms.clone(),
+                closing: closing_rx,
             },
             max_message: config.gateways.max_message_bytes,
             metrics: metrics.clone(),
@@ -138,14 +156,15 @@ impl Portal {
         let m = metrics.clone();
         let r = registry.clone();
         let t = counters;
+        let a = alarms.counters.clone();
         let router = Router::new()
             .route("/ws", get(ws).with_state(ws_state))
             .route("/healthz", get(|| async { "ok\n" }))
             .route(
                 "/metrics",
                 get(move || {
-                    let (m, r, t) = (m.clone(), r.clone(), t.clone());
-                    async move { metrics_text(&m, &r, &t) }
+                    let (m, r, t, a) = (m.clone(), r.clone(), t.clone(), a.clone());
+                    async move { metrics_text(&m, &r, &t, &a) }
                 }),
             )
             .merge({
@@ -154,6 +173,7 @@ impl Portal {
                     registry: registry.clone(),
                     sessions: crate::web::Sessions::default(),
                     dashboard,
+                    alarms,
                 });
                 api::routes(app.clone()).merge(crate::web::routes(app))
             });
@@ -165,6 +185,8 @@ impl Portal {
             tls: tokio_rustls::TlsAcceptor::from(tls),
             router,
             registry,
+            tasks,
+            closing,
         })
     }
 
@@ -186,6 +208,8 @@ impl Portal {
             listener,
             tls,
             router,
+            tasks,
+            closing,
             ..
         } = self;
         loop {
@@ -232,21 +256,115 @@ impl Portal {
                 }
             });
         }
+        let _ = closing.send(true);
+        for task in tasks {
+            task.abort();
+        }
         tracing::info!("portal stopped");
     }
 }
 
-fn metrics_text(m: &Metrics, r: &Registry, t: &gateways::TelemetryCounters) -> String {
-    format!(
-        "# TYPE canlift_gateways_online gauge\ncanlift_gateways_online {}\n\
-         # TYPE canlift_gateway_connections_total counter\ncanlift_gateway_connections_total {}\n\
-         # TYPE canlift_gateway_upgrades_refused_total counter\ncanlift_gateway_upgrades_refused_total {}\n\
-         # TYPE canlift_telemetry_stored_total counter\ncanlift_telemetry_stored_total {}\n\
-         # TYPE canlift_telemetry_dropped_total counter\ncanlift_telemetry_dropped_total {}\n",
-        r.online_count(),
-        m.connections.load(Ordering::Relaxed),
-        m.upgrades_refused.load(Ordering::Relaxed),
-        t.stored.load(Ordering::Relaxed),
-        t.dropped.load(Ordering::Relaxed)
-    )
+/// The alarm service and the webhook worker, started.
+fn start_alarms(
+    config: &Config,
+    store: &Store,
+    registry: &Arc<Registry>,
+    tasks: &mut Vec<tokio::task::JoinHandle<()>>,
+) -> Result<Arc<Alarms>, ServerError> {
+    let receivers = config
+        .alarms
+        .webhooks
+        .iter()
+        .map(webhook::Receiver::new)
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(ServerError::Other)?;
+    let (inputs, inputs_rx) = mpsc::channel(65536);
+    let alarms = Arc::new(Alarms {
+        store: store.clone(),
+        registry: registry.clone(),
+        inputs,
+        webhooks: config.alarms.webhooks.clone(),
+        outbox: Arc::default(),
+        counters: Arc::default(),
+    });
+    let rules = Rules {
+        severities: config.alarms.severity.severities(),
+    };
+    let offline_after = std::time::Duration::from_secs(config.alarms.offline_after_s.max(1));
+    tasks.push(tokio::spawn(service::run(
+        alarms.clone(),
+        rules,
+        offline_after,
+        inputs_rx,
+    )));
+    tasks.push(tokio::spawn(webhook::deliver(alarms.clone(), receivers)));
+    Ok(alarms)
+}
+
+fn metrics_text(
+    m: &Metrics,
+    r: &Registry,
+    t: &gateways::TelemetryCounters,
+    a: &service::Counters,
+) -> String {
+    let counters = [
+        (
+            "canlift_gateway_connections_total",
+            m.connections.load(Ordering::Relaxed),
+        ),
+        (
+            "canlift_gateway_upgrades_refused_total",
+            m.upgrades_refused.load(Ordering::Relaxed),
+        ),
+        (
+            "canlift_telemetry_stored_total",
+            t.stored.load(Ordering::Relaxed),
+        ),
+        (
+            "canlift_telemetry_dropped_total",
+            t.dropped.load(Ordering::Relaxed),
+        ),
+        (
+            "canlift_events_stored_total",
+            a.events_stored.load(Ordering::Relaxed),
+        ),
+        (
+            "canlift_events_dropped_total",
+            a.events_dropped.load(Ordering::Relaxed),
+        ),
+        (
+            "canlift_alarms_raised_total",
+            a.raised.load(Ordering::Relaxed),
+        ),
+        (
+            "canlift_alarms_cleared_total",
+            a.cleared.load(Ordering::Relaxed),
+        ),
+        (
+            "canlift_webhooks_delivered_total",
+            a.webhooks_delivered.load(Ordering::Relaxed),
+        ),
+        (
+            "canlift_webhook_attempts_failed_total",
+            a.webhooks_failed.load(Ordering::Relaxed),
+        ),
+        (
+            "canlift_webhooks_given_up_total",
+            a.webhooks_given_up.load(Ordering::Relaxed),
+        ),
+    ];
+    let gauges = [
+        ("canlift_gateways_online", r.online_count() as u64),
+        (
+            "canlift_webhooks_pending",
+            a.webhooks_pending.load(Ordering::Relaxed),
+        ),
+    ];
+    let mut text = String::new();
+    for (kind, list) in [("gauge", &gauges[..]), ("counter", &counters[..])] {
+        for (name, value) in list {
+            text.push_str(&format!("# TYPE {name} {kind}\n{name} {value}\n"));
+        }
+    }
+    text
 }

@@ -93,6 +93,7 @@ impl Builder {
             addr,
             ca,
             database_url: config.database_url(),
+            config,
             registry,
             key,
             other_key,
@@ -114,6 +115,7 @@ pub struct Rig {
     /// The API key of another account.
     pub other_key: String,
     database_url: String,
+    config: Config,
     registry: std::sync::Arc<cloud::gateways::Registry>,
     portal: Option<(watch::Sender<bool>, JoinHandle<()>)>,
     lift: Option<Lift>,
@@ -191,6 +193,21 @@ impl Rig {
             );
             tokio::time::sleep(Duration::from_millis(50)).await;
         }
+    }
+
+    /// Stop the portal and start it again on the same address, state and database (its
+    /// gateways reconnect as after any restart).
+    pub async fn restart_portal(&mut self) {
+        if let Some((stop, task)) = self.portal.take() {
+            let _ = stop.send(true);
+            let _ = task.await;
+        }
+        let mut config = self.config.clone();
+        config.server.listen = self.addr;
+        let portal = Portal::bind(&config).await.expect("the portal binds again");
+        self.registry = portal.registry();
+        let (stop, stopped) = watch::channel(false);
+        self.portal = Some((stop, tokio::spawn(portal.run(stopped))));
     }
 
     /// Stop the gateway (the lift goes offline).

@@ -8,11 +8,12 @@ use std::sync::atomic::Ordering;
 use std::time::Instant;
 
 use axum::extract::ws::{Message, WebSocket};
-use nxg::msg::{Connect, Notification};
+use nxg::msg::{Connect, Event, Notification};
 use nxg::portal::{Failure, Output, RequestId, Session};
 use tokio::sync::{mpsc, oneshot};
 
 use super::{dashboard, LiftEvent, OperatorCall, Reply, Shared};
+use crate::alarms::Input;
 use crate::store::{self, Admission, TelemetryRow};
 
 /// The lift a connection serves, once it is admitted.
@@ -35,6 +36,7 @@ pub struct Connection {
     close_rx: oneshot::Receiver<()>,
     waiting: HashMap<RequestId, Reply>,
     admitted: Option<Admitted>,
+    closing: tokio::sync::watch::Receiver<bool>,
 }
 
 /// Serve one gateway connection until it ends.
@@ -48,6 +50,7 @@ impl Connection {
         let (calls_tx, calls_rx) =
             mpsc::channel(shared.settings.max_queued.max(1) + shared.settings.max_in_flight);
         let (close_tx, close_rx) = oneshot::channel();
+        let closing = shared.closing.clone();
         Connection {
             socket,
             shared,
@@ -59,6 +62,7 @@ impl Connection {
             close_rx,
             waiting: HashMap::new(),
             admitted: None,
+            closing,
         }
     }
 
@@ -95,7 +99,11 @@ impl Connection {
                     Output::TokenConfirmed(token) => self.token_confirmed(&token).await,
                     Output::Answer(request, answer) => self.answer(request, answer),
                     Output::Notification(n) => self.notification(n),
-                    Output::Event(_) => {}
+                    Output::Event(event) => {
+                        if let Some(input) = self.event(event) {
+                            self.shared.alarms.report(input).await;
+                        }
+                    }
                 }
             }
         }
@@ -140,6 +148,10 @@ impl Connection {
                 let _ = self.socket.send(Message::Close(None)).await;
                 Err("replaced by a newer connection".into())
             }
+            _ = self.closing.changed() => {
+                let _ = self.socket.send(Message::Close(None)).await;
+                Err("the portal is shutting down".into())
+            }
             _ = timer => Ok(self.session.timeout(Instant::now())),
         }
     }
@@ -165,16 +177,18 @@ impl Connection {
                 if let Err(e) = self.shared.store.upsert_gateway(&connect, api).await {
                     tracing::error!(error = %e, "gateway not recorded");
                 }
-                self.register(&lift, &connect.identity.sernum);
+                self.register(&lift, &connect.identity.sernum, api);
                 tracing::info!(%lift, %peer, api, first = ?admission, "gateway online");
                 self.shared.registry.publish(&lift, LiftEvent::Online(true));
+                self.shared.alarms.report(Input::Online(lift)).await;
                 out
             }
         }
     }
 
-    /// Make the lift reachable for operators and subscribe the dashboard's objects.
-    fn register(&mut self, lift: &str, sernum: &str) {
+    /// Make the lift reachable for operators and subscribe the dashboard's objects (and, with
+    /// api ≥ 2, its bus events).
+    fn register(&mut self, lift: &str, sernum: &str, api: u32) {
         let Some(close) = self.close_tx.take() else {
             return;
         };
@@ -188,6 +202,7 @@ impl Connection {
             registry.clone(),
             lift.to_owned(),
             self.shared.dashboard.clone(),
+            api,
         ));
     }
 
@@ -224,6 +239,18 @@ impl Connection {
         self.shared.registry.publish(&a.lift, LiftEvent::Value(n));
     }
 
+    /// A bus event: to live viewers, and (returned) for the alarm service, which stores it.
+    fn event(&self, event: Event) -> Option<Input> {
+        let a = self.admitted.as_ref()?;
+        self.shared
+            .registry
+            .publish(&a.lift, LiftEvent::Bus(event.clone()));
+        Some(Input::Event {
+            lift: a.lift.clone(),
+            event,
+        })
+    }
+
     /// The connection is over: open requests fail, the lift goes offline (unless a newer
     /// connection already serves it).
     async fn finish(mut self, cause: String) {
@@ -242,6 +269,10 @@ impl Connection {
             self.shared
                 .registry
                 .publish(&a.lift, LiftEvent::Online(false));
+            self.shared
+                .alarms
+                .report(Input::Offline(a.lift.clone()))
+                .await;
         }
         tracing::info!(lift = %a.lift, %peer, %cause, "gateway offline");
     }

@@ -12,13 +12,14 @@ use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 
-use nxg::msg::{self, Call, Method, Notification};
+use nxg::msg::{self, Call, Event, Method, Notification};
 use nxg::portal::{Failure, Settings};
 use serde_json::value::RawValue;
 use tokio::sync::{broadcast, mpsc, oneshot};
 
+use crate::alarms::AlarmChange;
 use crate::config::Dashboard;
-use crate::rest::{OnlineEvent, ValueEvent};
+use crate::rest::{BusEventEvent, OnlineEvent, ValueEvent};
 use crate::store::{Store, TelemetryRow};
 
 pub use connection::serve;
@@ -31,6 +32,10 @@ pub enum LiftEvent {
     Value(Notification),
     /// The gateway came online or went offline.
     Online(bool),
+    /// A bus event (api 2).
+    Bus(Event),
+    /// An alarm changed.
+    Alarm(AlarmChange),
 }
 
 impl LiftEvent {
@@ -54,6 +59,17 @@ impl LiftEvent {
                 })
                 .unwrap_or_default(),
             ),
+            LiftEvent::Bus(event) => (
+                "event",
+                serde_json::to_string(&BusEventEvent {
+                    lift,
+                    event: event.clone(),
+                })
+                .unwrap_or_default(),
+            ),
+            LiftEvent::Alarm(change) => {
+                ("alarm", serde_json::to_string(change).unwrap_or_default())
+            }
         }
     }
 }
@@ -122,7 +138,7 @@ impl Registry {
     /// Hand `event` to the lift's live viewers. A channel exists only while someone watches
     /// (its 1024 slots are allocated up front: one per idle gateway would cost more than the
     /// connection itself).
-    fn publish(&self, lift: &str, event: LiftEvent) {
+    pub(crate) fn publish(&self, lift: &str, event: LiftEvent) {
         let mut events = self.events.lock().unwrap_or_else(PoisonError::into_inner);
         if let Some(tx) = events.get(lift) {
             if tx.send(event).is_err() {
@@ -222,6 +238,10 @@ pub struct Shared {
     pub telemetry: mpsc::Sender<TelemetryRow>,
     /// Values stored and dropped, for `/metrics`.
     pub counters: Arc<TelemetryCounters>,
-    /// What every gateway is asked to push (`live`, `inhibit_ms`), normalized.
+    /// What every gateway is asked to push (`live`, `inhibit_ms`, `events`), normalized.
     pub dashboard: Arc<Dashboard>,
+    /// Where bus events and connection changes go to become alarms.
+    pub alarms: Arc<crate::alarms::Alarms>,
+    /// Turns true when the portal stops: every connection closes.
+    pub closing: tokio::sync::watch::Receiver<bool>,
 }

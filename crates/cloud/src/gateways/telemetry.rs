@@ -1,5 +1,5 @@
 //! Telemetry: the values gateways push, written to the store in batches, and deleted again
-//! after the retention time.
+//! after the retention time (as bus events are).
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
@@ -51,8 +51,17 @@ pub async fn writer(
     }
 }
 
-/// Delete telemetry older than `days` once an hour (and at start).
-pub async fn retention(store: Store, days: u32) {
+/// What is deleted after its retention time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Kept {
+    /// Pushed values (`[database] telemetry_days`).
+    Telemetry,
+    /// Bus events (`[database] events_days`).
+    Events,
+}
+
+/// Delete `kept` rows older than `days` once an hour (and at start); 0 days keeps everything.
+pub async fn retention(kept: Kept, store: Store, days: u32) {
     if days == 0 {
         return;
     }
@@ -60,10 +69,14 @@ pub async fn retention(store: Store, days: u32) {
     loop {
         hourly.tick().await;
         let before = store::now_ms() - i64::from(days) * 86_400_000;
-        match store.forget_telemetry(before).await {
+        let deleted = match kept {
+            Kept::Telemetry => store.forget_telemetry(before).await,
+            Kept::Events => store.forget_events(before).await,
+        };
+        match deleted {
             Ok(0) => {}
-            Ok(n) => tracing::info!(values = n, days, "old telemetry deleted"),
-            Err(e) => tracing::error!(error = %e, "old telemetry not deleted"),
+            Ok(n) => tracing::info!(rows = n, days, ?kept, "old rows deleted"),
+            Err(e) => tracing::error!(error = %e, ?kept, "old rows not deleted"),
         }
     }
 }

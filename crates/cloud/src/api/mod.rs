@@ -2,7 +2,9 @@
 //! `VENDORID-PRODUCTCODE-SERNUM`; an account sees only the lifts of its own domain (404 for
 //! others). NXg errors come back as 4xx with the gateway's error object; an offline gateway
 //! gives 503, a gateway that does not answer in time 504. Puts and elevations are audited. The
-//! bodies are the types of [`crate::rest`].
+//! bodies are the types of [`crate::rest`]; alarms and the event log are in `alarms`.
+
+mod alarms;
 
 use std::convert::Infallible;
 use std::sync::Arc;
@@ -43,6 +45,8 @@ pub struct App {
     pub sessions: Sessions,
     /// What the web UI shows.
     pub dashboard: Arc<Dashboard>,
+    /// Alarms.
+    pub alarms: Arc<crate::alarms::Alarms>,
 }
 
 /// An error answer: the status and an error object.
@@ -461,6 +465,12 @@ pub fn routes(app: Arc<App>) -> Router {
             axum::routing::post(subscriptions).delete(subscriptions),
         )
         .route("/api/v1/lifts/{id}/events", get(events))
+        .route("/api/v1/lifts/{id}/event-log", get(alarms::event_log))
+        .route("/api/v1/alarms", get(alarms::list))
+        .route(
+            "/api/v1/alarms/{id}/ack",
+            axum::routing::post(alarms::acknowledge),
+        )
         .route("/api/v1/audit", get(audit))
         .with_state(app)
 }

@@ -1,9 +1,14 @@
 //! What the portal keeps: accounts with their API keys, the gateway registry with token hashes,
-//! refused connection attempts, telemetry (pushed values) and the audit log, in SQLite or
-//! PostgreSQL through sqlx (one set of portable statements with `$n` parameters).
+//! refused connection attempts, telemetry (pushed values), the audit log, and bus events,
+//! alarms and undelivered webhook notifications ([`alarms`]), in SQLite or PostgreSQL through
+//! sqlx (one set of portable statements with `$n` parameters).
 //!
 //! Secrets are stored only as SHA-256 digests (API keys, cloud tokens); tokens are compared with
 //! the one on record in time independent of where they differ.
+
+mod alarms;
+
+pub use alarms::{new_id, AlarmFilter, EventRow, OutboxEntry};
 
 use std::collections::HashMap;
 use std::time::{SystemTime, UNIX_EPOCH};
@@ -145,6 +150,14 @@ const SCHEMA: &[&str] = &[
     "CREATE INDEX IF NOT EXISTS telemetry_by_object ON telemetry (lift, mplex, at)",
     "CREATE INDEX IF NOT EXISTS telemetry_by_time ON telemetry (at)",
     "CREATE TABLE IF NOT EXISTS audit (at BIGINT NOT NULL, account TEXT NOT NULL, lift TEXT NOT NULL, action TEXT NOT NULL, object TEXT NOT NULL, old_value TEXT, new_value TEXT NOT NULL, result TEXT NOT NULL)",
+    "CREATE TABLE IF NOT EXISTS events (lift TEXT NOT NULL, at BIGINT NOT NULL, kind TEXT NOT NULL, body TEXT NOT NULL)",
+    "CREATE INDEX IF NOT EXISTS events_by_lift ON events (lift, at)",
+    "CREATE INDEX IF NOT EXISTS events_by_time ON events (at)",
+    "CREATE TABLE IF NOT EXISTS alarms (id BIGINT PRIMARY KEY, lift TEXT NOT NULL, kind TEXT NOT NULL, net BIGINT NOT NULL, node BIGINT NOT NULL, code TEXT NOT NULL, severity TEXT NOT NULL, text TEXT NOT NULL, raised BIGINT NOT NULL, ack_by TEXT, ack_at BIGINT, ack_comment TEXT, cleared BIGINT)",
+    "CREATE INDEX IF NOT EXISTS alarms_by_lift ON alarms (lift, raised)",
+    "CREATE INDEX IF NOT EXISTS alarms_active ON alarms (cleared)",
+    "CREATE TABLE IF NOT EXISTS webhook_outbox (id BIGINT PRIMARY KEY, url TEXT NOT NULL, body TEXT NOT NULL, lift TEXT NOT NULL, created BIGINT NOT NULL, attempts BIGINT NOT NULL, next_at BIGINT NOT NULL, delivered BIGINT, given_up BIGINT, last_error TEXT)",
+    "CREATE INDEX IF NOT EXISTS webhook_outbox_due ON webhook_outbox (delivered, given_up, next_at)",
 ];
 
 impl Store {
@@ -343,6 +356,17 @@ impl Store {
             api: row.try_get::<i64, _>("api")? as u32,
             last_seen: row.try_get("last_seen")?,
         })
+    }
+
+    /// The id of every lift on record.
+    pub async fn lift_ids(&self) -> Result<Vec<String>, StoreError> {
+        let rows = sqlx::query("SELECT id FROM gateways")
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter()
+            .map(|r| r.try_get("id"))
+            .collect::<Result<_, _>>()
+            .map_err(StoreError)
     }
 
     /// The lifts of `domain`.

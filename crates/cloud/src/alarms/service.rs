@@ -1,0 +1,356 @@
+//! The alarm service: one task takes what the gateway connections report — bus events, a
+//! lift coming online or going offline — stores the events in batches, applies [`Rules`] to an
+//! index of the active alarms (so that an event costs a look-up, and the database is written
+//! only when an alarm changes), runs the `lift-offline` timers, and announces every change to
+//! the lift's live viewers and to the webhook outbox. [`Alarms`] is the handle the connections
+//! and the API share.
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use nxg::msg::Event;
+use tokio::sync::{mpsc, Notify};
+use tokio::time::Instant;
+
+use super::rules::{Active, Rules, Verdict};
+use super::{Alarm, AlarmChange, Change};
+use crate::config::WebhookSection;
+use crate::gateways::{LiftEvent, Registry};
+use crate::store::{self, EventRow, Store, StoreError};
+
+/// What a gateway connection reports.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Input {
+    /// A bus event of the lift.
+    Event {
+        /// The lift.
+        lift: String,
+        /// The event.
+        event: Event,
+    },
+    /// The lift's gateway is connected.
+    Online(String),
+    /// The lift's gateway went away.
+    Offline(String),
+}
+
+/// Counts for `/metrics`.
+#[derive(Debug, Default)]
+pub struct Counters {
+    /// Events stored.
+    pub events_stored: AtomicU64,
+    /// Events lost (the service's queue was full, or the database failed).
+    pub events_dropped: AtomicU64,
+    /// Alarms raised.
+    pub raised: AtomicU64,
+    /// Alarms cleared.
+    pub cleared: AtomicU64,
+    /// Webhook notifications delivered.
+    pub webhooks_delivered: AtomicU64,
+    /// Webhook attempts that failed (each is retried until given up).
+    pub webhooks_failed: AtomicU64,
+    /// Webhook notifications given up.
+    pub webhooks_given_up: AtomicU64,
+    /// Webhook notifications waiting (as of the last delivery round).
+    pub webhooks_pending: AtomicU64,
+}
+
+/// What the connections and the API share.
+pub struct Alarms {
+    /// The database.
+    pub store: Store,
+    /// Live viewers.
+    pub registry: Arc<Registry>,
+    /// Where connections report.
+    pub inputs: mpsc::Sender<Input>,
+    /// Webhook receivers.
+    pub webhooks: Vec<WebhookSection>,
+    /// Wakes the webhook worker.
+    pub outbox: Arc<Notify>,
+    /// Counts.
+    pub counters: Arc<Counters>,
+}
+
+/// Why an acknowledgement did not happen.
+#[derive(Debug)]
+pub enum AckError {
+    /// No such alarm (of the caller's account).
+    NotFound,
+    /// It was acknowledged before.
+    Already(Box<Alarm>),
+    /// The database.
+    Store(StoreError),
+}
+
+impl From<StoreError> for AckError {
+    fn from(e: StoreError) -> Self {
+        AckError::Store(e)
+    }
+}
+
+impl Alarms {
+    /// Hand `input` to the service; an event the service cannot take now is dropped and
+    /// counted (the queue is bounded), a change of a lift's connection always waits.
+    pub async fn report(&self, input: Input) {
+        match input {
+            Input::Event { .. } => {
+                if self.inputs.try_send(input).is_err() {
+                    self.counters.events_dropped.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+            other => {
+                let _ = self.inputs.send(other).await;
+            }
+        }
+    }
+
+    /// Acknowledge alarm `id` of a lift of `domain` for `by`.
+    pub async fn acknowledge(
+        &self,
+        domain: &str,
+        id: i64,
+        by: &str,
+        comment: &str,
+    ) -> Result<Alarm, AckError> {
+        let done = self
+            .store
+            .acknowledge_alarm(domain, id, by, comment, store::now_ms())
+            .await?;
+        let alarm = self.store.alarm_of(domain, id).await?;
+        match (done, alarm) {
+            (Some(true), Some(alarm)) => {
+                self.announce(Change::Acknowledged, alarm.clone()).await;
+                Ok(alarm)
+            }
+            (Some(false), Some(alarm)) => Err(AckError::Already(Box::new(alarm))),
+            _ => Err(AckError::NotFound),
+        }
+    }
+
+    /// Tell the lift's live viewers and queue the webhook notifications.
+    async fn announce(&self, change: Change, alarm: Alarm) {
+        let lift = alarm.lift.clone();
+        let severity = alarm.severity;
+        let change = AlarmChange { change, alarm };
+        let body = serde_json::to_string(&change).unwrap_or_default();
+        self.registry.publish(&lift, LiftEvent::Alarm(change));
+        let mut queued = false;
+        for hook in self.webhooks.iter().filter(|h| severity >= h.min_severity) {
+            match self
+                .store
+                .enqueue_webhook(&hook.url, &lift, &body, store::now_ms())
+                .await
+            {
+                Ok(()) => queued = true,
+                Err(e) => {
+                    tracing::error!(error = %e, url = %hook.url, "webhook notification not queued")
+                }
+            }
+        }
+        if queued {
+            self.outbox.notify_one();
+        }
+    }
+}
+
+/// Events written at once at most, and the longest an event waits for its batch.
+const BATCH: usize = 1000;
+const BATCH_WAIT: Duration = Duration::from_millis(200);
+
+/// The service's state.
+struct Service {
+    alarms: Arc<Alarms>,
+    rules: Rules,
+    offline_after: Duration,
+    active: Active,
+    /// Lifts offline, with when they become `lift-offline`.
+    offline: HashMap<String, Instant>,
+    batch: Vec<EventRow>,
+    flush_at: Option<Instant>,
+}
+
+/// Run the service until every sender is gone. At start it learns the active alarms and
+/// starts the `lift-offline` timer of every known lift (a lift that does not come back within
+/// `offline_after` of the portal's start has the alarm).
+pub async fn run(
+    alarms: Arc<Alarms>,
+    rules: Rules,
+    offline_after: Duration,
+    mut inputs: mpsc::Receiver<Input>,
+) {
+    let mut active = Active::default();
+    match alarms.store.active_alarms().await {
+        Ok(list) => {
+            for (condition, id) in list {
+                active.insert(condition, id);
+            }
+        }
+        Err(e) => tracing::error!(error = %e, "active alarms not loaded"),
+    }
+    let deadline = Instant::now() + offline_after;
+    let offline = match alarms.store.lift_ids().await {
+        Ok(ids) => ids
+            .into_iter()
+            .filter(|id| !alarms.registry.online(id))
+            .map(|id| (id, deadline))
+            .collect(),
+        Err(e) => {
+            tracing::error!(error = %e, "lifts not loaded for the offline alarms");
+            HashMap::new()
+        }
+    };
+    let mut service = Service {
+        alarms,
+        rules,
+        offline_after,
+        active,
+        offline,
+        batch: Vec::with_capacity(BATCH),
+        flush_at: None,
+    };
+    loop {
+        let next = service
+            .offline
+            .values()
+            .copied()
+            .chain(service.flush_at)
+            .min();
+        let timer = async {
+            match next {
+                Some(at) => tokio::time::sleep_until(at).await,
+                None => std::future::pending().await,
+            }
+        };
+        tokio::select! {
+            input = inputs.recv() => match input {
+                Some(input) => service.input(input).await,
+                None => {
+                    service.flush().await;
+                    return;
+                }
+            },
+            _ = timer => service.timers().await,
+        }
+    }
+}
+
+impl Service {
+    async fn input(&mut self, input: Input) {
+        match input {
+            Input::Event { lift, event } => {
+                let verdicts = self.rules.event(&lift, &event);
+                self.batch.push(EventRow {
+                    at: event.time_ms().unwrap_or_else(store::now_ms),
+                    kind: event.kind().name().to_owned(),
+                    body: serde_json::to_string(&event).unwrap_or_default(),
+                    lift,
+                });
+                self.flush_at.get_or_insert(Instant::now() + BATCH_WAIT);
+                if self.batch.len() >= BATCH {
+                    self.flush().await;
+                }
+                self.apply(verdicts).await;
+            }
+            Input::Online(lift) => {
+                self.offline.remove(&lift);
+                let verdict = self.rules.lift_online(&lift);
+                self.apply(vec![verdict]).await;
+            }
+            Input::Offline(lift) => {
+                self.offline
+                    .insert(lift, Instant::now() + self.offline_after);
+            }
+        }
+    }
+
+    async fn timers(&mut self) {
+        let now = Instant::now();
+        if self.flush_at.is_some_and(|t| t <= now) {
+            self.flush().await;
+        }
+        let due: Vec<String> = self
+            .offline
+            .iter()
+            .filter(|(_, at)| **at <= now)
+            .map(|(lift, _)| lift.clone())
+            .collect();
+        for lift in due {
+            self.offline.remove(&lift);
+            let verdict = self.rules.lift_offline(&lift, self.offline_after.as_secs());
+            self.apply(vec![verdict]).await;
+        }
+    }
+
+    async fn flush(&mut self) {
+        self.flush_at = None;
+        if self.batch.is_empty() {
+            return;
+        }
+        let counters = &self.alarms.counters;
+        let counter = match self.alarms.store.events(&self.batch).await {
+            Ok(()) => &counters.events_stored,
+            Err(e) => {
+                tracing::error!(error = %e, events = self.batch.len(), "events not stored");
+                &counters.events_dropped
+            }
+        };
+        counter.fetch_add(self.batch.len() as u64, Ordering::Relaxed);
+        self.batch.clear();
+    }
+
+    async fn apply(&mut self, verdicts: Vec<Verdict>) {
+        let mut changes: Vec<(Change, Alarm)> = Vec::new();
+        for verdict in verdicts {
+            match verdict {
+                Verdict::Raise {
+                    condition,
+                    severity,
+                    text,
+                } => {
+                    if self.active.get(&condition).is_some() {
+                        continue;
+                    }
+                    let store = &self.alarms.store;
+                    match store
+                        .raise_alarm(&condition, severity, &text, store::now_ms())
+                        .await
+                    {
+                        Ok(alarm) => {
+                            tracing::warn!(lift = %alarm.lift, kind = alarm.kind.name(), code = %alarm.code, severity = %alarm.severity, text = %alarm.text, "alarm raised");
+                            self.alarms.counters.raised.fetch_add(1, Ordering::Relaxed);
+                            self.active.insert(condition, alarm.id);
+                            changes.push((Change::Raised, alarm));
+                        }
+                        Err(e) => tracing::error!(error = %e, "alarm not raised"),
+                    }
+                }
+                Verdict::Clear {
+                    lift,
+                    kind,
+                    place,
+                    keep,
+                } => {
+                    let taken = self
+                        .active
+                        .take_matching(&lift, kind, place, keep.as_deref());
+                    for (_, id) in taken {
+                        match self.alarms.store.clear_alarm(id, store::now_ms()).await {
+                            Ok(Some(alarm)) => {
+                                tracing::info!(lift = %alarm.lift, kind = alarm.kind.name(), code = %alarm.code, "alarm cleared");
+                                self.alarms.counters.cleared.fetch_add(1, Ordering::Relaxed);
+                                changes.push((Change::Cleared, alarm));
+                            }
+                            Ok(None) => {}
+                            Err(e) => tracing::error!(error = %e, id, "alarm not cleared"),
+                        }
+                    }
+                }
+            }
+        }
+        for (change, alarm) in changes {
+            self.alarms.announce(change, alarm).await;
+        }
+    }
+}

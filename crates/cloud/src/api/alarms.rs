@@ -1,0 +1,97 @@
+//! The alarm and event-log operations of the REST API (docs/PORTAL.md §Alarms): an account
+//! sees the alarms and events of its own lifts only (404 for any other).
+
+use std::sync::Arc;
+
+use axum::extract::{Path, State};
+use axum::http::StatusCode;
+use axum::Json;
+
+use super::{error, lift_of, ApiError, ApiJson, ApiQuery, App, Caller};
+use crate::alarms::service::AckError;
+use crate::alarms::Alarm;
+use crate::rest::{AckBody, AlarmList, AlarmState, AlarmsQuery, EventLog, EventLogQuery};
+use crate::store::AlarmFilter;
+
+/// `GET /api/v1/alarms`.
+pub(super) async fn list(
+    State(app): State<Arc<App>>,
+    Caller(account): Caller,
+    ApiQuery(q): ApiQuery<AlarmsQuery>,
+) -> Result<Json<AlarmList>, ApiError> {
+    let filter = AlarmFilter {
+        active: q.state.unwrap_or_default() == AlarmState::Active,
+        lift: q.lift,
+        limit: q.limit.unwrap_or(500),
+    };
+    let alarms = app.store.alarms(&account.domain, &filter).await?;
+    Ok(Json(AlarmList { alarms }))
+}
+
+/// `POST /api/v1/alarms/{id}/ack`: 404 for an alarm of another account, 409 for one taken on
+/// before.
+pub(super) async fn acknowledge(
+    State(app): State<Arc<App>>,
+    Caller(account): Caller,
+    Path(id): Path<String>,
+    ApiJson(body): ApiJson<AckBody>,
+) -> Result<Json<Alarm>, ApiError> {
+    let Ok(id) = id.parse::<i64>() else {
+        return Err(error(StatusCode::NOT_FOUND, "no such alarm"));
+    };
+    if body.comment.chars().count() > 1000 {
+        return Err(error(
+            StatusCode::BAD_REQUEST,
+            "comment: at most 1000 characters",
+        ));
+    }
+    match app
+        .alarms
+        .acknowledge(&account.domain, id, &account.name, &body.comment)
+        .await
+    {
+        Ok(alarm) => Ok(Json(alarm)),
+        Err(AckError::NotFound) => Err(error(StatusCode::NOT_FOUND, "no such alarm")),
+        Err(AckError::Already(alarm)) => Err(error(
+            StatusCode::CONFLICT,
+            format!(
+                "acknowledged before by {}",
+                alarm.acknowledged.map(|a| a.by).unwrap_or_default()
+            ),
+        )),
+        Err(AckError::Store(e)) => Err(e.into()),
+    }
+}
+
+/// `GET /api/v1/lifts/{id}/event-log`.
+pub(super) async fn event_log(
+    State(app): State<Arc<App>>,
+    caller: Caller,
+    Path(id): Path<String>,
+    ApiQuery(q): ApiQuery<EventLogQuery>,
+) -> Result<Json<EventLog>, ApiError> {
+    lift_of(&app, caller, &id).await?;
+    let since = match q.since.as_deref() {
+        None => None,
+        Some(text) => Some(
+            text.parse::<i64>()
+                .ok()
+                .or_else(|| nxg::msg::parse_time(text))
+                .ok_or_else(|| {
+                    error(
+                        StatusCode::BAD_REQUEST,
+                        "since: RFC 3339 (2026-11-23T10:11:12Z) or ms since the epoch",
+                    )
+                })?,
+        ),
+    };
+    let bodies = app
+        .store
+        .event_log(&id, since, q.limit.unwrap_or(100))
+        .await?;
+    let events = bodies
+        .iter()
+        .filter_map(|b| serde_json::from_str(b).ok())
+        .collect();
+    Ok(Json(EventLog { events }))
+}
