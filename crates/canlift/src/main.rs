@@ -10,7 +10,8 @@ use clap::{Parser, Subcommand};
 #[derive(Debug, Parser)]
 #[command(name = "canlift", version, about, long_about = None)]
 struct Cli {
-    /// Log format on stderr (level from RUST_LOG; default info, warn for loadgen and bench).
+    /// Log format on stderr (level from RUST_LOG; default info, warn for loadgen and bench; the
+    /// alarm benchmark does not log each alarm it raises).
     #[arg(long, value_enum, global = true, default_value = "text")]
     log_format: logging::LogFormat,
     #[command(subcommand)]
@@ -47,6 +48,12 @@ enum Command {
     #[cfg(feature = "portal")]
     /// Print the values a lift pushes for some objects.
     Watch(cmd::operator::WatchArgs),
+    #[cfg(feature = "portal")]
+    /// The account's alarms on the portal (`alarms ack ID` takes one on).
+    Alarms(cmd::alarms::AlarmsArgs),
+    #[cfg(feature = "portal")]
+    /// A lift's stored bus events (EMCY, node states, network states).
+    Events(cmd::alarms::EventsArgs),
     /// Simulated CiA 417 lift controller (and I/O node) on a bus.
     Sim(cmd::sim::SimArgs),
     /// Measure canlift's components.
@@ -57,9 +64,11 @@ enum Command {
 
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
-    // Thousands of gateways in one process would log every connection: quieter by default.
+    // Thousands of gateways in one process would log every connection, and the alarm benchmark
+    // raises thousands of alarms: quieter by default.
     let level = match cli.command {
-        Command::Loadgen(_) | Command::Bench(_) => "warn",
+        Command::Loadgen(_) => "warn",
+        Command::Bench(_) => "warn,cloud::alarms::service=error",
         _ => "info",
     };
     logging::init(cli.log_format, level);
@@ -92,6 +101,10 @@ fn main() -> std::process::ExitCode {
             Command::Put(args) => cmd::operator::put(args).await,
             #[cfg(feature = "portal")]
             Command::Watch(args) => cmd::operator::watch(args).await,
+            #[cfg(feature = "portal")]
+            Command::Alarms(args) => cmd::alarms::alarms(args).await,
+            #[cfg(feature = "portal")]
+            Command::Events(args) => cmd::alarms::events(args).await,
         }
     });
     match result {

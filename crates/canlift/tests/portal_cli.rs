@@ -100,3 +100,61 @@ async fn lifts_get_put_watch() {
     );
     rig.stop().await;
 }
+
+/// Run `canlift ARGS` for the rig; its standard output.
+async fn output(rig: &Rig, args: &[&str]) -> String {
+    let out = canlift(rig).args(args).output().await.unwrap();
+    assert!(
+        out.status.success(),
+        "canlift {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn alarms_ack_and_events() {
+    let rig = Rig::builder().gateway(|g| g.identity.api = 2).start().await;
+    rig.online().await;
+    assert!(output(&rig, &["alarms"]).await.contains("no active alarm"));
+    // A drive fault in the simulator (setup rights for 5030h).
+    let privilege =
+        serde_json::json!({"privilege": 2, "password": testkit::constants::SETUP_PASSWORD});
+    let (status, _) = rig
+        .call(
+            "POST",
+            &format!("/api/v1/lifts/{LIFT}/privilege"),
+            Some(&rig.key),
+            Some(privilege),
+        )
+        .await;
+    assert_eq!(status, 200);
+    assert!(output(&rig, &["put", LIFT, "0x503000", "4"])
+        .await
+        .contains("= 4"));
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(20);
+    let alarms: serde_json::Value = loop {
+        let list: serde_json::Value =
+            serde_json::from_str(&output(&rig, &["alarms", "--json"]).await).unwrap();
+        if !list["alarms"].as_array().unwrap().is_empty() {
+            break list;
+        }
+        assert!(tokio::time::Instant::now() < deadline, "no alarm: {list}");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
+    let id = alarms["alarms"][0]["id"].as_i64().unwrap().to_string();
+    let table = output(&rig, &["alarms"]).await;
+    assert!(
+        table.contains(&id) && table.contains("major") && table.contains("Drive fault"),
+        "{table}"
+    );
+    let acked = output(&rig, &["alarms", "ack", &id, "--comment", "checked"]).await;
+    assert!(acked.contains("acknowledged by masora"), "{acked}");
+    let events = output(&rig, &["events", LIFT]).await;
+    assert!(events.contains("EMCY  node 1/1 0xF001"), "{events}");
+    let json: serde_json::Value =
+        serde_json::from_str(&output(&rig, &["events", LIFT, "--json", "--limit", "1"]).await)
+            .unwrap();
+    assert_eq!(json["events"].as_array().unwrap().len(), 1);
+    rig.stop().await;
+}

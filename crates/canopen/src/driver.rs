@@ -85,8 +85,9 @@ pub fn serve_sdo(
     })
 }
 
-/// Sleep until `deadline`, or forever without one.
-pub(crate) async fn sleep_until(deadline: Option<Instant>) {
+/// Sleep until `deadline`, or forever without one: the timer arm of a driver's `select!` over a
+/// sans-IO core's `poll_timeout()`.
+pub async fn sleep_until(deadline: Option<impl Into<tokio::time::Instant>>) {
     match deadline {
         Some(d) => tokio::time::sleep_until(d.into()).await,
         None => std::future::pending().await,

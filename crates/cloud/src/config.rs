@@ -187,52 +187,6 @@ impl Default for DashboardSection {
     }
 }
 
-/// `[alarms.severity]`: how urgent each condition is (`minor`, `major`, `critical`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
-pub struct SeveritySection {
-    /// The gateway has been offline for `offline_after_s`.
-    pub lift_offline: Severity,
-    /// A network is bus-off.
-    pub bus_off: Severity,
-    /// A network cannot be reached by its gateway.
-    pub bus_offline: Severity,
-    /// A network is error-passive.
-    pub error_passive: Severity,
-    /// A node's heartbeat stopped.
-    pub node_offline: Severity,
-    /// A node reported an error by EMCY.
-    pub emcy: Severity,
-}
-
-impl Default for SeveritySection {
-    fn default() -> Self {
-        let s = Severities::default();
-        SeveritySection {
-            lift_offline: s.lift_offline,
-            bus_off: s.bus_off,
-            bus_offline: s.bus_offline,
-            error_passive: s.error_passive,
-            node_offline: s.node_offline,
-            emcy: s.emcy,
-        }
-    }
-}
-
-impl SeveritySection {
-    /// The rules' severities.
-    pub fn severities(&self) -> Severities {
-        Severities {
-            lift_offline: self.lift_offline,
-            bus_off: self.bus_off,
-            bus_offline: self.bus_offline,
-            error_passive: self.error_passive,
-            node_offline: self.node_offline,
-            emcy: self.emcy,
-        }
-    }
-}
-
 /// `[[alarms.webhooks]]`: a receiver of alarm changes.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -259,8 +213,8 @@ fn major() -> Severity {
 pub struct AlarmsSection {
     /// Seconds a gateway may be offline before its lift has a `lift-offline` alarm.
     pub offline_after_s: u64,
-    /// Severities per condition.
-    pub severity: SeveritySection,
+    /// `[alarms.severity]`: how urgent each condition is (`minor`, `major`, `critical`).
+    pub severity: Severities,
     /// Receivers of alarm changes.
     pub webhooks: Vec<WebhookSection>,
 }
@@ -269,7 +223,7 @@ impl Default for AlarmsSection {
     fn default() -> Self {
         AlarmsSection {
             offline_after_s: 120,
-            severity: SeveritySection::default(),
+            severity: Severities::default(),
             webhooks: Vec::new(),
         }
     }

@@ -15,4 +15,5 @@ pub mod gateways;
 pub mod rest;
 pub mod server;
 pub mod store;
+mod timer;
 pub mod web;

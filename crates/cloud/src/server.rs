@@ -288,7 +288,7 @@ fn start_alarms(
         counters: Arc::default(),
     });
     let rules = Rules {
-        severities: config.alarms.severity.severities(),
+        severities: config.alarms.severity,
     };
     let offline_after = std::time::Duration::from_secs(config.alarms.offline_after_s.max(1));
     tasks.push(tokio::spawn(service::run(
@@ -307,50 +307,30 @@ fn metrics_text(
     t: &gateways::TelemetryCounters,
     a: &service::Counters,
 ) -> String {
+    let load = |c: &AtomicU64| c.load(Ordering::Relaxed);
     let counters = [
-        (
-            "canlift_gateway_connections_total",
-            m.connections.load(Ordering::Relaxed),
-        ),
+        ("canlift_gateway_connections_total", load(&m.connections)),
         (
             "canlift_gateway_upgrades_refused_total",
-            m.upgrades_refused.load(Ordering::Relaxed),
+            load(&m.upgrades_refused),
         ),
-        (
-            "canlift_telemetry_stored_total",
-            t.stored.load(Ordering::Relaxed),
-        ),
-        (
-            "canlift_telemetry_dropped_total",
-            t.dropped.load(Ordering::Relaxed),
-        ),
-        (
-            "canlift_events_stored_total",
-            a.events_stored.load(Ordering::Relaxed),
-        ),
-        (
-            "canlift_events_dropped_total",
-            a.events_dropped.load(Ordering::Relaxed),
-        ),
-        (
-            "canlift_alarms_raised_total",
-            a.raised.load(Ordering::Relaxed),
-        ),
-        (
-            "canlift_alarms_cleared_total",
-            a.cleared.load(Ordering::Relaxed),
-        ),
+        ("canlift_telemetry_stored_total", load(&t.stored)),
+        ("canlift_telemetry_dropped_total", load(&t.dropped)),
+        ("canlift_events_stored_total", load(&a.events_stored)),
+        ("canlift_events_dropped_total", load(&a.events_dropped)),
+        ("canlift_alarms_raised_total", load(&a.raised)),
+        ("canlift_alarms_cleared_total", load(&a.cleared)),
         (
             "canlift_webhooks_delivered_total",
-            a.webhooks_delivered.load(Ordering::Relaxed),
+            load(&a.webhooks_delivered),
         ),
         (
             "canlift_webhook_attempts_failed_total",
-            a.webhooks_failed.load(Ordering::Relaxed),
+            load(&a.webhooks_failed),
         ),
         (
             "canlift_webhooks_given_up_total",
-            a.webhooks_given_up.load(Ordering::Relaxed),
+            load(&a.webhooks_given_up),
         ),
     ];
     let gauges = [

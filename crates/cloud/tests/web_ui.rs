@@ -419,3 +419,65 @@ async fn operator_uses_the_web_ui() {
     drop(driver);
     rig.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fault_reaches_the_fleet_page_and_is_acknowledged() {
+    let Some((chromium, chromedriver_path)) = testkit::browser() else {
+        return;
+    };
+    // A gateway that speaks api 2: the portal registers its bus events.
+    let rig = Rig::builder().gateway(|g| g.identity.api = 2).start().await;
+    rig.online().await;
+    // A drive fault injected in the simulated lift (5030h bit 2, setup rights).
+    let privilege = json!({"privilege": 2, "password": testkit::constants::SETUP_PASSWORD});
+    let path = format!("/api/v1/lifts/{LIFT}/privilege");
+    let (status, answer) = rig
+        .call("POST", &path, Some(&rig.key), Some(privilege))
+        .await;
+    assert_eq!(status, 200, "{answer}");
+    let fault = json!({"value": "4", "datatype": 5, "physunit": 0});
+    let path = format!("/api/v1/lifts/{LIFT}/objects/0x503000");
+    let (status, answer) = rig.call("PUT", &path, Some(&rig.key), Some(fault)).await;
+    assert_eq!(status, 200, "{answer}");
+
+    let driver = chromedriver(&chromedriver_path).await;
+    let profile = rig.dir().join("chromium-profile");
+    let client = browser(&driver, &chromium, &profile).await;
+    let base = rig.url();
+    client.goto(&format!("{base}/")).await.unwrap();
+    sign_in(&client, &rig.key).await;
+    // The fleet shows the lift's alarm (the page refreshes its table by itself).
+    let alarm = until("the alarm on the fleet page", 30, || async {
+        text_of(&client, "table.fleet td.alarm")
+            .await
+            .filter(|t| t.contains("F001"))
+    })
+    .await;
+    assert!(alarm.starts_with("major"), "{alarm}");
+    assert!(alarm.contains("Drive fault"), "{alarm}");
+    // The alarms page: acknowledge with a comment.
+    client.goto(&format!("{base}/alarms")).await.unwrap();
+    type_into(
+        &client,
+        "table.alarms form.ack input[name=comment]",
+        "on my way",
+    )
+    .await;
+    click(&client, "table.alarms form.ack button").await;
+    let acknowledged = until("acknowledged", 10, || async {
+        text_of(&client, "table.alarms tbody tr td:nth-child(6)")
+            .await
+            .filter(|t| t.contains("masora"))
+    })
+    .await;
+    assert!(acknowledged.contains("on my way"), "{acknowledged}");
+    // The lift page lists it too, with the EMCY in its event log.
+    client.goto(&format!("{base}/lifts/{LIFT}")).await.unwrap();
+    let section = text_of(&client, "#alarms").await.unwrap_or_default();
+    assert!(section.contains("Drive fault"), "{section}");
+    let log = text_of(&client, "#events").await.unwrap_or_default();
+    assert!(log.contains("0xF001"), "{log}");
+    client.close().await.unwrap();
+    drop(driver);
+    rig.stop().await;
+}

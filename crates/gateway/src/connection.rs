@@ -217,13 +217,7 @@ where
                 tracing::info!(api, "CONNACK: serving the portal");
             }
         }
-        let deadline = session.poll_timeout().map(tokio::time::Instant::from_std);
-        let timer = async {
-            match deadline {
-                Some(d) => tokio::time::sleep_until(d).await,
-                None => std::future::pending().await,
-            }
-        };
+        let timer = canopen::driver::sleep_until(session.poll_timeout());
         outputs = tokio::select! {
             message = ws.next() => {
                 let now = Instant::now();

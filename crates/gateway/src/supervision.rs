@@ -8,7 +8,7 @@ use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use canbus::{Bus, BusEvent as Link, Filter, ERR_FLAG};
-use canopen::driver::SdoClients;
+use canopen::driver::{sleep_until, SdoClients};
 use canopen::supervisor::{BusCondition, NodeStatus, Supervision, Supervisor};
 use nxg::gateway::{BusEvent, EventQueue, Happening};
 use nxg::msg::{BusState, NodeId, NodeRef, NodeState};
@@ -77,6 +77,7 @@ async fn run(network: Network, sink: Sink) {
     let mut supervisor = Supervisor::new(own, configured);
     let (periods_tx, mut periods) = mpsc::unbounded_channel::<(u8, Option<u16>)>();
     let mut out = Vec::new();
+    let mut limit = LogLimit::new();
     loop {
         for s in out.drain(..) {
             match s {
@@ -89,21 +90,13 @@ async fn run(network: Network, sink: Sink) {
                 }
                 other => {
                     if let Some(what) = happening(net, other) {
-                        log(&what);
+                        limit.log(net, &what);
                         sink.push(what);
                     }
                 }
             }
         }
-        let deadline = supervisor
-            .poll_timeout()
-            .map(tokio::time::Instant::from_std);
-        let timer = async {
-            match deadline {
-                Some(d) => tokio::time::sleep_until(d).await,
-                None => std::future::pending().await,
-            }
-        };
+        let timer = sleep_until(supervisor.poll_timeout());
         tokio::select! {
             event = receiver.recv() => {
                 let now = Instant::now();
@@ -154,6 +147,52 @@ fn happening(net: u8, s: Supervision) -> Option<Happening> {
         },
         Supervision::ReadPeriod(_) => return None,
     })
+}
+
+/// Log lines of events per network and second at most: a node that floods EMCYs must not
+/// flood the log (the events themselves still reach the portal).
+const LOG_PER_SECOND: u32 = 20;
+
+/// Counts log lines per second and what it left out.
+struct LogLimit {
+    second: Option<Instant>,
+    written: u32,
+    left_out: u64,
+}
+
+impl LogLimit {
+    fn new() -> LogLimit {
+        LogLimit {
+            second: None,
+            written: 0,
+            left_out: 0,
+        }
+    }
+
+    fn log(&mut self, net: u8, what: &Happening) {
+        let now = Instant::now();
+        if self
+            .second
+            .is_none_or(|s| now.duration_since(s) >= std::time::Duration::from_secs(1))
+        {
+            if self.left_out > 0 {
+                tracing::warn!(
+                    net,
+                    left_out = self.left_out,
+                    "more bus events than the log shows"
+                );
+            }
+            self.second = Some(now);
+            self.written = 0;
+            self.left_out = 0;
+        }
+        if self.written < LOG_PER_SECOND {
+            self.written += 1;
+            log(what);
+        } else {
+            self.left_out += 1;
+        }
+    }
 }
 
 fn log(what: &Happening) {

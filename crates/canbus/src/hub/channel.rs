@@ -1,15 +1,14 @@
 //! One bus of the hub: its subscribers, fan-out, and (with a bit rate) the wire model.
 
-use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, PoisonError, RwLock, Weak};
 use std::time::{Instant, SystemTime};
 
 use tokio::sync::{mpsc, Notify, OwnedSemaphorePermit};
 
+use super::arbiter::Arbiter;
 use super::HubStats;
 use crate::frame::Frame;
-use crate::wire;
 
 /// What the hub queues for a client's writer.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -33,7 +32,7 @@ pub(super) struct Queued {
     pub(super) frame: Frame,
     pub(super) arrival: Instant,
     /// Returned when the frame has left, which bounds each client's transmit queue.
-    pub(super) _permit: OwnedSemaphorePermit,
+    pub(super) permit: OwnedSemaphorePermit,
 }
 
 pub(super) struct Channel {
@@ -103,7 +102,7 @@ impl Channel {
                     from,
                     frame,
                     arrival: Instant::now(),
-                    _permit: permit,
+                    permit,
                 };
                 // The arbiter lives as long as the channel; a send error means shutdown.
                 let _ = arbiter.send(queued);
@@ -155,58 +154,33 @@ impl Channel {
     }
 }
 
-/// The bus in bit-rate mode. Each client has a FIFO transmit queue (as a CAN controller's
-/// queue); whenever the bus becomes free, the heads of the queues that were already waiting
-/// arbitrate and the lowest arbitration key wins. The winner occupies the bus for its exact wire
-/// time and is delivered when its last bit (end of interframe space) has passed.
-///
-/// Time is kept as the instant the bus becomes free (`free_at`), advanced by each frame's wire
-/// time, so a late wake-up delays one delivery slightly but never accumulates.
+/// The bus thread of bit-rate mode: feeds the [`Arbiter`] and delivers each frame when its
+/// transmission ends.
 fn arbitrate(channel: Weak<Channel>, rx: std::sync::mpsc::Receiver<Queued>, bitrate: u32) {
-    let mut queues: HashMap<u64, VecDeque<Queued>> = HashMap::new();
-    let mut free_at = Instant::now();
+    let mut arbiter = Arbiter::new(bitrate, Instant::now());
+    let enqueue = |arbiter: &mut Arbiter<OwnedSemaphorePermit>, q: Queued| {
+        arbiter.push(q.from, q.frame, q.arrival, q.permit);
+    };
     loop {
-        if queues.is_empty() {
+        if arbiter.is_idle() {
             let Ok(q) = rx.recv() else { return };
-            queues.entry(q.from).or_default().push_back(q);
+            enqueue(&mut arbiter, q);
         }
         while let Ok(q) = rx.try_recv() {
-            queues.entry(q.from).or_default().push_back(q);
+            enqueue(&mut arbiter, q);
         }
-        let Some(winner) = pick(&mut queues, free_at) else {
+        let Some(tx) = arbiter.next() else {
             continue;
         };
-        let start = free_at.max(winner.arrival);
-        free_at = start + wire::frame_duration(&winner.frame, bitrate);
         let now = Instant::now();
-        if free_at > now {
-            std::thread::sleep(free_at - now);
+        if tx.ends > now {
+            std::thread::sleep(tx.ends - now);
         }
         let Some(channel) = channel.upgrade() else {
             return;
         };
-        channel.broadcast(winner.from, winner.frame);
+        channel.broadcast(tx.from, tx.frame);
+        // The permit goes back now that the frame has left: it bounds each client's queue.
+        drop(tx.token);
     }
-}
-
-/// Take the frame that wins arbitration when the bus is free at `free_at`.
-fn pick(queues: &mut HashMap<u64, VecDeque<Queued>>, free_at: Instant) -> Option<Queued> {
-    let earliest = queues
-        .values()
-        .filter_map(|q| q.front())
-        .map(|q| q.arrival)
-        .min()?;
-    // Only frames already waiting when arbitration starts take part in it.
-    let start = free_at.max(earliest);
-    let (&client, _) = queues
-        .iter()
-        .filter_map(|(client, q)| q.front().map(|head| (client, head)))
-        .filter(|(_, head)| head.arrival <= start)
-        .min_by_key(|(_, head)| (wire::arbitration_key(&head.frame), head.arrival))?;
-    let queue = queues.get_mut(&client)?;
-    let winner = queue.pop_front();
-    if queue.is_empty() {
-        queues.remove(&client);
-    }
-    winner
 }

@@ -15,6 +15,7 @@
 //! With a bit rate, frames take their real wire time and arbitrate by CAN-ID (see
 //! [`crate::wire`]).
 
+mod arbiter;
 mod channel;
 
 use std::collections::HashMap;

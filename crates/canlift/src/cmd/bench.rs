@@ -36,6 +36,9 @@ enum BenchKind {
     /// The cloud portal: idle gateways and memory per connection, reconnect storm, ingest,
     /// operator latency.
     Portal(super::bench_portal::PortalBench),
+    #[cfg(feature = "portal")]
+    /// The portal's cost per bus event: alarm rules, and the alarm service with its database.
+    Alarms(super::bench_alarms::AlarmsBench),
 }
 
 #[derive(Debug, Clone, clap::Args)]
@@ -696,5 +699,7 @@ pub async fn run(args: BenchArgs) -> anyhow::Result<()> {
         BenchKind::Gateway(g) => super::bench_gateway::run(g).await,
         #[cfg(feature = "portal")]
         BenchKind::Portal(p) => super::bench_portal::run(p).await,
+        #[cfg(feature = "portal")]
+        BenchKind::Alarms(a) => super::bench_alarms::run(a).await,
     }
 }

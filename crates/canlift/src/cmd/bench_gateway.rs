@@ -95,7 +95,11 @@ impl Portal {
         };
         let mut ws = tokio_tungstenite::accept_hdr_async(tls, select).await?;
         let connect = recv(&mut ws).await?;
-        let answer = json!({"jsonrpc": "2.0", "id": connect["id"], "result": "CONNACK", "api": 1});
+        // As a portal does: the lower of both sides' API versions.
+        let offered = connect["params"]["identity"]["api"].as_u64().unwrap_or(1);
+        let api = offered.min(u64::from(nxg::msg::API));
+        let answer =
+            json!({"jsonrpc": "2.0", "id": connect["id"], "result": "CONNACK", "api": api});
         ws.send(Message::Text(answer.to_string().into())).await?;
         Ok(ws)
     }
@@ -278,6 +282,68 @@ fn metadata_lookups(pki: &DevPki, described: &NodeSection) -> anyhow::Result<()>
             per.as_nanos()
         );
     }
+    Ok(())
+}
+
+/// A flood of EMCY frames on the gateway's bus (as fast as the in-process bus takes them, from
+/// all 127 node-IDs) while a portal registered for EMCY events reads them: the events the
+/// gateway forwards per second, and the growth of this process's memory (the gateway keeps at
+/// most `max_queued_events` waiting; the rest of the flood is dropped and counted).
+async fn emcy_flood(args: &GatewayBench, pki: &DevPki, dir: &Path) -> anyhow::Result<()> {
+    let bus = "mem://bench-emcy-flood";
+    let portal = Portal::start(pki).await?;
+    let gateway = Gateway::bus_node(config(&portal.url()?, pki, bus, &dir.join("emcy"))).await?;
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let task = tokio::spawn(gateway.run(stopped));
+    let mut ws = portal.accept().await?;
+    let reg =
+        r#"{"jsonrpc":"2.0","id":"e","method":"reg_canopen_event","params":{"events":["emcy"]}}"#;
+    ws.send(Message::Text(reg.into())).await?;
+    while recv(&mut ws).await?.get("result").is_none() {}
+    let before = memory_kib(std::process::id()).map_or(0, |m| m[0]);
+    let period = Duration::from_secs(args.seconds.max(1));
+    let flood = canbus::Bus::open(bus).await?;
+    let sender = tokio::spawn(async move {
+        let started = Instant::now();
+        let mut sent: u64 = 0;
+        while started.elapsed() < period {
+            let node = (sent % 127) as u16 + 1;
+            let data = [0x01, 0xFF, 0x21, 0, 0, 0, 0, (sent & 0xFF) as u8];
+            if let Ok(frame) = canbus::Frame::standard(0x080 + node, &data) {
+                let _ = flood.send(frame).await;
+            }
+            sent += 1;
+            if sent.is_multiple_of(64) {
+                tokio::task::yield_now().await;
+            }
+        }
+        sent
+    });
+    let started = Instant::now();
+    let mut forwarded = 0u64;
+    let mut peak = before;
+    while started.elapsed() < period + Duration::from_millis(500) {
+        match tokio::time::timeout(Duration::from_millis(200), recv(&mut ws)).await {
+            Ok(Ok(v)) if v["method"] == "canopen_event" => forwarded += 1,
+            Ok(Ok(_)) | Err(_) => {}
+            Ok(Err(e)) => return Err(e),
+        }
+        if forwarded.is_multiple_of(1024) {
+            peak = peak.max(memory_kib(std::process::id()).map_or(0, |m| m[0]));
+        }
+    }
+    let sent = sender.await?;
+    let secs = period.as_secs_f64();
+    println!(
+        "{:<22} {:.0} EMCY frames/s on the bus, {:.0} events/s forwarded ({:.1} %), RSS +{:.1} MiB at most",
+        "EMCY flood",
+        sent as f64 / secs,
+        forwarded as f64 / secs,
+        100.0 * forwarded as f64 / sent.max(1) as f64,
+        mib(peak.saturating_sub(before))
+    );
+    let _ = stop.send(true);
+    let _ = task.await;
     Ok(())
 }
 
@@ -477,6 +543,7 @@ async fn measure(args: &GatewayBench, pki: &DevPki, dir: &Path) -> anyhow::Resul
     requests(&mut ws, "SDO via hub to sim", args).await?;
     let _ = stop.send(true);
     let _ = task.await;
+    emcy_flood(args, pki, dir).await?;
     memory(args, pki, &bus, dir).await?;
     sim.stop().await;
     hub.shutdown().await;

@@ -60,6 +60,21 @@ async fn api_key(store: &Store, dir: &Path) -> anyhow::Result<String> {
     Ok(key)
 }
 
+/// The lift's service and setup passwords: made on the first run and kept in the state
+/// directory, so that the banner can print them and elevation works in the demo.
+fn lift_passwords(dir: &Path) -> anyhow::Result<(String, String)> {
+    let path = dir.join("lift-passwords");
+    if let Ok(text) = std::fs::read_to_string(&path) {
+        if let Some((service, setup)) = text.trim().split_once('\n') {
+            return Ok((service.trim().to_owned(), setup.trim().to_owned()));
+        }
+    }
+    let (service, setup) = (cloud::store::secret("svc-"), cloud::store::secret("set-"));
+    let (service, setup) = (service[..12].to_owned(), setup[..12].to_owned());
+    canopen::storage::write_atomically(&path, &format!("{service}\n{setup}\n"))?;
+    Ok((service, setup))
+}
+
 /// Run the demo until Ctrl-C or SIGTERM.
 pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
     let dir = args.state.clone().unwrap_or_else(default_state);
@@ -115,6 +130,9 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
     let portal_ws = format!("wss://localhost:{}/ws", portal_addr.port());
     let mut gw =
         gateway::config::Config::for_portal(identity, &portal_ws, &ca, &bus, &dir.join("gateway"));
+    let (service, setup) = lift_passwords(&dir)?;
+    gw.privileges.service_sha1 = Some(cloud::store::passhash(&service));
+    gw.privileges.setup_sha1 = Some(cloud::store::passhash(&setup));
     // The I/O node described by its EDS, as an integrator would (docs/GATEWAY.md §Metadata).
     if let Some(id) = sim_config.io_node {
         let eds = dir.join(format!("io-node-{id}.eds"));
@@ -141,6 +159,8 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
         "  portal   {portal_url}  (web UI: sign in with the API key; operator API under /api/v1)"
     );
     println!("  API key  {key}");
+    println!("  service password  {service}  (the lift's; elevation on the lift page)");
+    println!("  setup password    {setup}");
     println!(
         "  CA       {}  (trust it to reach the portal)",
         ca.display()
@@ -162,6 +182,7 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
     println!("  canlift get {lift} 0x652001");
     println!("  canlift watch {lift} 0x652001 0x638301");
     println!("  canlift put {lift} 0x502200 4");
+    println!("  canlift alarms        (set 5030h on the lift page with the setup password to make faults)");
     crate::logging::shutdown_signal().await;
     let _ = stop.send(true);
     let _ = gateway_task.await;

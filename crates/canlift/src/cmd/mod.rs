@@ -1,6 +1,10 @@
 //! The subcommands of `canlift`.
 
+#[cfg(feature = "portal")]
+pub mod alarms;
 pub mod bench;
+#[cfg(feature = "portal")]
+pub mod bench_alarms;
 #[cfg(feature = "portal")]
 pub mod bench_gateway;
 #[cfg(feature = "portal")]

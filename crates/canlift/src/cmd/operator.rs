@@ -30,7 +30,7 @@ pub struct PortalArgs {
 }
 
 impl PortalArgs {
-    fn client(&self) -> anyhow::Result<Client> {
+    pub(crate) fn client(&self) -> anyhow::Result<Client> {
         let key = self
             .api_key
             .as_deref()
@@ -128,7 +128,7 @@ pub struct WatchArgs {
 }
 
 /// The body of a 200 answer as a `T`; any other answer is an error with the portal's message.
-fn check<T: DeserializeOwned>((status, body): (u16, Value)) -> anyhow::Result<T> {
+pub(crate) fn check<T: DeserializeOwned>((status, body): (u16, Value)) -> anyhow::Result<T> {
     if status != 200 {
         match serde_json::from_value::<ErrorObject>(body.clone()) {
             Ok(e) => bail!("{status}: {e}"),

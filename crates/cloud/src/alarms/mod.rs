@@ -147,6 +147,28 @@ pub struct Alarm {
 }
 
 impl Alarm {
+    /// A new alarm `id` for `condition`, raised at `at` (ms).
+    pub fn raised(
+        id: i64,
+        condition: &Condition,
+        severity: Severity,
+        text: &str,
+        at: i64,
+    ) -> Alarm {
+        Alarm {
+            id,
+            lift: condition.lift.clone(),
+            node: condition.place,
+            kind: condition.kind,
+            code: condition.code.clone(),
+            severity,
+            text: text.to_owned(),
+            raised: nxg::msg::format_time(at),
+            acknowledged: None,
+            cleared: None,
+        }
+    }
+
     /// Whether the condition still holds.
     pub fn active(&self) -> bool {
         self.cleared.is_none()

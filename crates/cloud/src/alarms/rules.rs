@@ -22,7 +22,8 @@ use nxg::msg::{BusState, Event, NodeState};
 use super::{Condition, Kind, Place, Severity};
 
 /// The severity of each condition (`[alarms.severity]`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
 pub struct Severities {
     /// The gateway is gone.
     pub lift_offline: Severity,
@@ -234,6 +235,26 @@ fn duration(seconds: u64) -> String {
     }
 }
 
+/// What applying a verdict changed.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Applied {
+    /// A new alarm.
+    Raised {
+        /// Its id.
+        id: i64,
+        /// Its condition.
+        condition: Condition,
+        /// How urgent.
+        severity: Severity,
+        /// What it is.
+        text: String,
+    },
+    /// These alarms are over.
+    Cleared(Vec<i64>),
+    /// The condition was active already.
+    Unchanged,
+}
+
 /// The active alarms by condition, per lift: raise once, clear what matches.
 #[derive(Debug, Clone, Default)]
 pub struct Active {
@@ -278,6 +299,41 @@ impl Active {
             self.lifts.remove(lift);
         }
         taken
+    }
+
+    /// Apply `verdict`: a condition not yet active becomes alarm `new_id()`; the alarms a
+    /// clear names leave the index.
+    pub fn apply(&mut self, verdict: Verdict, new_id: impl FnOnce() -> i64) -> Applied {
+        match verdict {
+            Verdict::Raise {
+                condition,
+                severity,
+                text,
+            } => {
+                if self.get(&condition).is_some() {
+                    return Applied::Unchanged;
+                }
+                let id = new_id();
+                self.insert(condition.clone(), id);
+                Applied::Raised {
+                    id,
+                    condition,
+                    severity,
+                    text,
+                }
+            }
+            Verdict::Clear {
+                lift,
+                kind,
+                place,
+                keep,
+            } => Applied::Cleared(
+                self.take_matching(&lift, kind, place, keep.as_deref())
+                    .into_iter()
+                    .map(|(_, id)| id)
+                    .collect(),
+            ),
+        }
     }
 
     /// How many are active.

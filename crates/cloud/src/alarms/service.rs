@@ -14,7 +14,7 @@ use nxg::msg::Event;
 use tokio::sync::{mpsc, Notify};
 use tokio::time::Instant;
 
-use super::rules::{Active, Rules, Verdict};
+use super::rules::{Active, Applied, Rules, Verdict};
 use super::{Alarm, AlarmChange, Change};
 use crate::config::WebhookSection;
 use crate::gateways::{LiftEvent, Registry};
@@ -168,6 +168,9 @@ struct Service {
     /// Lifts offline, with when they become `lift-offline`.
     offline: HashMap<String, Instant>,
     batch: Vec<EventRow>,
+    /// Alarms raised and cleared (id, when) since the last write.
+    raised: Vec<Alarm>,
+    cleared: Vec<(i64, i64)>,
     flush_at: Option<Instant>,
 }
 
@@ -208,6 +211,8 @@ pub async fn run(
         active,
         offline,
         batch: Vec::with_capacity(BATCH),
+        raised: Vec::new(),
+        cleared: Vec::new(),
         flush_at: None,
     };
     loop {
@@ -217,12 +222,7 @@ pub async fn run(
             .copied()
             .chain(service.flush_at)
             .min();
-        let timer = async {
-            match next {
-                Some(at) => tokio::time::sleep_until(at).await,
-                None => std::future::pending().await,
-            }
-        };
+        let timer = crate::timer::sleep_until(next);
         tokio::select! {
             input = inputs.recv() => match input {
                 Some(input) => service.input(input).await,
@@ -248,15 +248,15 @@ impl Service {
                     lift,
                 });
                 self.flush_at.get_or_insert(Instant::now() + BATCH_WAIT);
+                self.apply(verdicts);
                 if self.batch.len() >= BATCH {
                     self.flush().await;
                 }
-                self.apply(verdicts).await;
             }
             Input::Online(lift) => {
                 self.offline.remove(&lift);
                 let verdict = self.rules.lift_online(&lift);
-                self.apply(vec![verdict]).await;
+                self.apply(vec![verdict]);
             }
             Input::Offline(lift) => {
                 self.offline
@@ -279,78 +279,68 @@ impl Service {
         for lift in due {
             self.offline.remove(&lift);
             let verdict = self.rules.lift_offline(&lift, self.offline_after.as_secs());
-            self.apply(vec![verdict]).await;
+            self.apply(vec![verdict]);
         }
     }
 
+    /// Write the events and alarm changes gathered; announce the changes once stored. When the
+    /// database fails the events are dropped (counted) and the alarm changes kept for the next
+    /// attempt.
     async fn flush(&mut self) {
         self.flush_at = None;
-        if self.batch.is_empty() {
+        if self.batch.is_empty() && self.raised.is_empty() && self.cleared.is_empty() {
             return;
         }
         let counters = &self.alarms.counters;
-        let counter = match self.alarms.store.events(&self.batch).await {
-            Ok(()) => &counters.events_stored,
+        let written = self
+            .alarms
+            .store
+            .write_alarm_batch(&self.batch, &self.raised, &self.cleared)
+            .await;
+        let events = std::mem::take(&mut self.batch).len() as u64;
+        let cleared = match written {
+            Ok(cleared) => cleared,
             Err(e) => {
-                tracing::error!(error = %e, events = self.batch.len(), "events not stored");
-                &counters.events_dropped
+                tracing::error!(error = %e, events, "events and alarm changes not stored");
+                counters.events_dropped.fetch_add(events, Ordering::Relaxed);
+                self.flush_at = Some(Instant::now() + BATCH_WAIT);
+                return;
             }
         };
-        counter.fetch_add(self.batch.len() as u64, Ordering::Relaxed);
-        self.batch.clear();
+        counters.events_stored.fetch_add(events, Ordering::Relaxed);
+        self.cleared.clear();
+        for alarm in std::mem::take(&mut self.raised) {
+            tracing::warn!(lift = %alarm.lift, kind = alarm.kind.name(), code = %alarm.code, severity = %alarm.severity, text = %alarm.text, "alarm raised");
+            counters.raised.fetch_add(1, Ordering::Relaxed);
+            self.alarms.announce(Change::Raised, alarm).await;
+        }
+        for alarm in cleared {
+            tracing::info!(lift = %alarm.lift, kind = alarm.kind.name(), code = %alarm.code, "alarm cleared");
+            counters.cleared.fetch_add(1, Ordering::Relaxed);
+            self.alarms.announce(Change::Cleared, alarm).await;
+        }
     }
 
-    async fn apply(&mut self, verdicts: Vec<Verdict>) {
-        let mut changes: Vec<(Change, Alarm)> = Vec::new();
+    /// Update the index of active alarms; the changes wait for the next write.
+    fn apply(&mut self, verdicts: Vec<Verdict>) {
+        let now = store::now_ms();
         for verdict in verdicts {
-            match verdict {
-                Verdict::Raise {
+            match self.active.apply(verdict, store::new_id) {
+                Applied::Raised {
+                    id,
                     condition,
                     severity,
                     text,
                 } => {
-                    if self.active.get(&condition).is_some() {
-                        continue;
-                    }
-                    let store = &self.alarms.store;
-                    match store
-                        .raise_alarm(&condition, severity, &text, store::now_ms())
-                        .await
-                    {
-                        Ok(alarm) => {
-                            tracing::warn!(lift = %alarm.lift, kind = alarm.kind.name(), code = %alarm.code, severity = %alarm.severity, text = %alarm.text, "alarm raised");
-                            self.alarms.counters.raised.fetch_add(1, Ordering::Relaxed);
-                            self.active.insert(condition, alarm.id);
-                            changes.push((Change::Raised, alarm));
-                        }
-                        Err(e) => tracing::error!(error = %e, "alarm not raised"),
-                    }
+                    let alarm = Alarm::raised(id, &condition, severity, &text, now);
+                    self.raised.push(alarm);
                 }
-                Verdict::Clear {
-                    lift,
-                    kind,
-                    place,
-                    keep,
-                } => {
-                    let taken = self
-                        .active
-                        .take_matching(&lift, kind, place, keep.as_deref());
-                    for (_, id) in taken {
-                        match self.alarms.store.clear_alarm(id, store::now_ms()).await {
-                            Ok(Some(alarm)) => {
-                                tracing::info!(lift = %alarm.lift, kind = alarm.kind.name(), code = %alarm.code, "alarm cleared");
-                                self.alarms.counters.cleared.fetch_add(1, Ordering::Relaxed);
-                                changes.push((Change::Cleared, alarm));
-                            }
-                            Ok(None) => {}
-                            Err(e) => tracing::error!(error = %e, id, "alarm not cleared"),
-                        }
-                    }
-                }
+                Applied::Cleared(ids) => self.cleared.extend(ids.into_iter().map(|id| (id, now))),
+                Applied::Unchanged => {}
             }
         }
-        for (change, alarm) in changes {
-            self.alarms.announce(change, alarm).await;
+        if !self.raised.is_empty() || !self.cleared.is_empty() {
+            self.flush_at.get_or_insert(Instant::now() + BATCH_WAIT);
         }
     }
 }

@@ -201,10 +201,10 @@ async fn attempt(store: &Store, counters: &Counters, receiver: &Receiver, entry:
             (outcome, error)
         }
     };
-    let outcome = outcome
-        .as_ref()
-        .map(|()| ())
-        .map_err(|(e, n)| (e.as_str(), *n));
+    let outcome = match &outcome {
+        Ok(()) => Ok(()),
+        Err((e, next)) => Err((e.as_str(), *next)),
+    };
     if let Err(e) = store.webhook_attempt(entry.id, now, outcome).await {
         tracing::error!(error = %e, "webhook attempt not recorded");
     }

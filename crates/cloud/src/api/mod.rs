@@ -316,14 +316,10 @@ async fn privilege(
     let account = lift_of(&app, caller, &id).await?;
     let sernum = app.registry.sernum(&id).ok_or(Failure::Gone)?;
     // NXg §6.4: the gateway compares the unsalted SHA-1; the password itself is never stored.
-    let sha1 = ring::digest::digest(
-        &ring::digest::SHA1_FOR_LEGACY_USE_ONLY,
-        body.password.as_bytes(),
-    );
     let params = ElevateParams {
         sernum,
         privilege: u32::from(body.privilege),
-        passhash: store::hex(sha1.as_ref()).to_uppercase(),
+        passhash: store::passhash(&body.password),
     };
     let result = app.registry.call(&id, &params).await;
     let entry = AuditEntry {

@@ -113,16 +113,7 @@ impl Connection {
     /// Wait for the next thing to happen: a message, an operator request, replacement by a
     /// newer connection, or the session's timer.
     async fn next(&mut self) -> Result<Vec<Output>, String> {
-        let deadline = self
-            .session
-            .poll_timeout()
-            .map(tokio::time::Instant::from_std);
-        let timer = async {
-            match deadline {
-                Some(d) => tokio::time::sleep_until(d).await,
-                None => std::future::pending().await,
-            }
-        };
+        let timer = crate::timer::sleep_until(self.session.poll_timeout());
         tokio::select! {
             message = self.socket.recv() => {
                 let now = Instant::now();

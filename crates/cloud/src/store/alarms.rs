@@ -92,10 +92,17 @@ pub struct AlarmFilter {
 }
 
 impl Store {
-    /// Keep bus events.
-    pub async fn events(&self, batch: &[EventRow]) -> Result<(), StoreError> {
+    /// Write what the alarm service gathered, in one transaction: bus events, alarms raised,
+    /// alarms cleared (id, when). Returns the cleared alarms as stored (with their
+    /// acknowledgement, if any).
+    pub async fn write_alarm_batch(
+        &self,
+        events: &[EventRow],
+        raised: &[Alarm],
+        cleared: &[(i64, i64)],
+    ) -> Result<Vec<Alarm>, StoreError> {
         let mut tx = self.pool.begin().await?;
-        for rows in batch.chunks(100) {
+        for rows in events.chunks(100) {
             let mut sql = String::from("INSERT INTO events (lift, at, kind, body) VALUES ");
             for i in 0..rows.len() {
                 let p = i * 4;
@@ -114,8 +121,38 @@ impl Store {
             }
             query.execute(&mut *tx).await?;
         }
+        for alarm in raised {
+            let place = alarm.node.unwrap_or(Place { id: None, net: 0 });
+            sqlx::query(
+                "INSERT INTO alarms (id, lift, kind, net, node, code, severity, text, raised) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9)",
+            )
+            .bind(alarm.id)
+            .bind(&alarm.lift)
+            .bind(alarm.kind.name())
+            .bind(i64::from(place.net))
+            .bind(i64::from(place.id.unwrap_or(0)))
+            .bind(&alarm.code)
+            .bind(alarm.severity.name())
+            .bind(&alarm.text)
+            .bind(nxg::msg::parse_time(&alarm.raised).unwrap_or(0))
+            .execute(&mut *tx)
+            .await?;
+        }
+        let mut done = Vec::with_capacity(cleared.len());
+        for (id, at) in cleared {
+            let row = sqlx::query(
+                "UPDATE alarms SET cleared = $1 WHERE id = $2 AND cleared IS NULL RETURNING *",
+            )
+            .bind(at)
+            .bind(id)
+            .fetch_optional(&mut *tx)
+            .await?;
+            if let Some(row) = row {
+                done.push(alarm_from(&row)?);
+            }
+        }
         tx.commit().await?;
-        Ok(())
+        Ok(done)
     }
 
     /// A lift's events, oldest first: from `since` (ms) on, or the newest `limit` without it.
@@ -160,45 +197,6 @@ impl Store {
             .execute(&self.pool)
             .await?;
         Ok(done.rows_affected())
-    }
-
-    /// Raise an alarm for `condition` at `at` (ms); returns it.
-    pub async fn raise_alarm(
-        &self,
-        condition: &Condition,
-        severity: Severity,
-        text: &str,
-        at: i64,
-    ) -> Result<Alarm, StoreError> {
-        let id = new_id();
-        let place = condition.place.unwrap_or(Place { id: None, net: 0 });
-        sqlx::query(
-            "INSERT INTO alarms (id, lift, kind, net, node, code, severity, text, raised) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9)",
-        )
-        .bind(id)
-        .bind(&condition.lift)
-        .bind(condition.kind.name())
-        .bind(i64::from(place.net))
-        .bind(i64::from(place.id.unwrap_or(0)))
-        .bind(&condition.code)
-        .bind(severity.name())
-        .bind(text)
-        .bind(at)
-        .execute(&self.pool)
-        .await?;
-        self.alarm(id)
-            .await?
-            .ok_or(StoreError(sqlx::Error::RowNotFound))
-    }
-
-    /// The condition of alarm `id` is gone since `at` (ms); returns it.
-    pub async fn clear_alarm(&self, id: i64, at: i64) -> Result<Option<Alarm>, StoreError> {
-        sqlx::query("UPDATE alarms SET cleared = $1 WHERE id = $2 AND cleared IS NULL")
-            .bind(at)
-            .bind(id)
-            .execute(&self.pool)
-            .await?;
-        self.alarm(id).await
     }
 
     /// Acknowledge alarm `id` of a lift of `domain`: `Ok(None)` if there is no such alarm,

@@ -1,6 +1,6 @@
 //! What the portal keeps: accounts with their API keys, the gateway registry with token hashes,
 //! refused connection attempts, telemetry (pushed values), the audit log, and bus events,
-//! alarms and undelivered webhook notifications ([`alarms`]), in SQLite or PostgreSQL through
+//! alarms and undelivered webhook notifications (see `alarms.rs`), in SQLite or PostgreSQL through
 //! sqlx (one set of portable statements with `$n` parameters).
 //!
 //! Secrets are stored only as SHA-256 digests (API keys, cloud tokens); tokens are compared with
@@ -38,6 +38,14 @@ pub fn hex(bytes: &[u8]) -> String {
 /// SHA-256 hex of `secret`.
 pub fn digest(secret: &str) -> String {
     hex(ring::digest::digest(&ring::digest::SHA256, secret.as_bytes()).as_ref())
+}
+
+/// The NXg password hash (NXg §6.4): the unsalted SHA-1 of `password` as upper-case hex, as
+/// `elevate_privilege` carries it and the gateway's `[privileges]` keeps it. Only ever sent to
+/// the gateway, never stored by the portal.
+pub fn passhash(password: &str) -> String {
+    let sha1 = ring::digest::digest(&ring::digest::SHA1_FOR_LEGACY_USE_ONLY, password.as_bytes());
+    hex(sha1.as_ref()).to_uppercase()
 }
 
 /// A random secret of 128 bits as 32 hex digits, with a prefix.

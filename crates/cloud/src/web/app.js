@@ -81,21 +81,33 @@ function liveValues(lift) {
     const d = parse(e.data, {});
     setOnline(d.lift, Boolean(d.online));
   });
+  // Alarm changes and bus events: the page's alarm and event sections are fetched anew.
+  let pending = null;
+  const later = () => {
+    clearTimeout(pending);
+    pending = setTimeout(() => refreshParts(["#alarms", "#events"]), 300);
+  };
+  events.addEventListener("alarm", later);
+  events.addEventListener("event", later);
 }
 
-// The fleet page refreshes its own table (this page of lifts, faults included) every 10 s.
+// Replace `parts` (selectors) of the page with their current rendering.
+async function refreshParts(parts) {
+  const r = await fetch(location.href);
+  if (!r.ok) return;
+  const fresh = new DOMParser().parseFromString(await r.text(), "text/html");
+  for (const part of parts) {
+    const now = document.querySelector(part);
+    const next = fresh.querySelector(part);
+    if (now && next) now.replaceWith(next);
+  }
+  localTimes(document);
+}
+
+// The fleet page refreshes its own table (this page of lifts, alarms and faults included)
+// every 10 s.
 function refreshFleet() {
-  setInterval(async () => {
-    const r = await fetch(location.href);
-    if (!r.ok) return;
-    const fresh = new DOMParser().parseFromString(await r.text(), "text/html");
-    for (const part of ["table.fleet tbody", "p.summary"]) {
-      const now = document.querySelector(part);
-      const next = fresh.querySelector(part);
-      if (now && next) now.replaceWith(next);
-    }
-    localTimes(document);
-  }, 10000);
+  setInterval(() => refreshParts(["table.fleet tbody", "p.summary"]), 10000);
 }
 
 async function api(method, path, body) {

@@ -1,5 +1,6 @@
-//! The fleet page: every lift of the account with its online state, when it was last seen and
-//! its active faults, paged and searchable; the script refreshes the table.
+//! The fleet page: every lift of the account with its online state, when it was last seen, its
+//! most severe active alarm and its active faults, paged and searchable; the script refreshes
+//! the table.
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -9,6 +10,7 @@ use axum::response::{IntoResponse, Response};
 use maud::{html, Markup};
 use serde::Deserialize;
 
+use super::alarms::severity_badge;
 use super::page::{layout, online_badge, time};
 use super::SignedIn;
 use crate::api::App;
@@ -87,6 +89,10 @@ pub(super) async fn fleet(
         .collect();
     let pages = lifts.len().div_ceil(PAGE).max(1);
     let page = query.page.unwrap_or(1).clamp(1, pages);
+    let worst = match app.store.worst_alarms(&session.account.domain).await {
+        Ok(w) => w,
+        Err(e) => return e.into(),
+    };
     let watched = [ERROR_REGISTER.to_owned(), LIFT_STATE.to_owned()];
     let mut rows = Vec::new();
     for lift in lifts.iter().skip((page - 1) * PAGE).take(PAGE) {
@@ -112,7 +118,7 @@ pub(super) async fn fleet(
             table.fleet {
                 thead { tr {
                     th { "Lift" } th { "Lift number" } th { "State" } th { "Last seen" }
-                    th { "Active faults" }
+                    th { "Alarm" } th { "Active faults" }
                 } }
                 tbody {
                     @for (lift, latest) in &rows {
@@ -121,6 +127,13 @@ pub(super) async fn fleet(
                             td { (lift.liftnum) }
                             td { (online_badge(&lift.id, app.registry.online(&lift.id))) }
                             td { (time(lift.last_seen)) }
+                            td.alarm {
+                                @if let Some(a) = worst.get(&lift.id) {
+                                    (severity_badge(a.severity)) " " (a.text)
+                                } @else {
+                                    span.ok { "none" }
+                                }
+                            }
                             td { (faults(latest)) }
                         }
                     }

@@ -19,6 +19,7 @@ use super::page::{layout, online_badge, time};
 use super::{language, owned, SignedIn};
 use crate::api::{read_params, App};
 use crate::rest::Form;
+use crate::store::AlarmFilter;
 
 /// How long a page waits for the gateway's metadata before it shows what it has.
 const READ_TIMEOUT: Duration = Duration::from_secs(4);
@@ -296,6 +297,22 @@ pub(super) async fn lift_page(
     let mut objects = read_all(&app, &id, &wanted, &lang, &stored).await;
     let read_object = matches!(read, Some(Ok(_))).then(|| objects.pop()).flatten();
     let parameter_objects = objects.split_off(live.len());
+    let active = AlarmFilter {
+        active: true,
+        lift: Some(id.clone()),
+        limit: 100,
+    };
+    let (alarms, events) = match (
+        app.store.alarms(&session.account.domain, &active).await,
+        app.store.event_log(&id, None, 50).await,
+    ) {
+        (Ok(a), Ok(e)) => (a, e),
+        (Err(e), _) | (_, Err(e)) => return e.into(),
+    };
+    let events: Vec<nxg::msg::Event> = events
+        .iter()
+        .filter_map(|b| serde_json::from_str(b).ok())
+        .collect();
     let identity = [
         ("Lift number", lift.liftnum.clone()),
         ("Vendor-ID", lift.vendorid.to_string()),
@@ -310,6 +327,14 @@ pub(super) async fn lift_page(
         dl.identity {
             @for (term, value) in &identity { dt { (term) } dd { (value) } }
             dt { "Last seen" } dd { (time(lift.last_seen)) }
+        }
+        section #alarms {
+            h2 { "Alarms" }
+            @if alarms.is_empty() {
+                p.ok { "No active alarm." }
+            } @else {
+                (super::alarms::table(&alarms, &session, &format!("/lifts/{id}"), false))
+            }
         }
         h2 { "Live values" }
         div.cards { @for o in &objects { (o.card(&id)) } }
@@ -327,6 +352,14 @@ pub(super) async fn lift_page(
         }
         @if let Some(o) = &read_object {
             (table(&id, std::slice::from_ref(o)))
+        }
+        section #events {
+            h2 { "Event log" }
+            @if events.is_empty() {
+                p.muted { "No bus event stored (gateways that speak api 2 push them)." }
+            } @else {
+                (super::alarms::event_log(&events))
+            }
         }
         (edit_dialog())
     };

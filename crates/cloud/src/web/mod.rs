@@ -4,6 +4,7 @@
 //! browsers. Every response carries a Content-Security-Policy that allows only this origin's
 //! script and style.
 
+mod alarms;
 mod audit;
 mod fleet;
 mod history;
@@ -112,6 +113,8 @@ pub fn routes(app: Arc<App>) -> Router {
         .route("/lifts/{id}", get(lift::lift_page))
         .route("/lifts/{id}/history", get(history::history_page))
         .route("/audit", get(audit::audit_page))
+        .route("/alarms", get(alarms::alarms_page))
+        .route("/alarms/{id}/ack", post(alarms::acknowledge))
         .route(
             "/static/app.js",
             get(|| async { asset("text/javascript; charset=utf-8", APP_JS) }),

@@ -35,6 +35,7 @@ pub(super) fn layout(
                     @if let Some(s) = session {
                         nav {
                             a href="/" { "Fleet" }
+                            a href="/alarms" { "Alarms" }
                             a href="/audit" { "Audit" }
                             span.who { (s.account.name) }
                             form method="post" action="/logout" {
