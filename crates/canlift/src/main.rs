@@ -31,6 +31,20 @@ enum Command {
     Nmt(cmd::nmt::NmtArgs),
     /// Read or write an object of a node by SDO.
     Sdo(cmd::sdo::SdoArgs),
+    /// CiA 309-3 ASCII gateway: `[1] 4 read 0x1017 0 u16` over TCP or standard input.
+    Ascii(cmd::ascii::AsciiArgs),
+    /// Which nodes are on the bus: heartbeats (and with --probe SDO reads), with identities.
+    Scan(cmd::scan::ScanArgs),
+    /// Layer setting services (CiA 305): node-IDs and bit rates, Fastscan.
+    Lss(cmd::lss::LssArgs),
+    /// Produce SYNC at a period (with the counter if asked).
+    /// Another node's PDOs over SDO: show them, or configure one (CiA 301 mapping procedure).
+    Pdo(cmd::pdo::PdoArgs),
+    Sync(cmd::sync::SyncArgs),
+    /// Send the TIME object: the system's time or a given one.
+    Time(cmd::time::TimeArgs),
+    /// Send an EMCY as a node, or watch EMCYs with their meaning.
+    Emcy(cmd::emcy::EmcyArgs),
     /// The elevator gateway: connects the lift to a cloud portal (NXg connector).
     Gateway(cmd::gateway::GatewayArgs),
     #[cfg(feature = "portal")]
@@ -87,6 +101,13 @@ fn main() -> std::process::ExitCode {
             Command::Dump(args) => cmd::dump::run(args).await,
             Command::Nmt(args) => cmd::nmt::run(args).await,
             Command::Sdo(args) => cmd::sdo::run(args).await,
+            Command::Ascii(args) => cmd::ascii::run(args).await,
+            Command::Scan(args) => cmd::scan::run(args).await,
+            Command::Lss(args) => cmd::lss::run(args).await,
+            Command::Pdo(args) => cmd::pdo::run(args).await,
+            Command::Sync(args) => cmd::sync::run(args).await,
+            Command::Time(args) => cmd::time::run(args).await,
+            Command::Emcy(args) => cmd::emcy::run(args).await,
             Command::Bench(args) => cmd::bench::run(args).await,
             Command::Loadgen(args) => cmd::loadgen::run(args).await,
             Command::Sim(args) => cmd::sim::run(args).await,

@@ -154,6 +154,9 @@ pub struct TransferOptions<'a> {
     pub how: Transfer,
     /// Called as the transfer advances.
     pub progress: Option<Progress<'a>>,
+    /// This transfer's response timeout instead of the client's (a CiA 309-3 session sets its
+    /// own with `set sdo_timeout`).
+    pub timeout: Option<Duration>,
 }
 
 impl Default for TransferOptions<'_> {
@@ -161,6 +164,7 @@ impl Default for TransferOptions<'_> {
         TransferOptions {
             how: Transfer::Normal,
             progress: None,
+            timeout: None,
         }
     }
 }
@@ -269,7 +273,11 @@ impl SdoClients {
             inner: &self.inner,
             id: response_id,
         };
-        let mut client = SdoClient::new(self.inner.config.clone());
+        let mut config = self.inner.config.clone();
+        if let Some(timeout) = options.timeout {
+            config.timeout = timeout;
+        }
+        let mut client = SdoClient::new(config);
         let mut out = Vec::new();
         let now = Instant::now();
         let wrap = |error| ClientError::Sdo {
@@ -539,6 +547,7 @@ mod tests {
         let options = TransferOptions {
             how: Transfer::Block,
             progress: Some(&progress),
+            ..TransferOptions::default()
         };
         sdo.write_with(5, 0x2000, 0, blob.clone(), options)
             .await
@@ -738,7 +747,7 @@ mod tests {
         for how in [Transfer::Block] {
             let options = TransferOptions {
                 how,
-                progress: None,
+                ..TransferOptions::default()
             };
             sdo.write_from(3, 0x2100, 0, Box::new(Generated), options)
                 .await

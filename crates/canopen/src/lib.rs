@@ -19,6 +19,7 @@
 
 #[cfg(feature = "tokio")]
 mod alarm;
+pub mod ascii;
 pub mod cob;
 #[cfg(feature = "tokio")]
 pub mod driver;

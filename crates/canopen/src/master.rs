@@ -63,7 +63,7 @@ pub enum LssError {
     Refused(u8),
 }
 
-/// How long an LSS slave has to answer.
+/// How long an LSS slave has to answer, unless [`Master::set_lss_timeout`] says otherwise.
 const LSS_TIMEOUT: Duration = Duration::from_millis(200);
 /// How long each Fastscan step listens. Every step waits this long: several slaves may answer
 /// the same step (on a real bus their identical frames merge; on a virtual one they do not), and
@@ -76,6 +76,8 @@ pub struct Master {
     /// Responses on 0x7E4 go here while an LSS service waits for one.
     lss_route: Arc<Mutex<Option<tokio::sync::mpsc::UnboundedSender<canbus::Frame>>>>,
     lss_turn: tokio::sync::Mutex<()>,
+    /// How long an LSS slave has to answer a confirmed service.
+    lss_timeout: std::sync::atomic::AtomicU64,
     sdo: SdoClients,
     table: Arc<Mutex<HeartbeatConsumer>>,
     guarding: Arc<Mutex<crate::guarding::GuardingMaster>>,
@@ -171,6 +173,7 @@ impl Master {
             guarding,
             lss_route,
             lss_turn: tokio::sync::Mutex::new(()),
+            lss_timeout: std::sync::atomic::AtomicU64::new(LSS_TIMEOUT.as_micros() as u64),
             sdo,
             table,
             wake,
@@ -188,6 +191,25 @@ impl Master {
     /// SDO reads and writes to any node.
     pub fn sdo(&self) -> &SdoClients {
         &self.sdo
+    }
+
+    /// Read a PDO's communication and mapping parameters from `node` (`None`: it has no such
+    /// PDO).
+    pub async fn read_remote_pdo(
+        &self,
+        node: u8,
+        id: crate::pdo::remote::PdoId,
+    ) -> Result<Option<crate::pdo::remote::RemotePdo>, crate::driver::ClientError> {
+        crate::pdo::remote::read(&self.sdo, node, id).await
+    }
+
+    /// Configure a PDO of `node` with the CiA 301 §7.3.5 mapping procedure.
+    pub async fn configure_remote_pdo(
+        &self,
+        node: u8,
+        pdo: &crate::pdo::remote::RemotePdo,
+    ) -> Result<(), crate::pdo::remote::ConfigureError> {
+        crate::pdo::remote::configure(&self.sdo, node, pdo).await
     }
 
     /// Monitor `node`'s heartbeat: it counts as offline when none arrives within `timeout`
@@ -305,7 +327,7 @@ impl Master {
         self.lss_request(
             crate::lss::request(command, payload),
             Some(command),
-            LSS_TIMEOUT,
+            self.lss_timeout(),
         )
         .await?
         .ok_or(LssError::NoResponse)
@@ -319,6 +341,18 @@ impl Master {
         }
     }
 
+    /// How long LSS slaves have to answer (default 200 ms): longer for a slow gateway between
+    /// the master and the bus, or a loaded machine.
+    pub fn set_lss_timeout(&self, timeout: Duration) {
+        let micros = u64::try_from(timeout.as_micros()).unwrap_or(u64::MAX);
+        self.lss_timeout
+            .store(micros, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    fn lss_timeout(&self) -> Duration {
+        Duration::from_micros(self.lss_timeout.load(std::sync::atomic::Ordering::Relaxed))
+    }
+
     /// Switch every LSS slave to configuration (`true`) or back to waiting.
     pub async fn lss_switch_global(&self, configuration: bool) -> Result<(), BusError> {
         let _turn = self.lss_turn.lock().await;
@@ -326,7 +360,7 @@ impl Master {
         self.lss_request(
             crate::lss::request(crate::lss::cs::SWITCH_GLOBAL, payload),
             None,
-            LSS_TIMEOUT,
+            self.lss_timeout(),
         )
         .await
         .map(drop)
@@ -344,7 +378,10 @@ impl Master {
                 [b[0], b[1], b[2], b[3], 0, 0, 0],
             );
             let expect = (i == 3).then_some(cs::SWITCH_SELECTIVE_RESPONSE);
-            if let Some(reply) = self.lss_request(request, expect, LSS_TIMEOUT).await? {
+            if let Some(reply) = self
+                .lss_request(request, expect, self.lss_timeout())
+                .await?
+            {
                 return Ok(reply.data()[0] == cs::SWITCH_SELECTIVE_RESPONSE);
             }
         }
@@ -377,7 +414,9 @@ impl Master {
             crate::lss::cs::ACTIVATE_BIT_TIMING,
             [d[0], d[1], 0, 0, 0, 0, 0],
         );
-        self.lss_request(request, None, LSS_TIMEOUT).await.map(drop)
+        self.lss_request(request, None, self.lss_timeout())
+            .await
+            .map(drop)
     }
 
     /// Make the slave in configuration store its node-ID and bit timing.

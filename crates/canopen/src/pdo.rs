@@ -14,6 +14,9 @@
 //! are applied at the next SYNC, 254/255 at once; sub 5 of an RPDO is its receive timeout.
 //! Mapping granularity is 8 bits (like CANopenNode).
 
+#[cfg(feature = "tokio")]
+pub mod remote;
+
 use std::collections::HashMap;
 use std::time::{Duration, Instant};
 

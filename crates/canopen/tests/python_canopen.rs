@@ -93,7 +93,7 @@ async fn canlift_client_against_python_canopen_local_node() {
         for how in [Transfer::Normal, Transfer::Segmented] {
             let options = TransferOptions {
                 how,
-                progress: None,
+                ..TransferOptions::default()
             };
             sdo.write_with(12, 0x2000, 0, data.clone(), options)
                 .await

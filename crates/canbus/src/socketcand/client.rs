@@ -95,7 +95,6 @@ async fn expect(
     decoder: &mut Decoder,
     wanted: Message,
 ) -> Result<(), BusError> {
-    let mut buf = [0u8; 512];
     loop {
         match decoder.next_message() {
             Some(Ok(m)) if m == wanted => return Ok(()),
@@ -111,16 +110,56 @@ async fn expect(
             }
             None => {}
         }
-        let n = stream
-            .read(&mut buf)
-            .await
-            .map_err(|e| BusError::io("socketcand handshake", e))?;
-        if n == 0 {
-            return Err(BusError::Protocol(
-                "socketcand closed the connection during the handshake".into(),
-            ));
+        read_more(stream, decoder).await?;
+    }
+}
+
+/// Read what the server sent next into `decoder`.
+async fn read_more(stream: &mut TcpStream, decoder: &mut Decoder) -> Result<(), BusError> {
+    let mut buf = [0u8; 512];
+    let n = stream
+        .read(&mut buf)
+        .await
+        .map_err(|e| BusError::io("socketcand handshake", e))?;
+    if n == 0 {
+        return Err(BusError::Protocol(
+            "socketcand closed the connection during the handshake".into(),
+        ));
+    }
+    decoder.feed(&buf[..n]);
+    Ok(())
+}
+
+/// How long `settle` waits for the `< echo >` answer before going on without it.
+const SETTLE_TIMEOUT: Duration = Duration::from_secs(1);
+
+/// Wait until the server delivers frames to us: the hub (and socketcand implementations like
+/// it) holds frames back for a moment after the raw-mode `< ok >`, and a tool that sends a
+/// request right after opening the bus (an LSS Fastscan step listens 20–50 ms) would miss the
+/// answer. `< echo >` is answered in the order of the outgoing queue, so its answer comes after
+/// the hold. Frames before it were on the bus while `Bus::open` had not returned; they are
+/// dropped. A server that does not answer echo costs [`SETTLE_TIMEOUT`] once.
+async fn settle(stream: &mut TcpStream, decoder: &mut Decoder) -> Result<(), BusError> {
+    stream
+        .write_all(codec::encode_control(&Message::Echo).as_bytes())
+        .await
+        .map_err(|e| BusError::io("socketcand handshake", e))?;
+    let wait = async {
+        loop {
+            while let Some(message) = decoder.next_message() {
+                if matches!(message, Ok(Message::Echo)) {
+                    return Ok(());
+                }
+            }
+            read_more(stream, decoder).await?;
         }
-        decoder.feed(&buf[..n]);
+    };
+    match tokio::time::timeout(SETTLE_TIMEOUT, wait).await {
+        Ok(result) => result,
+        Err(_) => {
+            tracing::debug!("socketcand did not answer < echo >; going on");
+            Ok(())
+        }
     }
 }
 
@@ -145,6 +184,7 @@ async fn connect(host: &str, port: u16, channel: &str) -> Result<Connection, Bus
             .await
             .map_err(|e| BusError::io("socketcand handshake", e))?;
         expect(&mut stream, &mut decoder, Message::Ok).await?;
+        settle(&mut stream, &mut decoder).await?;
         let (reader, writer) = stream.into_split();
         Ok(Connection {
             reader,

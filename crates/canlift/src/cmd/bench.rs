@@ -576,7 +576,7 @@ async fn run_sdo_bench(args: SdoBench) -> anyhow::Result<()> {
         async move {
             let options = TransferOptions {
                 how,
-                progress: None,
+                ..TransferOptions::default()
             };
             let start = Instant::now();
             if download {

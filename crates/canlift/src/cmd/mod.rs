@@ -2,6 +2,7 @@
 
 #[cfg(feature = "portal")]
 pub mod alarms;
+pub mod ascii;
 pub mod bench;
 #[cfg(feature = "portal")]
 pub mod bench_alarms;
@@ -14,11 +15,17 @@ pub mod cloud;
 #[cfg(feature = "portal")]
 pub mod demo;
 pub mod dump;
+pub mod emcy;
 pub mod gateway;
 pub mod hub;
 pub mod loadgen;
+pub mod lss;
 pub mod nmt;
 #[cfg(feature = "portal")]
 pub mod operator;
+pub mod pdo;
+pub mod scan;
 pub mod sdo;
 pub mod sim;
+pub mod sync;
+pub mod time;

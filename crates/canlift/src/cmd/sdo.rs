@@ -6,6 +6,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use canbus::Bus;
+use canopen::ascii::AsciiType;
 use canopen::driver::{SdoClients, TransferOptions};
 use canopen::sdo::client::{ClientConfig, DownloadSource, FileSource, Transfer};
 use canopen::types::{self, DataType};
@@ -40,7 +41,8 @@ enum SdoOp {
         index: String,
         /// Sub-index.
         sub: String,
-        /// Data type: u8…u64, i8…i64, f32, f64, bool, str, domain, or a CiA name (UNSIGNED24).
+        /// Data type: a CiA 309-3 mnemonic (b, i8…i64, u8…u64, x8…x64, r32, r64, t, td, vs, os,
+        /// us, d, hex), u24, i24, f32, f64, bool, str, domain, or a CiA 301 name (UNSIGNED24).
         #[arg(value_name = "TYPE")]
         ty: Option<String>,
         /// Write the raw bytes to this file instead of printing.
@@ -66,19 +68,16 @@ enum SdoOp {
     },
 }
 
-/// The data type named on the command line.
-pub fn parse_type(name: &str) -> anyhow::Result<DataType> {
+/// The data type named on the command line: a CiA 309-3 mnemonic (`u16`, `vs`, `x32`, `d`, …,
+/// printed and parsed as the ASCII gateway does), one of canlift's short names (`u24`, `f32`,
+/// `bool`, `str`, `domain`) or a CiA 301 name (`UNSIGNED24`).
+pub fn parse_type(name: &str) -> anyhow::Result<AsciiType> {
+    if let Some(ty) = AsciiType::from_mnemonic(name) {
+        return Ok(ty);
+    }
     let short = match name.to_ascii_lowercase().as_str() {
-        "u8" => Some(DataType::Unsigned8),
-        "u16" => Some(DataType::Unsigned16),
         "u24" => Some(DataType::Unsigned24),
-        "u32" => Some(DataType::Unsigned32),
-        "u64" => Some(DataType::Unsigned64),
-        "i8" => Some(DataType::Integer8),
-        "i16" => Some(DataType::Integer16),
         "i24" => Some(DataType::Integer24),
-        "i32" => Some(DataType::Integer32),
-        "i64" => Some(DataType::Integer64),
         "f32" => Some(DataType::Real32),
         "f64" => Some(DataType::Real64),
         "bool" => Some(DataType::Boolean),
@@ -88,7 +87,12 @@ pub fn parse_type(name: &str) -> anyhow::Result<DataType> {
     };
     short
         .or_else(|| DataType::from_name(name))
-        .with_context(|| format!("unknown data type {name:?}"))
+        .map(AsciiType::plain)
+        .with_context(|| {
+            format!(
+                "unknown data type {name:?} (b, i8…i64, u8…u64, x8…x64, r32, r64, t, td, vs, os, us, d, hex, or a CiA 301 name)"
+            )
+        })
 }
 
 fn parse_number<T: TryFrom<i128>>(what: &str, text: &str) -> anyhow::Result<T> {
@@ -162,6 +166,7 @@ pub async fn run(args: SdoArgs) -> anyhow::Result<()> {
             Transfer::Normal
         },
         progress: Some(&report),
+        ..TransferOptions::default()
     };
     match args.op {
         SdoOp::Read {
@@ -179,7 +184,7 @@ pub async fn run(args: SdoArgs) -> anyhow::Result<()> {
                 .as_deref()
                 .map(parse_type)
                 .transpose()?
-                .unwrap_or(DataType::Domain);
+                .unwrap_or(AsciiType::plain(DataType::Domain));
             match file {
                 Some(path) => {
                     // Streamed to the file as it arrives: large DOMAINs never sit in memory.
@@ -193,9 +198,10 @@ pub async fn run(args: SdoArgs) -> anyhow::Result<()> {
                     let bytes = sdo.read_with(node, index, sub, options).await;
                     progress.finish();
                     let bytes = bytes?;
-                    let value = types::decode(ty, &bytes)
+                    let text = ty
+                        .format(&bytes)
                         .with_context(|| format!("{index:04X}:{sub:02X} as {ty}"))?;
-                    println!("{}", types::to_text(ty, &value));
+                    println!("{text}");
                 }
             }
         }
@@ -216,11 +222,7 @@ pub async fn run(args: SdoArgs) -> anyhow::Result<()> {
                     FileSource::open(&path)
                         .with_context(|| format!("reading {}", path.display()))?,
                 ),
-                (None, Some(ty), Some(value)) => {
-                    let ty = parse_type(&ty)?;
-                    let v = types::from_text(ty, &value)?;
-                    Box::new(types::encode(ty, &v)?)
-                }
+                (None, Some(ty), Some(value)) => Box::new(parse_type(&ty)?.parse(&value)?),
                 _ => bail!("give TYPE and VALUE, or --file"),
             };
             let result = sdo.write_from(node, index, sub, source, options).await;
@@ -235,16 +237,20 @@ pub async fn run(args: SdoArgs) -> anyhow::Result<()> {
 
 #[cfg(test)]
 mod tests {
+    use canopen::ascii::Form;
+
     use super::*;
 
     #[test]
     fn type_names() {
-        assert_eq!(parse_type("u32").unwrap(), DataType::Unsigned32);
-        assert_eq!(parse_type("UNSIGNED24").unwrap(), DataType::Unsigned24);
-        assert_eq!(
-            parse_type("visible_string").unwrap(),
-            DataType::VisibleString
-        );
+        let data_type = |name| parse_type(name).unwrap().data_type;
+        assert_eq!(data_type("u32"), DataType::Unsigned32);
+        assert_eq!(data_type("UNSIGNED24"), DataType::Unsigned24);
+        assert_eq!(data_type("visible_string"), DataType::VisibleString);
+        assert_eq!(data_type("str"), DataType::VisibleString);
+        assert_eq!(parse_type("vs").unwrap().form, Form::Quoted);
+        assert_eq!(parse_type("x16").unwrap().form, Form::Hex);
+        assert_eq!(parse_type("d").unwrap().form, Form::Base64);
         assert!(parse_type("u33").is_err());
         assert_eq!(parse_number::<u16>("index", "0x1017").unwrap(), 0x1017);
         assert!(parse_number::<u8>("sub", "256").is_err());
