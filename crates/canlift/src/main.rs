@@ -40,6 +40,8 @@ enum Command {
     /// Produce SYNC at a period (with the counter if asked).
     /// Another node's PDOs over SDO: show them, or configure one (CiA 301 mapping procedure).
     Pdo(cmd::pdo::PdoArgs),
+    /// A node's configuration as a DCF: apply one (identity checked), or read one.
+    Dcf(cmd::dcf::DcfArgs),
     Sync(cmd::sync::SyncArgs),
     /// Send the TIME object: the system's time or a given one.
     Time(cmd::time::TimeArgs),
@@ -105,6 +107,7 @@ fn main() -> std::process::ExitCode {
             Command::Scan(args) => cmd::scan::run(args).await,
             Command::Lss(args) => cmd::lss::run(args).await,
             Command::Pdo(args) => cmd::pdo::run(args).await,
+            Command::Dcf(args) => cmd::dcf::run(args).await,
             Command::Sync(args) => cmd::sync::run(args).await,
             Command::Time(args) => cmd::time::run(args).await,
             Command::Emcy(args) => cmd::emcy::run(args).await,

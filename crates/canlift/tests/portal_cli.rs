@@ -53,6 +53,21 @@ async fn lifts_get_put_watch() {
         .unwrap();
     let answer: serde_json::Value = serde_json::from_slice(&get.stdout).unwrap();
     assert_eq!(answer["object"]["value"][0], "0");
+    // The same object by its address form and by its catalog name.
+    for object in ["0x6520:1", "trip counter"] {
+        let get = canlift(&rig)
+            .args(["get", lift, object, "--naked"])
+            .output()
+            .await
+            .unwrap();
+        assert!(
+            get.status.success(),
+            "{object}: {}",
+            String::from_utf8_lossy(&get.stderr)
+        );
+        let by_name: serde_json::Value = serde_json::from_slice(&get.stdout).unwrap();
+        assert_eq!(by_name["object"]["mplex"], "0x652001", "{object}");
+    }
     // watch first, then call the car: the baseline and the new trip count come out.
     let mut watch = canlift(&rig)
         .args(["watch", lift, "0x652001", "--count", "2"])

@@ -42,7 +42,56 @@ async fn read_and_write_from_the_command_line() {
     let out = canlift(&["sdo", "--bus", &url, "read", "1", "0x1008", "0", "str"]).await;
     assert_eq!(String::from_utf8_lossy(&out.stdout), "lift controller\n");
 
+    // Readable addresses: other forms, names from an EDS, the type from it too, mnemonics.
     let dir = testkit::scratch();
+    let eds = dir.path().join("sample.eds");
+    let description = canopen::eds::DeviceDescription {
+        od: sample::dictionary(),
+        ..Default::default()
+    };
+    std::fs::write(&eds, canopen::eds::export(&description, false)).unwrap();
+    let eds = eds.to_str().unwrap();
+    for object in [
+        &["0x2000:0"][..],
+        &["2000sub0"],
+        &["0x200000"],
+        &["car position"],
+        &["Car pos"],
+    ] {
+        let mut args = vec!["sdo", "--bus", &url, "read", "1"];
+        args.extend_from_slice(object);
+        args.extend_from_slice(&["--eds", eds]);
+        let out = canlift(&args).await;
+        assert!(out.status.success(), "{object:?}: {out:?}");
+        assert_eq!(String::from_utf8_lossy(&out.stdout), "250\n", "{object:?}");
+    }
+    let out = canlift(&[
+        "sdo", "--bus", &url, "write", "1", "Setpoint", "0x1234", "--eds", eds,
+    ])
+    .await;
+    assert!(out.status.success(), "{out:?}");
+    let out = canlift(&[
+        "sdo", "--bus", &url, "read", "1", "setpoint", "x32", "--eds", eds,
+    ])
+    .await;
+    assert_eq!(String::from_utf8_lossy(&out.stdout), "0x00001234\n");
+    let out = canlift(&["sdo", "--bus", &url, "read", "1", "0x1008:0", "vs"]).await;
+    assert_eq!(
+        String::from_utf8_lossy(&out.stdout),
+        "\"lift controller\"\n"
+    );
+    let out = canlift(&["sdo", "--bus", &url, "write", "1", "0x2001:0", "7"]).await;
+    assert!(!out.status.success(), "no type known without an EDS");
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("give the TYPE"),
+        "{out:?}"
+    );
+    let out = canlift(&["sdo", "--bus", &url, "read", "1", "Cheese"]).await;
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("neither an object address"),
+        "{out:?}"
+    );
+
     let (src, dst) = (dir.path().join("in.bin"), dir.path().join("out.bin"));
     let blob: Vec<u8> = (0..20_000u32).map(|i| (i % 251) as u8).collect();
     std::fs::write(&src, &blob).unwrap();

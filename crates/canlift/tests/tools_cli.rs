@@ -14,7 +14,9 @@ use common::{python_node, run, snapshot, stderr};
 
 #[tokio::test]
 async fn help_texts() {
-    for command in ["ascii", "scan", "sdo", "lss", "pdo", "sync", "time", "emcy"] {
+    for command in [
+        "ascii", "scan", "sdo", "lss", "pdo", "dcf", "sync", "time", "emcy",
+    ] {
         let out = run(&[command, "--help"]).await;
         assert!(out.status.success(), "{}", stderr(&out));
         snapshot(
@@ -278,5 +280,72 @@ async fn pdo_set_then_show_against_python_canopen() {
 
     drop(stdin);
     let _ = tokio::time::timeout(Duration::from_secs(10), node.wait()).await;
+    hub.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn dcf_read_then_apply_and_a_wrong_identity_refused() {
+    let hub = testkit::hub().await;
+    let bus = testkit::hub_url(&hub, "can0");
+    let sim = testkit::lift::simulator(&bus).await;
+    let dir = testkit::scratch();
+    let eds = dir.path().join("io.eds");
+    let config = lift417::sim::SimConfig {
+        speed: 20.0,
+        ..lift417::sim::SimConfig::default()
+    };
+    let text = lift417::sim::export_eds(&config, lift417::catalog::Device::Io).expect("the EDS");
+    std::fs::write(&eds, text).expect("written");
+
+    // Read the I/O node's values into a DCF.
+    let eds_arg = eds.to_string_lossy().into_owned();
+    let out = run(&["dcf", "--bus", &bus, "read", "12", &eds_arg]).await;
+    assert!(out.status.success(), "{}", stderr(&out));
+    let dcf = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(dcf.contains("[DeviceComissioning]"), "a DCF");
+    let heartbeat = dcf.find("[1017]").expect("1017h in the DCF");
+    assert!(
+        dcf[heartbeat..].contains("ParameterValue=1000"),
+        "{}",
+        &dcf[heartbeat..heartbeat + 300]
+    );
+
+    // Change the heartbeat time and TPDO1's event timer, apply, read back.
+    let changed = dcf.replacen("ParameterValue=1000", "ParameterValue=700", 1);
+    let dcf_path = dir.path().join("io.dcf");
+    std::fs::write(&dcf_path, &changed).expect("written");
+    let dcf_arg = dcf_path.to_string_lossy().into_owned();
+    let out = run(&["dcf", "--bus", &bus, "apply", "12", &dcf_arg]).await;
+    let report = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(out.status.success(), "{}\n{report}", stderr(&out));
+    assert!(report.contains("1017h sub 0    700  OK"), "{report}");
+    assert!(report.contains("TPDO1  COB-ID"), "{report}");
+    let out = run(&["sdo", "--bus", &bus, "read", "12", "0x1017", "0", "u16"]).await;
+    assert_eq!(String::from_utf8_lossy(&out.stdout), "700\n");
+
+    // Another device's DCF is refused before anything is written.
+    let other = changed
+        .replacen("ParameterValue=700", "ParameterValue=900", 1)
+        .replace("ProductNumber=", "ProductNumber=0x7777\n;was ");
+    std::fs::write(&dcf_path, other).expect("written");
+    let out = run(&["dcf", "--bus", &bus, "apply", "12", &dcf_arg]).await;
+    assert!(!out.status.success());
+    assert!(
+        stderr(&out).contains("is not the device this DCF describes"),
+        "{}",
+        stderr(&out)
+    );
+    assert!(
+        stderr(&out).contains("ProductNumber: the DCF says 0x00007777"),
+        "{}",
+        stderr(&out)
+    );
+    let out = run(&["sdo", "--bus", &bus, "read", "12", "0x1017", "0", "u16"]).await;
+    assert_eq!(
+        String::from_utf8_lossy(&out.stdout),
+        "700\n",
+        "nothing written"
+    );
+    drop(sim);
     hub.shutdown().await;
 }

@@ -301,6 +301,7 @@ impl Importer<'_> {
         var = var.with_value(value);
         var.default_text = default.map(|e| e.value.clone());
         var.denotation = section.get("Denotation").map(|e| e.value.clone());
+        var.parameter_value = parameter.is_some();
         Ok(var)
     }
 
@@ -357,6 +358,8 @@ impl Importer<'_> {
                             let default = var.default_text.take();
                             var = var.with_value(v);
                             var.default_text = default;
+                            // A `[xxxxValue]` entry is the compact form of a ParameterValue.
+                            var.parameter_value = true;
                         }
                         subs.insert(sub, var);
                     }
@@ -557,7 +560,8 @@ fn write_variable(
         }
     }
     if dcf {
-        if let Some(bytes) = var.value_bytes() {
+        // Only configured values: a DCF says what a node is set to, not what could not be read.
+        if let Some(bytes) = var.value_bytes().filter(|_| var.parameter_value) {
             if let Ok(v) = types::decode(var.data_type, bytes) {
                 let _ = writeln!(out, "ParameterValue={}", types::to_text(var.data_type, &v));
             }

@@ -154,6 +154,8 @@ pub struct Variable {
     pub max_len: Option<usize>,
     /// DCF `Denotation`.
     pub denotation: Option<String>,
+    /// The value is a DCF `ParameterValue`: configured for this node, what `dcf apply` writes.
+    pub parameter_value: bool,
     /// Kept by "store parameters" (0x1010) although not writable over the network, e.g. a trip
     /// counter that must survive restarts. Writable variables are always kept.
     pub persist: bool,
@@ -204,6 +206,7 @@ impl Variable {
             high: None,
             max_len: None,
             denotation: None,
+            parameter_value: false,
             persist: false,
             storage: Storage::Value(vec![0; data_type.size().unwrap_or(0)]),
             hook: None,

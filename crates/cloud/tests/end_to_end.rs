@@ -105,6 +105,20 @@ async fn operator_reads_writes_and_watches_a_simulated_lift(database: Option<Str
         .await;
     assert_eq!(status, 200);
     assert_eq!(full["object"]["name"], "Fahrtenzähler [Fahrten]");
+    // The other address forms reach the same object, answered in the gateway's spelling.
+    for address in ["0x6520:1", "6520sub1", "652001"] {
+        let (status, same) = client
+            .call(
+                "GET",
+                &format!("/api/v1/lifts/{lift}/objects/{address}?form=naked"),
+                Some(&key),
+                None,
+            )
+            .await;
+        assert_eq!((status, &same), (200, &trip), "{address}");
+    }
+    let bad = format!("/api/v1/lifts/{lift}/objects/0x6520:300");
+    assert_eq!(client.call("GET", &bad, Some(&key), None).await.0, 400);
     // NXg errors as 4xx with code, message, data.
     let (status, e) = client
         .call(

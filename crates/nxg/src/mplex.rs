@@ -35,6 +35,48 @@ impl Mplex {
     }
 }
 
+impl Mplex {
+    /// Parse an object address as operators type it: the mplex (`0x652001`, `652001`), index
+    /// and sub-index (`0x6520:1`, `6520:1`, `0x6520sub1`, `6520sub1`; the index in hex with or
+    /// without `0x`, the sub-index in decimal or `0x` hex), or an index alone (`0x6520`: sub 0).
+    /// The wire keeps the strict [`Mplex::parse`] (docs/PROTOCOL.md §Mplex).
+    pub fn parse_address(text: &str) -> Result<Mplex, BadMplex> {
+        let bad = || BadMplex(text.chars().take(32).collect());
+        let t = text.trim();
+        let hex = |d: &str| {
+            let d = d
+                .strip_prefix("0x")
+                .or_else(|| d.strip_prefix("0X"))
+                .unwrap_or(d);
+            (!d.is_empty() && d.len() <= 4 && d.bytes().all(|b| b.is_ascii_hexdigit()))
+                .then(|| u16::from_str_radix(d, 16).ok())
+                .flatten()
+        };
+        let sub = |d: &str| match d.strip_prefix("0x").or_else(|| d.strip_prefix("0X")) {
+            Some(h) if !h.is_empty() && h.len() <= 2 => u8::from_str_radix(h, 16).ok(),
+            Some(_) => None,
+            None if !d.is_empty() && d.bytes().all(|b| b.is_ascii_digit()) => d.parse().ok(),
+            None => None,
+        };
+        let lower = t.to_ascii_lowercase();
+        if let Some((i, s)) = lower.split_once(':').or_else(|| lower.split_once("sub")) {
+            return Ok(Mplex {
+                index: hex(i).ok_or_else(bad)?,
+                sub: sub(s).ok_or_else(bad)?,
+            });
+        }
+        let digits = lower.strip_prefix("0x").unwrap_or(&lower);
+        match digits.len() {
+            6 => Mplex::parse(&format!("0x{digits}")).map_err(|_| bad()),
+            1..=4 => Ok(Mplex {
+                index: hex(digits).ok_or_else(bad)?,
+                sub: 0,
+            }),
+            _ => Err(bad()),
+        }
+    }
+}
+
 /// An mplex in the gateway's spelling (`0x` + upper-case hex), or the text as it came if it is
 /// none: the portal's key for stored values and the web page's key for live ones.
 pub fn normalized(text: &str) -> String {
@@ -72,6 +114,37 @@ mod tests {
             "0x+65200",
         ] {
             assert!(Mplex::parse(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn addresses_as_operators_type_them() {
+        let m = |index, sub| Ok(Mplex { index, sub });
+        for (text, want) in [
+            ("0x652001", m(0x6520, 1)),
+            ("652001", m(0x6520, 1)),
+            ("0x6520:1", m(0x6520, 1)),
+            ("6520:1", m(0x6520, 1)),
+            ("0x6520sub1", m(0x6520, 1)),
+            ("6520SUB1", m(0x6520, 1)),
+            ("0x6520:0x0A", m(0x6520, 10)),
+            (" 0x1017 ", m(0x1017, 0)),
+            ("1017", m(0x1017, 0)),
+        ] {
+            assert_eq!(Mplex::parse_address(text), want, "{text}");
+        }
+        for bad in [
+            "",
+            "0x",
+            "0x6520:",
+            ":1",
+            "0x65200:1",
+            "6520:256",
+            "0x6520:1:2",
+            "door",
+            "0x1234567",
+        ] {
+            assert!(Mplex::parse_address(bad).is_err(), "{bad}");
         }
     }
 

@@ -20,9 +20,8 @@ use tokio::sync::Semaphore;
 /// Command-line arguments of `canlift ascii`.
 #[derive(Debug, clap::Args)]
 pub struct AsciiArgs {
-    /// The bus (net 1).
-    #[arg(long, default_value = "socketcand://127.0.0.1:29536/can0")]
-    bus: String,
+    #[command(flatten)]
+    bus: super::BusArg,
     /// Serve clients on this TCP address (one session each).
     #[arg(long, default_value = "127.0.0.1:60000")]
     listen: SocketAddr,
@@ -58,9 +57,9 @@ pub async fn run(args: AsciiArgs) -> anyhow::Result<()> {
         timeout: sdo_timeout,
         ..ClientConfig::default()
     };
-    let master = Master::open(&args.bus, config)
+    let master = Master::open(&args.bus.url, config)
         .await
-        .with_context(|| format!("opening {}", args.bus))?;
+        .with_context(|| format!("opening {}", args.bus.url))?;
     master.set_lss_timeout(Duration::from_millis(args.lss_timeout_ms.max(1)));
     let gateway = Arc::new(Gateway {
         master,
@@ -69,7 +68,7 @@ pub async fn run(args: AsciiArgs) -> anyhow::Result<()> {
         info: format!(
             "canlift {} CiA 309-3 gateway, net 1 = {}",
             env!("CARGO_PKG_VERSION"),
-            args.bus
+            args.bus.url
         ),
     });
     if args.stdio {
@@ -81,7 +80,7 @@ pub async fn run(args: AsciiArgs) -> anyhow::Result<()> {
     eprintln!(
         "canlift ascii: CiA 309-3 gateway on {} for {} (type `help`)",
         listener.local_addr()?,
-        args.bus
+        args.bus.url
     );
     let slots = Arc::new(Semaphore::new(args.max_clients.max(1)));
     let accept = async {

@@ -14,9 +14,8 @@ use canopen::sdo::client::ClientConfig;
 /// Command-line arguments of `canlift dump`.
 #[derive(Debug, clap::Args)]
 pub struct DumpArgs {
-    /// The bus to watch.
-    #[arg(long, default_value = "socketcand://127.0.0.1:29536/can0")]
-    bus: String,
+    #[command(flatten)]
+    bus: super::BusArg,
     /// Print the receive time (seconds since the epoch) before each frame.
     #[arg(short = 't', long)]
     timestamp: bool,
@@ -119,7 +118,7 @@ fn format_line(
 
 /// Print frames until interrupted, the count is reached or the bus goes away.
 pub async fn run(args: DumpArgs) -> anyhow::Result<()> {
-    let mut bus = Bus::open(&args.bus).await?;
+    let mut bus = Bus::open(&args.bus.url).await?;
     let channel = channel_name(bus.url()).to_owned();
     let mut layouts = load_eds_layouts(&args.eds)?;
     let mut tracker = SdoTracker::new();
@@ -130,7 +129,7 @@ pub async fn run(args: DumpArgs) -> anyhow::Result<()> {
             timeout: Duration::from_millis(500),
             ..ClientConfig::default()
         };
-        Some(SdoClients::new(Bus::open(&args.bus).await?, config))
+        Some(SdoClients::new(Bus::open(&args.bus.url).await?, config))
     } else {
         None
     };

@@ -9,13 +9,8 @@ use canopen::emcy::EmcyMessage;
 /// Command-line arguments of `canlift emcy`.
 #[derive(Debug, clap::Args)]
 pub struct EmcyArgs {
-    /// The bus.
-    #[arg(
-        long,
-        global = true,
-        default_value = "socketcand://127.0.0.1:29536/can0"
-    )]
-    bus: String,
+    #[command(flatten)]
+    bus: super::BusArg,
     #[command(subcommand)]
     op: EmcyOp,
 }
@@ -67,9 +62,9 @@ pub fn describe(node: u8, message: &EmcyMessage) -> String {
 
 /// Send or watch.
 pub async fn run(args: EmcyArgs) -> anyhow::Result<()> {
-    let mut bus = Bus::open(&args.bus)
+    let mut bus = Bus::open(&args.bus.url)
         .await
-        .with_context(|| format!("opening {}", args.bus))?;
+        .with_context(|| format!("opening {}", args.bus.url))?;
     match args.op {
         EmcyOp::Send {
             node,
@@ -98,7 +93,7 @@ pub async fn run(args: EmcyArgs) -> anyhow::Result<()> {
             Ok(())
         }
         EmcyOp::Watch { count } => {
-            eprintln!("watching EMCY on {} (Ctrl-C ends)", args.bus);
+            eprintln!("watching EMCY on {} (Ctrl-C ends)", args.bus.url);
             let mut seen = 0u64;
             let watch = async {
                 while count.is_none_or(|n| seen < n) {

@@ -12,13 +12,8 @@ use canopen::sdo::client::ClientConfig;
 /// Command-line arguments of `canlift lss`.
 #[derive(Debug, clap::Args)]
 pub struct LssArgs {
-    /// The bus.
-    #[arg(
-        long,
-        global = true,
-        default_value = "socketcand://127.0.0.1:29536/can0"
-    )]
-    bus: String,
+    #[command(flatten)]
+    bus: super::BusArg,
     /// How long a node has to answer, in milliseconds.
     #[arg(long, global = true, default_value_t = 200)]
     timeout_ms: u64,
@@ -88,9 +83,9 @@ fn number<T: TryFrom<i128>>(what: &str, text: &str) -> anyhow::Result<T> {
 
 /// Run one service and print its answer.
 pub async fn run(args: LssArgs) -> anyhow::Result<()> {
-    let master = Master::open(&args.bus, ClientConfig::default())
+    let master = Master::open(&args.bus.url, ClientConfig::default())
         .await
-        .with_context(|| format!("opening {}", args.bus))?;
+        .with_context(|| format!("opening {}", args.bus.url))?;
     master.set_lss_timeout(Duration::from_millis(args.timeout_ms.max(1)));
     let jobs: Vec<LssJob> = match args.op {
         LssOp::SwitchGlobal { state } => vec![LssJob::SwitchGlobal(state == "on")],

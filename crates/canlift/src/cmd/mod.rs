@@ -1,5 +1,7 @@
 //! The subcommands of `canlift`.
 
+pub mod address;
+
 #[cfg(feature = "portal")]
 pub mod alarms;
 pub mod ascii;
@@ -12,6 +14,7 @@ pub mod bench_gateway;
 pub mod bench_portal;
 #[cfg(feature = "portal")]
 pub mod cloud;
+pub mod dcf;
 #[cfg(feature = "portal")]
 pub mod demo;
 pub mod dump;
@@ -29,3 +32,15 @@ pub mod sdo;
 pub mod sim;
 pub mod sync;
 pub mod time;
+
+/// The `--bus` option every bus tool takes.
+#[derive(Debug, Clone, clap::Args)]
+pub struct BusArg {
+    /// The bus: socketcand://HOST[:PORT]/CHANNEL (the hub), socketcan://IFACE or mem://NAME.
+    #[arg(
+        long = "bus",
+        global = true,
+        default_value = "socketcand://127.0.0.1:29536/can0"
+    )]
+    pub url: String,
+}

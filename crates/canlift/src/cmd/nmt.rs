@@ -10,9 +10,8 @@ use canopen::nmt::NmtCommand;
 /// Command-line arguments of `canlift nmt`.
 #[derive(Debug, clap::Args)]
 pub struct NmtArgs {
-    /// The bus.
-    #[arg(long, default_value = "socketcand://127.0.0.1:29536/can0")]
-    bus: String,
+    #[command(flatten)]
+    bus: super::BusArg,
     /// start, stop, preop, reset or reset-comm.
     command: String,
     /// Node-ID 1–127, or `all`.
@@ -64,7 +63,7 @@ pub async fn run(args: NmtArgs) -> anyhow::Result<()> {
     if args.wait_ms.is_some() && node == 0 {
         bail!("--wait-ms needs a single node");
     }
-    let mut bus = Bus::open(&args.bus).await?;
+    let mut bus = Bus::open(&args.bus.url).await?;
     bus.send(command.frame(node)).await?;
     bus.sender.flush().await?;
     let Some(wait) = args.wait_ms else {

@@ -68,7 +68,7 @@ pub struct NodeArgs {
 pub struct GetArgs {
     /// Lift id `VENDORID-PRODUCTCODE-SERNUM` (see `canlift lifts`).
     lift: String,
-    /// Object, `0x652001`.
+    /// Object: `0x652001`, `0x6520:1`, `6520sub1` or a catalog name ("Trip counter").
     mplex: String,
     #[command(flatten)]
     node: NodeArgs,
@@ -185,7 +185,8 @@ pub async fn lifts(args: LiftsArgs) -> anyhow::Result<()> {
 }
 
 /// `canlift get`.
-pub async fn get(args: GetArgs) -> anyhow::Result<()> {
+pub async fn get(mut args: GetArgs) -> anyhow::Result<()> {
+    args.mplex = object(&args.mplex)?;
     let form = if args.naked {
         Form::Naked
     } else if args.stripped {
@@ -204,8 +205,21 @@ pub async fn get(args: GetArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The object as the portal takes it: an mplex as written, any other address form or a catalog
+/// name (`"Trip counter"`, docs/TOOLS.md) as the mplex it stands for.
+fn object(text: &str) -> anyhow::Result<String> {
+    if nxg::mplex::Mplex::parse(text).is_ok() {
+        return Ok(text.to_owned());
+    }
+    Ok(super::address::Names::catalog()
+        .resolve(text)?
+        .mplex
+        .to_string())
+}
+
 /// `canlift put`: data type and unit default to the object's, read with a stripped get.
-pub async fn put(args: PutArgs) -> anyhow::Result<()> {
+pub async fn put(mut args: PutArgs) -> anyhow::Result<()> {
+    args.mplex = object(&args.mplex)?;
     let client = args.portal.client()?;
     let (datatype, physunit) = match (args.node.datatype, args.physunit) {
         (Some(t), Some(u)) => (t, u),
@@ -237,7 +251,12 @@ pub async fn put(args: PutArgs) -> anyhow::Result<()> {
 }
 
 /// `canlift watch`: open the event stream, subscribe, then print `TIME MPLEX VALUE` per push.
-pub async fn watch(args: WatchArgs) -> anyhow::Result<()> {
+pub async fn watch(mut args: WatchArgs) -> anyhow::Result<()> {
+    args.mplex = args
+        .mplex
+        .iter()
+        .map(|m| object(m))
+        .collect::<anyhow::Result<_>>()?;
     let client = args.portal.client()?;
     let path = format!("/api/v1/lifts/{}/events", args.lift);
     let mut events = match client.events(&path).await? {

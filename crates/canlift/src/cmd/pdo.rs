@@ -12,13 +12,8 @@ use canopen::sdo::client::ClientConfig;
 /// Command-line arguments of `canlift pdo`.
 #[derive(Debug, clap::Args)]
 pub struct PdoArgs {
-    /// The bus.
-    #[arg(
-        long,
-        global = true,
-        default_value = "socketcand://127.0.0.1:29536/can0"
-    )]
-    bus: String,
+    #[command(flatten)]
+    bus: super::BusArg,
     #[command(subcommand)]
     op: PdoOp,
 }
@@ -172,9 +167,9 @@ fn describe(pdo: &RemotePdo, names: &Names) -> Vec<String> {
 
 /// Show or set.
 pub async fn run(args: PdoArgs) -> anyhow::Result<()> {
-    let master = Master::open(&args.bus, ClientConfig::default())
+    let master = Master::open(&args.bus.url, ClientConfig::default())
         .await
-        .with_context(|| format!("opening {}", args.bus))?;
+        .with_context(|| format!("opening {}", args.bus.url))?;
     match args.op {
         PdoOp::Show { node, eds, all } => {
             let names = Names(

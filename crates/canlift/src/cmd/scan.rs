@@ -16,9 +16,8 @@ use serde::Serialize;
 /// Command-line arguments of `canlift scan`.
 #[derive(Debug, clap::Args)]
 pub struct ScanArgs {
-    /// The bus.
-    #[arg(long, default_value = "socketcand://127.0.0.1:29536/can0")]
-    bus: String,
+    #[command(flatten)]
+    bus: super::BusArg,
     /// Listen this long for heartbeats and boot-up messages.
     #[arg(long, default_value_t = 1500)]
     listen_ms: u64,
@@ -93,9 +92,9 @@ pub async fn run(args: ScanArgs) -> anyhow::Result<()> {
         timeout,
         ..ClientConfig::default()
     };
-    let master = Master::open(&args.bus, config)
+    let master = Master::open(&args.bus.url, config)
         .await
-        .with_context(|| format!("opening {}", args.bus))?;
+        .with_context(|| format!("opening {}", args.bus.url))?;
     let sdo = master.sdo();
     let probing = async {
         if !args.probe {

@@ -7,20 +7,17 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context};
 use canbus::Bus;
 use canopen::ascii::AsciiType;
+
+use super::address::{Names, Resolved};
 use canopen::driver::{SdoClients, TransferOptions};
 use canopen::sdo::client::{ClientConfig, DownloadSource, FileSource, Transfer};
-use canopen::types::{self, DataType};
+use canopen::types::DataType;
 
 /// Command-line arguments of `canlift sdo`.
 #[derive(Debug, clap::Args)]
 pub struct SdoArgs {
-    /// The bus.
-    #[arg(
-        long,
-        global = true,
-        default_value = "socketcand://127.0.0.1:29536/can0"
-    )]
-    bus: String,
+    #[command(flatten)]
+    bus: super::BusArg,
     /// SDO timeout in milliseconds.
     #[arg(long, global = true, default_value_t = 1000)]
     timeout_ms: u64,
@@ -33,18 +30,20 @@ pub struct SdoArgs {
 
 #[derive(Debug, clap::Subcommand)]
 enum SdoOp {
-    /// Read an object and print it (as TYPE; default: hex bytes).
+    /// Read an object and print it (as TYPE; default: the type the catalog or --eds gives,
+    /// else hex bytes).
     Read {
         /// Node-ID (1–127).
         node: u8,
-        /// Index (0x1017 or decimal).
-        index: String,
-        /// Sub-index.
-        sub: String,
-        /// Data type: a CiA 309-3 mnemonic (b, i8…i64, u8…u64, x8…x64, r32, r64, t, td, vs, os,
-        /// us, d, hex), u24, i24, f32, f64, bool, str, domain, or a CiA 301 name (UNSIGNED24).
-        #[arg(value_name = "TYPE")]
-        ty: Option<String>,
+        /// The object, then TYPE: `INDEX SUB` (0x1017 0), `0x6520:1`, `6520sub1`, `0x652001`
+        /// or a name from the CiA 417 catalog or --eds ("Trip counter", a unique prefix will
+        /// do). TYPE: a CiA 309-3 mnemonic (b, i8…i64, u8…u64, x8…x64, r32, r64, t, td, vs,
+        /// os, us, d, hex), u24, i24, f32, f64, bool, str, domain, or a CiA 301 name.
+        #[arg(value_name = "OBJECT [TYPE]", required = true, num_args = 1..=3)]
+        object: Vec<String>,
+        /// Names and types from this EDS/DCF instead of the catalog.
+        #[arg(long)]
+        eds: Option<PathBuf>,
         /// Write the raw bytes to this file instead of printing.
         #[arg(long)]
         file: Option<PathBuf>,
@@ -53,19 +52,33 @@ enum SdoOp {
     Write {
         /// Node-ID (1–127).
         node: u8,
-        /// Index.
-        index: String,
-        /// Sub-index.
-        sub: String,
-        /// Data type (see `read`).
-        #[arg(value_name = "TYPE")]
-        ty: Option<String>,
-        /// The value in its text form.
-        value: Option<String>,
+        /// The object as for `read`, TYPE (optional when the catalog or --eds gives it), then
+        /// the value in its text form (none with --file).
+        #[arg(value_name = "OBJECT [TYPE] VALUE", required = true, num_args = 1..=4)]
+        words: Vec<String>,
+        /// Names and types from this EDS/DCF instead of the catalog.
+        #[arg(long)]
+        eds: Option<PathBuf>,
         /// Write this file's bytes.
-        #[arg(long, conflicts_with = "value")]
+        #[arg(long)]
         file: Option<PathBuf>,
     },
+}
+
+/// Names and types for addresses: the EDS given, else the catalog.
+fn names(eds: Option<&std::path::Path>) -> anyhow::Result<Names> {
+    match eds {
+        Some(path) => Names::eds(path),
+        None => Ok(Names::catalog()),
+    }
+}
+
+/// The type to use: the one given, else the one the address resolved with.
+fn type_for(given: Option<&str>, resolved: &Resolved) -> anyhow::Result<Option<AsciiType>> {
+    match given {
+        Some(name) => parse_type(name).map(Some),
+        None => Ok(resolved.data_type.map(AsciiType::plain)),
+    }
 }
 
 /// The data type named on the command line: a CiA 309-3 mnemonic (`u16`, `vs`, `x32`, `d`, …,
@@ -93,12 +106,6 @@ pub fn parse_type(name: &str) -> anyhow::Result<AsciiType> {
                 "unknown data type {name:?} (b, i8…i64, u8…u64, x8…x64, r32, r64, t, td, vs, os, us, d, hex, or a CiA 301 name)"
             )
         })
-}
-
-fn parse_number<T: TryFrom<i128>>(what: &str, text: &str) -> anyhow::Result<T> {
-    types::parse_integer(text)
-        .and_then(|v| T::try_from(v).ok())
-        .with_context(|| format!("invalid {what} {text:?}"))
 }
 
 /// A progress line on stderr, only when stderr is a terminal.
@@ -151,7 +158,7 @@ impl ProgressLine {
 
 /// Run one SDO transfer.
 pub async fn run(args: SdoArgs) -> anyhow::Result<()> {
-    let bus = Bus::open(&args.bus).await?;
+    let bus = Bus::open(&args.bus.url).await?;
     let config = ClientConfig {
         timeout: Duration::from_millis(args.timeout_ms),
         ..ClientConfig::default()
@@ -171,20 +178,14 @@ pub async fn run(args: SdoArgs) -> anyhow::Result<()> {
     match args.op {
         SdoOp::Read {
             node,
-            index,
-            sub,
-            ty,
+            object,
+            eds,
             file,
         } => {
-            let (index, sub) = (
-                parse_number::<u16>("index", &index)?,
-                parse_number::<u8>("sub-index", &sub)?,
-            );
-            let ty = ty
-                .as_deref()
-                .map(parse_type)
-                .transpose()?
-                .unwrap_or(AsciiType::plain(DataType::Domain));
+            let names = names(eds.as_deref())?;
+            let (resolved, ty) = names.resolve_words(&object)?;
+            let (index, sub) = (resolved.mplex.index, resolved.mplex.sub);
+            let ty = type_for(ty, &resolved)?.unwrap_or(AsciiType::plain(DataType::Domain));
             match file {
                 Some(path) => {
                     // Streamed to the file as it arrives: large DOMAINs never sit in memory.
@@ -207,23 +208,33 @@ pub async fn run(args: SdoArgs) -> anyhow::Result<()> {
         }
         SdoOp::Write {
             node,
-            index,
-            sub,
-            ty,
-            value,
+            words,
+            eds,
             file,
         } => {
-            let (index, sub) = (
-                parse_number::<u16>("index", &index)?,
-                parse_number::<u8>("sub-index", &sub)?,
-            );
-            let source: Box<dyn DownloadSource> = match (file, ty, value) {
-                (Some(path), _, _) => Box::new(
+            let names = names(eds.as_deref())?;
+            // The value is the last word, unless the bytes come from a file.
+            let (object, value) = match &file {
+                Some(_) => (&words[..], None),
+                None => match words.split_last() {
+                    Some((value, object)) if !object.is_empty() => (object, Some(value)),
+                    _ => bail!("give the object, TYPE and VALUE, or --file"),
+                },
+            };
+            let (resolved, ty) = names.resolve_words(object)?;
+            let (index, sub) = (resolved.mplex.index, resolved.mplex.sub);
+            let source: Box<dyn DownloadSource> = match (file, value) {
+                (Some(path), _) => Box::new(
                     FileSource::open(&path)
                         .with_context(|| format!("reading {}", path.display()))?,
                 ),
-                (None, Some(ty), Some(value)) => Box::new(parse_type(&ty)?.parse(&value)?),
-                _ => bail!("give TYPE and VALUE, or --file"),
+                (None, Some(value)) => {
+                    let ty = type_for(ty, &resolved)?.with_context(|| {
+                        format!("give the TYPE of {index:04X}:{sub:02X} (neither the catalog nor --eds describes it)")
+                    })?;
+                    Box::new(ty.parse(value)?)
+                }
+                (None, None) => bail!("give the object, TYPE and VALUE, or --file"),
             };
             let result = sdo.write_from(node, index, sub, source, options).await;
             progress.finish();
@@ -252,7 +263,5 @@ mod tests {
         assert_eq!(parse_type("x16").unwrap().form, Form::Hex);
         assert_eq!(parse_type("d").unwrap().form, Form::Base64);
         assert!(parse_type("u33").is_err());
-        assert_eq!(parse_number::<u16>("index", "0x1017").unwrap(), 0x1017);
-        assert!(parse_number::<u8>("sub", "256").is_err());
     }
 }

@@ -10,9 +10,8 @@ use lift417::sim::{export_eds, SimConfig, Simulator};
 /// Command-line arguments of `canlift sim`.
 #[derive(Debug, clap::Args)]
 pub struct SimArgs {
-    /// The bus to join.
-    #[arg(long, default_value = "socketcand://127.0.0.1:29536/can0")]
-    bus: String,
+    #[command(flatten)]
+    bus: super::BusArg,
     /// Node-ID of the lift controller.
     #[arg(long, default_value_t = 1)]
     node: u8,
@@ -110,11 +109,11 @@ pub async fn run(args: SimArgs) -> anyhow::Result<()> {
     if let Some(dir) = &config.state_dir {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
-    let sim = Simulator::start(&args.bus, config.clone())
+    let sim = Simulator::start(&args.bus.url, config.clone())
         .await
-        .with_context(|| format!("starting the simulator on {}", args.bus))?;
+        .with_context(|| format!("starting the simulator on {}", args.bus.url))?;
     tracing::info!(
-        bus = %args.bus,
+        bus = %args.bus.url,
         node = config.node_id,
         io_node = ?config.io_node,
         floors = config.floors,

@@ -10,9 +10,8 @@ use canopen::sync::{SyncConfig, SyncProducer};
 /// Command-line arguments of `canlift sync`.
 #[derive(Debug, clap::Args)]
 pub struct SyncArgs {
-    /// The bus.
-    #[arg(long, default_value = "socketcand://127.0.0.1:29536/can0")]
-    bus: String,
+    #[command(flatten)]
+    bus: super::BusArg,
     /// The communication cycle period in milliseconds (1006h).
     #[arg(long, default_value_t = 100)]
     period_ms: u64,
@@ -35,9 +34,9 @@ pub async fn run(args: SyncArgs) -> anyhow::Result<()> {
         .ok()
         .filter(|us| *us > 0)
         .context("--period-ms is 1…4294967")?;
-    let bus = Bus::open(&args.bus)
+    let bus = Bus::open(&args.bus.url)
         .await
-        .with_context(|| format!("opening {}", args.bus))?;
+        .with_context(|| format!("opening {}", args.bus.url))?;
     let config = SyncConfig {
         cob_id: 0x4000_0080,
         period_us,

@@ -11,9 +11,8 @@ use canopen::types::{self, DataType, Value};
 /// Command-line arguments of `canlift time`.
 #[derive(Debug, clap::Args)]
 pub struct TimeArgs {
-    /// The bus.
-    #[arg(long, default_value = "socketcand://127.0.0.1:29536/can0")]
-    bus: String,
+    #[command(flatten)]
+    bus: super::BusArg,
     /// This time (UTC, `2026-11-23T10:11:12.345`) instead of the system's.
     #[arg(long)]
     at: Option<String>,
@@ -35,9 +34,9 @@ fn stamp(at: Option<&str>) -> anyhow::Result<TimeOfDay> {
 
 /// Send TIME once, or at an interval.
 pub async fn run(args: TimeArgs) -> anyhow::Result<()> {
-    let bus = Bus::open(&args.bus)
+    let bus = Bus::open(&args.bus.url)
         .await
-        .with_context(|| format!("opening {}", args.bus))?;
+        .with_context(|| format!("opening {}", args.bus.url))?;
     let send = async {
         loop {
             let t = stamp(args.at.as_deref())?;

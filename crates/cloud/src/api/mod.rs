@@ -179,13 +179,19 @@ async fn lift_of(app: &App, caller: Caller, id: &str) -> Result<Account, ApiErro
     Ok(account)
 }
 
+/// The object of a path: an mplex as the gateway spells it is passed on as written (its answer
+/// echoes it); the other address forms (`0x6520:1`, `6520sub1`) in the gateway's spelling.
 fn mplex(text: &str) -> Result<MplexText, ApiError> {
-    nxg::mplex::Mplex::parse(text)
-        .map(|mplex| MplexText {
+    use nxg::mplex::Mplex;
+    match Mplex::parse(text) {
+        Ok(mplex) => Ok(MplexText {
             mplex,
             text: text.to_owned(),
-        })
-        .map_err(|e| error(StatusCode::BAD_REQUEST, e.to_string()))
+        }),
+        Err(_) => Mplex::parse_address(text)
+            .map(MplexText::from)
+            .map_err(|e| error(StatusCode::BAD_REQUEST, e.to_string())),
+    }
 }
 
 fn node(node: Option<u8>, net: Option<u8>) -> Result<Option<NodeRef>, ApiError> {

@@ -71,11 +71,11 @@ pub(super) async fn history_page(
     if let Err(r) = owned(&app, &session, &id).await {
         return r;
     }
-    let Ok(mplex) = nxg::mplex::Mplex::parse(&q.mplex) else {
+    let Ok(mplex) = nxg::mplex::Mplex::parse_address(&q.mplex) else {
         return problem(
             StatusCode::BAD_REQUEST,
             Some(&session),
-            "mplex: six hex digits, e.g. 0x652001.",
+            "mplex: an object address, e.g. 0x652001 or 0x6520:1.",
         );
     };
     let mplex = mplex.to_string();

@@ -283,7 +283,7 @@ pub(super) async fn lift_page(
     let lang = language(q.lang.as_deref(), &headers);
     let (live, parameters) = (&app.dashboard.live, &app.dashboard.parameters);
     let asked = q.read.as_deref().map(str::trim).filter(|r| !r.is_empty());
-    let read = asked.map(Mplex::parse);
+    let read = asked.map(Mplex::parse_address);
     let live_keys: Vec<String> = live.iter().map(ToString::to_string).collect();
     let stored = match app.store.latest(&id, &live_keys).await {
         Ok(s) => s,
