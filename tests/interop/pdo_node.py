@@ -5,7 +5,8 @@ usage: pdo_node.py HOST PORT NODE
 Objects: 1400h/1600h (RPDO1), 1800h/1A00h (TPDO1, off, no mapping), 2001h UNSIGNED32 rw,
 2002h INTEGER16 rw. Prints READY; on a line "check" on standard input it reads its own PDO
 configuration the way python-canopen's PDO module does (decoding the mapping against its
-dictionary) and prints it as JSON; serves until standard input closes.
+dictionary) and prints it as JSON; on "send COUNTER OFFSET" it sets the two objects through
+TPDO1's mapping and transmits TPDO1 once, then prints SENT; serves until standard input closes.
 """
 
 import json
@@ -74,6 +75,14 @@ def main():
     node.nmt.state = "PRE-OPERATIONAL"
     print("READY", flush=True)
     for line in sys.stdin:
+        words = line.split()
+        if words[:1] == ["send"]:
+            tpdo = node.tpdo[1]
+            tpdo.read(from_od=False)
+            tpdo["Counter"].raw = int(words[1], 0)
+            tpdo["Offset"].raw = int(words[2], 0)
+            tpdo.transmit()
+            print("SENT", flush=True)
         if line.strip() == "check":
             tpdo = node.tpdo[1]
             tpdo.read(from_od=False)

@@ -245,6 +245,35 @@ async fn pdo_set_then_show_against_python_canopen() {
     assert!(out.status.success(), "{}", stderr(&out));
     snapshot("pdo-show-after.txt", &String::from_utf8_lossy(&out.stdout));
 
+    // An application consumes the PDO by the node's own configuration.
+    let master = canopen::master::Master::open(&bus, Default::default())
+        .await
+        .expect("the hub");
+    let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
+    let consumed = master
+        .on_remote_tpdo(6, 1, move |values| {
+            let _ = tx.send(values.clone());
+        })
+        .await
+        .expect("TPDO1 is on");
+    assert_eq!(consumed.mapping.len(), 2);
+    stdin
+        .write_all(b"send 0x12345678 -3\n")
+        .await
+        .expect("send");
+    let values = tokio::time::timeout(Duration::from_secs(20), rx.recv())
+        .await
+        .expect("the TPDO")
+        .expect("values");
+    assert_eq!(values.cob_id, canbus::CanId::Standard(0x186));
+    assert_eq!(values.value::<u32>(0x2001, 0), Some(0x1234_5678));
+    assert_eq!(values.value::<i16>(0x2002, 0), Some(-3));
+    assert!(matches!(
+        master.on_remote_tpdo(6, 2, |_| {}).await,
+        Err(canopen::pdo::remote::ConsumeError::Missing { .. })
+    ));
+    drop(master);
+
     // A node that checks mappings (canlift's) refuses a bad one: the step and the abort are
     // named. python-canopen's LocalNode takes any mapping.
     let node9 = LocalNode::start(

@@ -20,10 +20,11 @@
 //! # let _ = trips; Ok(()) }
 //! ```
 
+use std::collections::HashMap;
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
-use canbus::{Bus, BusError, BusSender};
+use canbus::{Bus, BusError, BusSender, CanId};
 use tokio::sync::broadcast;
 use tokio::task::JoinHandle;
 
@@ -31,6 +32,7 @@ use crate::driver::{sleep_until, SdoClients};
 use crate::emcy::EmcyMessage;
 use crate::heartbeat::{HeartbeatConsumer, HeartbeatEvent, NodeState};
 use crate::nmt::NmtCommand;
+use crate::pdo::{MapEntry, PdoValues};
 use crate::sdo::client::ClientConfig;
 
 /// What the master hears.
@@ -83,7 +85,15 @@ pub struct Master {
     guarding: Arc<Mutex<crate::guarding::GuardingMaster>>,
     wake: Arc<tokio::sync::Notify>,
     events: broadcast::Sender<MasterEvent>,
+    /// PDOs of other nodes the application consumes, by COB-ID.
+    rpdos: Arc<Mutex<HashMap<CanId, RpdoRoute>>>,
     task: JoinHandle<()>,
+}
+
+/// One consumed PDO: the mapping it is read with and who gets the values.
+struct RpdoRoute {
+    mapping: Vec<MapEntry>,
+    callback: Box<dyn FnMut(&PdoValues) + Send>,
 }
 
 impl Master {
@@ -97,7 +107,9 @@ impl Master {
         let (events, _) = broadcast::channel(1024);
         let lss_route: Arc<Mutex<Option<tokio::sync::mpsc::UnboundedSender<canbus::Frame>>>> =
             Arc::default();
+        let rpdos: Arc<Mutex<HashMap<CanId, RpdoRoute>>> = Arc::default();
         let task = {
+            let rpdos = rpdos.clone();
             let (table, wake, events) = (table.clone(), wake.clone(), events.clone());
             let lss = lss_route.clone();
             let (guarding, guard_sender) = (guarding.clone(), sender.clone());
@@ -128,6 +140,18 @@ impl Master {
                         _ = wake.notified() => continue,
                     };
                     let now = Instant::now();
+                    if let Some(f) = frame.as_ref().filter(|f| !f.is_remote()) {
+                        let mut routes = rpdos.lock().unwrap_or_else(PoisonError::into_inner);
+                        if let Some(route) = routes.get_mut(&f.id()) {
+                            match PdoValues::split(f.id(), &route.mapping, f.data()) {
+                                Some(values) => (route.callback)(&values),
+                                None => {
+                                    tracing::debug!(id = ?f.id(), len = f.data().len(), "PDO shorter than its mapping")
+                                }
+                            }
+                            continue;
+                        }
+                    }
                     if let Some(f) = frame.as_ref().filter(|f| f.id() == crate::lss::SLAVE_ID) {
                         if let Some(route) =
                             lss.lock().unwrap_or_else(PoisonError::into_inner).as_ref()
@@ -178,6 +202,7 @@ impl Master {
             table,
             wake,
             events,
+            rpdos,
             task,
         })
     }
@@ -201,6 +226,63 @@ impl Master {
         id: crate::pdo::remote::PdoId,
     ) -> Result<Option<crate::pdo::remote::RemotePdo>, crate::driver::ClientError> {
         crate::pdo::remote::read(&self.sdo, node, id).await
+    }
+
+    /// Consume the PDO on `cob_id` read with `mapping`: `callback` gets each one's values (in
+    /// the master's receive task: keep it short, hand work elsewhere). A second call for the
+    /// same COB-ID replaces the first.
+    pub fn on_rpdo(
+        &self,
+        cob_id: CanId,
+        mapping: Vec<MapEntry>,
+        callback: impl FnMut(&PdoValues) + Send + 'static,
+    ) {
+        self.rpdos
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .insert(
+                cob_id,
+                RpdoRoute {
+                    mapping,
+                    callback: Box::new(callback),
+                },
+            );
+    }
+
+    /// Stop consuming the PDO on `cob_id`.
+    pub fn off_rpdo(&self, cob_id: CanId) {
+        self.rpdos
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .remove(&cob_id);
+    }
+
+    /// Consume TPDO `number` of `node` with the COB-ID and mapping the node has (read by SDO);
+    /// returns what was read.
+    pub async fn on_remote_tpdo(
+        &self,
+        node: u8,
+        number: u16,
+        callback: impl FnMut(&PdoValues) + Send + 'static,
+    ) -> Result<crate::pdo::remote::RemotePdo, crate::pdo::remote::ConsumeError> {
+        use crate::pdo::remote::{ConsumeError, Direction, PdoId};
+        let pdo = PdoId {
+            direction: Direction::Transmit,
+            number,
+        };
+        let found = self
+            .read_remote_pdo(node, pdo)
+            .await?
+            .ok_or(ConsumeError::Missing { node, pdo })?;
+        let cob_id = crate::cob::id_from_parameter(found.cob_id & 0x3FFF_FFFF)
+            .filter(|_| found.enabled())
+            .ok_or(ConsumeError::Off {
+                node,
+                pdo,
+                cob_id: found.cob_id,
+            })?;
+        self.on_rpdo(cob_id, found.mapping.clone(), callback);
+        Ok(found)
     }
 
     /// Configure a PDO of `node` with the CiA 301 §7.3.5 mapping procedure.

@@ -643,15 +643,63 @@ impl PdoEngine {
 }
 
 fn apply_rpdo(od: &mut ObjectDictionary, map: &[MapEntry], data: &[u8]) {
-    let mut pos = 0;
-    for e in map {
-        let len = usize::from(e.bits / 8);
+    for (e, bytes) in split(map, data).into_iter().flatten() {
         if !e.is_dummy() {
-            if let Err(code) = od.set(e.index, e.sub, &data[pos..pos + len]) {
+            if let Err(code) = od.set(e.index, e.sub, bytes) {
                 tracing::warn!(index = e.index, sub = e.sub, %code, "RPDO data not stored");
             }
         }
-        pos += len;
+    }
+}
+
+/// A PDO's data split by its mapping (whole bytes per entry, as CiA 301 PDOs of byte-sized
+/// objects lay them out, little-endian); `None` when the data is shorter than the mapping.
+fn split<'a>(map: &'a [MapEntry], data: &'a [u8]) -> Option<Vec<(MapEntry, &'a [u8])>> {
+    let mut pos = 0;
+    map.iter()
+        .map(|e| {
+            let len = usize::from(e.bits / 8);
+            let bytes = data.get(pos..pos + len)?;
+            pos += len;
+            Some((*e, bytes))
+        })
+        .collect()
+}
+
+/// The values a PDO carried, by the mapping the receiver expects: for applications that
+/// consume another node's PDOs without a dictionary entry for each
+/// (`Master::on_rpdo`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PdoValues {
+    /// The COB-ID it came on.
+    pub cob_id: CanId,
+    /// Each mapped object with its bytes (dummy entries included).
+    pub values: Vec<(MapEntry, Vec<u8>)>,
+}
+
+impl PdoValues {
+    /// Split `data` by `map`; `None` when the data is shorter than the mapping.
+    pub fn split(cob_id: CanId, map: &[MapEntry], data: &[u8]) -> Option<Self> {
+        Some(PdoValues {
+            cob_id,
+            values: split(map, data)?
+                .into_iter()
+                .map(|(e, b)| (e, b.to_vec()))
+                .collect(),
+        })
+    }
+
+    /// The bytes of (`index`, `sub`).
+    pub fn get(&self, index: u16, sub: u8) -> Option<&[u8]> {
+        self.values
+            .iter()
+            .find(|(e, _)| e.index == index && e.sub == sub)
+            .map(|(_, b)| b.as_slice())
+    }
+
+    /// The value of (`index`, `sub`) as `T` (`None` when absent or of another size).
+    pub fn value<T: crate::types::CanopenValue>(&self, index: u16, sub: u8) -> Option<T> {
+        T::from_bytes(self.get(index, sub)?).ok()
     }
 }
 

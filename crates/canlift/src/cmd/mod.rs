@@ -36,7 +36,7 @@ pub mod time;
 /// The `--bus` option every bus tool takes.
 #[derive(Debug, Clone, clap::Args)]
 pub struct BusArg {
-    /// The bus: socketcand://HOST[:PORT]/CHANNEL (the hub), socketcan://IFACE or mem://NAME.
+    /// The bus: socketcand://HOST:PORT/CHANNEL (the hub), socketcan://IFACE or mem://NAME.
     #[arg(
         long = "bus",
         global = true,

@@ -109,6 +109,32 @@ pub struct ConfigureError {
     pub error: ClientError,
 }
 
+/// Why another node's PDO cannot be consumed.
+#[derive(Debug, thiserror::Error)]
+pub enum ConsumeError {
+    /// The node has no such PDO.
+    #[error("node {node} has no {pdo}")]
+    Missing {
+        /// The node.
+        node: u8,
+        /// The PDO.
+        pdo: PdoId,
+    },
+    /// The PDO is off (COB-ID bit 31) or its COB-ID is not one.
+    #[error("{pdo} of node {node} is off (COB-ID entry 0x{cob_id:08X})")]
+    Off {
+        /// The node.
+        node: u8,
+        /// The PDO.
+        pdo: PdoId,
+        /// Its COB-ID entry.
+        cob_id: u32,
+    },
+    /// Reading its parameters failed.
+    #[error(transparent)]
+    Sdo(#[from] ClientError),
+}
+
 /// What an abort means for PDO configuration, beyond the code's standard text.
 fn explain(error: &ClientError) -> &'static str {
     match error.abort_code() {

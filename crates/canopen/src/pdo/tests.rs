@@ -349,3 +349,40 @@ fn remote_requests_for_types_252_and_253() {
         "not a TPDO of ours"
     );
 }
+
+#[test]
+fn pdo_values_split_by_the_mapping() {
+    let map = [
+        MapEntry {
+            index: 0x2001,
+            sub: 0,
+            bits: 32,
+        },
+        MapEntry {
+            index: 0x0005,
+            sub: 0,
+            bits: 8,
+        },
+        MapEntry {
+            index: 0x2002,
+            sub: 0,
+            bits: 16,
+        },
+    ];
+    let id = CanId::Standard(0x186);
+    let v = PdoValues::split(id, &map, &[0x78, 0x56, 0x34, 0x12, 0xEE, 0xFD, 0xFF]).unwrap();
+    assert_eq!(v.value::<u32>(0x2001, 0), Some(0x1234_5678));
+    assert_eq!(v.value::<i16>(0x2002, 0), Some(-3));
+    assert_eq!(
+        v.get(0x0005, 0),
+        Some(&[0xEE][..]),
+        "dummy entries keep their place"
+    );
+    assert_eq!(v.value::<u8>(0x2001, 0), None, "another size");
+    assert_eq!(v.get(0x2003, 0), None);
+    assert_eq!(
+        PdoValues::split(id, &map, &[0; 6]),
+        None,
+        "shorter than the mapping"
+    );
+}
