@@ -254,7 +254,7 @@ async fn the_ascii_gateway_speaks_cia_309_3() {
         &python,
         &addr,
         &[
-            "_lss_fastscan 40",
+            "_lss_fastscan 60",
             "lss_get_node",
             "lss_inquire_addr",
             "lss_inquire_addr 3",
@@ -285,7 +285,7 @@ async fn the_ascii_gateway_speaks_cia_309_3() {
     let r = session(
         &python,
         &addr,
-        &["lss_allnodes 40 50 0", "_lss_fastscan 40"],
+        &["lss_allnodes 60 50 0", "_lss_fastscan 60"],
     )
     .await;
     ok(&r[0]);

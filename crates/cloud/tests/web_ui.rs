@@ -141,7 +141,7 @@ async fn sign_in(client: &Client, key: &str) {
     click(client, "form.login button").await;
 }
 
-/// Open the edit dialog of `mplex`'s row, enter `value` and press Save.
+/// Open the edit dialog of `mplex`'s row, enter `value` and press Enter (which saves).
 async fn edit(client: &Client, mplex: &str, value: &str) {
     click(
         client,
@@ -155,8 +155,8 @@ async fn edit(client: &Client, mplex: &str, value: &str) {
         .await
         .unwrap();
     input.clear().await.unwrap();
-    input.send_keys(value).await.unwrap();
-    click(client, "dialog#edit button.save").await;
+    let enter = char::from(fantoccini::key::Key::Enter);
+    input.send_keys(&format!("{value}{enter}")).await.unwrap();
 }
 
 async fn dialog_open(client: &Client) -> bool {
@@ -329,6 +329,39 @@ async fn operator_uses_the_web_ui() {
         .await
         .unwrap();
     assert_eq!(forged, json!(403));
+
+    // Static files: content-hashed names cached for a year, an ETag that answers 304, the icon
+    // where browsers look for it (no 404 on every page).
+    let assets = client
+        .execute_async(
+            "const done = arguments[0];
+             const css = document.querySelector('link[rel=stylesheet]').getAttribute('href');
+             const show = r => [r.status, r.headers.get('content-type'), r.headers.get('cache-control')];
+             (async () => {
+               const first = await fetch(css);
+               const again = await fetch(css, {headers: {'if-none-match': first.headers.get('etag')}});
+               const icon = await fetch('/favicon.ico');
+               done([css, show(first), again.status, show(icon)]);
+             })().catch(() => done(null));",
+            vec![],
+        )
+        .await
+        .unwrap();
+    let css = assets[0].as_str().unwrap_or_default();
+    assert!(
+        css.starts_with("/static/style.") && css.len() == "/static/style.".len() + 16 + 4,
+        "{assets}"
+    );
+    assert_eq!(
+        assets[1],
+        json!([
+            200,
+            "text/css; charset=utf-8",
+            "public, max-age=31536000, immutable"
+        ])
+    );
+    assert_eq!(assets[2], json!(304), "{assets}");
+    assert_eq!(assets[3], json!([200, "image/svg+xml", "no-cache"]));
 
     // Reading any object by its mplex.
     client

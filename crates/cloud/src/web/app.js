@@ -163,6 +163,8 @@ function editDialog(lift) {
     return input;
   }
 
+  dialog.querySelector("button.cancel")?.addEventListener("click", () => dialog.close());
+
   for (const button of document.querySelectorAll("button.edit")) {
     button.addEventListener("click", () => {
       target = button.closest("[data-mplex]");

@@ -261,7 +261,8 @@ fn edit_dialog() -> Markup {
                 }
                 p.status role="status" {}
                 menu {
-                    button value="cancel" formnovalidate { "Cancel" }
+                    // Save is the form's only submit button, so Enter saves.
+                    button.cancel type="button" { "Cancel" }
                     button.save value="save" { "Save" }
                 }
             }

@@ -5,6 +5,7 @@
 //! script and style.
 
 mod alarms;
+mod assets;
 mod audit;
 mod fleet;
 mod history;
@@ -18,7 +19,7 @@ use std::sync::Arc;
 use axum::extract::FromRequestParts;
 use axum::http::request::Parts;
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
-use axum::response::{IntoResponse, Redirect, Response};
+use axum::response::{Redirect, Response};
 use axum::routing::{get, post};
 use axum::Router;
 
@@ -67,20 +68,6 @@ async fn owned(app: &App, session: &Session, id: &str) -> Result<LiftRecord, Res
     }
 }
 
-const APP_JS: &str = include_str!("app.js");
-const STYLE_CSS: &str = include_str!("style.css");
-
-fn asset(kind: &'static str, text: &'static str) -> Response {
-    (
-        [
-            (header::CONTENT_TYPE, kind),
-            (header::CACHE_CONTROL, "no-cache"),
-        ],
-        text,
-    )
-        .into_response()
-}
-
 /// Headers every UI response carries: only this origin's script and style, no framing, no
 /// sniffing, no referrer to other sites.
 async fn harden(mut response: Response) -> Response {
@@ -115,14 +102,8 @@ pub fn routes(app: Arc<App>) -> Router {
         .route("/audit", get(audit::audit_page))
         .route("/alarms", get(alarms::alarms_page))
         .route("/alarms/{id}/ack", post(alarms::acknowledge))
-        .route(
-            "/static/app.js",
-            get(|| async { asset("text/javascript; charset=utf-8", APP_JS) }),
-        )
-        .route(
-            "/static/style.css",
-            get(|| async { asset("text/css; charset=utf-8", STYLE_CSS) }),
-        )
+        .route("/static/{file}", get(assets::serve))
+        .route("/favicon.ico", get(assets::favicon))
         .layer(axum::middleware::map_response(harden))
         .with_state(app)
 }

@@ -5,6 +5,7 @@ use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use maud::{html, Markup, DOCTYPE};
 
+use super::assets;
 use super::session::Session;
 use crate::store::StoreError;
 
@@ -26,8 +27,9 @@ pub(super) fn layout(
                     meta name="csrf" content=(s.csrf);
                 }
                 title { (title) " · canlift" }
-                link rel="stylesheet" href="/static/style.css";
-                script src="/static/app.js" defer {}
+                link rel="stylesheet" href=(assets::url("style.css"));
+                link rel="icon" href=(assets::url("favicon.svg")) type="image/svg+xml";
+                script src=(assets::url("app.js")) defer {}
             }
             body data-lift=[lift] {
                 header {
