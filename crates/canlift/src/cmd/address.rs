@@ -79,11 +79,28 @@ impl Names {
         Ok(Names(named))
     }
 
-    fn data_type(&self, mplex: Mplex) -> Option<DataType> {
+    /// The EDS given, else the catalog.
+    pub fn eds_or_catalog(eds: Option<&Path>) -> anyhow::Result<Self> {
+        match eds {
+            Some(path) => Names::eds(path),
+            None => Ok(Names::catalog()),
+        }
+    }
+
+    fn named(&self, mplex: Mplex) -> Option<&Named> {
         self.0
             .iter()
             .find(|n| n.index == mplex.index && n.sub == mplex.sub)
-            .map(|n| n.data_type)
+    }
+
+    fn data_type(&self, mplex: Mplex) -> Option<DataType> {
+        self.named(mplex).map(|n| n.data_type)
+    }
+
+    /// The name of (index, sub): English first for the catalog, `Object / Sub` for the
+    /// sub-objects of an EDS's records and arrays.
+    pub fn name_of(&self, index: u16, sub: u8) -> Option<&str> {
+        self.named(Mplex { index, sub }).map(|n| n.name.as_str())
     }
 
     /// The object named `text`: an exact name, or the only object whose name starts with it.

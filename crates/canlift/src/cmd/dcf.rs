@@ -9,8 +9,7 @@ use std::path::PathBuf;
 use anyhow::{bail, Context};
 use canopen::eds::{self, DeviceDescription};
 use canopen::master::Master;
-use canopen::od::Variable;
-use canopen::pdo::remote::{Direction, PdoId, RemotePdo};
+use canopen::pdo::remote::{PdoId, RemotePdo};
 use canopen::pdo::MapEntry;
 use canopen::sdo::client::ClientConfig;
 use canopen::types;
@@ -109,9 +108,7 @@ async fn check_identity(master: &Master, node: u8, dcf: &DeviceDescription) -> a
         else {
             continue;
         };
-        let expected = types::parse_integer(text)
-            .and_then(|v| u32::try_from(v).ok())
-            .with_context(|| format!("[DeviceInfo] {key}={text} is not a number"))?;
+        let expected: u32 = super::parse_number(&format!("[DeviceInfo] {key}"), text)?;
         let actual = master
             .sdo()
             .read::<u32>(node, 0x1018, sub)
@@ -137,7 +134,7 @@ async fn apply(master: &Master, node: u8, dcf: &DeviceDescription) -> usize {
     let mut failed = 0;
     let mut pdos = BTreeSet::new();
     for object in dcf.od.objects() {
-        if let Some(id) = pdo_of(object.index) {
+        if let Some(id) = PdoId::of_index(object.index) {
             pdos.insert(id.communication());
             continue;
         }
@@ -188,56 +185,32 @@ async fn apply(master: &Master, node: u8, dcf: &DeviceDescription) -> usize {
     failed
 }
 
-/// The PDO a communication or mapping index belongs to.
-fn pdo_of(index: u16) -> Option<PdoId> {
-    let (direction, base) = match index {
-        0x1400..=0x17FF => (Direction::Receive, 0x1400),
-        0x1800..=0x1BFF => (Direction::Transmit, 0x1800),
-        _ => return None,
-    };
-    Some(PdoId {
-        direction,
-        number: (index - base) % 0x200 + 1,
-    })
-}
-
 /// A PDO's configuration as the DCF gives it (only when it gives a ParameterValue for it).
 fn pdo_from_dcf(dcf: &DeviceDescription, comm: u16) -> Option<RemotePdo> {
-    let id = pdo_of(comm)?;
-    let var = |index, sub| dcf.od.variable(index, sub).ok();
-    let configured = |v: &&Variable| v.parameter_value;
-    let uint = |v: &Variable| {
-        types::decode(v.data_type, v.value_bytes()?)
-            .ok()
-            .and_then(|value| match value {
-                types::Value::Uint(u) => Some(u),
-                _ => None,
-            })
+    let id = PdoId::of_index(comm)?;
+    let map = id.mapping();
+    let uint = |index, sub| match dcf.od.get_value(index, sub) {
+        Ok(types::Value::Uint(u)) => Some(u),
+        _ => None,
     };
-    let comm_subs = [1u8, 2, 3, 5, 6].map(|sub| var(comm, sub));
-    let map_count = var(id.mapping(), 0);
-    let any_configured = comm_subs.iter().flatten().any(|v| v.parameter_value)
-        || map_count.is_some_and(|v| v.parameter_value);
-    if !any_configured {
+    let configured = |index, sub| dcf.od.variable(index, sub).is_ok_and(|v| v.parameter_value);
+    if ![1, 2, 3, 5, 6].iter().any(|&sub| configured(comm, sub)) && !configured(map, 0) {
         return None;
     }
-    let count = map_count.and_then(uint).unwrap_or(0);
-    let mapping = (1..=count.min(64) as u8)
-        .filter_map(|sub| var(id.mapping(), sub).and_then(uint))
-        .map(|v| MapEntry::from_u32(v as u32))
-        .collect();
-    let [cob_id, transmission, inhibit, event, sync_start] = comm_subs;
+    // Optional parameters are written only when the DCF configures them.
+    let given = |sub| uint(comm, sub).filter(|_| configured(comm, sub));
+    let count = uint(map, 0).unwrap_or(0).min(64) as u8;
     Some(RemotePdo {
         id,
-        cob_id: cob_id.and_then(uint).unwrap_or(0x8000_0000) as u32,
-        transmission: transmission.and_then(uint).unwrap_or(255) as u8,
-        inhibit_100us: inhibit.filter(configured).and_then(uint).map(|v| v as u16),
-        event_ms: event.filter(configured).and_then(uint).map(|v| v as u16),
-        sync_start: sync_start
-            .filter(configured)
-            .and_then(uint)
-            .map(|v| v as u8),
-        mapping,
+        cob_id: uint(comm, 1).unwrap_or(0x8000_0000) as u32,
+        transmission: uint(comm, 2).unwrap_or(255) as u8,
+        inhibit_100us: given(3).map(|v| v as u16),
+        event_ms: given(5).map(|v| v as u16),
+        sync_start: given(6).map(|v| v as u8),
+        mapping: (1..=count)
+            .filter_map(|sub| uint(map, sub))
+            .map(|v| MapEntry::from_u32(v as u32))
+            .collect(),
     })
 }
 

@@ -3,6 +3,8 @@
 //! meaning (the CiA 301 class and the CiA 417 / lift fault).
 
 use anyhow::{bail, Context};
+
+use super::parse_number;
 use canbus::{Bus, BusEvent, Frame};
 use canopen::emcy::EmcyMessage;
 
@@ -36,12 +38,6 @@ enum EmcyOp {
         #[arg(long)]
         count: Option<u64>,
     },
-}
-
-fn number<T: TryFrom<i128>>(what: &str, text: &str) -> anyhow::Result<T> {
-    canopen::types::parse_integer(text)
-        .and_then(|v| T::try_from(v).ok())
-        .with_context(|| format!("invalid {what} {text:?}"))
 }
 
 /// One watched EMCY as a line: node, code, meaning, register and data.
@@ -82,8 +78,8 @@ pub async fn run(args: EmcyArgs) -> anyhow::Result<()> {
             let mut manufacturer = [0u8; 5];
             manufacturer[..bytes.len()].copy_from_slice(&bytes);
             let message = EmcyMessage {
-                code: number("error code", &code)?,
-                register: number("error register", &register)?,
+                code: parse_number("error code", &code)?,
+                register: parse_number("error register", &register)?,
                 manufacturer,
             };
             let frame = Frame::standard(0x080 + u16::from(node), &message.to_bytes())?;

@@ -5,6 +5,8 @@
 use std::time::Duration;
 
 use anyhow::{bail, Context};
+
+use super::parse_number;
 use canopen::ascii::{LssJob, Outcome, Reply};
 use canopen::master::Master;
 use canopen::sdo::client::ClientConfig;
@@ -75,12 +77,6 @@ enum LssOp {
     },
 }
 
-fn number<T: TryFrom<i128>>(what: &str, text: &str) -> anyhow::Result<T> {
-    canopen::types::parse_integer(text)
-        .and_then(|v| T::try_from(v).ok())
-        .with_context(|| format!("invalid {what} {text:?}"))
-}
-
 /// Run one service and print its answer.
 pub async fn run(args: LssArgs) -> anyhow::Result<()> {
     let master = Master::open(&args.bus.url, ClientConfig::default())
@@ -95,19 +91,21 @@ pub async fn run(args: LssArgs) -> anyhow::Result<()> {
             revision,
             serial,
         } => vec![LssJob::SwitchSelective([
-            number("vendor-ID", &vendor)?,
-            number("product code", &product)?,
-            number("revision", &revision)?,
-            number("serial", &serial)?,
+            parse_number("vendor-ID", &vendor)?,
+            parse_number("product code", &product)?,
+            parse_number("revision", &revision)?,
+            parse_number("serial", &serial)?,
         ])],
         LssOp::SetNode { id } => {
-            let id: u8 = number("node-ID", &id)?;
+            let id: u8 = parse_number("node-ID", &id)?;
             if !(1..=127).contains(&id) && id != 0xFF {
                 bail!("node-ID {id} is outside 1–127 (or 255 for unconfigured)");
             }
             vec![LssJob::SetNode(id)]
         }
-        LssOp::SetBitrate { index } => vec![LssJob::ConfigureBitRate(number("index", &index)?)],
+        LssOp::SetBitrate { index } => {
+            vec![LssJob::ConfigureBitRate(parse_number("index", &index)?)]
+        }
         LssOp::ActivateBitrate { delay_ms } => vec![LssJob::ActivateBitRate(delay_ms)],
         LssOp::Store => vec![LssJob::Store],
         LssOp::Inquire => vec![LssJob::InquireAddress(None), LssJob::GetNode],

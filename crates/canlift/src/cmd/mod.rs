@@ -33,6 +33,15 @@ pub mod sim;
 pub mod sync;
 pub mod time;
 
+/// A number as typed on the command line (decimal, `0x` hex, or leading-zero octal as EDS
+/// files write it) that fits `T`; `what` names it in the error.
+pub fn parse_number<T: TryFrom<i128>>(what: &str, text: &str) -> anyhow::Result<T> {
+    use anyhow::Context;
+    canopen::types::parse_integer(text)
+        .and_then(|v| T::try_from(v).ok())
+        .with_context(|| format!("invalid {what} {text:?}"))
+}
+
 /// The `--bus` option every bus tool takes.
 #[derive(Debug, Clone, clap::Args)]
 pub struct BusArg {

@@ -4,6 +4,9 @@
 use std::path::PathBuf;
 
 use anyhow::{bail, Context};
+
+use super::address::Names;
+use super::parse_number;
 use canopen::master::Master;
 use canopen::pdo::remote::{Direction, PdoId, RemotePdo};
 use canopen::pdo::MapEntry;
@@ -60,9 +63,6 @@ enum PdoOp {
 
 /// `0x6520:1:32,…` as mapping entries.
 fn parse_map(text: &str) -> anyhow::Result<Vec<MapEntry>> {
-    let number = |what: &str, t: &str| {
-        canopen::types::parse_integer(t).with_context(|| format!("invalid {what} {t:?} in --map"))
-    };
     text.split(',')
         .map(str::trim)
         .filter(|t| !t.is_empty())
@@ -71,13 +71,14 @@ fn parse_map(text: &str) -> anyhow::Result<Vec<MapEntry>> {
             let [index, sub, bits] = parts.as_slice() else {
                 bail!("--map entry {entry:?} is not INDEX:SUB:BITS");
             };
+            let bits: u8 = parse_number("length in --map", bits)?;
+            if !(1..=64).contains(&bits) {
+                bail!("--map entry {entry:?}: the length is 1–64 bits");
+            }
             let entry = MapEntry {
-                index: u16::try_from(number("index", index)?).context("index above 0xFFFF")?,
-                sub: u8::try_from(number("sub-index", sub)?).context("sub-index above 255")?,
-                bits: u8::try_from(number("length", bits)?)
-                    .ok()
-                    .filter(|b| *b > 0 && *b <= 64)
-                    .context("length is 1–64 bits")?,
+                index: parse_number("index in --map", index)?,
+                sub: parse_number("sub-index in --map", sub)?,
+                bits,
             };
             Ok(entry)
         })
@@ -88,33 +89,6 @@ fn parse_map(text: &str) -> anyhow::Result<Vec<MapEntry>> {
             }
             Ok(entries)
         })
-}
-
-/// Names of mapped objects: from an EDS, else the catalog.
-struct Names(Option<canopen::od::ObjectDictionary>);
-
-impl Names {
-    fn of(&self, entry: MapEntry) -> String {
-        if (1..=7).contains(&entry.index) {
-            return "dummy".into();
-        }
-        let from_eds = self.0.as_ref().and_then(|od| {
-            let object = od.object(entry.index)?;
-            let sub = object.subs.get(&entry.sub)?;
-            Some(if object.subs.len() > 1 {
-                format!("{} / {}", object.name, sub.name)
-            } else {
-                object.name.clone()
-            })
-        });
-        from_eds
-            .or_else(|| {
-                let (name, _) =
-                    lift417::catalog::Catalog::builtin().object_texts(None, entry.index)?;
-                name.get("en").map(str::to_owned)
-            })
-            .unwrap_or_default()
-    }
 }
 
 fn transmission_text(kind: Direction, t: u8) -> String {
@@ -158,7 +132,11 @@ fn describe(pdo: &RemotePdo, names: &Names) -> Vec<String> {
             m.index,
             m.sub,
             m.bits,
-            names.of(*m)
+            if (1..=7).contains(&m.index) {
+                "dummy"
+            } else {
+                names.name_of(m.index, m.sub).unwrap_or_default()
+            }
         );
         lines.push(line.trim_end().to_owned());
     }
@@ -172,10 +150,7 @@ pub async fn run(args: PdoArgs) -> anyhow::Result<()> {
         .with_context(|| format!("opening {}", args.bus.url))?;
     match args.op {
         PdoOp::Show { node, eds, all } => {
-            let names = Names(
-                eds.map(|path| canopen::eds::import_file(&path, Some(node)).map(|d| d.od))
-                    .transpose()?,
-            );
+            let names = Names::eds_or_catalog(eds.as_deref())?;
             let mut shown = 0;
             for direction in [Direction::Receive, Direction::Transmit] {
                 for number in 1..=512 {
@@ -210,10 +185,10 @@ pub async fn run(args: PdoArgs) -> anyhow::Result<()> {
                 bail!("node {node} has no {id}");
             };
             if let Some(text) = cob_id {
-                let can_id = canopen::types::parse_integer(&text)
-                    .and_then(|v| u32::try_from(v).ok())
-                    .filter(|v| *v <= 0x1FFF_FFFF)
-                    .with_context(|| format!("invalid COB-ID {text:?}"))?;
+                let can_id: u32 = parse_number("COB-ID", &text)?;
+                if can_id > 0x1FFF_FFFF {
+                    bail!("COB-ID {text} is above 0x1FFFFFFF");
+                }
                 let extended = if can_id > 0x7FF { 0x2000_0000 } else { 0 };
                 // Keep the node's RTR bit (30); set the format bit (29) from the identifier.
                 config.cob_id = (config.cob_id & 0x4000_0000) | extended | can_id;
@@ -234,7 +209,7 @@ pub async fn run(args: PdoArgs) -> anyhow::Result<()> {
                 config.mapping = parse_map(&map)?;
             }
             master.configure_remote_pdo(node, &config).await?;
-            let names = Names(None);
+            let names = Names::catalog();
             let written = master
                 .read_remote_pdo(node, id)
                 .await?

@@ -6,7 +6,7 @@
 use std::time::Duration;
 
 use anyhow::Context;
-use canopen::driver::{SdoClients, TransferOptions};
+use canopen::driver::SdoClients;
 use canopen::heartbeat::NodeState;
 use canopen::master::Master;
 use canopen::sdo::client::ClientConfig;
@@ -135,13 +135,7 @@ pub async fn run(args: ScanArgs) -> anyhow::Result<()> {
 
 /// Ask `node` who it is; what it does not answer stays empty.
 async fn identify(sdo: &SdoClients, node: u8, state: NodeState) -> Found {
-    let u32_at = |index, sub| async move {
-        sdo.read_with(node, index, sub, TransferOptions::default())
-            .await
-            .ok()
-            .and_then(|b| <[u8; 4]>::try_from(b.as_slice()).ok())
-            .map(u32::from_le_bytes)
-    };
+    let u32_at = |index, sub| async move { sdo.read::<u32>(node, index, sub).await.ok() };
     let text_at = |index| async move {
         sdo.read_raw(node, index, 0).await.ok().map(|b| {
             String::from_utf8_lossy(&b)

@@ -65,14 +65,6 @@ enum SdoOp {
     },
 }
 
-/// Names and types for addresses: the EDS given, else the catalog.
-fn names(eds: Option<&std::path::Path>) -> anyhow::Result<Names> {
-    match eds {
-        Some(path) => Names::eds(path),
-        None => Ok(Names::catalog()),
-    }
-}
-
 /// The type to use: the one given, else the one the address resolved with.
 fn type_for(given: Option<&str>, resolved: &Resolved) -> anyhow::Result<Option<AsciiType>> {
     match given {
@@ -182,7 +174,7 @@ pub async fn run(args: SdoArgs) -> anyhow::Result<()> {
             eds,
             file,
         } => {
-            let names = names(eds.as_deref())?;
+            let names = Names::eds_or_catalog(eds.as_deref())?;
             let (resolved, ty) = names.resolve_words(&object)?;
             let (index, sub) = (resolved.mplex.index, resolved.mplex.sub);
             let ty = type_for(ty, &resolved)?.unwrap_or(AsciiType::plain(DataType::Domain));
@@ -212,7 +204,7 @@ pub async fn run(args: SdoArgs) -> anyhow::Result<()> {
             eds,
             file,
         } => {
-            let names = names(eds.as_deref())?;
+            let names = Names::eds_or_catalog(eds.as_deref())?;
             // The value is the last word, unless the bytes come from a file.
             let (object, value) = match &file {
                 Some(_) => (&words[..], None),

@@ -40,6 +40,19 @@ impl PdoId {
         Some(PdoId { direction, number })
     }
 
+    /// The PDO a communication or mapping parameter index (1400h–1BFFh) belongs to.
+    pub fn of_index(index: u16) -> Option<Self> {
+        let (receive, number, _) = super::classify(index)?;
+        Some(PdoId {
+            direction: if receive {
+                Direction::Receive
+            } else {
+                Direction::Transmit
+            },
+            number: number + 1,
+        })
+    }
+
     /// The communication parameter's index.
     pub fn communication(self) -> u16 {
         let base = match self.direction {
@@ -277,5 +290,9 @@ mod tests {
         assert_eq!(PdoId::parse("tpdo0"), None);
         assert_eq!(PdoId::parse("tpdo513"), None);
         assert_eq!(PdoId::parse("pdo1"), None);
+        assert_eq!(PdoId::of_index(0x1A00), Some(t));
+        assert_eq!(PdoId::of_index(0x15FF), Some(r));
+        assert_eq!(PdoId::of_index(0x17FF), Some(r));
+        assert_eq!(PdoId::of_index(0x1C00), None);
     }
 }
