@@ -5,7 +5,7 @@
 //! the lift's live viewers and to the webhook outbox. [`Alarms`] is the handle the connections
 //! and the API share.
 
-use std::collections::HashMap;
+use std::collections::{BTreeSet, HashMap};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
@@ -159,6 +159,47 @@ impl Alarms {
 const BATCH: usize = 1000;
 const BATCH_WAIT: Duration = Duration::from_millis(200);
 
+/// The `lift-offline` timers, earliest first: the service asks for the next one on every
+/// input, so it must not scan every offline lift of a large fleet to find it.
+#[derive(Default)]
+struct OfflineTimers {
+    by_lift: HashMap<String, Instant>,
+    by_time: BTreeSet<(Instant, String)>,
+}
+
+impl OfflineTimers {
+    /// `lift` gets its alarm at `at` (replacing an earlier timer).
+    fn start(&mut self, lift: String, at: Instant) {
+        if let Some(old) = self.by_lift.insert(lift.clone(), at) {
+            self.by_time.remove(&(old, lift.clone()));
+        }
+        self.by_time.insert((at, lift));
+    }
+
+    /// `lift` is back.
+    fn stop(&mut self, lift: &str) {
+        if let Some(at) = self.by_lift.remove(lift) {
+            self.by_time.remove(&(at, lift.to_owned()));
+        }
+    }
+
+    fn next(&self) -> Option<Instant> {
+        self.by_time.first().map(|(at, _)| *at)
+    }
+
+    /// The lifts whose timer ran out by `now`, in order; their timers end.
+    fn due(&mut self, now: Instant) -> Vec<String> {
+        let mut due = Vec::new();
+        while self.by_time.first().is_some_and(|(at, _)| *at <= now) {
+            if let Some((_, lift)) = self.by_time.pop_first() {
+                self.by_lift.remove(&lift);
+                due.push(lift);
+            }
+        }
+        due
+    }
+}
+
 /// The service's state.
 struct Service {
     alarms: Arc<Alarms>,
@@ -166,7 +207,7 @@ struct Service {
     offline_after: Duration,
     active: Active,
     /// Lifts offline, with when they become `lift-offline`.
-    offline: HashMap<String, Instant>,
+    offline: OfflineTimers,
     batch: Vec<EventRow>,
     /// Alarms raised and cleared (id, when) since the last write.
     raised: Vec<Alarm>,
@@ -193,17 +234,15 @@ pub async fn run(
         Err(e) => tracing::error!(error = %e, "active alarms not loaded"),
     }
     let deadline = Instant::now() + offline_after;
-    let offline = match alarms.store.lift_ids().await {
-        Ok(ids) => ids
-            .into_iter()
-            .filter(|id| !alarms.registry.online(id))
-            .map(|id| (id, deadline))
-            .collect(),
-        Err(e) => {
-            tracing::error!(error = %e, "lifts not loaded for the offline alarms");
-            HashMap::new()
+    let mut offline = OfflineTimers::default();
+    match alarms.store.lift_ids().await {
+        Ok(ids) => {
+            for id in ids.into_iter().filter(|id| !alarms.registry.online(id)) {
+                offline.start(id, deadline);
+            }
         }
-    };
+        Err(e) => tracing::error!(error = %e, "lifts not loaded for the offline alarms"),
+    }
     let mut service = Service {
         alarms,
         rules,
@@ -218,8 +257,8 @@ pub async fn run(
     loop {
         let next = service
             .offline
-            .values()
-            .copied()
+            .next()
+            .into_iter()
             .chain(service.flush_at)
             .min();
         let timer = crate::timer::sleep_until(next);
@@ -254,13 +293,13 @@ impl Service {
                 }
             }
             Input::Online(lift) => {
-                self.offline.remove(&lift);
+                self.offline.stop(&lift);
                 let verdict = self.rules.lift_online(&lift);
                 self.apply(vec![verdict]);
             }
             Input::Offline(lift) => {
                 self.offline
-                    .insert(lift, Instant::now() + self.offline_after);
+                    .start(lift, Instant::now() + self.offline_after);
             }
         }
     }
@@ -270,14 +309,7 @@ impl Service {
         if self.flush_at.is_some_and(|t| t <= now) {
             self.flush().await;
         }
-        let due: Vec<String> = self
-            .offline
-            .iter()
-            .filter(|(_, at)| **at <= now)
-            .map(|(lift, _)| lift.clone())
-            .collect();
-        for lift in due {
-            self.offline.remove(&lift);
+        for lift in self.offline.due(now) {
             let verdict = self.rules.lift_offline(&lift, self.offline_after.as_secs());
             self.apply(vec![verdict]);
         }
@@ -342,5 +374,29 @@ impl Service {
         if !self.raised.is_empty() || !self.cleared.is_empty() {
             self.flush_at.get_or_insert(Instant::now() + BATCH_WAIT);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn offline_timers_run_out_in_order_and_stop_when_a_lift_returns() {
+        let t0 = Instant::now();
+        let s = Duration::from_secs(1);
+        let mut timers = OfflineTimers::default();
+        assert_eq!(timers.next(), None);
+        timers.start("b".into(), t0 + 2 * s);
+        timers.start("a".into(), t0 + 3 * s);
+        timers.start("c".into(), t0 + s);
+        timers.start("a".into(), t0 + s / 2); // restarted: the earlier timer is gone
+        assert_eq!(timers.next(), Some(t0 + s / 2));
+        timers.stop("c");
+        timers.stop("unknown");
+        assert_eq!(timers.due(t0), Vec::<String>::new());
+        assert_eq!(timers.due(t0 + 5 * s), ["a", "b"]);
+        assert_eq!(timers.next(), None);
+        assert!(timers.by_lift.is_empty());
     }
 }
