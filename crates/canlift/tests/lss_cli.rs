@@ -46,9 +46,9 @@ async fn lss_from_the_command_line() {
     let bus = testkit::hub_url(&hub, "can0");
     let dir = testkit::scratch();
     let mut nodes = Vec::new();
-    for serial in [0x31u32, 0x32, 0x33] {
+    for (product, serial) in [(0x77u32, 0x31u32), (0x77, 0x32), (0x78, 0x33)] {
         let config = NodeConfig {
-            identity: [0x41A, 0x77, 2, serial],
+            identity: [0x41A, product, 2, serial],
             storage: Some(dir.path().join(format!("node-{serial:x}.params"))),
             ..NodeConfig::new(canopen::lss::UNCONFIGURED)
         };
@@ -84,17 +84,31 @@ async fn lss_from_the_command_line() {
     assert_eq!(ok(lss(&bus, &["switch-global", "off"]).await), "OK\n");
     assert_eq!(serial_of(&bus, 20).await, "0x00000031");
 
+    // Only one product (matched in one step), revisions not looked at.
+    let product = [
+        "fastscan",
+        "--assign",
+        "30",
+        "--store",
+        "--step-ms",
+        "60",
+        "--product",
+        "0x77",
+        "--skip-revision",
+    ];
+    assert_eq!(
+        ok(lss(&bus, &product).await),
+        "# node 30: 0x0000041A 0x00000077 0x00000000 0x00000032\n# 1 node(s) configured\n"
+    );
     // The rest in one go.
     let assigned = ok(lss(
         &bus,
-        &["fastscan", "--assign", "30", "--store", "--step-ms", "60"],
+        &["fastscan", "--assign", "31", "--store", "--step-ms", "60"],
     )
     .await);
     assert_eq!(
         assigned,
-        "# node 30: 0x0000041A 0x00000077 0x00000002 0x00000032\n\
-         # node 31: 0x0000041A 0x00000077 0x00000002 0x00000033\n\
-         # 2 node(s) configured\n"
+        "# node 31: 0x0000041A 0x00000078 0x00000002 0x00000033\n# 1 node(s) configured\n"
     );
     assert_eq!(serial_of(&bus, 30).await, "0x00000032");
     assert_eq!(serial_of(&bus, 31).await, "0x00000033");
@@ -104,7 +118,7 @@ async fn lss_from_the_command_line() {
 
     // Selective switch by address, then a change that applies at reset communication.
     assert_eq!(
-        ok(lss(&bus, &["switch-selective", "0x41A", "0x77", "2", "0x33"]).await),
+        ok(lss(&bus, &["switch-selective", "0x41A", "0x78", "2", "0x33"]).await),
         "OK\n"
     );
     assert_eq!(ok(lss(&bus, &["set-node", "40"]).await), "OK\n");

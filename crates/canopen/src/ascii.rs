@@ -16,6 +16,7 @@ use std::time::Duration;
 
 use base64::Engine as _;
 
+use crate::lss::{FastscanMaster, FastscanPart};
 use crate::nmt::NmtCommand;
 use crate::sdo::abort::AbortCode;
 use crate::types::{self, DataType, TypeError, Value};
@@ -330,11 +331,20 @@ pub enum LssJob {
     /// `lss_get_node`.
     GetNode,
     /// `_lss_fastscan [TIMEOUT_MS]`: find one unconfigured node and leave it selected.
-    Fastscan(Duration),
-    /// `lss_allnodes [TIMEOUT_MS [FIRST STORE]]`: give every unconfigured node an ID in turn.
+    Fastscan {
+        /// Each Fastscan step's listening time.
+        step: Duration,
+        /// What to do with each part of the address.
+        parts: [FastscanPart; 4],
+    },
+    /// `lss_allnodes [TIMEOUT_MS [FIRST STORE [SCAN0 VENDOR SCAN1 PRODUCT SCAN2 REVISION SCAN3
+    /// SERIAL]]]`: give every unconfigured node an ID in turn; scan type 0 scans a part, 1
+    /// skips it, 2 matches the value given.
     AllNodes {
         /// Each Fastscan step's listening time.
         step: Duration,
+        /// What to do with each part of the address.
+        parts: [FastscanPart; 4],
         /// The first node-ID to give.
         first: u8,
         /// Store each configuration in the node.
@@ -431,7 +441,7 @@ Command strings start with an optional '[' <sequence> ']' followed by:
 [<net>] lss_switch_sel <vendor> <product> <revision> <serial>
 [<net>] lss_set_node <node> | lss_conf_bitrate 0 <index> | lss_activate_bitrate <ms>
 [<net>] lss_store | lss_inquire_addr [<0..3>] | lss_get_node
-[<net>] _lss_fastscan [<timeout_ms>] | lss_allnodes [<timeout_ms> [<first> <store>]]
+[<net>] _lss_fastscan [<timeout_ms>] | lss_allnodes [<timeout_ms> [<first> <store> [<scan0> <vendor> <scan1> <product> <scan2> <revision> <scan3> <serial>]]] (scan 0, skip 1, match 2)
 help | info
 Datatypes: b, i8 i16 i32 i64, u8 u16 u32 u64, x8 x16 x32 x64 (hex), r32 r64, t td,
 vs (in double quotes if it has spaces), os us d (base64), hex (hex bytes).
@@ -753,22 +763,28 @@ fn lss(verb: &str, args: &[&str]) -> Result<LssJob, Failure> {
                 .ok_or_else(|| syntax("LSSSUB is 0…3"))?,
         )),
         ("lss_get_node", []) => LssJob::GetNode,
-        ("_lss_fastscan", [] | [_]) => LssJob::Fastscan(ms(nums.first(), 100)?),
-        ("lss_allnodes", [] | [_] | [_, _, _]) => LssJob::AllNodes {
+        ("_lss_fastscan", [] | [_]) => LssJob::Fastscan {
             step: ms(nums.first(), 100)?,
-            first: match nums.get(1) {
-                None => 1,
-                Some(&n) => u8::try_from(n)
-                    .ok()
-                    .filter(|n| (1..=127).contains(n))
-                    .ok_or(Failure::from(Internal::LssNodeId))?,
-            },
-            store: match nums.get(2) {
-                None | Some(0) => false,
-                Some(1) => true,
-                Some(_) => return Err(syntax("store is 0 or 1")),
-            },
+            parts: [FastscanPart::Scan; 4],
         },
+        ("lss_allnodes", [] | [_] | [_, _, _] | [_, _, _, _, _, _, _, _, _, _, _]) => {
+            LssJob::AllNodes {
+                step: ms(nums.first(), 100)?,
+                parts: scan_types(nums.get(3..).unwrap_or_default())?,
+                first: match nums.get(1) {
+                    None => 1,
+                    Some(&n) => u8::try_from(n)
+                        .ok()
+                        .filter(|n| (1..=127).contains(n))
+                        .ok_or(Failure::from(Internal::LssNodeId))?,
+                },
+                store: match nums.get(2) {
+                    None | Some(0) => false,
+                    Some(1) => true,
+                    Some(_) => return Err(syntax("store is 0 or 1")),
+                },
+            }
+        }
         (
             "lss_switch_glob"
             | "lss_switch_sel"
@@ -784,6 +800,24 @@ fn lss(verb: &str, args: &[&str]) -> Result<LssJob, Failure> {
         ) => return Err(syntax("wrong arguments")),
         _ => return Err(Internal::NotSupported.into()),
     })
+}
+
+/// `lss_allnodes`'s eight trailing numbers: scan type and value for each address part (none:
+/// scan every part).
+fn scan_types(words: &[i128]) -> Result<[FastscanPart; 4], Failure> {
+    let mut parts = [FastscanPart::Scan; 4];
+    for (part, pair) in parts.iter_mut().zip(words.chunks(2)) {
+        let value = pair.get(1).map(|v| u32::try_from(*v)).transpose();
+        let value = value.map_err(|_| syntax("an address part is 32 bits"))?;
+        *part = match (pair[0], value) {
+            (0, _) => FastscanPart::Scan,
+            (1, _) => FastscanPart::Skip,
+            (2, Some(v)) => FastscanPart::Match(v),
+            _ => return Err(syntax("scan type 0 (scan), 1 (skip) or 2 (match)")),
+        };
+    }
+    FastscanMaster::new(parts).map_err(|e| syntax(&e.to_string()))?;
+    Ok(parts)
 }
 
 /// The reply text of an LSS address.

@@ -312,6 +312,126 @@ pub fn fastscan_request(id: u32, bit_checked: u8, sub: u8, next: u8) -> Frame {
     )
 }
 
+/// What a Fastscan master does with one part of the LSS address (CiA 305 §6.7; the scan types
+/// of CiA 309-3's `lss_allnodes`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum FastscanPart {
+    /// Find it bit by bit (32 steps and a confirmation).
+    #[default]
+    Scan,
+    /// Leave it out: the slaves' value is not checked (reported as 0). Only the product code
+    /// and the revision can be left out: a slave starts at the vendor-ID and is selected by the
+    /// serial number's confirmation.
+    Skip,
+    /// Only slaves with this value (one confirmation step).
+    Match(u32),
+}
+
+/// Why a Fastscan cannot be run as asked.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error("Fastscan cannot skip the vendor-ID or the serial number")]
+pub struct FastscanSkipError;
+
+/// Where a Fastscan master stands.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum FastscanStep {
+    /// Is any unconfigured slave there at all (bit-checked 0x80)?
+    Reset,
+    /// Checking bit `bit` of part `sub` (the bit assumed 0; silence means 1).
+    Bit { sub: u8, bit: u8 },
+    /// Confirming the whole part `sub` and moving the slaves on to the next part.
+    Confirm { sub: u8 },
+}
+
+/// What the master learned from one step.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FastscanProgress {
+    /// Send [`FastscanMaster::request`] again after the step time.
+    Continue,
+    /// A slave is in configuration state with this address (skipped parts 0).
+    Found([u32; 4]),
+    /// No unconfigured slave (or none matching) answered.
+    NotFound,
+}
+
+/// The master's side of Fastscan, sans-IO: send [`Self::request`], wait one step time, tell
+/// [`Self::answered`] whether any slave answered, until it says found or not found.
+#[derive(Debug, Clone)]
+pub struct FastscanMaster {
+    parts: [FastscanPart; 4],
+    address: [u32; 4],
+    step: FastscanStep,
+}
+
+impl FastscanMaster {
+    /// A scan treating each address part as `parts` says.
+    pub fn new(parts: [FastscanPart; 4]) -> Result<Self, FastscanSkipError> {
+        if parts[0] == FastscanPart::Skip || parts[3] == FastscanPart::Skip {
+            return Err(FastscanSkipError);
+        }
+        Ok(FastscanMaster {
+            parts,
+            address: [0; 4],
+            step: FastscanStep::Reset,
+        })
+    }
+
+    /// The first part after `sub` that is not skipped (0 after the serial number).
+    fn next_part(&self, sub: u8) -> u8 {
+        (sub + 1..4)
+            .find(|&s| self.parts[usize::from(s)] != FastscanPart::Skip)
+            .unwrap_or(0)
+    }
+
+    /// The frame to send now.
+    pub fn request(&self) -> Frame {
+        match self.step {
+            FastscanStep::Reset => fastscan_request(0, 0x80, 0, 0),
+            FastscanStep::Bit { sub, bit } => {
+                fastscan_request(self.address[usize::from(sub)], bit, sub, sub)
+            }
+            FastscanStep::Confirm { sub } => {
+                fastscan_request(self.address[usize::from(sub)], 0, sub, self.next_part(sub))
+            }
+        }
+    }
+
+    /// Begin part `sub`: scan it, or confirm the value to match.
+    fn start(&mut self, sub: u8) -> FastscanStep {
+        match self.parts[usize::from(sub)] {
+            FastscanPart::Match(value) => {
+                self.address[usize::from(sub)] = value;
+                FastscanStep::Confirm { sub }
+            }
+            FastscanPart::Scan | FastscanPart::Skip => FastscanStep::Bit { sub, bit: 31 },
+        }
+    }
+
+    /// Whether any slave answered the last request within the step time.
+    pub fn answered(&mut self, answered: bool) -> FastscanProgress {
+        self.step = match self.step {
+            FastscanStep::Reset if answered => self.start(0),
+            FastscanStep::Bit { sub, bit } => {
+                if !answered {
+                    self.address[usize::from(sub)] |= 1 << bit;
+                }
+                match bit.checked_sub(1) {
+                    Some(bit) => FastscanStep::Bit { sub, bit },
+                    None => FastscanStep::Confirm { sub },
+                }
+            }
+            FastscanStep::Confirm { sub } if answered => match self.next_part(sub) {
+                0 => return FastscanProgress::Found(self.address),
+                next => self.start(next),
+            },
+            FastscanStep::Reset | FastscanStep::Confirm { .. } => {
+                return FastscanProgress::NotFound
+            }
+        };
+        FastscanProgress::Continue
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -407,25 +527,71 @@ mod tests {
         assert_eq!(other.state(), LssState::Waiting);
     }
 
-    /// The master side of Fastscan against a set of slaves on a simulated bus.
+    /// [`FastscanMaster`] against a set of slaves on a simulated bus.
+    fn fastscan_with(slaves: &mut [LssSlave], parts: [FastscanPart; 4]) -> Option<[u32; 4]> {
+        let mut master = FastscanMaster::new(parts).unwrap();
+        loop {
+            let request = master.request();
+            let answered = slaves.iter_mut().filter_map(|s| s.ask(&request).0).count() > 0;
+            match master.answered(answered) {
+                FastscanProgress::Continue => {}
+                FastscanProgress::Found(address) => return Some(address),
+                FastscanProgress::NotFound => return None,
+            }
+        }
+    }
+
     fn fastscan(slaves: &mut [LssSlave]) -> Option<[u32; 4]> {
-        let mut ask = |f: Frame| slaves.iter_mut().filter_map(|s| s.ask(&f).0).count() > 0;
-        if !ask(fastscan_request(0, 0x80, 0, 0)) {
-            return None;
-        }
-        let mut address = [0u32; 4];
-        for sub in 0..4u8 {
-            for bit in (0..32u8).rev() {
-                if !ask(fastscan_request(address[usize::from(sub)], bit, sub, sub)) {
-                    address[usize::from(sub)] |= 1 << bit;
-                }
-            }
-            let next = (sub + 1) % 4;
-            if !ask(fastscan_request(address[usize::from(sub)], 0, sub, next)) {
-                return None;
-            }
-        }
-        Some(address)
+        fastscan_with(slaves, [FastscanPart::Scan; 4])
+    }
+
+    #[test]
+    fn fastscan_matches_and_skips_parts() {
+        let other = [0x0000_041A, 0x0000_2000, 0x0003_0000, 0x0000_0001];
+        let mut slaves = vec![
+            LssSlave::new(ADDRESS, UNCONFIGURED),
+            LssSlave::new(other, UNCONFIGURED),
+        ];
+        let product = FastscanPart::Match(other[1]);
+        let parts = [
+            FastscanPart::Scan,
+            product,
+            FastscanPart::Skip,
+            FastscanPart::Scan,
+        ];
+        let found = fastscan_with(&mut slaves, parts).unwrap();
+        assert_eq!(found, [other[0], other[1], 0, other[3]], "revision skipped");
+        assert_eq!(slaves[1].state(), LssState::Configuration);
+        assert_eq!(slaves[0].state(), LssState::Waiting);
+        slaves[1].set_active_node_id(7);
+        slaves[1].ask(&request(cs::SWITCH_GLOBAL, [0; 7]));
+        assert_eq!(
+            fastscan_with(&mut slaves, parts),
+            None,
+            "no other of that product"
+        );
+        let vendor = [
+            FastscanPart::Match(ADDRESS[0]),
+            FastscanPart::Scan,
+            FastscanPart::Scan,
+            FastscanPart::Match(ADDRESS[3]),
+        ];
+        assert_eq!(fastscan_with(&mut slaves, vendor), Some(ADDRESS));
+        let skip = FastscanPart::Skip;
+        assert!(FastscanMaster::new([
+            skip,
+            FastscanPart::Scan,
+            FastscanPart::Scan,
+            FastscanPart::Scan
+        ])
+        .is_err());
+        assert!(FastscanMaster::new([
+            FastscanPart::Scan,
+            FastscanPart::Scan,
+            FastscanPart::Scan,
+            skip
+        ])
+        .is_err());
     }
 
     #[test]

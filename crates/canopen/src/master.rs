@@ -539,34 +539,28 @@ impl Master {
         &self,
         step: Duration,
     ) -> Result<Option<[u32; 4]>, BusError> {
-        use crate::lss::fastscan_request;
+        let all = crate::lss::FastscanMaster::new([crate::lss::FastscanPart::Scan; 4])
+            .unwrap_or_else(|_| unreachable!("nothing is skipped"));
+        self.lss_fastscan_parts(all, step).await
+    }
+
+    /// Fastscan with parts matched or skipped (CiA 309-3 `lss_allnodes` scan types): only
+    /// slaves of a known vendor or product, say, and fewer steps.
+    pub async fn lss_fastscan_parts(
+        &self,
+        mut scan: crate::lss::FastscanMaster,
+        step: Duration,
+    ) -> Result<Option<[u32; 4]>, BusError> {
+        use crate::lss::FastscanProgress;
         let _turn = self.lss_turn.lock().await;
-        if !self
-            .fastscan_step(fastscan_request(0, 0x80, 0, 0), step)
-            .await?
-        {
-            return Ok(None);
-        }
-        let mut address = [0u32; 4];
-        for sub in 0..4u8 {
-            let mut part = 0u32;
-            for bit in (0..32u8).rev() {
-                if !self
-                    .fastscan_step(fastscan_request(part, bit, sub, sub), step)
-                    .await?
-                {
-                    part |= 1 << bit;
-                }
-            }
-            address[usize::from(sub)] = part;
-            if !self
-                .fastscan_step(fastscan_request(part, 0, sub, (sub + 1) % 4), step)
-                .await?
-            {
-                return Ok(None);
+        loop {
+            let answered = self.fastscan_step(scan.request(), step).await?;
+            match scan.answered(answered) {
+                FastscanProgress::Continue => {}
+                FastscanProgress::Found(address) => return Ok(Some(address)),
+                FastscanProgress::NotFound => return Ok(None),
             }
         }
-        Ok(Some(address))
     }
 
     /// Subscribe to heartbeat and EMCY events.

@@ -43,6 +43,17 @@ pub struct GetQuery {
     /// Its data type, for nodes the gateway has no description of.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub datatype: Option<u32>,
+    /// The object's name, on `GET /api/v1/lifts/{id}/objects?name=…` (docs/PROTOCOL.md §Mplex).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub name: Option<String>,
+}
+
+/// The query of `PUT /api/v1/lifts/{id}/objects?name=…`.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct NameQuery {
+    /// The object's name (case-insensitive, a unique prefix is enough).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub name: Option<String>,
 }
 
 /// How much of an object a read returns (NXg §6.1.1–§6.1.3).

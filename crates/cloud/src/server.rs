@@ -12,6 +12,7 @@ use axum::routing::get;
 use axum::Router;
 use hyper_util::rt::TokioIo;
 use hyper_util::service::TowerToHyperService;
+use nxg::names::ObjectNames;
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
 
@@ -109,8 +110,9 @@ fn server_tls(config: &Config) -> Result<Arc<rustls::ServerConfig>, ServerError>
 }
 
 impl Portal {
-    /// Open the database, prepare TLS and bind the port.
-    pub async fn bind(config: &Config) -> Result<Portal, ServerError> {
+    /// Open the database, prepare TLS and bind the port. `names` are the object names operators
+    /// may use instead of an mplex (the `canlift` binary gives the CiA 417 catalog's).
+    pub async fn bind(config: &Config, names: ObjectNames) -> Result<Portal, ServerError> {
         std::fs::create_dir_all(&config.state.dir)
             .map_err(|e| ServerError::Other(format!("{}: {e}", config.state.dir.display())))?;
         let store = Store::open(&config.database_url()).await?;
@@ -174,6 +176,7 @@ impl Portal {
                     sessions: crate::web::Sessions::default(),
                     dashboard,
                     alarms,
+                    names: Arc::new(names),
                 });
                 api::routes(app.clone()).merge(crate::web::routes(app))
             });

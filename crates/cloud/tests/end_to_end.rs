@@ -117,6 +117,38 @@ async fn operator_reads_writes_and_watches_a_simulated_lift(database: Option<Str
             .await;
         assert_eq!((status, &same), (200, &trip), "{address}");
     }
+    // Names from the CiA 417 catalog, in the path or as ?name=, any case, a unique prefix.
+    for path in [
+        "objects/Trip%20counter?form=naked",
+        "objects/fahrtenz%C3%A4hler?form=naked",
+        "objects?name=TRIP%20COUNT&form=naked",
+    ] {
+        let url = format!("/api/v1/lifts/{lift}/{path}");
+        let (status, same) = client.call("GET", &url, Some(&key), None).await;
+        assert_eq!((status, &same), (200, &trip), "{path}");
+    }
+    let (status, e) = client
+        .call(
+            "GET",
+            &format!("/api/v1/lifts/{lift}/objects?name=car"),
+            Some(&key),
+            None,
+        )
+        .await;
+    let message = e["message"].as_str().unwrap_or_default();
+    assert_eq!(status, 400, "{e}");
+    assert!(
+        message.contains("objects:"),
+        "an ambiguous name lists them: {message}"
+    );
+    for missing in ["objects", "objects?name=no%20such%20object"] {
+        let url = format!("/api/v1/lifts/{lift}/{missing}");
+        assert_eq!(
+            client.call("GET", &url, Some(&key), None).await.0,
+            400,
+            "{missing}"
+        );
+    }
     let bad = format!("/api/v1/lifts/{lift}/objects/0x6520:300");
     assert_eq!(client.call("GET", &bad, Some(&key), None).await.0, 400);
     // NXg errors as 4xx with code, message, data.
@@ -158,7 +190,7 @@ async fn operator_reads_writes_and_watches_a_simulated_lift(database: Option<Str
     let (status, e) = client
         .call(
             "PUT",
-            &format!("/api/v1/lifts/{lift}/objects/0x411200"),
+            &format!("/api/v1/lifts/{lift}/objects?name=hall%20lantern%20options"),
             Some(&key),
             Some(json!({"value": "1", "datatype": 5, "physunit": 0})),
         )
@@ -220,6 +252,12 @@ async fn operator_reads_writes_and_watches_a_simulated_lift(database: Option<Str
     assert!(entries
         .iter()
         .any(|e| e["action"] == "elevate" && e["result"] == "error 134217760"));
+    assert!(
+        entries
+            .iter()
+            .any(|e| e["object"] == "0x411200" && e["result"] == "error 134217761"),
+        "a put by name is audited under its mplex: {entries:?}"
+    );
     let (_, other_audit) = client
         .call("GET", "/api/v1/audit", Some(&other), None)
         .await;

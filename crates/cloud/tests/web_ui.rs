@@ -363,9 +363,11 @@ async fn operator_uses_the_web_ui() {
     assert_eq!(assets[2], json!(304), "{assets}");
     assert_eq!(assets[3], json!([200, "image/svg+xml", "no-cache"]));
 
-    // Reading any object by its mplex.
+    // Reading any object, here by (a prefix of) its German name.
     client
-        .goto(&format!("{base}/lifts/{LIFT}?read=0x411200&lang=de"))
+        .goto(&format!(
+            "{base}/lifts/{LIFT}?read=optionen%20der%20etagen&lang=de"
+        ))
         .await
         .unwrap();
     let name = until("object read in German", 10, || {
@@ -377,9 +379,9 @@ async fn operator_uses_the_web_ui() {
     .await;
     assert_eq!(name, "Optionen der Etagenrichtungsanzeige");
 
-    // History chart of the trip counter.
+    // History chart of the trip counter, asked for by name.
     client
-        .goto(&format!("{base}/lifts/{LIFT}/history?mplex=0x652001"))
+        .goto(&format!("{base}/lifts/{LIFT}/history?mplex=Trip%20counter"))
         .await
         .unwrap();
     let points = eval(

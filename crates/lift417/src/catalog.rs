@@ -18,6 +18,8 @@ use canopen::sdo::abort::AbortCode;
 use canopen::types::{self, DataType, Value};
 use nxg::gateway::Lookup;
 use nxg::meta::{self, Access, Bound, Description, FormType, Hints, PhysUnit, Privilege, Texts};
+use nxg::mplex::Mplex;
+use nxg::names::ObjectNames;
 use serde::Deserialize;
 
 use crate::lift::{self, MAX_LIFTS};
@@ -131,7 +133,7 @@ impl Entry {
     /// The mplex text of this entry for `index` (`0x` + upper-case hex, docs/PROTOCOL.md
     /// §Mplex).
     pub fn mplex(index: u16, sub: u8) -> String {
-        nxg::mplex::Mplex { index, sub }.to_string()
+        Mplex { index, sub }.to_string()
     }
 
     /// The CiA 301 type of the values.
@@ -669,6 +671,33 @@ impl Catalog {
     pub fn object_texts(&self, device: Option<Device>, index: u16) -> Option<(Texts, Texts)> {
         let object = self.object_on(device, index)?;
         Some((object.name.clone(), object.hint.clone()))
+    }
+
+    /// Every entry's name in every language (English first), for lift 1: what operators may
+    /// type instead of an mplex (docs/PROTOCOL.md §Mplex).
+    pub fn names(&self) -> ObjectNames {
+        let mut names = ObjectNames::new();
+        let languages = std::iter::once("en").chain(
+            self.languages
+                .iter()
+                .map(String::as_str)
+                .filter(|l| *l != "en"),
+        );
+        let languages: Vec<&str> = languages.collect();
+        for object in self.objects() {
+            for entry in object.entries() {
+                let mplex = Mplex {
+                    index: object.index,
+                    sub: entry.sub,
+                };
+                for lang in &languages {
+                    if let Some(name) = entry.description.name.get(lang) {
+                        names.push(name, mplex);
+                    }
+                }
+            }
+        }
+        names
     }
 
     fn check_lift_collisions(&self) -> Result<(), CatalogError> {

@@ -15,6 +15,7 @@ pub mod gateway;
 pub mod meta;
 pub mod mplex;
 pub mod msg;
+pub mod names;
 pub mod portal;
 
 use std::time::Duration;

@@ -64,7 +64,9 @@ impl Builder {
         config.server.listen = "127.0.0.1:0".parse().expect("an address");
         config.state.dir = dir.path().join("portal");
         (self.portal)(&mut config);
-        let portal = Portal::bind(&config).await.expect("the portal binds");
+        let portal = Portal::bind(&config, lift417::catalog::Catalog::builtin().names())
+            .await
+            .expect("the portal binds");
         let addr = portal.local_addr();
         let registry = portal.registry();
         let store = Store::open(&config.database_url())
@@ -204,7 +206,9 @@ impl Rig {
         }
         let mut config = self.config.clone();
         config.server.listen = self.addr;
-        let portal = Portal::bind(&config).await.expect("the portal binds again");
+        let portal = Portal::bind(&config, lift417::catalog::Catalog::builtin().names())
+            .await
+            .expect("the portal binds again");
         self.registry = portal.registry();
         let (stop, stopped) = watch::channel(false);
         self.portal = Some((stop, tokio::spawn(portal.run(stopped))));

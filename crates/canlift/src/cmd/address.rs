@@ -4,24 +4,20 @@
 //! or German, a unique prefix is enough). The data type comes with a name, and for numeric
 //! addresses from the same sources when they describe the object.
 
+use std::collections::BTreeMap;
 use std::path::Path;
 
 use anyhow::{bail, Context};
 use canopen::types::{self, DataType};
 use lift417::catalog::Catalog;
 use nxg::mplex::Mplex;
-
-/// One nameable object.
-struct Named {
-    /// The name as shown.
-    name: String,
-    index: u16,
-    sub: u8,
-    data_type: DataType,
-}
+use nxg::names::ObjectNames;
 
 /// Where names and types come from: an EDS, or the catalog.
-pub struct Names(Vec<Named>);
+pub struct Names {
+    names: ObjectNames,
+    types: BTreeMap<Mplex, DataType>,
+}
 
 /// An address resolved.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -35,48 +31,47 @@ pub struct Resolved {
 impl Names {
     /// The objects of the CiA 417 catalog (lift 1), with their English and German names.
     pub fn catalog() -> Self {
-        let mut named = Vec::new();
-        for object in Catalog::builtin().objects() {
-            for entry in object.entries() {
-                for lang in ["en", "de"] {
-                    if let Some(name) = entry.description.name.get(lang) {
-                        named.push(Named {
-                            name: name.to_owned(),
-                            index: object.index,
-                            sub: entry.sub,
-                            data_type: entry.value_type(),
-                        });
-                    }
-                }
-            }
+        let catalog = Catalog::builtin();
+        let types = catalog
+            .objects()
+            .flat_map(|object| {
+                object.entries().map(|entry| {
+                    let mplex = Mplex {
+                        index: object.index,
+                        sub: entry.sub,
+                    };
+                    (mplex, entry.value_type())
+                })
+            })
+            .collect();
+        Names {
+            names: catalog.names(),
+            types,
         }
-        Names(named)
     }
 
     /// The objects an EDS or DCF describes (`Object / Sub` for the sub-objects of a record
     /// or array, and the sub-object's own name).
     pub fn eds(path: &Path) -> anyhow::Result<Self> {
         let description = canopen::eds::import_file(path, None)?;
-        let mut named = Vec::new();
+        let mut names = ObjectNames::new();
+        let mut types = BTreeMap::new();
         for object in description.od.objects() {
             for (&sub, var) in &object.subs {
-                let mut add = |name: String| {
-                    named.push(Named {
-                        name,
-                        index: object.index,
-                        sub,
-                        data_type: var.data_type,
-                    })
+                let mplex = Mplex {
+                    index: object.index,
+                    sub,
                 };
+                types.insert(mplex, var.data_type);
                 if object.subs.len() == 1 {
-                    add(object.name.clone());
+                    names.push(object.name.clone(), mplex);
                 } else {
-                    add(format!("{} / {}", object.name, var.name));
-                    add(var.name.clone());
+                    names.push(format!("{} / {}", object.name, var.name), mplex);
+                    names.push(var.name.clone(), mplex);
                 }
             }
         }
-        Ok(Names(named))
+        Ok(Names { names, types })
     }
 
     /// The EDS given, else the catalog.
@@ -87,82 +82,22 @@ impl Names {
         }
     }
 
-    fn named(&self, mplex: Mplex) -> Option<&Named> {
-        self.0
-            .iter()
-            .find(|n| n.index == mplex.index && n.sub == mplex.sub)
-    }
-
-    fn data_type(&self, mplex: Mplex) -> Option<DataType> {
-        self.named(mplex).map(|n| n.data_type)
-    }
-
     /// The name of (index, sub): English first for the catalog, `Object / Sub` for the
     /// sub-objects of an EDS's records and arrays.
     pub fn name_of(&self, index: u16, sub: u8) -> Option<&str> {
-        self.named(Mplex { index, sub }).map(|n| n.name.as_str())
+        self.names.name_of(Mplex { index, sub })
     }
 
-    /// The object named `text`: an exact name, or the only object whose name starts with it.
-    fn by_name(&self, text: &str) -> anyhow::Result<Resolved> {
-        let wanted = text.trim().to_lowercase();
-        let found = |exact: bool| {
-            let mut hits: Vec<&Named> = self
-                .0
-                .iter()
-                .filter(|n| {
-                    let name = n.name.to_lowercase();
-                    if exact {
-                        name == wanted
-                    } else {
-                        name.starts_with(&wanted)
-                    }
-                })
-                .collect();
-            hits.sort_by_key(|n| (n.index, n.sub));
-            hits.dedup_by_key(|n| (n.index, n.sub));
-            hits
-        };
-        let exact = found(true);
-        let hits = if exact.is_empty() {
-            found(false)
-        } else {
-            exact
-        };
-        match hits.as_slice() {
-            [one] => Ok(Resolved {
-                mplex: Mplex {
-                    index: one.index,
-                    sub: one.sub,
-                },
-                data_type: Some(one.data_type),
-            }),
-            [] => bail!("{text:?} is neither an object address (0x652001, 0x6520:1) nor the name of an object"),
-            many => {
-                let list: Vec<String> = many
-                    .iter()
-                    .take(8)
-                    .map(|n| format!("{} ({})", n.name, Mplex { index: n.index, sub: n.sub }))
-                    .collect();
-                bail!(
-                    "{text:?} names {} objects: {}{}",
-                    many.len(),
-                    list.join(", "),
-                    if many.len() > 8 { ", …" } else { "" }
-                )
-            }
+    fn resolved(&self, mplex: Mplex) -> Resolved {
+        Resolved {
+            mplex,
+            data_type: self.types.get(&mplex).copied(),
         }
     }
 
     /// Resolve one word: an address form, else a name.
     pub fn resolve(&self, text: &str) -> anyhow::Result<Resolved> {
-        match Mplex::parse_address(text) {
-            Ok(mplex) if looks_numeric(text) => Ok(Resolved {
-                mplex,
-                data_type: self.data_type(mplex),
-            }),
-            _ => self.by_name(text),
-        }
+        Ok(self.resolved(self.names.resolve(text)?))
     }
 
     /// Resolve the words after the node: `INDEX SUB [TYPE]` (the classic form) or
@@ -185,23 +120,13 @@ impl Names {
             if words.len() > 3 {
                 bail!("too many words after the node: {words:?}");
             }
-            let resolved = Resolved {
-                mplex,
-                data_type: self.data_type(mplex),
-            };
-            return Ok((resolved, words.get(2).map(String::as_str)));
+            return Ok((self.resolved(mplex), words.get(2).map(String::as_str)));
         }
         if words.len() > 2 {
             bail!("too many words after the node: {words:?} (quote a name with spaces)");
         }
         Ok((self.resolve(first)?, words.get(1).map(String::as_str)))
     }
-}
-
-/// Whether the text is meant as a number (so `add` or `bad` are names, not hex).
-fn looks_numeric(text: &str) -> bool {
-    let t = text.trim().to_ascii_lowercase();
-    t.starts_with("0x") || t.bytes().next().is_some_and(|b| b.is_ascii_digit())
 }
 
 #[cfg(test)]

@@ -11,6 +11,7 @@ use canopen::ascii::{
     format_address, AsciiType, Failure, Internal, Job, LssJob, Outcome, Reply, Session, Step,
 };
 use canopen::driver::{ClientError, TransferOptions};
+use canopen::lss::{FastscanMaster, FastscanPart};
 use canopen::master::{LssError, Master};
 use canopen::sdo::client::{ClientConfig, Transfer};
 use tokio::io::{AsyncBufReadExt, AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt, BufReader};
@@ -281,24 +282,48 @@ pub(crate) async fn run_lss(master: &Master, job: &LssJob) -> Outcome {
             Ok(id) => Outcome::Value(id.to_string()),
             Err(e) => lss_failure(e, Internal::LssManufacturer),
         },
-        LssJob::Fastscan(step) => match master.lss_fastscan_with_step(step).await {
+        LssJob::Fastscan { step, parts } => match fastscan(master, parts, step).await {
             Ok(Some(address)) => Outcome::Value(format_address(address)),
             Ok(None) => internal(Internal::Timeout, &"no unconfigured node answered"),
-            Err(e) => lss_failure(e.into(), Internal::LssManufacturer),
+            Err(failed) => failed,
         },
-        LssJob::AllNodes { step, first, store } => all_nodes(master, step, first, store).await,
+        LssJob::AllNodes {
+            step,
+            parts,
+            first,
+            store,
+        } => all_nodes(master, step, parts, first, store).await,
     }
+}
+
+/// One Fastscan (the parts were checked when the command was parsed).
+async fn fastscan(
+    master: &Master,
+    parts: [FastscanPart; 4],
+    step: Duration,
+) -> Result<Option<[u32; 4]>, Outcome> {
+    let scan = FastscanMaster::new(parts).map_err(|e| internal(Internal::Syntax, &e))?;
+    master
+        .lss_fastscan_parts(scan, step)
+        .await
+        .map_err(|e| lss_failure(e.into(), Internal::LssManufacturer))
 }
 
 /// `lss_allnodes` (and `canlift lss fastscan --assign`): Fastscan one unconfigured node after the other and give each the next
 /// node-ID from `first` (storing it if asked); one line per node, then OK.
-async fn all_nodes(master: &Master, step: Duration, first: u8, store: bool) -> Outcome {
+async fn all_nodes(
+    master: &Master,
+    step: Duration,
+    parts: [FastscanPart; 4],
+    first: u8,
+    store: bool,
+) -> Outcome {
     let mut lines = Vec::new();
     for id in first..=127 {
-        let address = match master.lss_fastscan_with_step(step).await {
+        let address = match fastscan(master, parts, step).await {
             Ok(Some(address)) => address,
             Ok(None) => break,
-            Err(e) => return lss_failure(e.into(), Internal::LssManufacturer),
+            Err(failed) => return failed,
         };
         if let Err(e) = master.lss_configure_node_id(id).await {
             return lss_failure(e, Internal::LssNodeId);

@@ -72,7 +72,9 @@ pub async fn run(args: CloudArgs) -> anyhow::Result<()> {
             Ok(())
         }
         None => {
-            let portal = Portal::bind(&config).await.context("starting the portal")?;
+            let portal = Portal::bind(&config, lift417::catalog::Catalog::builtin().names())
+                .await
+                .context("starting the portal")?;
             tracing::info!(listen = %portal.local_addr(), database = %config.database_url(), "portal running");
             let (stop, stopped) = tokio::sync::watch::channel(false);
             let task = tokio::spawn(portal.run(stopped));

@@ -98,7 +98,7 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
     let mut portal_config = cloud::config::Config::default();
     portal_config.server.listen = args.portal_listen;
     portal_config.state.dir = dir.join("portal");
-    let portal = Portal::bind(&portal_config)
+    let portal = Portal::bind(&portal_config, lift417::catalog::Catalog::builtin().names())
         .await
         .with_context(|| format!("starting the portal on {}", args.portal_listen))?;
     let portal_addr = portal.local_addr();

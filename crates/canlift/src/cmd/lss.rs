@@ -8,6 +8,7 @@ use anyhow::{bail, Context};
 
 use super::parse_number;
 use canopen::ascii::{LssJob, Outcome, Reply};
+use canopen::lss::FastscanPart;
 use canopen::master::Master;
 use canopen::sdo::client::ClientConfig;
 
@@ -74,7 +75,38 @@ enum LssOp {
         /// How long each of the scan's 133 steps listens, in milliseconds.
         #[arg(long, default_value_t = 50)]
         step_ms: u64,
+        /// Only nodes of this vendor-ID (checked in one step instead of 33).
+        #[arg(long)]
+        vendor: Option<String>,
+        /// Only nodes with this product code.
+        #[arg(long, conflicts_with = "skip_product")]
+        product: Option<String>,
+        /// Only nodes with this revision number.
+        #[arg(long, conflicts_with = "skip_revision")]
+        revision: Option<String>,
+        /// Only the node with this serial number.
+        #[arg(long)]
+        serial: Option<String>,
+        /// Do not look at product codes (reported as 0).
+        #[arg(long)]
+        skip_product: bool,
+        /// Do not look at revision numbers (reported as 0).
+        #[arg(long)]
+        skip_revision: bool,
     },
+}
+
+/// What Fastscan does with each part of the address: match the value given, skip, or scan.
+fn scan_parts(given: [(&str, Option<String>, bool); 4]) -> anyhow::Result<[FastscanPart; 4]> {
+    let mut parts = [FastscanPart::Scan; 4];
+    for (part, (what, value, skip)) in parts.iter_mut().zip(given) {
+        *part = match (value, skip) {
+            (Some(v), _) => FastscanPart::Match(parse_number(what, &v)?),
+            (None, true) => FastscanPart::Skip,
+            (None, false) => FastscanPart::Scan,
+        };
+    }
+    Ok(parts)
 }
 
 /// Run one service and print its answer.
@@ -113,14 +145,29 @@ pub async fn run(args: LssArgs) -> anyhow::Result<()> {
             assign,
             store,
             step_ms,
+            vendor,
+            product,
+            revision,
+            serial,
+            skip_product,
+            skip_revision,
         } => {
             let step = Duration::from_millis(step_ms.clamp(1, 10_000));
+            let parts = scan_parts([
+                ("vendor-ID", vendor, false),
+                ("product code", product, skip_product),
+                ("revision", revision, skip_revision),
+                ("serial", serial, false),
+            ])?;
             match assign {
-                Some(first) if (1..=127).contains(&first) => {
-                    vec![LssJob::AllNodes { step, first, store }]
-                }
+                Some(first) if (1..=127).contains(&first) => vec![LssJob::AllNodes {
+                    step,
+                    parts,
+                    first,
+                    store,
+                }],
                 Some(first) => bail!("--assign {first} is outside 1–127"),
-                None => vec![LssJob::Fastscan(step)],
+                None => vec![LssJob::Fastscan { step, parts }],
             }
         }
     };
@@ -139,7 +186,7 @@ pub async fn run(args: LssArgs) -> anyhow::Result<()> {
             }
         }
     }
-    if matches!(jobs.as_slice(), [LssJob::Fastscan(_)]) {
+    if matches!(jobs.as_slice(), [LssJob::Fastscan { .. }]) {
         eprintln!(
             "(the node found is in configuration state: `canlift lss set-node ID` gives it a node-ID; `fastscan --assign FROM` configures every unconfigured node)"
         );

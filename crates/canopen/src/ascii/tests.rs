@@ -180,16 +180,44 @@ fn lss_commands() {
     assert_eq!(lss("lss_get_node"), LssJob::GetNode);
     assert_eq!(
         lss("_lss_fastscan 50"),
-        LssJob::Fastscan(Duration::from_millis(50))
+        LssJob::Fastscan {
+            step: Duration::from_millis(50),
+            parts: [FastscanPart::Scan; 4]
+        }
     );
     assert_eq!(
         lss("lss_allnodes 50 10 1"),
         LssJob::AllNodes {
             step: Duration::from_millis(50),
+            parts: [FastscanPart::Scan; 4],
             first: 10,
             store: true
         }
     );
+    assert_eq!(
+        lss("lss_allnodes 50 10 0 2 0x41A 0 0 1 0 0 0"),
+        LssJob::AllNodes {
+            step: Duration::from_millis(50),
+            parts: [
+                FastscanPart::Match(0x41A),
+                FastscanPart::Scan,
+                FastscanPart::Skip,
+                FastscanPart::Scan
+            ],
+            first: 10,
+            store: false
+        }
+    );
+    for bad in [
+        "lss_allnodes 50 10 0 1 0 0 0 0 0 0 0",
+        "lss_allnodes 50 10 0 0 0 0 0 0 0 1 0",
+        "lss_allnodes 50 10 0 3 0 0 0 0 0 0 0",
+        "lss_allnodes 50 10 0 2 0x100000000 0 0 0 0 0 0",
+        "lss_allnodes 50 10 0 2 0",
+    ] {
+        let answer = reply(&mut session(), bad);
+        assert!(answer.starts_with("ERROR: 101"), "{bad}: {answer}");
+    }
 }
 
 #[test]

@@ -23,14 +23,15 @@ use nxg::msg::{
     Done, ElevateAnswer, ElevateParams, ErrorObject, GetObject, GetParams, Lang, MplexText, NodeId,
     NodeRef, ObjectAnswer, PutAnswer, PutObject, PutParams, RegParams, UnregParams,
 };
+use nxg::names::ObjectNames;
 use nxg::portal::Failure;
 use serde::de::DeserializeOwned;
 
 use crate::config::Dashboard;
 use crate::gateways::Registry;
 use crate::rest::{
-    Form, GetQuery, History, HistoryPoint, HistoryQuery, LiftSummary, PrivilegeBody, PutBody,
-    SubscriptionBody,
+    Form, GetQuery, History, HistoryPoint, HistoryQuery, LiftSummary, NameQuery, PrivilegeBody,
+    PutBody, SubscriptionBody,
 };
 use crate::store::{self, Account, AuditEntry, Store};
 use crate::web::Sessions;
@@ -47,6 +48,8 @@ pub struct App {
     pub dashboard: Arc<Dashboard>,
     /// Alarms.
     pub alarms: Arc<crate::alarms::Alarms>,
+    /// Object names operators may use instead of an mplex (`?name=`, path, web forms).
+    pub names: Arc<ObjectNames>,
 }
 
 /// An error answer: the status and an error object.
@@ -179,16 +182,19 @@ async fn lift_of(app: &App, caller: Caller, id: &str) -> Result<Account, ApiErro
     Ok(account)
 }
 
-/// The object of a path: an mplex as the gateway spells it is passed on as written (its answer
-/// echoes it); the other address forms (`0x6520:1`, `6520sub1`) in the gateway's spelling.
-fn mplex(text: &str) -> Result<MplexText, ApiError> {
+/// The object of a path or `?name=`: an mplex as the gateway spells it is passed on as written
+/// (its answer echoes it); the other address forms (`0x6520:1`, `6520sub1`) and object names
+/// (`Trip counter`: case-insensitive, a unique prefix) in the gateway's spelling
+/// (docs/PROTOCOL.md §Mplex).
+pub(crate) fn mplex(names: &ObjectNames, text: &str) -> Result<MplexText, ApiError> {
     use nxg::mplex::Mplex;
     match Mplex::parse(text) {
         Ok(mplex) => Ok(MplexText {
             mplex,
             text: text.to_owned(),
         }),
-        Err(_) => Mplex::parse_address(text)
+        Err(_) => names
+            .resolve(text)
             .map(MplexText::from)
             .map_err(|e| error(StatusCode::BAD_REQUEST, e.to_string())),
     }
@@ -245,7 +251,7 @@ async fn get_object(
         q.lang.as_deref().unwrap_or("en"),
         q.alt_lang.as_deref().unwrap_or("en"),
     );
-    let mut params = read_params(mplex(&text)?, lang, q.form.unwrap_or_default());
+    let mut params = read_params(mplex(&app.names, &text)?, lang, q.form.unwrap_or_default());
     params.object.compact = q.compact.unwrap_or(false);
     params.node = node(q.node, q.net)?.map(|n| NodeRef {
         datatype: q.datatype,
@@ -261,7 +267,7 @@ async fn put_object(
     ApiJson(body): ApiJson<PutBody>,
 ) -> Result<Json<PutAnswer>, ApiError> {
     let account = lift_of(&app, caller, &id).await?;
-    let object = mplex(&text)?;
+    let object = mplex(&app.names, &text)?;
     let sernum = app.registry.sernum(&id).ok_or(Failure::Gone)?;
     let node = node(body.node, body.net)?;
     // The value before, for the audit log (best effort: a write-only object has none).
@@ -294,13 +300,45 @@ async fn put_object(
         account: account.name,
         lift: id,
         action: "put".into(),
-        object: text,
+        object: params.object.mplex.text.clone(),
         old_value: old,
         new_value: body.value,
         result: outcome(&result),
     };
     app.store.audit(&entry).await?;
     Ok(Json(result?))
+}
+
+/// The name of `…/objects?name=NAME`.
+fn named(name: Option<String>) -> Result<String, ApiError> {
+    name.ok_or_else(|| {
+        error(
+            StatusCode::BAD_REQUEST,
+            "name: give ?name=OBJECT, or the object's address in the path",
+        )
+    })
+}
+
+/// `GET …/objects?name=Trip%20counter`: [`get_object`] by name.
+async fn get_named(
+    app: State<Arc<App>>,
+    caller: Caller,
+    Path(id): Path<String>,
+    ApiQuery(q): ApiQuery<GetQuery>,
+) -> Result<Json<ObjectAnswer>, ApiError> {
+    let name = named(q.name.clone())?;
+    get_object(app, caller, Path((id, name)), ApiQuery(q)).await
+}
+
+/// `PUT …/objects?name=Trip%20counter`: [`put_object`] by name.
+async fn put_named(
+    app: State<Arc<App>>,
+    caller: Caller,
+    Path(id): Path<String>,
+    ApiQuery(q): ApiQuery<NameQuery>,
+    body: ApiJson<PutBody>,
+) -> Result<Json<PutAnswer>, ApiError> {
+    put_object(app, caller, Path((id, named(q.name)?)), body).await
 }
 
 /// What the audit log says about a gateway request's outcome.
@@ -354,7 +392,7 @@ async fn subscriptions(
     let list = body
         .mplex
         .iter()
-        .map(|m| mplex(m))
+        .map(|m| mplex(&app.names, m))
         .collect::<Result<Vec<_>, _>>()?;
     let done = if method == Method::DELETE {
         let params = UnregParams {
@@ -414,7 +452,7 @@ async fn history(
     ApiQuery(q): ApiQuery<HistoryQuery>,
 ) -> Result<Json<History>, ApiError> {
     lift_of(&app, caller, &id).await?;
-    let m = mplex(&text)?.mplex.to_string();
+    let m = mplex(&app.names, &text)?.mplex.to_string();
     let rows = app
         .store
         .history(&id, &m, q.from.unwrap_or(0), q.to.unwrap_or(i64::MAX))
@@ -453,6 +491,7 @@ pub fn routes(app: Arc<App>) -> Router {
     Router::new()
         .route("/api/v1/openapi.json", get(openapi))
         .route("/api/v1/lifts", get(lifts))
+        .route("/api/v1/lifts/{id}/objects", get(get_named).put(put_named))
         .route(
             "/api/v1/lifts/{id}/objects/{mplex}",
             get(get_object).put(put_object),

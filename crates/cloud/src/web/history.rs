@@ -71,12 +71,15 @@ pub(super) async fn history_page(
     if let Err(r) = owned(&app, &session, &id).await {
         return r;
     }
-    let Ok(mplex) = nxg::mplex::Mplex::parse_address(&q.mplex) else {
-        return problem(
-            StatusCode::BAD_REQUEST,
-            Some(&session),
-            "mplex: an object address, e.g. 0x652001 or 0x6520:1.",
-        );
+    let mplex = match app.names.resolve(&q.mplex) {
+        Ok(mplex) => mplex,
+        Err(e) => {
+            return problem(
+                StatusCode::BAD_REQUEST,
+                Some(&session),
+                &format!("mplex: {e}"),
+            )
+        }
     };
     let mplex = mplex.to_string();
     let minutes = q.minutes.unwrap_or(60).clamp(1, 31 * 24 * 60);

@@ -284,7 +284,7 @@ pub(super) async fn lift_page(
     let lang = language(q.lang.as_deref(), &headers);
     let (live, parameters) = (&app.dashboard.live, &app.dashboard.parameters);
     let asked = q.read.as_deref().map(str::trim).filter(|r| !r.is_empty());
-    let read = asked.map(Mplex::parse_address);
+    let read = asked.map(|text| app.names.resolve(text));
     let live_keys: Vec<String> = live.iter().map(ToString::to_string).collect();
     let stored = match app.store.latest(&id, &live_keys).await {
         Ok(s) => s,
@@ -343,8 +343,8 @@ pub(super) async fn lift_page(
         (table(&id, &parameter_objects))
         h2 { "Read an object" }
         form.read method="get" {
-            input name="read" placeholder="0x652001" value=(asked.unwrap_or_default())
-                pattern="(0[xX])?[0-9A-Fa-f]{6}" required;
+            input name="read" placeholder="0x652001, 0x6520:1 or a name"
+                value=(asked.unwrap_or_default()) required;
             input type="hidden" name="lang" value=(lang);
             button { "Read" }
         }
