@@ -339,6 +339,8 @@ pub fn encode(ty: DataType, value: &Value) -> Result<Vec<u8>, TypeError> {
             // ISO 8859-1: every char below 0x100 is one byte.
             Ok(s.chars().map(|c| c as u8).collect())
         }
+        // A NUL would end the string for every reader (and for [`decode`]).
+        (UnicodeString, Value::Text(s)) if s.contains('\0') => Err(invalid(ty, s)),
         (UnicodeString, Value::Text(s)) => {
             Ok(s.encode_utf16().flat_map(u16::to_le_bytes).collect())
         }
@@ -777,6 +779,11 @@ mod tests {
         assert!(
             from_text(DataType::VisibleString, "✓").is_err(),
             "not ISO 8859-1"
+        );
+        // Found by the `values` fuzz target: a NUL in a UNICODE_STRING did not survive the bus.
+        assert!(
+            from_text(DataType::UnicodeString, "\0\u{3}").is_err(),
+            "a NUL ends the string on the bus"
         );
         assert!(
             from_text(DataType::TimeOfDay, "1983-12-31T00:00:00").is_err(),

@@ -272,9 +272,21 @@ pub fn encode_send(frame: &Frame, out: &mut String) {
     out.push('>');
 }
 
-/// Append `< frame ID SECS.USECS DATA >` for `frame` seen at `at`.
+/// Append `< frame ID SECS.USECS DATA >` for `frame` seen at `at`, or `< error CAN_ID
+/// SECS.USECS >` for an error frame (the raw `can_id` with the error flag, as socketcand
+/// writes it; its syntax carries no error details).
 pub fn encode_frame(frame: &Frame, at: SystemTime, out: &mut String) {
     let since = at.duration_since(UNIX_EPOCH).unwrap_or_default();
+    if frame.is_error() {
+        let _ = write!(
+            out,
+            "< error {:08X} {}.{:06} >",
+            frame.raw_id(),
+            since.as_secs(),
+            since.subsec_micros()
+        );
+        return;
+    }
     let _ = write!(
         out,
         "< frame {} {}.{:06} ",
@@ -382,6 +394,14 @@ mod tests {
             vec![Ok(Message::Error("could not open bus".into()))]
         );
         let msgs = decode_all(b"< error 20000004 12.000001 >");
+        // Found by the `socketcand` fuzz target: an error frame was re-encoded as a data frame.
+        let Some(Ok(Message::Frame(error))) = msgs.first() else {
+            panic!("{msgs:?}")
+        };
+        let mut text = String::new();
+        encode_frame(error, error.timestamp().unwrap_or(UNIX_EPOCH), &mut text);
+        assert_eq!(text, "< error 20000004 12.000001 >");
+        assert_eq!(decode_all(text.as_bytes()), msgs);
         let Ok(Message::Frame(f)) = &msgs[0] else {
             panic!("{msgs:?}")
         };
