@@ -36,12 +36,16 @@ async fn start(state: &std::path::Path) -> Demo {
         .unwrap();
     let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
     let mut printed = HashMap::new();
-    while printed.len() < 3 {
+    let mut example = None;
+    while printed.len() < 3 || example.is_none() {
         let line = tokio::time::timeout(Duration::from_secs(60), lines.next_line())
             .await
             .expect("the demo prints its summary")
             .unwrap()
             .expect("the demo is running");
+        if line.contains(" get ") {
+            example = Some(line.clone());
+        }
         let mut words = line.split_whitespace();
         if let (Some(k @ ("portal" | "API" | "CA")), Some(v)) = (words.next(), words.next()) {
             let v = if k == "API" {
@@ -53,6 +57,16 @@ async fn start(state: &std::path::Path) -> Demo {
         }
     }
     tokio::spawn(async move { while let Ok(Some(_)) = lines.next_line().await {} });
+    // The example commands name a binary the user can run: `canlift` on the PATH, else its path.
+    let example = example.unwrap_or_default();
+    let command = example.split_whitespace().next().unwrap_or_default();
+    let runs_this = command == "canlift"
+        || std::fs::canonicalize(command).ok()
+            == std::fs::canonicalize(env!("CARGO_BIN_EXE_canlift")).ok();
+    assert!(
+        runs_this,
+        "the banner's example does not run this binary: {example}"
+    );
     let ca = std::path::PathBuf::from(&printed["CA"]);
     let client = Client::new(&printed["portal"], Some(&printed["API"]), Some(&ca)).unwrap();
     Demo { child, client }

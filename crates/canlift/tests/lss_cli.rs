@@ -46,7 +46,7 @@ async fn lss_from_the_command_line() {
     let bus = testkit::hub_url(&hub, "can0");
     let dir = testkit::scratch();
     let mut nodes = Vec::new();
-    for (product, serial) in [(0x77u32, 0x31u32), (0x77, 0x32), (0x78, 0x33)] {
+    for (product, serial) in [(0x77u32, 0x31u32), (0x77, 0x32), (0x78, 0x33), (0x78, 0x34)] {
         let config = NodeConfig {
             identity: [0x41A, product, 2, serial],
             storage: Some(dir.path().join(format!("node-{serial:x}.params"))),
@@ -108,8 +108,11 @@ async fn lss_from_the_command_line() {
     .await);
     assert_eq!(
         assigned,
-        "# node 31: 0x0000041A 0x00000078 0x00000002 0x00000033\n# 1 node(s) configured\n"
+        "# node 31: 0x0000041A 0x00000078 0x00000002 0x00000033\n\
+         # node 32: 0x0000041A 0x00000078 0x00000002 0x00000034\n\
+         # 2 node(s) configured\n"
     );
+    assert_eq!(serial_of(&bus, 32).await, "0x00000034");
     assert_eq!(serial_of(&bus, 30).await, "0x00000032");
     assert_eq!(serial_of(&bus, 31).await, "0x00000033");
     let none = lss(&bus, &["fastscan", "--step-ms", "60"]).await;

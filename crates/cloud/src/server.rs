@@ -178,7 +178,11 @@ impl Portal {
                     alarms,
                     names: Arc::new(names),
                 });
-                api::routes(app.clone()).merge(crate::web::routes(app))
+                // Pages, scripts and JSON gzip-compressed when the browser accepts it (a phone
+                // on a mobile network); tower-http leaves event streams and images alone.
+                api::routes(app.clone())
+                    .merge(crate::web::routes(app))
+                    .layer(tower_http::compression::CompressionLayer::new())
             });
         let listener = TcpListener::bind(config.server.listen).await.map_err(|e| {
             ServerError::Other(format!("listening on {}: {e}", config.server.listen))

@@ -105,7 +105,10 @@ async fn text_of(client: &Client, css: &str) -> Option<String> {
 }
 
 async fn number_of(client: &Client, css: &str) -> Option<u64> {
-    text_of(client, css).await.and_then(|t| t.parse().ok())
+    // Digits only: the page writes thousands separators (12,345) and metres (25.500 m).
+    let text = text_of(client, css).await?;
+    let digits: String = text.chars().filter(char::is_ascii_digit).collect();
+    digits.parse().ok()
 }
 
 async fn click(client: &Client, css: &str) {
@@ -159,6 +162,22 @@ async fn edit(client: &Client, mplex: &str, value: &str) {
     input.send_keys(&format!("{value}{enter}")).await.unwrap();
 }
 
+/// A picture of the page for people: `target/screenshots/NAME.png`, or with
+/// `CANLIFT_UPDATE_SCREENSHOTS=1` the one docs/PORTAL.md shows (`docs/screenshots/`).
+async fn screenshot(client: &Client, name: &str) {
+    let dir = if std::env::var_os("CANLIFT_UPDATE_SCREENSHOTS").is_some() {
+        testkit::workspace().join("docs/screenshots")
+    } else {
+        testkit::workspace().join("target/screenshots")
+    };
+    // Live values settle and times turn local before the picture.
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    if let Ok(png) = client.screenshot().await {
+        let _ = std::fs::create_dir_all(&dir);
+        let _ = std::fs::write(dir.join(format!("{name}.png")), png);
+    }
+}
+
 async fn dialog_open(client: &Client) -> bool {
     eval(client, "return document.getElementById('edit').open;").await == json!(true)
 }
@@ -184,14 +203,16 @@ async fn operator_uses_the_web_ui() {
     let refused = until("refusal shown", 10, || text_of(&client, "p.error")).await;
     assert_eq!(refused, "Unknown API key.");
 
-    // Sign in: the fleet shows the lift online, with no fault.
+    // Sign in: the fleet shows the lift in service, with no fault.
     sign_in(&client, &rig.key).await;
-    let badge_css = format!("[data-online=\"{LIFT}\"]");
-    let badge = until("fleet page", 10, || text_of(&client, &badge_css)).await;
-    assert_eq!(badge, "online");
+    let state = until("fleet page", 10, || {
+        text_of(&client, "table.fleet tbody td:nth-child(3)")
+    })
+    .await;
+    assert_eq!(state, "in service");
     assert_eq!(
         text_of(&client, "p.summary").await.as_deref(),
-        Some("1 of 1 lifts online")
+        Some("1 lift · 1 in service · 0 out of service · 0 faults · 0 offline")
     );
     let faults = until(
         "fault column filled by the pushed error register",
@@ -205,24 +226,32 @@ async fn operator_uses_the_web_ui() {
     )
     .await;
     assert_eq!(faults, "none");
-    // Finding lifts by part of their number (the fleet is paged, 100 per page).
+    let rows = "return document.querySelectorAll('table.fleet tbody tr').length;";
+    // Finding lifts by part of their number (the fleet is paged, 100 per page), filters by
+    // state, sorting.
     client.goto(&format!("{base}/?q=7289")).await.unwrap();
-    let found = eval(
-        &client,
-        "return document.querySelectorAll('table.fleet tbody tr').length;",
-    )
-    .await;
-    assert_eq!(found, json!(1));
+    assert_eq!(eval(&client, rows).await, json!(1));
+    for nothing in ["?q=no-such-lift", "?show=offline", "?show=faults&q=7289"] {
+        client.goto(&format!("{base}/{nothing}")).await.unwrap();
+        assert_eq!(
+            text_of(&client, "p.none").await.as_deref(),
+            Some("No lift matches."),
+            "{nothing}"
+        );
+    }
     client
-        .goto(&format!("{base}/?q=no-such-lift"))
+        .goto(&format!("{base}/?show=in-service&sort=state"))
         .await
         .unwrap();
-    let found = eval(
-        &client,
-        "return document.querySelectorAll('table.fleet tbody tr').length;",
-    )
-    .await;
-    assert_eq!(found, json!(0));
+    assert_eq!(eval(&client, rows).await, json!(1));
+    assert_eq!(
+        text_of(&client, "p.summary a.current").await.as_deref(),
+        Some("1 in service")
+    );
+    assert_eq!(
+        text_of(&client, "th a.sort.current").await.as_deref(),
+        Some("State")
+    );
     assert_eq!(
         text_of(&client, "p.ranges").await.as_deref(),
         Some("page 1 of 1")
@@ -243,7 +272,8 @@ async fn operator_uses_the_web_ui() {
         text_of(&client, "[data-mplex=\"0x652001\"] h3")
             .await
             .as_deref(),
-        Some("Trip counter [trips]")
+        Some("Trip counter"),
+        "the unit is shown beside the value, not twice"
     );
     assert_eq!(
         text_of(&client, "[data-mplex=\"0x652001\"] .u")
@@ -276,22 +306,32 @@ async fn operator_uses_the_web_ui() {
     .await;
     assert_eq!(after, trips + 1);
 
-    // Door open time needs service rights: the dialog asks for them, elevation grants them.
-    edit(&client, "0x411300", "7").await;
-    let asked = until("elevation asked for", 10, || async {
-        let hidden = eval(
-            &client,
-            "return document.querySelector('dialog#edit fieldset.elevate').hidden;",
-        )
-        .await;
-        (hidden == json!(false)).then_some(())
+    // Door open time needs service rights: the dialog asks for the lift's service password
+    // before the first save, elevation grants the rights, the page counts them down.
+    let elevate_hidden = "return document.querySelector('dialog#edit fieldset.elevate').hidden;";
+    click(
+        &client,
+        "table.objects tr[data-mplex=\"0x411300\"] button.edit",
+    )
+    .await;
+    until("dialog open", 5, || async {
+        dialog_open(&client).await.then_some(())
     })
     .await;
-    let () = asked;
-    let status = text_of(&client, "dialog#edit .status")
+    assert_eq!(eval(&client, elevate_hidden).await, json!(false));
+    let why = text_of(&client, "dialog#edit .why")
         .await
         .unwrap_or_default();
-    assert!(status.contains("08000021h"), "{status}");
+    assert!(
+        why.contains("service rights") && why.contains("service password"),
+        "{why}"
+    );
+    let input = client
+        .find(Locator::Css("dialog#edit [name=value]"))
+        .await
+        .unwrap();
+    input.clear().await.unwrap();
+    input.send_keys("7").await.unwrap();
     type_into(&client, "dialog#edit [name=password]", SERVICE_PASSWORD).await;
     click(&client, "dialog#edit button.save").await;
     until("dialog closed after elevation and put", 10, || async {
@@ -304,6 +344,21 @@ async fn operator_uses_the_web_ui() {
             .as_deref(),
         Some("7")
     );
+    let rights = until("rights counted down", 5, || text_of(&client, "p.rights")).await;
+    assert!(rights.starts_with("service rights for "), "{rights}");
+    // Held rights: the next change saves at once.
+    edit(&client, "0x411300", "8").await;
+    until("second put without a password", 10, || async {
+        (!dialog_open(&client).await).then_some(())
+    })
+    .await;
+    assert_eq!(eval(&client, elevate_hidden).await, json!(true));
+    assert_eq!(
+        text_of(&client, "tr[data-mplex=\"0x411300\"] .v")
+            .await
+            .as_deref(),
+        Some("8")
+    );
     let (status, read) = rig
         .call(
             "GET",
@@ -312,7 +367,7 @@ async fn operator_uses_the_web_ui() {
             None,
         )
         .await;
-    assert_eq!((status, &read["object"]["value"][0]), (200, &json!("7")));
+    assert_eq!((status, &read["object"]["value"][0]), (200, &json!("8")));
 
     // The session cookie alone does not authorise a change (CSRF), only with the page's token.
     let forged = client
@@ -341,7 +396,9 @@ async fn operator_uses_the_web_ui() {
                const first = await fetch(css);
                const again = await fetch(css, {headers: {'if-none-match': first.headers.get('etag')}});
                const icon = await fetch('/favicon.ico');
-               done([css, show(first), again.status, show(icon)]);
+               const page = await fetch('/');
+               const gzip = r => r.headers.get('content-encoding');
+               done([css, show(first), again.status, show(icon), [gzip(first), gzip(page)]]);
              })().catch(() => done(null));",
             vec![],
         )
@@ -361,6 +418,11 @@ async fn operator_uses_the_web_ui() {
         ])
     );
     assert_eq!(assets[2], json!(304), "{assets}");
+    assert_eq!(
+        assets[4],
+        json!(["gzip", "gzip"]),
+        "text is compressed: {assets}"
+    );
     assert_eq!(assets[3], json!([200, "image/svg+xml", "no-cache"]));
 
     // Reading any object, here by (a prefix of) its German name.
@@ -412,13 +474,67 @@ async fn operator_uses_the_web_ui() {
     assert!(audit.contains("0x502200"), "{audit}");
     assert!(audit.contains("0x411300"), "{audit}");
     assert!(audit.contains("elevate"), "{audit}");
-    let failed_put = eval(
+    let puts = eval(
         &client,
         "return [...document.querySelectorAll('table.audit tbody tr')]
-           .filter(r => r.textContent.includes('0x411300') && r.textContent.includes('error')).length;",
+           .filter(r => r.textContent.includes('0x411300') && r.textContent.includes('ok')).length;",
     )
     .await;
-    assert_eq!(failed_put, json!(1), "the refused put is audited too");
+    assert_eq!(
+        puts,
+        json!(2),
+        "both puts of the door open time are audited"
+    );
+
+    // On a phone (390 × 844): no page scrolls sideways, tables are cards, the lift's Edit and
+    // the dialog's Save are on the screen and work.
+    let pages = [
+        ("fleet", String::from("/")),
+        ("lift", format!("/lifts/{LIFT}")),
+        ("history", format!("/lifts/{LIFT}/history?mplex=0x652001")),
+        ("audit", String::from("/audit")),
+        ("alarms", String::from("/alarms")),
+    ];
+    client.set_window_size(390, 844).await.unwrap();
+    let overflow = "return [document.documentElement.scrollWidth, window.innerWidth];";
+    for (name, page) in &pages {
+        client.goto(&format!("{base}{page}")).await.unwrap();
+        until("page loaded", 10, || text_of(&client, "main h1")).await;
+        let widths = eval(&client, overflow).await;
+        let (scroll, inner) = (widths[0].as_u64(), widths[1].as_u64());
+        assert!(
+            scroll.is_some() && scroll <= inner,
+            "{page} scrolls sideways at 390 px: {widths}"
+        );
+        screenshot(&client, &format!("{name}-phone")).await;
+    }
+    client.goto(&format!("{base}/lifts/{LIFT}")).await.unwrap();
+    let inside = |css: &str| {
+        format!(
+            "const r = document.querySelector('{css}').getBoundingClientRect();
+             return r.width > 0 && r.left >= 0 && r.right <= window.innerWidth;"
+        )
+    };
+    let edit_button = "tr[data-mplex=\"0x502200\"] button.edit";
+    assert_eq!(eval(&client, &inside(edit_button)).await, json!(true));
+    edit(&client, "0x502200", "2").await;
+    until("dialog closed after the put on a phone", 10, || async {
+        (!dialog_open(&client).await).then_some(())
+    })
+    .await;
+    click(&client, edit_button).await;
+    assert_eq!(
+        eval(&client, &inside("dialog#edit button.save")).await,
+        json!(true)
+    );
+    click(&client, "dialog#edit button.cancel").await;
+    client.set_window_size(1280, 900).await.unwrap();
+    for (name, page) in &pages {
+        client.goto(&format!("{base}{page}")).await.unwrap();
+        until("page loaded", 10, || text_of(&client, "main h1")).await;
+        screenshot(&client, name).await;
+    }
+    client.set_window_size(1280, 1600).await.unwrap();
 
     // A picture for people (target/web-ui-lift.png).
     client.goto(&format!("{base}/lifts/{LIFT}")).await.unwrap();

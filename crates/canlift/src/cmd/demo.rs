@@ -14,6 +14,31 @@ use cloud::store::Store;
 use lift417::catalog::Device;
 use lift417::sim::{export_eds, SimConfig, Simulator};
 
+/// How a user runs this binary from a shell: `canlift` when that name on the `PATH` is this
+/// binary, else its path (after `cargo run`, `target/release/canlift`).
+fn command_name() -> String {
+    let Ok(exe) = std::env::current_exe().and_then(std::fs::canonicalize) else {
+        return "canlift".into();
+    };
+    let on_path = std::env::var_os("PATH").is_some_and(|path| {
+        std::env::split_paths(&path)
+            .any(|dir| std::fs::canonicalize(dir.join("canlift")).is_ok_and(|found| found == exe))
+    });
+    if on_path {
+        return "canlift".into();
+    }
+    let shown = std::env::current_dir()
+        .ok()
+        .and_then(|cwd| exe.strip_prefix(cwd).ok().map(|p| p.to_path_buf()))
+        .unwrap_or_else(|| exe.clone());
+    let shown = shown.display().to_string();
+    if shown.contains(' ') {
+        format!("'{shown}'")
+    } else {
+        shown
+    }
+}
+
 /// Command-line arguments of `canlift demo`.
 #[derive(Debug, clap::Args)]
 pub struct DemoArgs {
@@ -179,10 +204,11 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
         "  export CANLIFT_PORTAL={portal_url} CANLIFT_API_KEY={key} CANLIFT_CA={}",
         ca.display()
     );
-    println!("  canlift get {lift} 0x652001");
-    println!("  canlift watch {lift} 0x652001 0x638301");
-    println!("  canlift put {lift} 0x502200 4");
-    println!("  canlift alarms        (set 5030h on the lift page with the setup password to make faults)");
+    let canlift = command_name();
+    println!("  {canlift} get {lift} \"Trip counter\"");
+    println!("  {canlift} watch {lift} 0x652001 0x638301");
+    println!("  {canlift} put {lift} 0x502200 4");
+    println!("  {canlift} alarms        (set 5030h on the lift page with the setup password to make faults)");
     crate::logging::shutdown_signal().await;
     let _ = stop.send(true);
     let _ = gateway_task.await;

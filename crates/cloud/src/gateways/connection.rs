@@ -217,12 +217,14 @@ impl Connection {
         let Some(a) = &self.admitted else {
             return;
         };
+        let at = store::now_ms();
+        self.shared.registry.observe(&a.lift, &n, at);
         let row = TelemetryRow {
             lift: a.lift.clone(),
             mplex: nxg::mplex::normalized(&n.mplex),
             node: n.node.map_or(0, |node| node.id.get()),
             value: n.value.clone(),
-            at: store::now_ms(),
+            at,
         };
         if self.shared.telemetry.try_send(row).is_err() {
             self.shared.counters.dropped.fetch_add(1, Ordering::Relaxed);

@@ -12,6 +12,7 @@ use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 
+use nxg::mplex::Mplex;
 use nxg::msg::{self, Call, Event, Method, Notification};
 use nxg::portal::{Failure, Settings};
 use serde_json::value::RawValue;
@@ -89,6 +90,45 @@ struct Live {
     close: oneshot::Sender<()>,
     serial: u64,
     sernum: String,
+    status: LiftStatus,
+}
+
+/// The error register (CiA 301 §7.5.2.2) of the lift controller.
+pub const ERROR_REGISTER: Mplex = Mplex {
+    index: 0x1001,
+    sub: 0,
+};
+/// The lift state (CiA 417 5024h in our catalog: 4 is out of service).
+pub const LIFT_STATE: Mplex = Mplex {
+    index: 0x5024,
+    sub: 0,
+};
+/// The lift state value of a lift out of service.
+const OUT_OF_SERVICE: u8 = 4;
+
+/// What the portal knows of a connected lift's condition from its pushes (the dashboard
+/// subscribes to the error register and the lift state; a registration pushes the current
+/// value first, docs/PROTOCOL.md §Subscriptions).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct LiftStatus {
+    /// The error register's bits, once pushed.
+    pub error_register: Option<u8>,
+    /// The lift state, once pushed.
+    pub lift_state: Option<u8>,
+    /// When the newest value arrived (ms since the epoch; 0: none yet).
+    pub last_value: i64,
+}
+
+impl LiftStatus {
+    /// Whether the error register reports a fault.
+    pub fn faulty(&self) -> bool {
+        self.error_register.is_some_and(|r| r != 0)
+    }
+
+    /// Whether the lift state is "out of service".
+    pub fn out_of_service(&self) -> bool {
+        self.lift_state == Some(OUT_OF_SERVICE)
+    }
 }
 
 /// The gateways connected now, and the event channels of every lift.
@@ -123,6 +163,33 @@ impl Registry {
             .unwrap_or_else(PoisonError::into_inner)
             .get(lift)
             .map(|l| l.sernum.clone())
+    }
+
+    /// The condition of a connected lift (`None`: offline).
+    pub fn status(&self, lift: &str) -> Option<LiftStatus> {
+        self.live
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(lift)
+            .map(|l| l.status)
+    }
+
+    /// Take note of a pushed value of a connected lift, arrived at `at`.
+    pub(crate) fn observe(&self, lift: &str, n: &Notification, at: i64) {
+        let mut live = self.live.lock().unwrap_or_else(PoisonError::into_inner);
+        let Some(status) = live.get_mut(lift).map(|l| &mut l.status) else {
+            return;
+        };
+        status.last_value = at;
+        if n.node.is_some() {
+            return;
+        }
+        let value = n.value.trim().parse::<u8>().ok();
+        match Mplex::parse(&n.mplex) {
+            Ok(ERROR_REGISTER) => status.error_register = value,
+            Ok(LIFT_STATE) => status.lift_state = value,
+            _ => {}
+        }
     }
 
     /// Live events of a lift.
@@ -205,6 +272,7 @@ impl Registry {
                     close,
                     serial,
                     sernum: sernum.to_owned(),
+                    status: LiftStatus::default(),
                 },
             );
         if let Some(old) = old {

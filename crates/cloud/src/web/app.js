@@ -41,12 +41,56 @@ function formatted(d, raw) {
   return text;
 }
 
+// CiA 417 and CiA 301 values whose meaning the NXg form types cannot carry: the door
+// statusword (bits 12–15 an enumeration, bit 0 the safety contact) and the error register.
+const DOOR_STATES = {
+  0: "closed", 2: "closing", 3: "opened", 5: "opening", 6: "re-opening", 7: "stopped",
+  14: "error", 15: "not installed",
+};
+const ERROR_BITS = [
+  "generic", "current", "voltage", "temperature", "communication", "device profile",
+  "reserved", "manufacturer",
+];
+
+function profileText(mplex, v) {
+  const index = String(mplex).slice(2, 6).toUpperCase();
+  if (index === "6301") {
+    const state = (v >>> 12) & 15;
+    const text = DOOR_STATES[state] ?? `state ${state}`;
+    return v & 1 && state !== 15 ? `${text}, contact closed` : text;
+  }
+  if (index === "1001") {
+    const on = ERROR_BITS.filter((_, i) => (v >>> i) & 1);
+    return on.length ? on.join(", ") : "no error";
+  }
+  return null;
+}
+
+const locale = document.documentElement.lang || undefined;
+
+// The value and unit a person reads: words without a unit, millimetres from a metre on as
+// metres, numbers with the locale's separators.
+function reading(d, raw) {
+  const text = formatted(d, raw);
+  const v = Number(text);
+  if (text === "" || Number.isNaN(v)) return { text, unit: "" };
+  const words = profileText(d.mplex, v);
+  if (words !== null) return { text: words, unit: "" };
+  if (d.unit === "mm" && Math.abs(v) >= 1000) {
+    const m = (v / 1000).toLocaleString(locale, { minimumFractionDigits: 3, maximumFractionDigits: 3 });
+    return { text: m, unit: "m" };
+  }
+  const digits = text.includes(".") ? text.split(".")[1].length : 0;
+  return { text: v.toLocaleString(locale, { maximumFractionDigits: digits }), unit: d.unit ?? "" };
+}
+
 function show(el, raw) {
   el.dataset.raw = raw;
+  const { text, unit } = reading(el.dataset, raw);
   const v = el.querySelector(".v");
-  if (v) v.textContent = formatted(el.dataset, raw);
+  if (v) v.textContent = text;
   const u = el.querySelector(".u");
-  if (u) u.textContent = el.dataset.unit ?? "";
+  if (u) u.textContent = unit;
 }
 
 function localTimes(root) {
@@ -91,6 +135,18 @@ function liveValues(lift) {
   events.addEventListener("event", later);
 }
 
+// Each table cell learns its column's heading (data-label): phones show rows as cards.
+function labelCells(root) {
+  for (const table of root.querySelectorAll("table")) {
+    const heads = [...table.querySelectorAll("thead th")].map((th) => th.textContent.trim());
+    for (const row of table.querySelectorAll("tbody tr")) {
+      [...row.children].forEach((td, i) => {
+        if (heads[i]) td.dataset.label = heads[i];
+      });
+    }
+  }
+}
+
 // Replace `parts` (selectors) of the page with their current rendering.
 async function refreshParts(parts) {
   const r = await fetch(location.href);
@@ -102,6 +158,7 @@ async function refreshParts(parts) {
     if (now && next) now.replaceWith(next);
   }
   localTimes(document);
+  labelCells(document);
 }
 
 // The fleet page refreshes its own table (this page of lifts, alarms and faults included)
@@ -125,9 +182,41 @@ function describe(e) {
   return (e.message ?? "failed") + code;
 }
 
+const LEVELS = { 1: "service", 2: "setup" };
+
+// The rights this browser tab was granted on the lift (the gateway grants them per connection
+// and for a time, NXg §6.4): level, until (ms), and how long the last grant lasted (s).
+function rights(lift) {
+  return parse(sessionStorage.getItem(`rights:${lift}`), {}) ?? {};
+}
+
+function held(lift, level) {
+  const r = rights(lift);
+  return r.level >= level && r.until > Date.now();
+}
+
+// "service rights for 4:59 more", counting down; hidden when none are held.
+function showRights(lift) {
+  const line = document.querySelector("p.rights");
+  if (!line) return;
+  const tick = () => {
+    const r = rights(lift);
+    const left = Math.round(((r.until ?? 0) - Date.now()) / 1000);
+    line.hidden = !(left > 0);
+    if (left > 0) {
+      const mm = Math.floor(left / 60), ss = String(left % 60).padStart(2, "0");
+      line.textContent = `${LEVELS[r.level] ?? "elevated"} rights for ${mm}:${ss} more`;
+    }
+  };
+  tick();
+  clearInterval(showRights.timer);
+  showRights.timer = setInterval(tick, 1000);
+}
+
 function editDialog(lift) {
   const dialog = document.getElementById("edit");
   if (!dialog) return;
+  showRights(lift);
   const form = dialog.querySelector("form");
   const status = dialog.querySelector(".status");
   const elevate = dialog.querySelector(".elevate");
@@ -151,14 +240,21 @@ function editDialog(lift) {
       const numeric = d.min !== "" && d.form !== "1";
       input.type = numeric ? "number" : "text";
       if (numeric) {
-        input.min = d.min;
+        // Where the catalog says zero means off, 0 is offered below the range.
+        const off = (parse(d.hints, {}) ?? {}).show_off_at_zero;
+        input.min = off ? Math.min(0, Number(d.min)) : d.min;
         input.max = d.max;
         input.step = d.form === "11" ? "any" : "1";
+        if (off) input.placeholder = "0 = off";
       }
     }
     input.name = "value";
     input.required = true;
-    input.value = d.raw ?? "";
+    // The current value, unless it is outside what may be written (a passenger call reads 0).
+    const raw = d.raw ?? "";
+    const outside = input.type === "number" && raw !== "" &&
+      (Number(raw) < Number(input.min) || (input.max !== "" && Number(raw) > Number(input.max)));
+    input.value = outside ? "" : raw;
     holder.append(input);
     return input;
   }
@@ -171,11 +267,21 @@ function editDialog(lift) {
       const d = target.dataset;
       dialog.querySelector(".title").textContent = `${d.name} (${d.mplex})`;
       dialog.querySelector(".hint").textContent = target.querySelector("[title]")?.title ?? "";
-      const range = d.min !== "" ? `${d.min} … ${d.max} ${d.unit}` : "";
+      const off = (parse(d.hints, {}) ?? {}).show_off_at_zero;
+      const range = d.min !== "" ? `${off ? "0 (off) or " : ""}${d.min} … ${d.max} ${d.unit}` : "";
       dialog.querySelector(".range").textContent = range;
       field(d);
-      elevate.hidden = true;
-      elevate.querySelector("select").value = d.privilege === "2" ? "2" : "1";
+      // An object above privilege 0 asks for the lift's password before the first save,
+      // unless this tab holds the rights already.
+      const level = Number(d.privilege || 0);
+      const needed = level >= 1 && level <= 2 && !held(lift, level);
+      elevate.hidden = !needed;
+      elevate.querySelector("select").value = level === 2 ? "2" : "1";
+      const lasts = rights(lift).duration;
+      elevate.querySelector(".why").textContent = needed
+        ? `Changing this needs ${LEVELS[level]} rights: enter the lift's ${LEVELS[level]} password. ` +
+          (lasts ? `The rights then last ${Math.round(lasts / 60)} min.` : "The rights then last as long as the lift grants them.")
+        : "";
       form.elements.namedItem("password").value = "";
       status.textContent = "";
       status.className = "status";
@@ -199,6 +305,11 @@ function editDialog(lift) {
         status.className = "status error";
         return;
       }
+      const level = Number(form.elements.namedItem("privilege").value);
+      const duration = Number(grant.answer.duration ?? 0);
+      sessionStorage.setItem(`rights:${lift}`, JSON.stringify({ level, duration, until: Date.now() + duration * 1000 }));
+      elevate.hidden = true;
+      showRights(lift);
     }
     const value = form.elements.namedItem("value").value;
     const put = await api("PUT", `${base}/objects/${d.mplex}`, {
@@ -213,8 +324,11 @@ function editDialog(lift) {
       dialog.close();
       return;
     }
-    // A gateway's privilege refusal (not the portal's own 403) opens the elevation fields.
+    // A gateway's privilege refusal (not the portal's own 403) opens the elevation fields: the
+    // rights this tab had are gone (expired, or the gateway reconnected).
     if (put.status === 403 && put.answer.code > 999) {
+      sessionStorage.removeItem(`rights:${lift}`);
+      showRights(lift);
       elevate.hidden = false;
       status.textContent = `${describe(put.answer)} — elevate and save again.`;
     } else {
@@ -227,6 +341,7 @@ function editDialog(lift) {
 document.addEventListener("DOMContentLoaded", () => {
   for (const el of document.querySelectorAll("[data-mplex]")) show(el, el.dataset.raw);
   localTimes(document);
+  labelCells(document);
   const lift = document.body.dataset.lift;
   if (lift) {
     liveValues(lift);

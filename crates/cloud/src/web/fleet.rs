@@ -1,6 +1,8 @@
-//! The fleet page: every lift of the account with its online state, when it was last seen, its
-//! most severe active alarm and its active faults, paged and searchable; the script refreshes
-//! the table.
+//! The fleet page: every lift of the account with one coloured state (in service, out of
+//! service, faults, offline), when a value last arrived (or the lift was last seen), its most
+//! severe active alarm and its active faults; counts per state, filters, sort, search and
+//! pages. The condition of connected lifts comes from the registry (their pushes), not the
+//! database: the page costs one lookup per lift. The script refreshes the table.
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -11,21 +13,69 @@ use maud::{html, Markup};
 use serde::Deserialize;
 
 use super::alarms::severity_badge;
-use super::page::{layout, online_badge, time};
+use super::page::{layout, time};
 use super::SignedIn;
+use crate::alarms::Alarm;
 use crate::api::App;
+use crate::gateways::LiftStatus;
 use crate::store::LiftRecord;
-
-/// The error register (CiA 301 §7.5.2.2) and the lift state (our 5024h): the fault column.
-pub(super) const ERROR_REGISTER: &str = "0x100100";
-pub(super) const LIFT_STATE: &str = "0x502400";
 
 /// Lifts per page.
 const PAGE: usize = 100;
 
-/// The fault column: the error register's bits and an out-of-service lift state, from the
-/// newest stored values.
-fn faults(latest: &HashMap<String, (i64, String)>) -> Markup {
+/// A lift's state at a glance, worst last.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub(super) enum FleetState {
+    InService,
+    OutOfService,
+    Faults,
+    Offline,
+}
+
+impl FleetState {
+    const ALL: [FleetState; 4] = [
+        FleetState::InService,
+        FleetState::OutOfService,
+        FleetState::Faults,
+        FleetState::Offline,
+    ];
+
+    /// Offline first; a fault (error register or an active alarm) outweighs out of service.
+    fn of(status: Option<LiftStatus>, alarm: Option<&Alarm>) -> FleetState {
+        match status {
+            None => FleetState::Offline,
+            Some(s) if s.faulty() || alarm.is_some() => FleetState::Faults,
+            Some(s) if s.out_of_service() => FleetState::OutOfService,
+            Some(_) => FleetState::InService,
+        }
+    }
+
+    fn text(self) -> &'static str {
+        match self {
+            FleetState::InService => "in service",
+            FleetState::OutOfService => "out of service",
+            FleetState::Faults => "faults",
+            FleetState::Offline => "offline",
+        }
+    }
+
+    fn key(self) -> &'static str {
+        match self {
+            FleetState::InService => "in-service",
+            FleetState::OutOfService => "out-of-service",
+            FleetState::Faults => "faults",
+            FleetState::Offline => "offline",
+        }
+    }
+
+    fn badge(self) -> Markup {
+        html! { span.badge.{ "state-" (self.key()) } { (self.text()) } }
+    }
+}
+
+/// The fault column: the error register's bits and an out-of-service lift state.
+fn faults(status: Option<LiftStatus>) -> Markup {
     const BITS: [&str; 8] = [
         "generic",
         "current",
@@ -36,18 +86,18 @@ fn faults(latest: &HashMap<String, (i64, String)>) -> Markup {
         "reserved",
         "manufacturer",
     ];
-    let value = |key: &str| latest.get(key).and_then(|(_, v)| v.parse::<u8>().ok());
-    let (register, state) = (value(ERROR_REGISTER), value(LIFT_STATE));
-    if register.is_none() && state.is_none() {
+    let Some(status) = status.filter(|s| s.error_register.is_some() || s.lift_state.is_some())
+    else {
         return html! { span.muted { "no data" } };
-    }
+    };
+    let register = status.error_register.unwrap_or(0);
     let mut found: Vec<&str> = BITS
         .iter()
         .enumerate()
-        .filter(|(i, _)| register.is_some_and(|r| r & (1 << i) != 0))
+        .filter(|(i, _)| register & (1 << i) != 0)
         .map(|(_, name)| *name)
         .collect();
-    if state == Some(4) {
+    if status.out_of_service() {
         found.push("out of service");
     }
     html! {
@@ -59,12 +109,39 @@ fn faults(latest: &HashMap<String, (i64, String)>) -> Markup {
     }
 }
 
+/// How the table is ordered.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub(super) enum Sort {
+    /// By lift id.
+    #[default]
+    Lift,
+    /// By lift number.
+    Number,
+    /// Worst state first.
+    State,
+    /// Longest silent first.
+    Seen,
+}
+
 #[derive(Deserialize)]
 pub(super) struct FleetQuery {
     /// 1-based page.
     page: Option<usize>,
     /// Part of a lift's id or lift number.
     q: Option<String>,
+    /// Only lifts in this state.
+    show: Option<FleetState>,
+    sort: Option<Sort>,
+}
+
+/// One lift as the table shows it.
+struct Row<'a> {
+    lift: &'a LiftRecord,
+    status: Option<LiftStatus>,
+    state: FleetState,
+    /// A value's arrival for a connected lift, else the end of its last connection.
+    seen: i64,
 }
 
 pub(super) async fn fleet(
@@ -72,77 +149,118 @@ pub(super) async fn fleet(
     SignedIn(session): SignedIn,
     Query(query): Query<FleetQuery>,
 ) -> Response {
-    let all = match app.store.lifts(&session.account.domain).await {
-        Ok(l) => l,
-        Err(e) => return e.into(),
+    let (all, worst) = match (
+        app.store.lifts(&session.account.domain).await,
+        app.store.worst_alarms(&session.account.domain).await,
+    ) {
+        (Ok(l), Ok(w)) => (l, w),
+        (Err(e), _) | (_, Err(e)) => return e.into(),
     };
-    let total = all.len();
-    let online_count = all.iter().filter(|l| app.registry.online(&l.id)).count();
     let needle = query.q.as_deref().unwrap_or("").trim().to_lowercase();
-    let lifts: Vec<&LiftRecord> = all
-        .iter()
-        .filter(|l| {
-            needle.is_empty()
-                || l.id.to_lowercase().contains(&needle)
-                || l.liftnum.to_lowercase().contains(&needle)
-        })
-        .collect();
-    let pages = lifts.len().div_ceil(PAGE).max(1);
-    let page = query.page.unwrap_or(1).clamp(1, pages);
-    let worst = match app.store.worst_alarms(&session.account.domain).await {
-        Ok(w) => w,
-        Err(e) => return e.into(),
-    };
-    let watched = [ERROR_REGISTER.to_owned(), LIFT_STATE.to_owned()];
-    let mut rows = Vec::new();
-    for lift in lifts.iter().skip((page - 1) * PAGE).take(PAGE) {
-        match app.store.latest(&lift.id, &watched).await {
-            Ok(latest) => rows.push((lift, latest)),
-            Err(e) => return e.into(),
+    let mut counts: HashMap<FleetState, usize> = HashMap::new();
+    let mut rows: Vec<Row> = Vec::new();
+    for lift in &all {
+        let status = app.registry.status(&lift.id);
+        let state = FleetState::of(status, worst.get(&lift.id));
+        *counts.entry(state).or_default() += 1;
+        let found = needle.is_empty()
+            || lift.id.to_lowercase().contains(&needle)
+            || lift.liftnum.to_lowercase().contains(&needle);
+        if found && query.show.is_none_or(|s| s == state) {
+            let seen = match status {
+                Some(s) if s.last_value > 0 => s.last_value,
+                _ => lift.last_seen,
+            };
+            rows.push(Row {
+                lift,
+                status,
+                state,
+                seen,
+            });
         }
     }
-    let link = |p: usize| {
-        let query = serde_urlencoded::to_string([("page", p.to_string()), ("q", needle.clone())]);
-        format!("/?{}", query.unwrap_or_default())
+    let sort = query.sort.unwrap_or_default();
+    match sort {
+        Sort::Lift => rows.sort_by(|a, b| a.lift.id.cmp(&b.lift.id)),
+        Sort::Number => rows.sort_by(|a, b| a.lift.liftnum.cmp(&b.lift.liftnum)),
+        Sort::State => rows.sort_by(|a, b| b.state.cmp(&a.state).then(a.lift.id.cmp(&b.lift.id))),
+        Sort::Seen => rows.sort_by_key(|r| r.seen),
+    }
+    let pages = rows.len().div_ceil(PAGE).max(1);
+    let page = query.page.unwrap_or(1).clamp(1, pages);
+    let link = |page: usize, show: Option<FleetState>, sort: Sort| {
+        let mut q: Vec<(&str, String)> = vec![("page", page.to_string())];
+        if !needle.is_empty() {
+            q.push(("q", needle.clone()));
+        }
+        if let Some(s) = show {
+            q.push(("show", s.key().into()));
+        }
+        if sort != Sort::Lift {
+            q.push(("sort", format!("{sort:?}").to_lowercase()));
+        }
+        format!("/?{}", serde_urlencoded::to_string(q).unwrap_or_default())
+    };
+    let heading = |label: &str, by: Sort| {
+        html! {
+            th { a.sort.current[sort == by] href=(link(1, query.show, by)) { (label) } }
+        }
     };
     let body = html! {
         h1 { "Fleet" }
-        @if total == 0 {
+        @if all.is_empty() {
             p { "No lift of domain " code { (session.account.domain) } " has connected yet." }
         } @else {
-            p.summary { (online_count) " of " (total) " lifts online" }
-            form.read method="get" {
-                input name="q" placeholder="lift id or number" value=(needle);
-                button { "Find" }
-            }
-            table.fleet {
-                thead { tr {
-                    th { "Lift" } th { "Lift number" } th { "State" } th { "Last seen" }
-                    th { "Alarm" } th { "Active faults" }
-                } }
-                tbody {
-                    @for (lift, latest) in &rows {
-                        tr {
-                            td { a href={ "/lifts/" (lift.id) } { (lift.id) } }
-                            td { (lift.liftnum) }
-                            td { (online_badge(&lift.id, app.registry.online(&lift.id))) }
-                            td { (time(lift.last_seen)) }
-                            td.alarm {
-                                @if let Some(a) = worst.get(&lift.id) {
-                                    (severity_badge(a.severity)) " " (a.text)
-                                } @else {
-                                    span.ok { "none" }
-                                }
-                            }
-                            td { (faults(latest)) }
-                        }
+            p.summary {
+                a.current[query.show.is_none()] href=(link(1, None, sort)) {
+                    (all.len()) @if all.len() == 1 { " lift" } @else { " lifts" }
+                }
+                @for state in FleetState::ALL {
+                    " · "
+                    a.current[query.show == Some(state)] data-count=(state.key())
+                        href=(link(1, Some(state), sort)) {
+                        (counts.get(&state).copied().unwrap_or(0)) " " (state.text())
                     }
                 }
             }
-            p.ranges {
-                "page " (page) " of " (pages) " "
-                @if page > 1 { a href=(link(page - 1)) { "← previous" } }
-                @if page < pages { a href=(link(page + 1)) { "next →" } }
+            form.read method="get" {
+                input name="q" placeholder="lift id or number" value=(needle);
+                @if let Some(s) = query.show { input type="hidden" name="show" value=(s.key()); }
+                button { "Find" }
+            }
+            @if rows.is_empty() {
+                p.muted.none { "No lift matches." }
+            } @else {
+                table.fleet {
+                    thead { tr {
+                        (heading("Lift", Sort::Lift)) (heading("Lift number", Sort::Number))
+                        (heading("State", Sort::State)) (heading("Last value / seen", Sort::Seen))
+                        th { "Alarm" } th { "Active faults" }
+                    } }
+                    tbody {
+                        @for row in rows.iter().skip((page - 1) * PAGE).take(PAGE) {
+                            tr data-state=(row.state.key()) {
+                                td { a href={ "/lifts/" (row.lift.id) } { (row.lift.id) } }
+                                td { (row.lift.liftnum) }
+                                td { (row.state.badge()) }
+                                td { (time(row.seen)) }
+                                td.alarm {
+                                    @if let Some(a) = worst.get(&row.lift.id) {
+                                        (severity_badge(a.severity)) " " (a.text)
+                                    } @else {
+                                        span.ok { "none" }
+                                    }
+                                }
+                                td { (faults(row.status)) }
+                            }
+                        }
+                    }
+                }
+                p.ranges {
+                    "page " (page) " of " (pages) " "
+                    @if page > 1 { a href=(link(page - 1, query.show, sort)) { "← previous" } }
+                    @if page < pages { a href=(link(page + 1, query.show, sort)) { "next →" } }
+                }
             }
         }
     };
@@ -154,14 +272,21 @@ mod tests {
     use super::*;
 
     #[test]
-    fn fault_column() {
-        let text = |l: &HashMap<String, (i64, String)>| faults(l).into_string();
-        let mut latest = HashMap::new();
-        assert!(text(&latest).contains("no data"));
-        latest.insert(ERROR_REGISTER.to_owned(), (1, "0".to_owned()));
-        assert!(text(&latest).contains("none"));
-        latest.insert(ERROR_REGISTER.to_owned(), (1, "129".to_owned()));
-        latest.insert(LIFT_STATE.to_owned(), (1, "4".to_owned()));
-        assert!(text(&latest).contains("generic, manufacturer, out of service"));
+    fn fault_column_and_state() {
+        let text = |s: Option<LiftStatus>| faults(s).into_string();
+        assert!(text(None).contains("no data"));
+        let mut status = LiftStatus {
+            error_register: Some(0),
+            ..LiftStatus::default()
+        };
+        assert!(text(Some(status)).contains("none"));
+        assert_eq!(FleetState::of(Some(status), None), FleetState::InService);
+        status.lift_state = Some(4);
+        assert_eq!(FleetState::of(Some(status), None), FleetState::OutOfService);
+        status.error_register = Some(129);
+        assert!(text(Some(status)).contains("generic, manufacturer, out of service"));
+        assert_eq!(FleetState::of(Some(status), None), FleetState::Faults);
+        assert_eq!(FleetState::of(None, None), FleetState::Offline);
+        assert!(FleetState::Offline > FleetState::Faults, "worst last");
     }
 }

@@ -67,10 +67,19 @@ impl Object {
         self.answer.as_ref().ok().map(|a| &a.object)
     }
 
+    /// The object's name; a trailing ` [unit]` goes when the unit is shown beside the value.
     fn name(&self) -> String {
-        self.data()
-            .and_then(|d| d.name.clone())
-            .unwrap_or_else(|| self.mplex.to_string())
+        let Some(d) = self.data() else {
+            return self.mplex.to_string();
+        };
+        let name = d.name.clone().unwrap_or_else(|| self.mplex.to_string());
+        let has_unit = d
+            .physunit
+            .is_some_and(|u| PhysUnit::from_code(u).is_ok_and(|u| !u.text().is_empty()));
+        match name.rsplit_once(" [") {
+            Some((bare, unit)) if has_unit && unit.ends_with(']') => bare.to_owned(),
+            _ => name,
+        }
     }
 
     /// The current value: the gateway's answer, else the newest stored one.
@@ -250,6 +259,7 @@ fn edit_dialog() -> Markup {
                 p.range.muted {}
                 fieldset.elevate hidden {
                     legend { "Privilege needed" }
+                    p.why.muted {}
                     label {
                         "Privilege "
                         select name="privilege" {
@@ -257,7 +267,7 @@ fn edit_dialog() -> Markup {
                             option value="2" { "setup" }
                         }
                     }
-                    label { "Password " input type="password" name="password" autocomplete="off"; }
+                    label { "The lift's password " input type="password" name="password" autocomplete="off"; }
                 }
                 p.status role="status" {}
                 menu {
@@ -337,6 +347,7 @@ pub(super) async fn lift_page(
                 (super::alarms::table(&alarms, &session, &format!("/lifts/{id}"), false))
             }
         }
+        p.rights.muted hidden role="status" {}
         h2 { "Live values" }
         div.cards { @for o in &objects { (o.card(&id)) } }
         h2 { "Parameters" }
