@@ -222,12 +222,15 @@ fn parse_timestamp(text: &str) -> Option<SystemTime> {
         return None;
     }
     let secs: u64 = secs.parse().ok()?;
-    let nanos = if frac.is_empty() {
+    // socketcand's resolution is the microsecond (SECS.USECS): further digits are dropped, so
+    // that a frame re-encoded is the frame read.
+    let frac = &frac[..frac.len().min(6)];
+    let micros = if frac.is_empty() {
         0
     } else {
-        frac.parse::<u32>().ok()? * 10u32.pow(9 - frac.len() as u32)
+        frac.parse::<u32>().ok()? * 10u32.pow(6 - frac.len() as u32)
     };
-    UNIX_EPOCH.checked_add(Duration::new(secs, nanos))
+    UNIX_EPOCH.checked_add(Duration::new(secs, micros * 1000))
 }
 
 fn parse_frame(args: &[&str]) -> Result<Frame, &'static str> {
@@ -394,6 +397,16 @@ mod tests {
             vec![Ok(Message::Error("could not open bus".into()))]
         );
         let msgs = decode_all(b"< error 20000004 12.000001 >");
+        // Found by the `socketcand` fuzz target: a timestamp finer than socketcand's microsecond
+        // did not survive re-encoding.
+        let fine = decode_all(b"< frame 123 1.0000005 0102 >");
+        let Some(Ok(Message::Frame(frame))) = fine.first() else {
+            panic!("{fine:?}")
+        };
+        let mut text = String::new();
+        encode_frame(frame, frame.timestamp().unwrap_or(UNIX_EPOCH), &mut text);
+        assert_eq!(text, "< frame 123 1.000000 0102 >");
+        assert_eq!(decode_all(text.as_bytes()), fine);
         // Found by the `socketcand` fuzz target: an error frame was re-encoded as a data frame.
         let Some(Ok(Message::Frame(error))) = msgs.first() else {
             panic!("{msgs:?}")
