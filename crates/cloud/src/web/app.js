@@ -19,6 +19,11 @@ function parse(text, fallback) {
 }
 
 // The text an operator reads for a raw value (NXg §6.1: list, hints, min/max).
+// Whether the object's hints say zero means off.
+function offAtZero(d) {
+  return Boolean((parse(d.hints, {}) ?? {}).show_off_at_zero);
+}
+
 function formatted(d, raw) {
   const text = String(raw ?? "");
   const v = Number(text);
@@ -241,7 +246,7 @@ function editDialog(lift) {
       input.type = numeric ? "number" : "text";
       if (numeric) {
         // Where the catalog says zero means off, 0 is offered below the range.
-        const off = (parse(d.hints, {}) ?? {}).show_off_at_zero;
+        const off = offAtZero(d);
         input.min = off ? Math.min(0, Number(d.min)) : d.min;
         input.max = d.max;
         input.step = d.form === "11" ? "any" : "1";
@@ -267,7 +272,7 @@ function editDialog(lift) {
       const d = target.dataset;
       dialog.querySelector(".title").textContent = `${d.name} (${d.mplex})`;
       dialog.querySelector(".hint").textContent = target.querySelector("[title]")?.title ?? "";
-      const off = (parse(d.hints, {}) ?? {}).show_off_at_zero;
+      const off = offAtZero(d);
       const range = d.min !== "" ? `${off ? "0 (off) or " : ""}${d.min} … ${d.max} ${d.unit}` : "";
       dialog.querySelector(".range").textContent = range;
       field(d);

@@ -124,6 +124,18 @@ pub(super) enum Sort {
     Seen,
 }
 
+impl Sort {
+    /// Its `?sort=` value.
+    fn key(self) -> &'static str {
+        match self {
+            Sort::Lift => "lift",
+            Sort::Number => "number",
+            Sort::State => "state",
+            Sort::Seen => "seen",
+        }
+    }
+}
+
 #[derive(Deserialize)]
 pub(super) struct FleetQuery {
     /// 1-based page.
@@ -197,7 +209,7 @@ pub(super) async fn fleet(
             q.push(("show", s.key().into()));
         }
         if sort != Sort::Lift {
-            q.push(("sort", format!("{sort:?}").to_lowercase()));
+            q.push(("sort", sort.key().into()));
         }
         format!("/?{}", serde_urlencoded::to_string(q).unwrap_or_default())
     };
