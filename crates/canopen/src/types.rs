@@ -585,17 +585,26 @@ fn parse_time_of_day(text: &str) -> Option<Value> {
         d.next()?.parse().ok()?,
         d.next()?.parse().ok()?,
     );
-    if d.next().is_some() || !(1..=12).contains(&m) || !(1..=31).contains(&day) {
+    // Years outside what 16 bits of days since 1984 can hold are refused before the arithmetic,
+    // which would overflow for years near the ends of i64.
+    if d.next().is_some()
+        || !(1..=12).contains(&m)
+        || !(1..=31).contains(&day)
+        || !(1984..=2164).contains(&y)
+    {
         return None;
     }
-    let (hms, milli) = time.split_once('.').unwrap_or((time, "0"));
+    let (hms, fraction) = time.split_once('.').unwrap_or((time, "0"));
+    if fraction.is_empty() || !fraction.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
     let mut t = hms.split(':');
     let (h, min, s): (u32, u32, u32) = (
         t.next()?.parse().ok()?,
         t.next()?.parse().ok()?,
         t.next()?.parse().ok()?,
     );
-    let milli: u32 = format!("{milli:0<3}")[..3].parse().ok()?;
+    let milli: u32 = format!("{fraction:0<3}")[..3].parse().ok()?;
     if t.next().is_some() || h > 23 || min > 59 || s > 59 {
         return None;
     }
@@ -789,6 +798,19 @@ mod tests {
             from_text(DataType::TimeOfDay, "1983-12-31T00:00:00").is_err(),
             "before the epoch"
         );
+        // Found by the `values` fuzz target: years near the ends of i64 overflowed the day count,
+        // and a fraction of multi-byte characters was cut inside a character.
+        for text in [
+            "9223372036854775807-01-01T00:00:00",
+            "-9223372036854775808-01-01T00:00:00",
+            "2024-01-01T00:00:00.é日",
+            "2024-01-01T00:00:00.",
+            "2024-01-01T00:00:00.+5",
+        ] {
+            assert!(from_text(DataType::TimeOfDay, text).is_err(), "{text}");
+        }
+        assert!(from_text(DataType::TimeOfDay, "2163-06-06T00:00:00").is_ok());
+        assert!(from_text(DataType::TimeOfDay, "2164-01-01T00:00:00").is_err());
     }
 
     #[test]

@@ -10,7 +10,7 @@ use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
-use hyper_util::rt::TokioIo;
+use hyper_util::rt::{TokioIo, TokioTimer};
 use hyper_util::service::TowerToHyperService;
 use nxg::names::ObjectNames;
 use tokio::net::TcpListener;
@@ -234,8 +234,7 @@ impl Portal {
             let _ = tcp.set_nodelay(true);
             let (tls, router) = (tls.clone(), router.clone());
             tokio::spawn(async move {
-                let handshake =
-                    tokio::time::timeout(std::time::Duration::from_secs(10), tls.accept(tcp)).await;
+                let handshake = tokio::time::timeout(HANDSHAKE_TIMEOUT, tls.accept(tcp)).await;
                 let stream = match handshake {
                     Ok(Ok(s)) => s,
                     Ok(Err(e)) => {
@@ -255,7 +254,11 @@ impl Portal {
                 );
                 let hyper = TowerToHyperService::new(service);
                 // HTTP/1.1 only (the ALPN offer): WebSocket upgrades and the API need no more.
+                // hyper bounds the request head only when it has a timer: without one a client
+                // sending its headers a byte at a time (slowloris) holds the connection forever.
                 let connection = hyper::server::conn::http1::Builder::new()
+                    .timer(TokioTimer::new())
+                    .header_read_timeout(HANDSHAKE_TIMEOUT)
                     .serve_connection(TokioIo::new(stream), hyper)
                     .with_upgrades();
                 if let Err(e) = connection.await {
@@ -270,6 +273,10 @@ impl Portal {
         tracing::info!("portal stopped");
     }
 }
+
+/// How long a client may take for its TLS handshake, and then for each HTTP request head
+/// (docs/SECURITY.md §Bounds): a connection that says nothing, or says it slowly, is closed.
+pub const HANDSHAKE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(10);
 
 /// The alarm service and the webhook worker, started.
 fn start_alarms(

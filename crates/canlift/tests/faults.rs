@@ -1,0 +1,654 @@
+//! Fault injection against the real processes (docs/SECURITY.md §Faults): a gateway killed with
+//! SIGKILL while it stores a new cloud token, a portal killed during telemetry ingest and during
+//! a reconnect storm, and connections that never finish a TLS handshake or an HTTP request.
+//! Each test is bounded in time and stops what it started.
+
+use std::path::{Path, PathBuf};
+use std::process::Stdio;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use testkit::constants::{LIFT, SERNUM};
+use testkit::portal::Rig;
+use testkit::scripted;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+use tokio::process::Child;
+
+mod common;
+use common::{canlift, run, stderr};
+
+/// Kill rounds of the token test (the issue's figure).
+const TOKEN_ROUNDS: u32 = 200;
+
+/// The token file's whole content for `token` (`None`: no file).
+fn token_file(token: Option<&str>) -> Option<String> {
+    token.map(|t| format!("{t}\n"))
+}
+
+/// Kill `child` with SIGKILL and reap it.
+async fn kill(child: &mut Child) {
+    child.start_kill().expect("SIGKILL sent");
+    let _ = tokio::time::timeout(Duration::from_secs(10), child.wait())
+        .await
+        .expect("a killed process ends");
+}
+
+/// A gateway process killed 200 times while it stores the token `update_unique_token` brought
+/// (NXg §5.4): half the time right after its answer arrived, half at a spread of points between
+/// the request and the answer. The token file always holds the old or the new token, whole; an
+/// answered token is the new one; and the next CONNECT carries what the file holds.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_gateway_killed_while_storing_its_token_keeps_the_old_or_the_new() {
+    let dir = testkit::scratch();
+    let pki = testkit::pki::pki(dir.path());
+    let portal = scripted::Portal::start(&pki).await;
+    let hub = testkit::hub().await;
+    let config = scripted::config(
+        &portal.url(),
+        &pki,
+        &testkit::hub_url(&hub, "can0"),
+        dir.path(),
+    );
+    let token_path = config.state.dir.join("cloudtoken");
+    let config_path = dir.path().join("gateway.toml");
+    std::fs::write(&config_path, toml::to_string(&config).expect("TOML")).expect("written");
+
+    let mut on_file: Option<String> = None;
+    let (mut answered, mut old_kept, mut new_kept) = (0, 0, 0);
+    let mut answer_time = Duration::from_millis(5);
+    for round in 0..TOKEN_ROUNDS {
+        let mut gateway = canlift()
+            .args(["gateway", "--config"])
+            .arg(&config_path)
+            .env("RUST_LOG", "warn")
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("the gateway starts");
+        let (mut ws, ..) = portal.accept().await;
+        let connect = scripted::connack(&mut ws).await;
+        let sent = connect["params"]["identity"]["cloudtoken"].as_str();
+        assert_eq!(
+            sent,
+            on_file.as_deref(),
+            "round {round}: CONNECT carries the stored token"
+        );
+        let new = format!("T-{round:03}-{}", "x".repeat(round as usize % 100));
+        scripted::send(
+            &mut ws,
+            &format!(
+                r#"{{"jsonrpc":"2.0","method":"update_unique_token","id":{round},"params":{{"sernum":"{SERNUM}","token":"{new}"}}}}"#
+            ),
+        )
+        .await;
+        let sent_at = tokio::time::Instant::now();
+        let wait_for_answer = round % 2 == 0;
+        if wait_for_answer {
+            let answer = scripted::recv(&mut ws).await;
+            assert_eq!(answer["result"]["done"], 0, "round {round}: {answer}");
+            answered += 1;
+            answer_time = sent_at.elapsed();
+        } else {
+            // Spread over the whole store: from 0 to twice the last time an answer took.
+            tokio::time::sleep(answer_time * (round * 37 % 100) / 50).await;
+        }
+        kill(&mut gateway).await;
+        let content = std::fs::read_to_string(&token_path).ok();
+        if wait_for_answer {
+            assert_eq!(
+                content,
+                token_file(Some(&new)),
+                "round {round}: an answered token is on file"
+            );
+        } else {
+            assert!(
+                content == token_file(on_file.as_deref()) || content == token_file(Some(&new)),
+                "round {round}: the token file is torn: {content:?} (old {on_file:?}, new {new:?})"
+            );
+        }
+        if content == token_file(Some(&new)) {
+            new_kept += 1;
+        } else {
+            old_kept += 1;
+        }
+        on_file = content.map(|c| c.trim_end_matches('\n').to_owned());
+        // At most the token and one temporary file a kill left behind.
+        let files = std::fs::read_dir(&config.state.dir)
+            .expect("the state directory")
+            .filter_map(Result::ok)
+            .filter(|e| e.file_name().to_string_lossy().contains("cloudtoken"))
+            .count();
+        assert!(files <= 2, "round {round}: {files} token files");
+    }
+    eprintln!(
+        "{TOKEN_ROUNDS} kills: {answered} after the answer, {new_kept} left the new token, \
+         {old_kept} the old one"
+    );
+    // The last token is accepted: a gateway started once more sends it.
+    let mut gateway = canlift()
+        .args(["gateway", "--config"])
+        .arg(&config_path)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("the gateway starts");
+    let (mut ws, ..) = portal.accept().await;
+    let connect = scripted::connack(&mut ws).await;
+    assert_eq!(
+        connect["params"]["identity"]["cloudtoken"].as_str(),
+        on_file.as_deref()
+    );
+    kill(&mut gateway).await;
+    hub.shutdown().await;
+}
+
+/// A free loopback port for a process the test restarts on the same address.
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("a loopback port")
+        .port()
+}
+
+/// A portal process (`canlift cloud`) with its state in a directory of its own, SQLite by
+/// default, on a fixed port so it can be killed and started again where its gateways look.
+struct PortalProcess {
+    config: PathBuf,
+    state: PathBuf,
+    port: u16,
+    child: Option<Child>,
+}
+
+impl PortalProcess {
+    /// Configure (account `load` for domain `LOAD`) and start; returns it and the API key.
+    async fn start(dir: &Path) -> (PortalProcess, String) {
+        let state = dir.join("portal");
+        let port = free_port();
+        let config = dir.join("portal.toml");
+        std::fs::write(
+            &config,
+            format!(
+                "[server]\nlisten = \"127.0.0.1:{port}\"\n[state]\ndir = \"{}\"\n",
+                state.display()
+            ),
+        )
+        .expect("written");
+        let out = run(&[
+            "cloud",
+            "account",
+            "add",
+            "load",
+            "--domain",
+            "LOAD",
+            "--json",
+            "--config",
+            config.to_str().expect("UTF-8"),
+        ])
+        .await;
+        assert!(out.status.success(), "{}", stderr(&out));
+        let account: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON");
+        let key = account["api_key"].as_str().expect("a key").to_owned();
+        let mut portal = PortalProcess {
+            config,
+            state,
+            port,
+            child: None,
+        };
+        portal.restart().await;
+        (portal, key)
+    }
+
+    /// Start the process again (after a kill) and wait until it listens.
+    async fn restart(&mut self) {
+        let child = canlift()
+            .args(["cloud", "--config"])
+            .arg(&self.config)
+            .env("RUST_LOG", "warn")
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("the portal starts");
+        self.child = Some(child);
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+        while TcpStream::connect(("127.0.0.1", self.port)).await.is_err() {
+            assert!(
+                tokio::time::Instant::now() < deadline,
+                "the portal listens within 30 s"
+            );
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    }
+
+    /// SIGKILL: no shutdown, no flush, nothing the process could still do.
+    async fn kill(&mut self) {
+        if let Some(mut child) = self.child.take() {
+            kill(&mut child).await;
+        }
+    }
+
+    fn ca(&self) -> PathBuf {
+        self.state.join("dev-ca.pem")
+    }
+
+    fn database(&self) -> PathBuf {
+        self.state.join("canlift.db")
+    }
+
+    /// An operator client of this portal.
+    fn client(&self, key: &str) -> cloud::client::Client {
+        let url = format!("https://localhost:{}", self.port);
+        cloud::client::Client::new(&url, Some(key), Some(&self.ca())).expect("a client")
+    }
+
+    /// How many of the account's lifts the portal reports online (0 while it does not answer).
+    async fn online(&self, key: &str) -> usize {
+        match self.client(key).call("GET", "/api/v1/lifts", None).await {
+            Ok((200, serde_json::Value::Array(lifts))) => {
+                lifts.iter().filter(|l| l["online"] == true).count()
+            }
+            _ => 0,
+        }
+    }
+
+    /// Wait until `count` lifts are online; how long it took.
+    async fn wait_online(&self, key: &str, count: usize, limit: Duration) -> Duration {
+        let begin = tokio::time::Instant::now();
+        loop {
+            let online = self.online(key).await;
+            if online == count {
+                return begin.elapsed();
+            }
+            assert!(
+                begin.elapsed() < limit,
+                "{online} of {count} lifts online after {limit:?}"
+            );
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+    }
+
+    /// `canlift_telemetry_stored_total` from `/metrics`: values the portal has written to its
+    /// database (the counter moves after the transaction committed).
+    async fn stored(&self) -> u64 {
+        let answer = self.client("").call("GET", "/metrics", None).await;
+        let Ok((200, serde_json::Value::String(text))) = answer else {
+            panic!("/metrics: {answer:?}");
+        };
+        text.lines()
+            .find_map(|l| l.strip_prefix("canlift_telemetry_stored_total "))
+            .and_then(|v| v.trim().parse().ok())
+            .unwrap_or_else(|| panic!("no stored counter in {text}"))
+    }
+
+    /// Rows in the telemetry table and the result of SQLite's `integrity_check`.
+    async fn inspect(&self) -> (u64, String) {
+        use sqlx::{Connection, Row};
+        let url = format!("sqlite://{}", self.database().display());
+        let mut db = sqlx::SqliteConnection::connect(&url)
+            .await
+            .expect("the portal's database opens");
+        let check: String = sqlx::query("PRAGMA integrity_check")
+            .fetch_one(&mut db)
+            .await
+            .expect("integrity_check")
+            .get(0);
+        let rows: i64 = sqlx::query("SELECT COUNT(*) FROM telemetry")
+            .fetch_one(&mut db)
+            .await
+            .expect("count")
+            .get(0);
+        let _ = db.close().await;
+        (u64::try_from(rows).unwrap_or(0), check)
+    }
+}
+
+/// `canlift loadgen`: `gateways` simulated gateways for domain LOAD whose values change every
+/// 50 ms, their tokens in `state`.
+fn loadgen(portal: &PortalProcess, gateways: usize, state: &Path) -> Child {
+    canlift()
+        .args(["loadgen", "--portal"])
+        .arg(format!("wss://localhost:{}/ws", portal.port))
+        .arg("--ca")
+        .arg(portal.ca())
+        .args(["--domain", "LOAD", "--sources", "4", "--change-ms", "50"])
+        .args(["--gateways", &gateways.to_string(), "--state"])
+        .arg(state)
+        .env("RUST_LOG", "error")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("loadgen starts")
+}
+
+/// A portal killed with SIGKILL while 100 gateways push telemetry, and again while they storm
+/// back: every value the portal had counted as stored before the kill is in the database, the
+/// database passes `integrity_check`, and every gateway is back online after each restart within
+/// its backoff (1 s doubling, fully jittered).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_portal_killed_during_ingest_and_reconnect_loses_nothing_it_stored() {
+    const GATEWAYS: usize = 100;
+    let dir = testkit::scratch();
+    let (mut portal, key) = PortalProcess::start(dir.path()).await;
+    let mut fleet = loadgen(&portal, GATEWAYS, &dir.path().join("gateways"));
+    portal
+        .wait_online(&key, GATEWAYS, Duration::from_secs(60))
+        .await;
+
+    for kill_round in 1..=3 {
+        // Ingest under way: the counter moves.
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+        let before = portal.stored().await;
+        let ledger = loop {
+            tokio::time::sleep(Duration::from_millis(300)).await;
+            let now = portal.stored().await;
+            if now > before {
+                break now;
+            }
+            assert!(
+                tokio::time::Instant::now() < deadline,
+                "round {kill_round}: no telemetry stored in 30 s"
+            );
+        };
+        portal.kill().await;
+        let (rows, check) = portal.inspect().await;
+        assert_eq!(check, "ok", "round {kill_round}: integrity_check");
+        assert!(
+            rows >= ledger,
+            "round {kill_round}: {rows} rows, but the portal had stored {ledger} before the kill"
+        );
+        eprintln!("kill {kill_round}: {ledger} values acknowledged, {rows} rows on disk");
+
+        portal.restart().await;
+        if kill_round == 2 {
+            // Killed again in the middle of the reconnect storm.
+            tokio::time::sleep(Duration::from_millis(300)).await;
+            portal.kill().await;
+            let (_, check) = portal.inspect().await;
+            assert_eq!(check, "ok", "killed during the storm: integrity_check");
+            portal.restart().await;
+        }
+        let took = portal
+            .wait_online(&key, GATEWAYS, Duration::from_secs(90))
+            .await;
+        eprintln!("kill {kill_round}: all {GATEWAYS} back online after {took:?}");
+    }
+    kill(&mut fleet).await;
+    portal.kill().await;
+}
+
+/// 1,000 TCP connections that never send a TLS hello and a client that sends an HTTP request
+/// one byte at a time (slowloris): gateways still connect and operators are still answered while
+/// they hang, and the portal closes every one of them by its timeouts (TLS handshake 10 s,
+/// request head 10 s).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn silent_and_slow_clients_are_closed_and_block_no_one() {
+    let dir = testkit::scratch();
+    let (mut portal, key) = PortalProcess::start(dir.path()).await;
+    let mut silent = Vec::with_capacity(1000);
+    for _ in 0..1000 {
+        silent.push(
+            TcpStream::connect(("127.0.0.1", portal.port))
+                .await
+                .expect("a TCP connection"),
+        );
+    }
+    let slow = tokio::spawn(slowloris(portal.port, portal.ca()));
+    let begin = tokio::time::Instant::now();
+    // While they hang, gateways connect and an operator is answered.
+    let mut fleet = loadgen(&portal, 10, &dir.path().join("gateways"));
+    portal.wait_online(&key, 10, Duration::from_secs(30)).await;
+    assert!(
+        begin.elapsed() < Duration::from_secs(10),
+        "served before any timeout fired: {:?}",
+        begin.elapsed()
+    );
+    // Every silent connection is closed by the handshake timeout.
+    let mut closed = 0;
+    for mut tcp in silent {
+        let mut byte = [0u8; 1];
+        match tokio::time::timeout(Duration::from_secs(30), tcp.read(&mut byte)).await {
+            Ok(Ok(0) | Err(_)) => closed += 1,
+            Ok(Ok(_)) => panic!("the portal sent something to a client that said nothing"),
+            Err(_) => panic!("a silent connection is still open after 30 s"),
+        }
+    }
+    assert_eq!(closed, 1000);
+    let slow_lasted = slow.await.expect("the slow client ends");
+    assert!(
+        slow_lasted < Duration::from_secs(30),
+        "the slow request was closed after {slow_lasted:?}"
+    );
+    // The gateways stayed.
+    assert_eq!(portal.online(&key).await, 10);
+    kill(&mut fleet).await;
+    portal.kill().await;
+}
+
+/// Open TLS to the portal and send a request head one byte every 500 ms; how long until the
+/// portal closed the connection.
+async fn slowloris(port: u16, ca: PathBuf) -> Duration {
+    let config = tls::client_config(Some(&ca), None).expect("the portal's CA");
+    let connector = tokio_rustls::TlsConnector::from(config);
+    let tcp = TcpStream::connect(("127.0.0.1", port))
+        .await
+        .expect("a TCP connection");
+    let name = tokio_rustls::rustls::pki_types::ServerName::try_from("localhost").expect("a name");
+    let mut stream = connector.connect(name, tcp).await.expect("TLS");
+    let begin = tokio::time::Instant::now();
+    let head = b"GET /healthz HTTP/1.1\r\nHost: localhost\r\nX-Slow: ";
+    for byte in head.iter().chain(std::iter::repeat(&b'a')) {
+        if stream.write_all(&[*byte]).await.is_err() || stream.flush().await.is_err() {
+            break;
+        }
+        let mut buf = [0u8; 256];
+        match tokio::time::timeout(Duration::from_millis(500), stream.read(&mut buf)).await {
+            Ok(Ok(0) | Err(_)) => break,
+            Ok(Ok(n)) => {
+                // hyper answers a timed-out head with 408 before closing.
+                let answer = String::from_utf8_lossy(&buf[..n]).into_owned();
+                assert!(answer.starts_with("HTTP/1.1 408"), "{answer}");
+                break;
+            }
+            Err(_) => {}
+        }
+        if begin.elapsed() > Duration::from_secs(60) {
+            break;
+        }
+    }
+    begin.elapsed()
+}
+
+/// A TCP proxy between a gateway and its portal that the test turns hostile: it can stall the
+/// connections it carries (stop forwarding without closing: a half-open link), deliver one byte
+/// at a time, or reset the connection in the middle of the next message to the gateway.
+#[derive(Default)]
+struct Proxy {
+    /// Connections accepted so far (each gets the next number).
+    accepted: AtomicU64,
+    /// Connections numbered below this stall for good.
+    stalled_below: AtomicU64,
+    /// Connections numbered below this are reset in the middle of their next message.
+    reset_below: AtomicU64,
+    /// Deliver one byte at a time (each written and flushed alone).
+    bytewise: AtomicBool,
+}
+
+impl Proxy {
+    /// Listen on a loopback port and forward each connection to `target`; the listening port.
+    fn start(self: &Arc<Proxy>, target: u16) -> u16 {
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("a loopback port");
+        let port = listener.local_addr().expect("bound").port();
+        listener.set_nonblocking(true).expect("non-blocking");
+        let proxy = self.clone();
+        tokio::spawn(async move {
+            let listener = tokio::net::TcpListener::from_std(listener).expect("a tokio listener");
+            while let Ok((gateway, _)) = listener.accept().await {
+                let number = proxy.accepted.fetch_add(1, Ordering::SeqCst);
+                let Ok(portal) = TcpStream::connect(("127.0.0.1", target)).await else {
+                    continue;
+                };
+                tokio::spawn(proxy.clone().carry(number, gateway, portal));
+            }
+        });
+        port
+    }
+
+    /// Stall every connection open now; later ones are forwarded.
+    fn stall_current(&self) {
+        self.stalled_below
+            .store(self.accepted.load(Ordering::SeqCst), Ordering::SeqCst);
+    }
+
+    /// Reset every connection open now in the middle of its next message to the gateway.
+    fn reset_current(&self) {
+        self.reset_below
+            .store(self.accepted.load(Ordering::SeqCst), Ordering::SeqCst);
+    }
+
+    /// Carry one connection both ways until either side closes (or the test breaks it).
+    async fn carry(self: Arc<Proxy>, number: u64, mut gateway: TcpStream, mut portal: TcpStream) {
+        let (mut up, mut down) = (vec![0u8; 16 * 1024], vec![0u8; 16 * 1024]);
+        loop {
+            if number < self.stalled_below.load(Ordering::SeqCst) {
+                // Half-open: hold both sockets, read nothing, send nothing, close nothing.
+                std::future::pending::<()>().await;
+            }
+            let (n, to_gateway) = tokio::select! {
+                n = gateway.read(&mut up) => (n, false),
+                n = portal.read(&mut down) => (n, true),
+                // Look at the switches again now and then.
+                _ = tokio::time::sleep(Duration::from_millis(100)) => continue,
+            };
+            let Ok(n @ 1..) = n else {
+                return;
+            };
+            if number < self.stalled_below.load(Ordering::SeqCst) {
+                continue;
+            }
+            let (bytes, to) = if to_gateway {
+                (&down[..n], &mut gateway)
+            } else {
+                (&up[..n], &mut portal)
+            };
+            if to_gateway && number < self.reset_below.load(Ordering::SeqCst) {
+                let _ = to.write_all(&bytes[..n / 2]).await;
+                // SO_LINGER 0: closing sends RST, not FIN.
+                let _ = gateway.set_zero_linger();
+                let _ = portal.set_zero_linger();
+                return;
+            }
+            let written = if self.bytewise.load(Ordering::SeqCst) {
+                let mut result = Ok(());
+                for byte in bytes {
+                    result = to.write_all(std::slice::from_ref(byte)).await;
+                    if result.is_err() {
+                        break;
+                    }
+                    let _ = to.flush().await;
+                }
+                result
+            } else {
+                to.write_all(bytes).await
+            };
+            if written.is_err() {
+                return;
+            }
+        }
+    }
+}
+
+/// The portal (in this process) and the simulated lift's gateway, connected through `proxy`,
+/// both with a 1 s heartbeat: a silent link is given up after 2 × 1 s + 30 s.
+async fn rig_behind(proxy: &Arc<Proxy>) -> Rig {
+    let proxy = proxy.clone();
+    Rig::builder()
+        .portal(|c| c.gateways.heartbeat_s = 1)
+        .gateway(move |c| {
+            let port = c
+                .cloud
+                .url
+                .rsplit_once(':')
+                .and_then(|(_, rest)| rest.trim_end_matches("/ws").parse().ok())
+                .expect("the portal's port");
+            c.cloud.url = format!("wss://localhost:{}/ws", proxy.start(port));
+            c.cloud.heartbeat_s = 1;
+        })
+        .start()
+        .await
+}
+
+/// Trip counter through the portal: the status code.
+async fn read_trips(rig: &Rig) -> u16 {
+    let path = format!("/api/v1/lifts/{LIFT}/objects/0x652001");
+    rig.call("GET", &path, Some(&rig.key), None).await.0
+}
+
+/// Wait until `what` holds, checking every 100 ms, for at most `limit`; how long it took.
+async fn until(limit: Duration, what: &str, mut check: impl FnMut() -> bool) -> Duration {
+    let begin = tokio::time::Instant::now();
+    while !check() {
+        assert!(begin.elapsed() < limit, "{what}: not within {limit:?}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    begin.elapsed()
+}
+
+/// A link that stops forwarding without closing: the portal marks the lift offline and the
+/// gateway dials again, each within the silence limit (2 × heartbeat + 30 s); the new connection
+/// serves requests.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_half_open_link_is_given_up_by_both_sides() {
+    let proxy = Arc::new(Proxy::default());
+    let rig = rig_behind(&proxy).await;
+    rig.online().await;
+    assert_eq!(read_trips(&rig).await, 200);
+    let window = nxg::silence_limit(Duration::from_secs(1)) + Duration::from_secs(5);
+    proxy.stall_current();
+    let (mut portal_gave_up, mut gateway_gave_up) = (None, None);
+    let begin = tokio::time::Instant::now();
+    until(window, "both sides give the silent link up", || {
+        if portal_gave_up.is_none() && !rig.registry().online(LIFT) {
+            portal_gave_up = Some(begin.elapsed());
+        }
+        if gateway_gave_up.is_none() && proxy.accepted.load(Ordering::SeqCst) >= 2 {
+            gateway_gave_up = Some(begin.elapsed());
+        }
+        portal_gave_up.is_some() && gateway_gave_up.is_some()
+    })
+    .await;
+    eprintln!("half-open link: portal gave up after {portal_gave_up:?}, gateway after {gateway_gave_up:?}");
+    rig.online().await;
+    assert_eq!(read_trips(&rig).await, 200);
+    rig.stop().await;
+}
+
+/// A link that delivers one byte at a time still carries the connector (CONNECT, requests,
+/// answers); one reset in the middle of a message to the gateway costs the request in flight an
+/// error answer, and the gateway is back at once with its token.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_trickling_link_works_and_a_reset_one_reconnects() {
+    let proxy = Arc::new(Proxy::default());
+    proxy.bytewise.store(true, Ordering::SeqCst);
+    let rig = rig_behind(&proxy).await;
+    rig.online().await;
+    assert_eq!(read_trips(&rig).await, 200, "one byte at a time");
+    proxy.bytewise.store(false, Ordering::SeqCst);
+
+    proxy.reset_current();
+    let status = read_trips(&rig).await;
+    assert!(
+        (502..=504).contains(&status),
+        "the request whose message was cut: {status}"
+    );
+    until(Duration::from_secs(10), "the gateway dials again", || {
+        proxy.accepted.load(Ordering::SeqCst) >= 2
+    })
+    .await;
+    rig.online().await;
+    assert_eq!(read_trips(&rig).await, 200);
+    // Still the same lift, known by its token: one lift, no refused attempt.
+    let (_, lifts) = rig.call("GET", "/api/v1/lifts", Some(&rig.key), None).await;
+    assert_eq!(lifts.as_array().map(Vec::len), Some(1), "{lifts}");
+    rig.stop().await;
+}
