@@ -38,9 +38,29 @@ async fn kill(child: &mut Child) {
 /// A gateway process killed 200 times while it stores the token `update_unique_token` brought
 /// (NXg §5.4): half the time right after its answer arrived, half at a spread of points between
 /// the request and the answer. The token file always holds the old or the new token, whole; an
-/// answered token is the new one; and the next CONNECT carries what the file holds.
+/// answered token is the new one; and the next CONNECT carries what the file holds. Two
+/// gateways with portals of their own take 100 kills each, side by side.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_gateway_killed_while_storing_its_token_keeps_the_old_or_the_new() {
+    let (a, b) = tokio::join!(token_kills(0), token_kills(1));
+    eprintln!(
+        "{TOKEN_ROUNDS} kills: {} after the answer, {} left the new token, {} the old one",
+        a.answered + b.answered,
+        a.new_kept + b.new_kept,
+        a.old_kept + b.old_kept
+    );
+}
+
+/// What the kills of one gateway left.
+#[derive(Default)]
+struct Kills {
+    answered: u32,
+    new_kept: u32,
+    old_kept: u32,
+}
+
+/// Half of [`TOKEN_ROUNDS`] kills of one gateway (`lane` 0 or 1 takes the even or odd rounds).
+async fn token_kills(lane: u32) -> Kills {
     let dir = testkit::scratch();
     let pki = testkit::pki::pki(dir.path());
     let portal = scripted::Portal::start(&pki).await;
@@ -56,9 +76,9 @@ async fn a_gateway_killed_while_storing_its_token_keeps_the_old_or_the_new() {
     std::fs::write(&config_path, toml::to_string(&config).expect("TOML")).expect("written");
 
     let mut on_file: Option<String> = None;
-    let (mut answered, mut old_kept, mut new_kept) = (0, 0, 0);
+    let mut kills = Kills::default();
     let mut answer_time = Duration::from_millis(5);
-    for round in 0..TOKEN_ROUNDS {
+    for round in (lane..TOKEN_ROUNDS).step_by(2) {
         let mut gateway = canlift()
             .args(["gateway", "--config"])
             .arg(&config_path)
@@ -84,11 +104,11 @@ async fn a_gateway_killed_while_storing_its_token_keeps_the_old_or_the_new() {
         )
         .await;
         let sent_at = tokio::time::Instant::now();
-        let wait_for_answer = round % 2 == 0;
+        let wait_for_answer = round % 4 < 2;
         if wait_for_answer {
             let answer = scripted::recv(&mut ws).await;
             assert_eq!(answer["result"]["done"], 0, "round {round}: {answer}");
-            answered += 1;
+            kills.answered += 1;
             answer_time = sent_at.elapsed();
         } else {
             // Spread over the whole store: from 0 to twice the last time an answer took.
@@ -109,9 +129,9 @@ async fn a_gateway_killed_while_storing_its_token_keeps_the_old_or_the_new() {
             );
         }
         if content == token_file(Some(&new)) {
-            new_kept += 1;
+            kills.new_kept += 1;
         } else {
-            old_kept += 1;
+            kills.old_kept += 1;
         }
         on_file = content.map(|c| c.trim_end_matches('\n').to_owned());
         // At most the token and one temporary file a kill left behind.
@@ -122,10 +142,6 @@ async fn a_gateway_killed_while_storing_its_token_keeps_the_old_or_the_new() {
             .count();
         assert!(files <= 2, "round {round}: {files} token files");
     }
-    eprintln!(
-        "{TOKEN_ROUNDS} kills: {answered} after the answer, {new_kept} left the new token, \
-         {old_kept} the old one"
-    );
     // The last token is accepted: a gateway started once more sends it.
     let mut gateway = canlift()
         .args(["gateway", "--config"])
@@ -142,6 +158,7 @@ async fn a_gateway_killed_while_storing_its_token_keeps_the_old_or_the_new() {
     );
     kill(&mut gateway).await;
     hub.shutdown().await;
+    kills
 }
 
 /// A free loopback port for a process the test restarts on the same address.
@@ -162,15 +179,16 @@ struct PortalProcess {
 }
 
 impl PortalProcess {
-    /// Configure (account `load` for domain `LOAD`) and start; returns it and the API key.
-    async fn start(dir: &Path) -> (PortalProcess, String) {
+    /// Configure (account `load` for domain `LOAD`; `extra` TOML appended) and start; returns
+    /// it and the API key.
+    async fn start(dir: &Path, extra: &str) -> (PortalProcess, String) {
         let state = dir.join("portal");
         let port = free_port();
         let config = dir.join("portal.toml");
         std::fs::write(
             &config,
             format!(
-                "[server]\nlisten = \"127.0.0.1:{port}\"\n[state]\ndir = \"{}\"\n",
+                "[server]\nlisten = \"127.0.0.1:{port}\"\n[state]\ndir = \"{}\"\n{extra}",
                 state.display()
             ),
         )
@@ -271,14 +289,19 @@ impl PortalProcess {
     /// `canlift_telemetry_stored_total` from `/metrics`: values the portal has written to its
     /// database (the counter moves after the transaction committed).
     async fn stored(&self) -> u64 {
+        self.metric("canlift_telemetry_stored_total").await
+    }
+
+    /// One counter or gauge from `/metrics`.
+    async fn metric(&self, name: &str) -> u64 {
         let answer = self.client("").call("GET", "/metrics", None).await;
         let Ok((200, serde_json::Value::String(text))) = answer else {
             panic!("/metrics: {answer:?}");
         };
         text.lines()
-            .find_map(|l| l.strip_prefix("canlift_telemetry_stored_total "))
+            .find_map(|l| l.strip_prefix(name)?.strip_prefix(' '))
             .and_then(|v| v.trim().parse().ok())
-            .unwrap_or_else(|| panic!("no stored counter in {text}"))
+            .unwrap_or_else(|| panic!("no {name} in {text}"))
     }
 
     /// Rows in the telemetry table and the result of SQLite's `integrity_check`.
@@ -329,7 +352,7 @@ fn loadgen(portal: &PortalProcess, gateways: usize, state: &Path) -> Child {
 async fn a_portal_killed_during_ingest_and_reconnect_loses_nothing_it_stored() {
     const GATEWAYS: usize = 100;
     let dir = testkit::scratch();
-    let (mut portal, key) = PortalProcess::start(dir.path()).await;
+    let (mut portal, key) = PortalProcess::start(dir.path(), "").await;
     let mut fleet = loadgen(&portal, GATEWAYS, &dir.path().join("gateways"));
     portal
         .wait_online(&key, GATEWAYS, Duration::from_secs(60))
@@ -384,7 +407,7 @@ async fn a_portal_killed_during_ingest_and_reconnect_loses_nothing_it_stored() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn silent_and_slow_clients_are_closed_and_block_no_one() {
     let dir = testkit::scratch();
-    let (mut portal, key) = PortalProcess::start(dir.path()).await;
+    let (mut portal, key) = PortalProcess::start(dir.path(), "").await;
     let mut silent = Vec::with_capacity(1000);
     for _ in 0..1000 {
         silent.push(
@@ -651,4 +674,76 @@ async fn a_trickling_link_works_and_a_reset_one_reconnects() {
     let (_, lifts) = rig.call("GET", "/api/v1/lifts", Some(&rig.key), None).await;
     assert_eq!(lifts.as_array().map(Vec::len), Some(1), "{lifts}");
     rig.stop().await;
+}
+
+/// PostgreSQL stopped for 20 s under a portal whose gateways push telemetry: the gateways stay
+/// connected, operators keep reading lifts (an API key seen before the outage still counts),
+/// the values wait in the portal up to `[database] telemetry_queue` and the rest are dropped and
+/// counted; when the database is back the portal writes again without a restart.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_database_outage_is_ridden_out() {
+    const GATEWAYS: usize = 10;
+    const QUEUE: u64 = 500;
+    let Some(mut database) = testkit::PostgresServer::start() else {
+        return;
+    };
+    let dir = testkit::scratch();
+    let extra = format!(
+        "[database]\nurl = \"{}\"\ntelemetry_queue = {QUEUE}\n",
+        database.url()
+    );
+    let (portal, key) = PortalProcess::start(dir.path(), &extra).await;
+    let mut fleet = loadgen(&portal, GATEWAYS, &dir.path().join("gateways"));
+    portal
+        .wait_online(&key, GATEWAYS, Duration::from_secs(60))
+        .await;
+    let lift = "1050-4097-LOAD-000001";
+    let read = || async {
+        let path = format!("/api/v1/lifts/{lift}/objects/0x652001");
+        portal.client(&key).call("GET", &path, None).await
+    };
+    assert_eq!(read().await.expect("an answer").0, 200);
+    let stored_before = portal.stored().await;
+
+    database.stop();
+    let begin = tokio::time::Instant::now();
+    let mut reads = 0;
+    while begin.elapsed() < Duration::from_secs(20) {
+        let answer = read().await.expect("an answer");
+        assert_eq!(answer.0, 200, "a read during the outage: {answer:?}");
+        reads += 1;
+        assert_eq!(
+            portal.metric("canlift_gateways_online").await,
+            GATEWAYS as u64,
+            "the gateways stay connected"
+        );
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+    let queued = portal.metric("canlift_telemetry_queued").await;
+    let dropped = portal.metric("canlift_telemetry_dropped_total").await;
+    eprintln!("outage: {reads} reads answered, {queued} values waiting, {dropped} dropped");
+    assert_eq!(queued, QUEUE, "the queue filled to its bound");
+    assert!(dropped > 0, "what did not fit is dropped and counted");
+
+    database.start_again();
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+    loop {
+        let stored = portal.stored().await;
+        if stored >= stored_before + QUEUE
+            && portal.metric("canlift_telemetry_queued").await < QUEUE
+        {
+            eprintln!("after the outage: {} values stored", stored - stored_before);
+            break;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the portal does not write again: {stored} stored"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    // The operator API needs the database again for the list of lifts, and has it.
+    assert_eq!(portal.online(&key).await, GATEWAYS);
+    kill(&mut fleet).await;
+    let mut portal = portal;
+    portal.kill().await;
 }

@@ -66,6 +66,9 @@ pub struct DatabaseSection {
     pub telemetry_days: u32,
     /// Days bus events are kept (the same way); 0 keeps them forever.
     pub events_days: u32,
+    /// Pushed values that may wait for the database (while it is slow or down) before further
+    /// ones are dropped and counted (`canlift_telemetry_dropped_total`).
+    pub telemetry_queue: usize,
 }
 
 impl Default for DatabaseSection {
@@ -74,6 +77,7 @@ impl Default for DatabaseSection {
             url: None,
             telemetry_days: 30,
             events_days: 90,
+            telemetry_queue: 65_536,
         }
     }
 }

@@ -119,7 +119,7 @@ impl Portal {
         let tls = server_tls(config)?;
         let registry = Arc::new(Registry::default());
         let dashboard = Arc::new(config.dashboard.dashboard().map_err(ServerError::Other)?);
-        let (telemetry, telemetry_rx) = mpsc::channel(65536);
+        let (telemetry, telemetry_rx) = mpsc::channel(config.database.telemetry_queue.max(1));
         let counters = Arc::new(gateways::TelemetryCounters::default());
         let mut tasks = vec![
             tokio::spawn(telemetry::retention(
@@ -159,6 +159,7 @@ impl Portal {
         let r = registry.clone();
         let t = counters;
         let a = alarms.counters.clone();
+        let queue = ws_state.shared.telemetry.clone();
         let router = Router::new()
             .route("/ws", get(ws).with_state(ws_state))
             .route("/healthz", get(|| async { "ok\n" }))
@@ -166,7 +167,8 @@ impl Portal {
                 "/metrics",
                 get(move || {
                     let (m, r, t, a) = (m.clone(), r.clone(), t.clone(), a.clone());
-                    async move { metrics_text(&m, &r, &t, &a) }
+                    let queued = queue.max_capacity() - queue.capacity();
+                    async move { metrics_text(&m, &r, (&t, queued), &a) }
                 }),
             )
             .merge({
@@ -318,7 +320,7 @@ fn start_alarms(
 fn metrics_text(
     m: &Metrics,
     r: &Registry,
-    t: &gateways::TelemetryCounters,
+    (t, queued): (&gateways::TelemetryCounters, usize),
     a: &service::Counters,
 ) -> String {
     let load = |c: &AtomicU64| c.load(Ordering::Relaxed);
@@ -349,6 +351,7 @@ fn metrics_text(
     ];
     let gauges = [
         ("canlift_gateways_online", r.online_count() as u64),
+        ("canlift_telemetry_queued", queued as u64),
         (
             "canlift_webhooks_pending",
             a.webhooks_pending.load(Ordering::Relaxed),

@@ -19,7 +19,7 @@ pub mod sample;
 pub mod scripted;
 
 #[cfg(feature = "postgres")]
-pub use postgres::postgres;
+pub use postgres::{postgres, Server as PostgresServer};
 
 use std::io::Write;
 use std::net::SocketAddr;

@@ -35,3 +35,147 @@ pub async fn postgres(name: &str) -> Option<String> {
     let base = admin.rsplit_once('/').map_or(admin.as_str(), |(b, _)| b);
     Some(format!("{base}/{db}"))
 }
+
+/// A PostgreSQL server of the test's own (Debian's binaries, a throw-away cluster in a scratch
+/// directory, on a loopback port) for tests that stop and start the database; stopped when
+/// dropped. As root the server runs as the `postgres` user, which PostgreSQL insists on.
+pub struct Server {
+    bin: std::path::PathBuf,
+    data: tempfile::TempDir,
+    port: u16,
+    running: bool,
+}
+
+impl Server {
+    /// Create and start a cluster, or `None` after printing why the test is skipped (no
+    /// PostgreSQL installed; with CANLIFT_REQUIRE_POSTGRES=1 the test fails instead).
+    pub fn start() -> Option<Server> {
+        let Some(bin) = installed() else {
+            let reason =
+                "postgres: no /usr/lib/postgresql/*/bin/initdb (apt-get install postgresql)";
+            if std::env::var("CANLIFT_REQUIRE_POSTGRES").as_deref() == Ok("1") {
+                panic!("{reason}");
+            }
+            skip(reason);
+            return None;
+        };
+        let data = crate::scratch();
+        if as_root() {
+            let chown = std::process::Command::new("chown")
+                .args(["-R", "postgres:postgres"])
+                .arg(data.path())
+                .status()
+                .expect("chown runs");
+            assert!(
+                chown.success(),
+                "the postgres user owns the cluster directory"
+            );
+        }
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .expect("a loopback port")
+            .port();
+        let mut server = Server {
+            bin,
+            data,
+            port,
+            running: false,
+        };
+        server
+            .run(
+                "initdb",
+                &[
+                    "-U",
+                    "postgres",
+                    "--auth=trust",
+                    "-E",
+                    "UTF8",
+                    "--no-sync",
+                    "-D",
+                ],
+            )
+            .expect("initdb");
+        server.start_again();
+        Some(server)
+    }
+
+    /// `postgres://postgres@127.0.0.1:PORT/postgres`.
+    pub fn url(&self) -> String {
+        format!("postgres://postgres@127.0.0.1:{}/postgres", self.port)
+    }
+
+    /// Stop the server (fast shutdown: sessions are ended, as in a restart or a failover).
+    pub fn stop(&mut self) {
+        if self.running {
+            self.run("pg_ctl", &["-m", "fast", "-w", "stop", "-D"])
+                .expect("pg_ctl stop");
+            self.running = false;
+        }
+    }
+
+    /// Start the stopped server again on the same port and data.
+    pub fn start_again(&mut self) {
+        let options = format!(
+            "-p {} -k {} -c listen_addresses=127.0.0.1 -c fsync=off",
+            self.port,
+            self.data.path().display()
+        );
+        let log = self.data.path().join("server.log");
+        let log = log.to_str().expect("a UTF-8 path");
+        self.run("pg_ctl", &["-w", "-l", log, "-o", &options, "start", "-D"])
+            .expect("pg_ctl start");
+        self.running = true;
+    }
+
+    /// Run `bin/PROGRAM ARGS DATA_DIR` (as the postgres user when root).
+    fn run(&self, program: &str, args: &[&str]) -> Result<(), String> {
+        let program = self.bin.join(program);
+        let mut command = if as_root() {
+            let mut c = std::process::Command::new("runuser");
+            c.args(["-u", "postgres", "--"]).arg(&program);
+            c
+        } else {
+            std::process::Command::new(&program)
+        };
+        match command.args(args).arg(self.data.path()).output() {
+            Ok(out) if out.status.success() => Ok(()),
+            Ok(out) => Err(format!(
+                "{} {args:?}: {}{}",
+                program.display(),
+                String::from_utf8_lossy(&out.stdout),
+                String::from_utf8_lossy(&out.stderr)
+            )),
+            Err(e) => Err(format!("{}: {e}", program.display())),
+        }
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        if self.running {
+            let _ = self.run("pg_ctl", &["-m", "immediate", "-w", "stop", "-D"]);
+        }
+    }
+}
+
+/// The newest installed PostgreSQL's binaries.
+fn installed() -> Option<std::path::PathBuf> {
+    let mut versions: Vec<(u32, std::path::PathBuf)> = std::fs::read_dir("/usr/lib/postgresql")
+        .ok()?
+        .filter_map(Result::ok)
+        .filter_map(|e| {
+            let version = e.file_name().to_str()?.parse().ok()?;
+            let bin = e.path().join("bin");
+            bin.join("initdb").is_file().then_some((version, bin))
+        })
+        .collect();
+    versions.sort();
+    versions.pop().map(|(_, bin)| bin)
+}
+
+fn as_root() -> bool {
+    std::process::Command::new("id")
+        .arg("-u")
+        .output()
+        .is_ok_and(|o| o.stdout.starts_with(b"0\n"))
+}

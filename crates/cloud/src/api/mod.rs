@@ -72,7 +72,11 @@ pub(crate) fn error(status: StatusCode, message: impl Into<String>) -> ApiError 
 impl From<store::StoreError> for ApiError {
     fn from(e: store::StoreError) -> Self {
         tracing::error!(error = %e, "API request failed on the database");
-        error(StatusCode::INTERNAL_SERVER_ERROR, "database unavailable")
+        if e.is_unavailable() {
+            error(StatusCode::SERVICE_UNAVAILABLE, "database unavailable")
+        } else {
+            error(StatusCode::INTERNAL_SERVER_ERROR, "database error")
+        }
     }
 }
 
@@ -176,6 +180,10 @@ impl FromRequestParts<Arc<App>> for Caller {
 /// The caller's account, if the lift is one of the account's (404 otherwise).
 async fn lift_of(app: &App, caller: Caller, id: &str) -> Result<Account, ApiError> {
     let account = caller.0;
+    // A connected lift's domain is known without the database (and without a query per request).
+    if app.registry.serves(&account.domain, id) {
+        return Ok(account);
+    }
     if app.store.lift(&account.domain, id).await?.is_none() {
         return Err(error(StatusCode::NOT_FOUND, "no such lift"));
     }

@@ -168,7 +168,7 @@ impl Connection {
                 if let Err(e) = self.shared.store.upsert_gateway(&connect, api).await {
                     tracing::error!(error = %e, "gateway not recorded");
                 }
-                self.register(&lift, &connect.identity.sernum, api);
+                self.register(&lift, &connect, api);
                 tracing::info!(%lift, %peer, api, first = ?admission, "gateway online");
                 self.shared.registry.publish(&lift, LiftEvent::Online(true));
                 self.shared.alarms.report(Input::Online(lift)).await;
@@ -179,12 +179,12 @@ impl Connection {
 
     /// Make the lift reachable for operators and subscribe the dashboard's objects (and, with
     /// api ≥ 2, its bus events).
-    fn register(&mut self, lift: &str, sernum: &str, api: u32) {
+    fn register(&mut self, lift: &str, connect: &Connect, api: u32) {
         let Some(close) = self.close_tx.take() else {
             return;
         };
         let registry = &self.shared.registry;
-        let serial = registry.register(lift, sernum, self.calls_tx.clone(), close);
+        let serial = registry.register(lift, connect, self.calls_tx.clone(), close);
         self.admitted = Some(Admitted {
             lift: lift.to_owned(),
             serial,
@@ -257,7 +257,9 @@ impl Connection {
             tracing::info!(%peer, %cause, "connection ended before CONNACK");
             return;
         };
-        let _ = self.shared.store.seen(&a.lift).await;
+        // In the background: a database that is down must not hold up the lift going offline.
+        let (store, lift) = (self.shared.store.clone(), a.lift.clone());
+        tokio::spawn(async move { store.seen(&lift).await });
         if self.shared.registry.unregister(&a.lift, a.serial) {
             self.shared
                 .registry

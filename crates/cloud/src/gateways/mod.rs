@@ -90,6 +90,8 @@ struct Live {
     close: oneshot::Sender<()>,
     serial: u64,
     sernum: String,
+    /// The domain token of its CONNECT: the account whose lift it is.
+    domain: String,
     status: LiftStatus,
 }
 
@@ -146,6 +148,15 @@ impl Registry {
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .contains_key(lift)
+    }
+
+    /// Whether `lift` is connected now as a lift of `domain`.
+    pub fn serves(&self, domain: &str, lift: &str) -> bool {
+        self.live
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(lift)
+            .is_some_and(|live| live.domain == domain)
     }
 
     /// How many gateways are connected.
@@ -256,7 +267,7 @@ impl Registry {
     fn register(
         &self,
         lift: &str,
-        sernum: &str,
+        connect: &nxg::msg::Connect,
         calls: mpsc::Sender<Box<OperatorCall>>,
         close: oneshot::Sender<()>,
     ) -> u64 {
@@ -271,7 +282,8 @@ impl Registry {
                     calls,
                     close,
                     serial,
-                    sernum: sernum.to_owned(),
+                    sernum: connect.identity.sernum.clone(),
+                    domain: connect.domaintoken.clone(),
                     status: LiftStatus::default(),
                 },
             );

@@ -19,6 +19,11 @@ pub struct TelemetryCounters {
 }
 
 /// Write telemetry in batches (up to 2,000 values or every 200 ms, whichever first).
+///
+/// While the database cannot be reached the batch in hand is tried again (every 250 ms at
+/// first, then at most every 5 s) and new values wait in the channel in front of the writer;
+/// once that is full the connections drop what they receive and count it
+/// (`canlift_telemetry_dropped_total`). A batch the database refuses is dropped and counted.
 pub async fn writer(
     store: Store,
     mut rx: mpsc::Receiver<TelemetryRow>,
@@ -39,17 +44,35 @@ pub async fn writer(
                 _ => break,
             }
         }
-        let counter = match store.telemetry(&batch).await {
-            Ok(()) => &counters.stored,
-            Err(e) => {
-                tracing::error!(error = %e, values = batch.len(), "telemetry not stored");
-                &counters.dropped
+        let mut retry = RETRY_FIRST;
+        let counter = loop {
+            match store.telemetry(&batch).await {
+                Ok(()) => {
+                    if retry > RETRY_FIRST {
+                        tracing::info!(values = batch.len(), "telemetry stored again");
+                    }
+                    break &counters.stored;
+                }
+                Err(e) if e.is_unavailable() => {
+                    if retry == RETRY_FIRST {
+                        tracing::error!(error = %e, values = batch.len(), "database unreachable: telemetry waits");
+                    }
+                    tokio::time::sleep(retry).await;
+                    retry = (retry * 2).min(RETRY_LAST);
+                }
+                Err(e) => {
+                    tracing::error!(error = %e, values = batch.len(), "telemetry not stored");
+                    break &counters.dropped;
+                }
             }
         };
         counter.fetch_add(batch.len() as u64, Ordering::Relaxed);
         batch.clear();
     }
 }
+
+const RETRY_FIRST: std::time::Duration = std::time::Duration::from_millis(250);
+const RETRY_LAST: std::time::Duration = std::time::Duration::from_secs(5);
 
 /// What is deleted after its retention time.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -23,6 +23,61 @@ use sqlx::{AnyPool, Executor, Row};
 #[error("database: {0}")]
 pub struct StoreError(#[from] sqlx::Error);
 
+impl StoreError {
+    /// Whether the database could not be reached (down, restarting, no connection free in
+    /// time) rather than refusing the statement: worth trying again later.
+    pub fn is_unavailable(&self) -> bool {
+        matches!(
+            self.0,
+            sqlx::Error::Io(_)
+                | sqlx::Error::Tls(_)
+                | sqlx::Error::PoolTimedOut
+                | sqlx::Error::PoolClosed
+                | sqlx::Error::WorkerCrashed
+                | sqlx::Error::Protocol(_)
+        ) || matches!(&self.0, sqlx::Error::Database(e) if e.code().is_some_and(|c| {
+            // PostgreSQL: admin shutdown, crash shutdown, cannot connect now.
+            matches!(c.as_ref(), "57P01" | "57P02" | "57P03")
+        }))
+    }
+}
+
+/// How long an API key's account is taken from memory before the database is asked again, and
+/// how long a remembered key still counts while the database cannot be reached
+/// (docs/SECURITY.md §Bounds).
+const KEY_FRESH: std::time::Duration = std::time::Duration::from_secs(60);
+const KEY_KEPT: std::time::Duration = std::time::Duration::from_secs(3600);
+/// Keys remembered at most (a full memory starts over).
+const KEY_CACHE_ENTRIES: usize = 10_000;
+
+/// Accounts of API keys recently looked up, by the key's digest.
+#[derive(Default)]
+struct KeyCache(std::sync::Mutex<HashMap<String, (Account, std::time::Instant)>>);
+
+impl KeyCache {
+    /// The account of `digest` if it was looked up less than `age` ago.
+    fn get(&self, digest: &str, age: std::time::Duration) -> Option<Account> {
+        let keys = self
+            .0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        keys.get(digest)
+            .filter(|(_, at)| at.elapsed() < age)
+            .map(|(account, _)| account.clone())
+    }
+
+    fn put(&self, digest: String, account: Account) {
+        let mut keys = self
+            .0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if keys.len() >= KEY_CACHE_ENTRIES {
+            keys.clear();
+        }
+        keys.insert(digest, (account, std::time::Instant::now()));
+    }
+}
+
 /// Milliseconds since the Unix epoch.
 pub fn now_ms() -> i64 {
     SystemTime::now()
@@ -148,6 +203,7 @@ pub struct AuditEntry {
 #[derive(Clone)]
 pub struct Store {
     pool: AnyPool,
+    keys: std::sync::Arc<KeyCache>,
 }
 
 const SCHEMA: &[&str] = &[
@@ -187,6 +243,9 @@ impl Store {
         };
         let pool = AnyPoolOptions::new()
             .max_connections(connections)
+            // A request that needs the database while it is down fails in seconds, not after
+            // sqlx's default of 30 s.
+            .acquire_timeout(std::time::Duration::from_secs(5))
             .after_connect(move |conn, _| {
                 Box::pin(async move {
                     if sqlite {
@@ -208,7 +267,10 @@ impl Store {
         for statement in SCHEMA {
             sqlx::query(statement).execute(&pool).await?;
         }
-        Ok(Store { pool })
+        Ok(Store {
+            pool,
+            keys: std::sync::Arc::default(),
+        })
     }
 
     /// Create an account for `domain`; returns its API key (shown once, stored as a digest).
@@ -228,18 +290,41 @@ impl Store {
 
     /// The account an API key belongs to (found by the key's digest: an index lookup reveals
     /// nothing of a random 128-bit key).
+    ///
+    /// A key found is remembered for a minute, so requests do not each cost a query, and while
+    /// the database is unreachable a key that was valid within the hour still counts: operators
+    /// keep reading lifts, which needs no database, through an outage.
     pub async fn account_by_key(&self, key: &str) -> Result<Option<Account>, StoreError> {
+        let digest = digest(key);
+        if let Some(account) = self.keys.get(&digest, KEY_FRESH) {
+            return Ok(Some(account));
+        }
         let row = sqlx::query("SELECT name, domain FROM accounts WHERE key_hash = $1")
-            .bind(digest(key))
+            .bind(&digest)
             .fetch_optional(&self.pool)
-            .await?;
-        let account = row.map(|r| -> Result<Account, sqlx::Error> {
-            Ok(Account {
-                name: r.try_get("name")?,
-                domain: r.try_get("domain")?,
+            .await;
+        let row = match row.map_err(StoreError::from) {
+            Ok(row) => row,
+            Err(e) if e.is_unavailable() => {
+                return match self.keys.get(&digest, KEY_KEPT) {
+                    Some(account) => Ok(Some(account)),
+                    None => Err(e),
+                };
+            }
+            Err(e) => return Err(e),
+        };
+        let account = row
+            .map(|r| -> Result<Account, sqlx::Error> {
+                Ok(Account {
+                    name: r.try_get("name")?,
+                    domain: r.try_get("domain")?,
+                })
             })
-        });
-        Ok(account.transpose()?)
+            .transpose()?;
+        if let Some(account) = &account {
+            self.keys.put(digest, account.clone());
+        }
+        Ok(account)
     }
 
     /// Whether an account owns `domain`.
