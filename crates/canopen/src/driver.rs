@@ -133,11 +133,14 @@ pub enum ClientError {
 }
 
 impl ClientError {
-    /// The CiA 301 abort code that describes the failure.
+    /// The CiA 301 abort code that describes the failure. A bus link that is down (the hub
+    /// gone, an interface down) is a timeout to whoever asked: the node cannot answer, as if it
+    /// had not (CiA 301 has no abort code of its own for it).
     pub fn abort_code(&self) -> AbortCode {
         match self {
             ClientError::Sdo { error, .. } => error.abort_code(),
             ClientError::Type { error, .. } => error.abort_code(),
+            ClientError::Bus(canbus::BusError::Offline { .. }) => AbortCode::TIMEOUT,
             ClientError::Bus(_) | ClientError::Closed => AbortCode::GENERAL,
             ClientError::Sink(_) => AbortCode::CANNOT_STORE,
         }

@@ -98,6 +98,9 @@ pub struct GatewaysSection {
     pub max_queued: usize,
     /// Largest message accepted from a gateway (bytes).
     pub max_message_bytes: usize,
+    /// Messages a gateway may send per second, on average over two seconds; a connection
+    /// above it is closed (1008) without touching the others.
+    pub max_messages_per_s: u32,
 }
 
 impl Default for GatewaysSection {
@@ -109,6 +112,7 @@ impl Default for GatewaysSection {
             max_in_flight: 16,
             max_queued: 64,
             max_message_bytes: 65536,
+            max_messages_per_s: 5000,
         }
     }
 }

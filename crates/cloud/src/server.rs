@@ -151,6 +151,7 @@ impl Portal {
                 dashboard: dashboard.clone(),
                 alarms: alarms.clone(),
                 closing: closing_rx,
+                max_messages_per_s: config.gateways.max_messages_per_s,
             },
             max_message: config.gateways.max_message_bytes,
             metrics: metrics.clone(),

@@ -81,9 +81,11 @@ impl From<store::StoreError> for ApiError {
 }
 
 /// The HTTP status of a gateway's NXg error: a missing object is 404, a refusal of rights or
-/// identity 403, anything else the caller's mistake (400).
+/// identity 403, a node on the lift's bus that did not answer (SDO timeout) 504, anything else
+/// the caller's mistake (400).
 fn status_of(code: Option<ErrorCode>) -> StatusCode {
     match code {
+        Some(ErrorCode::TIMEOUT) => StatusCode::GATEWAY_TIMEOUT,
         Some(ErrorCode::NO_OBJECT | ErrorCode::NO_SUB_INDEX) => StatusCode::NOT_FOUND,
         Some(ErrorCode::IDENTITY | ErrorCode::PRIVILEGE | ErrorCode::DEVICE_STATE) => {
             StatusCode::FORBIDDEN

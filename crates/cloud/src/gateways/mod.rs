@@ -324,4 +324,6 @@ pub struct Shared {
     pub alarms: Arc<crate::alarms::Alarms>,
     /// Turns true when the portal stops: every connection closes.
     pub closing: tokio::sync::watch::Receiver<bool>,
+    /// Messages per second a gateway may send (`[gateways] max_messages_per_s`).
+    pub max_messages_per_s: u32,
 }
