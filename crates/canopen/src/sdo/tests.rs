@@ -620,6 +620,43 @@ fn timeouts_on_both_sides() {
 }
 
 #[test]
+fn a_server_silent_in_the_middle_of_a_block_is_aborted_and_the_client_is_free() {
+    // The server answers the block upload, sends one segment of a block of four and vanishes:
+    // the client aborts with 05040000h after its timeout and takes the next transfer at once.
+    let now = Instant::now();
+    let timeout = Duration::from_millis(500);
+    let mut client = SdoClient::new(ClientConfig {
+        timeout,
+        block_size: 4,
+        switch_threshold: 0,
+        ..Default::default()
+    });
+    let mut out = Vec::new();
+    client
+        .start_upload(0x2000, 0, Transfer::Block, now, &mut out)
+        .unwrap();
+    assert_eq!(
+        client.handle(&[0xC6, 0x00, 0x20, 0x00, 100, 0, 0, 0], now, &mut out),
+        None
+    );
+    assert_eq!(client.handle(&[1, 1, 2, 3, 4, 5, 6, 7], now, &mut out), None);
+    let later = now + Duration::from_millis(100);
+    assert_eq!(client.poll_timeout(), Some(now + timeout));
+    out.clear();
+    assert_eq!(
+        client.handle_timeout(now + timeout, &mut out),
+        Some(Err(SdoError::Timeout))
+    );
+    assert_eq!(out, vec![super::msg::abort(0x2000, 0, AbortCode::TIMEOUT)]);
+    assert_eq!(client.poll_timeout(), None, "nothing left to wait for");
+    assert_eq!(
+        client.start_upload(0x1008, 0, Transfer::Normal, later + timeout, &mut out),
+        Ok(()),
+        "no slot stays taken"
+    );
+}
+
+#[test]
 fn client_abort_frees_the_server() {
     let now = Instant::now();
     let mut od = dictionary();
