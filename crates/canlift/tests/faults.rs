@@ -28,6 +28,17 @@ fn token_file(token: Option<&str>) -> Option<String> {
     token.map(|t| format!("{t}\n"))
 }
 
+/// `canlift ARGS` in the background, its output discarded.
+fn daemon(args: &[&str]) -> Child {
+    canlift()
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("canlift starts")
+}
+
 /// Kill `child` with SIGKILL and reap it.
 async fn kill(child: &mut Child) {
     child.start_kill().expect("SIGKILL sent");
@@ -79,23 +90,19 @@ async fn token_kills(lane: u32) -> Kills {
     let mut on_file: Option<String> = None;
     let mut kills = Kills::default();
     let mut answer_time = Duration::from_millis(5);
-    for round in (lane..TOKEN_ROUNDS).step_by(2) {
-        let mut gateway = canlift()
-            .args(["gateway", "--config"])
-            .arg(&config_path)
-            .env("RUST_LOG", "warn")
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("the gateway starts");
+    let config_arg = config_path.to_str().expect("UTF-8");
+    // A gateway process, and its connection once its CONNECT carried the token on file.
+    let portal = &portal;
+    let connected = |on_file: Option<String>| async move {
+        let gateway = daemon(&["gateway", "--config", config_arg]);
         let (mut ws, ..) = portal.accept().await;
         let connect = scripted::connack(&mut ws).await;
         let sent = connect["params"]["identity"]["cloudtoken"].as_str();
-        assert_eq!(
-            sent,
-            on_file.as_deref(),
-            "round {round}: CONNECT carries the stored token"
-        );
+        assert_eq!(sent, on_file.as_deref(), "CONNECT carries the stored token");
+        (gateway, ws)
+    };
+    for round in (lane..TOKEN_ROUNDS).step_by(2) {
+        let (mut gateway, mut ws) = connected(on_file.clone()).await;
         let new = format!("T-{round:03}-{}", "x".repeat(round as usize % 100));
         scripted::send(
             &mut ws,
@@ -144,19 +151,7 @@ async fn token_kills(lane: u32) -> Kills {
         assert!(files <= 2, "round {round}: {files} token files");
     }
     // The last token is accepted: a gateway started once more sends it.
-    let mut gateway = canlift()
-        .args(["gateway", "--config"])
-        .arg(&config_path)
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("the gateway starts");
-    let (mut ws, ..) = portal.accept().await;
-    let connect = scripted::connack(&mut ws).await;
-    assert_eq!(
-        connect["params"]["identity"]["cloudtoken"].as_str(),
-        on_file.as_deref()
-    );
+    let (mut gateway, _ws) = connected(on_file).await;
     kill(&mut gateway).await;
     hub.shutdown().await;
     kills
@@ -221,15 +216,8 @@ impl PortalProcess {
 
     /// Start the process again (after a kill) and wait until it listens.
     async fn restart(&mut self) {
-        let child = canlift()
-            .args(["cloud", "--config"])
-            .arg(&self.config)
-            .env("RUST_LOG", "warn")
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("the portal starts");
-        self.child = Some(child);
+        let config = self.config.to_str().expect("UTF-8");
+        self.child = Some(daemon(&["cloud", "--config", config]));
         let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
         while TcpStream::connect(("127.0.0.1", self.port)).await.is_err() {
             assert!(
@@ -330,19 +318,25 @@ impl PortalProcess {
 /// `canlift loadgen`: `gateways` simulated gateways for domain LOAD whose values change every
 /// 50 ms, their tokens in `state`.
 fn loadgen(portal: &PortalProcess, gateways: usize, state: &Path) -> Child {
-    canlift()
-        .args(["loadgen", "--portal"])
-        .arg(format!("wss://localhost:{}/ws", portal.port))
-        .arg("--ca")
-        .arg(portal.ca())
-        .args(["--domain", "LOAD", "--sources", "4", "--change-ms", "50"])
-        .args(["--gateways", &gateways.to_string(), "--state"])
-        .arg(state)
-        .env("RUST_LOG", "error")
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("loadgen starts")
+    let (url, ca) = (format!("wss://localhost:{}/ws", portal.port), portal.ca());
+    let gateways = gateways.to_string();
+    daemon(&[
+        "loadgen",
+        "--portal",
+        &url,
+        "--ca",
+        ca.to_str().expect("UTF-8"),
+        "--domain",
+        "LOAD",
+        "--sources",
+        "4",
+        "--change-ms",
+        "50",
+        "--gateways",
+        &gateways,
+        "--state",
+        state.to_str().expect("UTF-8"),
+    ])
 }
 
 /// A portal killed with SIGKILL while 100 gateways push telemetry, and again while they storm
@@ -744,21 +738,10 @@ async fn a_database_outage_is_ridden_out() {
     portal.kill().await;
 }
 
-/// `canlift ARGS` in the background, its output discarded.
-fn daemon(args: &[&str]) -> Child {
-    canlift()
-        .args(args)
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("canlift starts")
-}
-
 /// The sample lift (testkit) as processes: the hub, the simulator on it, and a gateway in
-/// bus-node mode connected to `portal` as a lift of domain LOAD; returns the hub's port and
-/// the three processes.
-async fn lift_on_hub(portal: &PortalProcess, dir: &Path) -> (u16, Child, Child, Child) {
+/// bus-node mode connected to `portal` as a lift of domain LOAD, once the lift answers reads;
+/// returns the hub's port and the three processes.
+async fn lift_on_hub(portal: &PortalProcess, key: &str, dir: &Path) -> (u16, Child, Child, Child) {
     let port = free_port();
     let listen = format!("127.0.0.1:{port}");
     let hub = daemon(&["hub", "--listen", &listen]);
@@ -775,6 +758,16 @@ async fn lift_on_hub(portal: &PortalProcess, dir: &Path) -> (u16, Child, Child, 
     let path = dir.join("gateway.toml");
     std::fs::write(&path, toml::to_string(&config).expect("TOML")).expect("written");
     let gateway = daemon(&["gateway", "--config", path.to_str().expect("UTF-8")]);
+    portal.wait_online(key, 1, Duration::from_secs(30)).await;
+    let client = portal.client(key);
+    let path = format!("/api/v1/lifts/{LIFT}/objects/0x652001");
+    until_async(Duration::from_secs(30), "the lift answers", || async {
+        client
+            .call("GET", &path, None)
+            .await
+            .is_ok_and(|a| a.0 == 200)
+    })
+    .await;
     (port, hub, sim, gateway)
 }
 
@@ -785,16 +778,10 @@ async fn lift_on_hub(portal: &PortalProcess, dir: &Path) -> (u16, Child, Child, 
 async fn a_killed_hub_costs_answers_not_the_connection() {
     let dir = testkit::scratch();
     let (mut portal, key) = PortalProcess::start(dir.path(), "").await;
-    let (port, mut hub, mut sim, mut gateway) = lift_on_hub(&portal, dir.path()).await;
-    portal.wait_online(&key, 1, Duration::from_secs(30)).await;
+    let (port, mut hub, mut sim, mut gateway) = lift_on_hub(&portal, &key, dir.path()).await;
     let client = portal.client(&key);
     let path = format!("/api/v1/lifts/{LIFT}/objects/0x652001");
     let read = || async { client.call("GET", &path, None).await.expect("an answer") };
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
-    while read().await.0 != 200 {
-        assert!(tokio::time::Instant::now() < deadline, "the lift answers");
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
 
     kill(&mut hub).await;
     for _ in 0..5 {
@@ -852,17 +839,8 @@ async fn a_garbage_flood_on_the_bus_leaves_answers_timely() {
     const RATE: u64 = 10_000;
     let dir = testkit::scratch();
     let (mut portal, key) = PortalProcess::start(dir.path(), "").await;
-    let (port, mut hub, mut sim, mut gateway) = lift_on_hub(&portal, dir.path()).await;
-    portal.wait_online(&key, 1, Duration::from_secs(30)).await;
+    let (port, mut hub, mut sim, mut gateway) = lift_on_hub(&portal, &key, dir.path()).await;
     let client = portal.client(&key);
-    let path = format!("/api/v1/lifts/{LIFT}/objects/0x652001");
-    until_async(Duration::from_secs(30), "the lift answers", || async {
-        client
-            .call("GET", &path, None)
-            .await
-            .is_ok_and(|a| a.0 == 200)
-    })
-    .await;
     let bus = canbus::Bus::open(&format!("socketcand://127.0.0.1:{port}/can0"))
         .await
         .expect("the hub");

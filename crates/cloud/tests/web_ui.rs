@@ -178,6 +178,15 @@ async fn screenshot(client: &Client, name: &str) {
     }
 }
 
+/// Whether `text` holds `phrase` as whole words.
+fn has_phrase(text: &str, phrase: &str) -> bool {
+    text.match_indices(phrase).any(|(at, _)| {
+        let before = text[..at].chars().next_back();
+        let after = text[at + phrase.len()..].chars().next();
+        !before.is_some_and(char::is_alphanumeric) && !after.is_some_and(char::is_alphanumeric)
+    })
+}
+
 async fn dialog_open(client: &Client) -> bool {
     eval(client, "return document.getElementById('edit').open;").await == json!(true)
 }
@@ -440,6 +449,99 @@ async fn operator_uses_the_web_ui() {
     })
     .await;
     assert_eq!(name, "Optionen der Etagenrichtungsanzeige");
+
+    // German, chosen once, stays: every page speaks it without `?lang=`, and no English text
+    // of the UI is left (the catalogue is complete: web/i18n.rs checks it against the sources).
+    let english = [
+        "Fleet",
+        "Alarms",
+        "Sign out",
+        "in service",
+        "Last value",
+        "Active faults",
+        "Find",
+        "Live values",
+        "Parameters",
+        "Read an object",
+        "Event log",
+        "Last seen",
+        "Edit",
+        "chart",
+        "Vendor-ID",
+        "Serial number",
+        "History of",
+        "values, last",
+        "Every change",
+        "When",
+        "Result",
+        "Before",
+        "Recently cleared",
+        "No active alarm",
+        "page 1 of",
+        "trips",
+        "no data",
+        "none",
+    ];
+    let german_pages = [
+        ("fleet", "/", "Anlagen"),
+        ("lift", &*format!("/lifts/{LIFT}"), "Live-Werte"),
+        (
+            "history",
+            &*format!("/lifts/{LIFT}/history?mplex=0x652001"),
+            "Verlauf von",
+        ),
+        ("audit", "/audit", "Jede Änderung"),
+        ("alarms", "/alarms", "Kürzlich behoben"),
+    ];
+    client.set_window_size(1280, 900).await.unwrap();
+    for (name, page, german) in german_pages {
+        client.goto(&format!("{base}{page}")).await.unwrap();
+        let text = until("page loaded", 10, || async {
+            let text = eval(&client, "return document.body.innerText;").await;
+            text.as_str()
+                .filter(|t| t.contains(german))
+                .map(str::to_owned)
+        })
+        .await;
+        let text = text.as_str();
+        assert!(text.contains(german), "{page} in German: {text}");
+        let left: Vec<&str> = english
+            .iter()
+            .copied()
+            .filter(|e| has_phrase(text, e))
+            .collect();
+        assert!(
+            left.is_empty(),
+            "{page}: English left in German: {left:?}\n{text}"
+        );
+        assert_eq!(
+            eval(&client, "return document.documentElement.lang;").await,
+            json!("de")
+        );
+        screenshot(&client, &format!("{name}-de")).await;
+    }
+    // The live status text of the script is German too.
+    client.goto(&format!("{base}/lifts/{LIFT}")).await.unwrap();
+    let door = until("door status in German", 10, || {
+        text_of(&client, "[data-mplex=\"0x630101\"] .v")
+    })
+    .await;
+    assert!(
+        [
+            "geschlossen",
+            "schließt",
+            "offen",
+            "öffnet",
+            "öffnet wieder",
+            "angehalten"
+        ]
+        .iter()
+        .any(|w| door.starts_with(w)),
+        "door status {door:?}"
+    );
+    // And back to English, which stays as well.
+    client.goto(&format!("{base}/?lang=en")).await.unwrap();
+    assert_eq!(text_of(&client, "main h1").await.as_deref(), Some("Fleet"));
 
     // History chart of the trip counter, asked for by name.
     client

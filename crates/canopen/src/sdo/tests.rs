@@ -639,7 +639,10 @@ fn a_server_silent_in_the_middle_of_a_block_is_aborted_and_the_client_is_free() 
         client.handle(&[0xC6, 0x00, 0x20, 0x00, 100, 0, 0, 0], now, &mut out),
         None
     );
-    assert_eq!(client.handle(&[1, 1, 2, 3, 4, 5, 6, 7], now, &mut out), None);
+    assert_eq!(
+        client.handle(&[1, 1, 2, 3, 4, 5, 6, 7], now, &mut out),
+        None
+    );
     let later = now + Duration::from_millis(100);
     assert_eq!(client.poll_timeout(), Some(now + timeout));
     out.clear();

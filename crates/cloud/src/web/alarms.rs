@@ -11,8 +11,8 @@ use maud::{html, Markup};
 use nxg::msg::Event;
 use serde::Deserialize;
 
-use super::page::{layout, problem, time};
-use super::session::Session;
+use super::i18n::Locale;
+use super::page::{layout, problem, time, unavailable};
 use super::SignedIn;
 use crate::alarms::service::AckError;
 use crate::alarms::{Alarm, Severity};
@@ -20,58 +20,60 @@ use crate::api::App;
 use crate::store::AlarmFilter;
 
 /// A severity as a coloured badge.
-pub(super) fn severity_badge(severity: Severity) -> Markup {
-    html! { span.badge.{ "sev-" (severity.name()) } { (severity.name()) } }
+pub(super) fn severity_badge(severity: Severity, l: Locale) -> Markup {
+    html! { span.badge.{ "sev-" (severity.name()) } { (l.t(severity.name())) } }
 }
 
 /// An RFC 3339 time as a local time on the page.
-fn at(text: &str) -> Markup {
-    time(nxg::msg::parse_time(text).unwrap_or(0))
+fn at(text: &str, l: Locale) -> Markup {
+    time(nxg::msg::parse_time(text).unwrap_or(0), l)
 }
 
 /// Where an alarm is, in words.
-fn place(alarm: &Alarm) -> String {
+fn place(alarm: &Alarm, l: Locale) -> String {
     match alarm.node {
         Some(p) => match p.id {
-            Some(id) => format!("node {id} (net {})", p.net),
-            None => format!("net {}", p.net),
+            Some(id) => l.fill("node {} (net {})", &[&id, &p.net]),
+            None => l.fill("net {}", &[&p.net]),
         },
-        None => "gateway".into(),
+        None => l.t("gateway").into(),
     }
 }
 
 /// Alarms as a table; active ones not yet taken on have an acknowledge form that returns to
 /// `back`.
-pub(super) fn table(alarms: &[Alarm], session: &Session, back: &str, lifts: bool) -> Markup {
+pub(super) fn table(alarms: &[Alarm], who: &SignedIn, back: &str, lifts: bool) -> Markup {
+    let l = who.locale;
     html! {
         table.alarms {
             thead { tr {
-                th { "Severity" } @if lifts { th { "Lift" } } th { "Where" } th { "Alarm" }
-                th { "Raised" } th { "Acknowledged" } th { "Cleared" }
+                th { (l.t("Severity")) } @if lifts { th { (l.t("Lift")) } } th { (l.t("Where")) }
+                th { (l.t("Alarm")) } th { (l.t("Raised")) } th { (l.t("Acknowledged")) }
+                th { (l.t("Cleared")) }
             } }
             tbody {
                 @for a in alarms {
                     tr data-alarm=(a.id) {
-                        td { (severity_badge(a.severity)) }
+                        td { (severity_badge(a.severity, l)) }
                         @if lifts { td { a href={ "/lifts/" (a.lift) } { (a.lift) } } }
-                        td { (place(a)) }
+                        td { (place(a, l)) }
                         td { (a.text) }
-                        td { (at(&a.raised)) }
+                        td { (at(&a.raised, l)) }
                         td {
                             @if let Some(ack) = &a.acknowledged {
-                                (ack.by) ", " (at(&ack.at))
+                                (ack.by) ", " (at(&ack.at, l))
                                 @if !ack.comment.is_empty() { br; span.muted { (ack.comment) } }
                             } @else {
                                 form.ack method="post" action={ "/alarms/" (a.id) "/ack" } {
-                                    input type="hidden" name="csrf" value=(session.csrf);
+                                    input type="hidden" name="csrf" value=(who.session.csrf);
                                     input type="hidden" name="back" value=(back);
-                                    input name="comment" placeholder="comment" maxlength="1000";
-                                    button { "Acknowledge" }
+                                    input name="comment" placeholder=(l.t("comment")) maxlength="1000";
+                                    button { (l.t("Acknowledge")) }
                                 }
                             }
                         }
                         td {
-                            @if let Some(c) = &a.cleared { (at(c)) } @else { span.fault { "active" } }
+                            @if let Some(c) = &a.cleared { (at(c, l)) } @else { span.fault { (l.t("active")) } }
                         }
                     }
                 }
@@ -81,25 +83,28 @@ pub(super) fn table(alarms: &[Alarm], session: &Session, back: &str, lifts: bool
 }
 
 /// A lift's bus events, newest first.
-pub(super) fn event_log(events: &[Event]) -> Markup {
+pub(super) fn event_log(events: &[Event], l: Locale) -> Markup {
+    let node = |id: u8, net: u8| l.fill("node {} (net {})", &[&id, &net]);
     html! {
         table.events {
-            thead { tr { th { "Time" } th { "Type" } th { "Where" } th { "What" } } }
+            thead { tr {
+                th { (l.t("Time")) } th { (l.t("Type")) } th { (l.t("Where")) } th { (l.t("What")) }
+            } }
             tbody {
                 @for e in events.iter().rev() {
                     @match e {
-                        Event::Emcy { node, time: t, code, register, text, .. } => tr {
-                            td { (at(t)) } td { "EMCY" }
-                            td { "node " (node.id.get()) " (net " (node.net) ")" }
-                            td { (text) " " span.muted { (code) ", register " (register) } }
+                        Event::Emcy { node: n, time: t, code, register, text, .. } => tr {
+                            td { (at(t, l)) } td { "EMCY" }
+                            td { (node(n.id.get(), n.net)) }
+                            td { (text) " " span.muted { (code) (l.t(", register ")) (register) } }
                         },
-                        Event::State { node, time: t, state } => tr {
-                            td { (at(t)) } td { "state" }
-                            td { "node " (node.id.get()) " (net " (node.net) ")" }
+                        Event::State { node: n, time: t, state } => tr {
+                            td { (at(t, l)) } td { (l.t("state")) }
+                            td { (node(n.id.get(), n.net)) }
                             td { (state.name()) }
                         },
                         Event::Bus { net, time: t, state } => tr {
-                            td { (at(t)) } td { "network" } td { "net " (net) }
+                            td { (at(t, l)) } td { (l.t("network")) } td { (l.fill("net {}", &[net])) }
                             td { (state.name()) }
                         },
                     }
@@ -109,11 +114,9 @@ pub(super) fn event_log(events: &[Event]) -> Markup {
     }
 }
 
-pub(super) async fn alarms_page(
-    State(app): State<Arc<App>>,
-    SignedIn(session): SignedIn,
-) -> Response {
-    let domain = &session.account.domain;
+pub(super) async fn alarms_page(State(app): State<Arc<App>>, who: SignedIn) -> Response {
+    let l = who.locale;
+    let domain = &who.session.account.domain;
     let active = AlarmFilter {
         active: true,
         lift: None,
@@ -129,25 +132,25 @@ pub(super) async fn alarms_page(
         app.store.alarms(domain, &recent).await,
     ) {
         (Ok(a), Ok(r)) => (a, r),
-        (Err(e), _) | (_, Err(e)) => return e.into(),
+        (Err(e), _) | (_, Err(e)) => return unavailable(e, who.viewer()),
     };
     let cleared: Vec<Alarm> = recent.into_iter().filter(|a| !a.active()).collect();
     let body = html! {
-        h1 { "Alarms" }
+        h1 { (l.t("Alarms")) }
         @if active.is_empty() {
-            p.ok { "No active alarm." }
+            p.ok { (l.t("No active alarm.")) }
         } @else {
-            p.summary { (active.len()) " active" }
-            (table(&active, &session, "/alarms", true))
+            p.summary { (l.fill("{} active", &[&active.len()])) }
+            (table(&active, &who, "/alarms", true))
         }
-        h2 { "Recently cleared" }
+        h2 { (l.t("Recently cleared")) }
         @if cleared.is_empty() {
-            p.muted { "None." }
+            p.muted { (l.t("None.")) }
         } @else {
-            (table(&cleared, &session, "/alarms", true))
+            (table(&cleared, &who, "/alarms", true))
         }
     };
-    layout("Alarms", Some(&session), None, body).into_response()
+    layout(l.t("Alarms"), who.viewer(), None, body).into_response()
 }
 
 #[derive(Deserialize)]
@@ -162,15 +165,16 @@ pub(super) struct AckForm {
 /// `POST /alarms/{id}/ack` from the acknowledge form; back to the page it came from.
 pub(super) async fn acknowledge(
     State(app): State<Arc<App>>,
-    SignedIn(session): SignedIn,
+    who: SignedIn,
     Path(id): Path<String>,
     Form(form): Form<AckForm>,
 ) -> Response {
+    let (session, l) = (&who.session, who.locale);
     if !session.csrf_matches(Some(&form.csrf)) {
         return problem(
             StatusCode::FORBIDDEN,
-            Some(&session),
-            "The form has expired; reload the page.",
+            who.viewer(),
+            l.t("The form has expired; reload the page."),
         );
     }
     let comment: String = form.comment.chars().take(1000).collect();
@@ -190,7 +194,9 @@ pub(super) async fn acknowledge(
                 .unwrap_or("/alarms");
             Redirect::to(back).into_response()
         }
-        Err(AckError::NotFound) => problem(StatusCode::NOT_FOUND, Some(&session), "No such alarm."),
-        Err(AckError::Store(e)) => e.into(),
+        Err(AckError::NotFound) => {
+            problem(StatusCode::NOT_FOUND, who.viewer(), l.t("No such alarm."))
+        }
+        Err(AckError::Store(e)) => unavailable(e, who.viewer()),
     }
 }

@@ -5,6 +5,14 @@
 
 const csrf = document.querySelector('meta[name="csrf"]')?.content ?? "";
 
+// The page's texts in its language (the server's catalogue, web/i18n.rs); the arguments after
+// the English text fill its `{}` in turn.
+const TEXTS = JSON.parse(document.getElementById("texts")?.textContent || "{}");
+function t(english, ...args) {
+  let i = 0;
+  return (TEXTS[english] ?? english).replace(/\{\}/g, () => String(args[i++] ?? ""));
+}
+
 function normalMplex(m) {
   const hex = String(m).replace(/^0x/i, "");
   return "0x" + hex.toUpperCase();
@@ -30,10 +38,10 @@ function formatted(d, raw) {
   if (text === "" || Number.isNaN(v)) return text;
   const hints = parse(d.hints, {}) ?? {};
   const list = parse(d.list, []) ?? [];
-  if (hints.show_off_at_zero && v === 0) return "off";
+  if (hints.show_off_at_zero && v === 0) return t("off");
   if (d.max !== "" && v === Number(d.max)) {
-    if (hints.show_unlimited_at_max) return "unlimited";
-    if (hints.show_undefined_at_max) return "undefined";
+    if (hints.show_unlimited_at_max) return t("unlimited");
+    if (hints.show_undefined_at_max) return t("undefined");
   }
   if (d.form === "15" && list.length) {
     const item = list[v - Number(d.min || 0)];
@@ -41,7 +49,7 @@ function formatted(d, raw) {
   }
   if (d.form === "4" && list.length) {
     const on = list.filter((_, i) => (v >>> i) & 1);
-    return on.length ? on.join(", ") : "none";
+    return on.length ? on.join(", ") : t("none");
   }
   return text;
 }
@@ -49,24 +57,24 @@ function formatted(d, raw) {
 // CiA 417 and CiA 301 values whose meaning the NXg form types cannot carry: the door
 // statusword (bits 12–15 an enumeration, bit 0 the safety contact) and the error register.
 const DOOR_STATES = {
-  0: "closed", 2: "closing", 3: "opened", 5: "opening", 6: "re-opening", 7: "stopped",
-  14: "error", 15: "not installed",
+  0: t("closed"), 2: t("closing"), 3: t("opened"), 5: t("opening"), 6: t("re-opening"),
+  7: t("stopped"), 14: t("error"), 15: t("not installed"),
 };
 const ERROR_BITS = [
-  "generic", "current", "voltage", "temperature", "communication", "device profile",
-  "reserved", "manufacturer",
+  t("generic"), t("current"), t("voltage"), t("temperature"), t("communication"),
+  t("device profile"), t("reserved"), t("manufacturer"),
 ];
 
 function profileText(mplex, v) {
   const index = String(mplex).slice(2, 6).toUpperCase();
   if (index === "6301") {
     const state = (v >>> 12) & 15;
-    const text = DOOR_STATES[state] ?? `state ${state}`;
-    return v & 1 && state !== 15 ? `${text}, contact closed` : text;
+    const text = DOOR_STATES[state] ?? t("state {}", state);
+    return v & 1 && state !== 15 ? t("{}, contact closed", text) : text;
   }
   if (index === "1001") {
     const on = ERROR_BITS.filter((_, i) => (v >>> i) & 1);
-    return on.length ? on.join(", ") : "no error";
+    return on.length ? on.join(", ") : t("no error");
   }
   return null;
 }
@@ -99,15 +107,15 @@ function show(el, raw) {
 }
 
 function localTimes(root) {
-  for (const t of root.querySelectorAll("time[data-ms]")) {
-    t.textContent = new Date(Number(t.dataset.ms)).toLocaleString();
+  for (const el of root.querySelectorAll("time[data-ms]")) {
+    el.textContent = new Date(Number(el.dataset.ms)).toLocaleString(locale);
   }
 }
 
 function setOnline(lift, online) {
   for (const b of document.querySelectorAll("[data-online]")) {
     if (b.dataset.online !== lift) continue;
-    b.textContent = online ? "online" : "offline";
+    b.textContent = online ? t("online") : t("offline");
     b.classList.toggle("online", online);
     b.classList.toggle("offline", !online);
   }
@@ -184,10 +192,10 @@ async function api(method, path, body) {
 
 function describe(e) {
   const code = typeof e.code === "number" && e.code > 999 ? ` (${e.code.toString(16).toUpperCase().padStart(8, "0")}h)` : "";
-  return (e.message ?? "failed") + code;
+  return (e.message ?? t("failed")) + code;
 }
 
-const LEVELS = { 1: "service", 2: "setup" };
+const LEVELS = { 1: t("service"), 2: t("setup") };
 
 // The rights this browser tab was granted on the lift (the gateway grants them per connection
 // and for a time, NXg §6.4): level, until (ms), and how long the last grant lasted (s).
@@ -210,7 +218,7 @@ function showRights(lift) {
     line.hidden = !(left > 0);
     if (left > 0) {
       const mm = Math.floor(left / 60), ss = String(left % 60).padStart(2, "0");
-      line.textContent = `${LEVELS[r.level] ?? "elevated"} rights for ${mm}:${ss} more`;
+      line.textContent = t("{} rights for {} more", LEVELS[r.level] ?? t("elevated"), `${mm}:${ss}`);
     }
   };
   tick();
@@ -250,7 +258,7 @@ function editDialog(lift) {
         input.min = off ? Math.min(0, Number(d.min)) : d.min;
         input.max = d.max;
         input.step = d.form === "11" ? "any" : "1";
-        if (off) input.placeholder = "0 = off";
+        if (off) input.placeholder = t("0 = off");
       }
     }
     input.name = "value";
@@ -273,7 +281,7 @@ function editDialog(lift) {
       dialog.querySelector(".title").textContent = `${d.name} (${d.mplex})`;
       dialog.querySelector(".hint").textContent = target.querySelector("[title]")?.title ?? "";
       const off = offAtZero(d);
-      const range = d.min !== "" ? `${off ? "0 (off) or " : ""}${d.min} … ${d.max} ${d.unit}` : "";
+      const range = d.min !== "" ? `${off ? t("0 (off) or ") : ""}${d.min} … ${d.max} ${d.unit}` : "";
       dialog.querySelector(".range").textContent = range;
       field(d);
       // An object above privilege 0 asks for the lift's password before the first save,
@@ -284,8 +292,8 @@ function editDialog(lift) {
       elevate.querySelector("select").value = level === 2 ? "2" : "1";
       const lasts = rights(lift).duration;
       elevate.querySelector(".why").textContent = needed
-        ? `Changing this needs ${LEVELS[level]} rights: enter the lift's ${LEVELS[level]} password. ` +
-          (lasts ? `The rights then last ${Math.round(lasts / 60)} min.` : "The rights then last as long as the lift grants them.")
+        ? t("Changing this needs {} rights: enter the lift's {} password. ", LEVELS[level], LEVELS[level]) +
+          (lasts ? t("The rights then last {} min.", Math.round(lasts / 60)) : t("The rights then last as long as the lift grants them."))
         : "";
       form.elements.namedItem("password").value = "";
       status.textContent = "";
@@ -299,14 +307,14 @@ function editDialog(lift) {
     e.preventDefault();
     const d = target.dataset;
     const base = `/api/v1/lifts/${encodeURIComponent(lift)}`;
-    status.textContent = "saving…";
+    status.textContent = t("saving…");
     if (!elevate.hidden) {
       const grant = await api("POST", `${base}/privilege`, {
         privilege: Number(form.elements.namedItem("privilege").value),
         password: form.elements.namedItem("password").value,
       });
       if (!grant.ok) {
-        status.textContent = `Elevation refused: ${describe(grant.answer)}`;
+        status.textContent = t("Elevation refused: {}", describe(grant.answer));
         status.className = "status error";
         return;
       }
@@ -324,7 +332,7 @@ function editDialog(lift) {
     });
     if (put.ok) {
       for (const el of document.querySelectorAll(`[data-mplex="${d.mplex}"]`)) show(el, value);
-      status.textContent = "saved";
+      status.textContent = t("saved");
       status.className = "status ok";
       dialog.close();
       return;
@@ -335,7 +343,7 @@ function editDialog(lift) {
       sessionStorage.removeItem(`rights:${lift}`);
       showRights(lift);
       elevate.hidden = false;
-      status.textContent = `${describe(put.answer)} — elevate and save again.`;
+      status.textContent = t("{} — elevate and save again.", describe(put.answer));
     } else {
       status.textContent = describe(put.answer);
     }

@@ -6,46 +6,52 @@ use axum::extract::State;
 use axum::response::{IntoResponse, Response};
 use maud::html;
 
-use super::page::{layout, time};
+use super::i18n::Locale;
+use super::page::{layout, time, unavailable};
 use super::SignedIn;
 use crate::api::App;
 
 /// An audit result as people read it: `error 134217761` is stored (the gateway's code), the
 /// page says `08000021h: Access denied …`; JSON-RPC's negative codes get their meaning.
-fn result_text(result: &str) -> String {
+fn result_text(result: &str, l: Locale) -> String {
     use nxg::errors::{rpc_codes, ErrorCode};
     let Some(code) = result
         .strip_prefix("error ")
         .and_then(|c| c.parse::<i64>().ok())
     else {
-        return result.to_owned();
+        return if result == "ok" {
+            l.t("ok").to_owned()
+        } else {
+            result.to_owned()
+        };
     };
     match u32::try_from(code) {
-        Ok(code) => format!("{code:08X}h: {}", ErrorCode(code).message("en")),
-        Err(_) => rpc_codes::describe(code).map_or_else(|| "protocol error".into(), str::to_owned),
+        Ok(code) => format!("{code:08X}h: {}", ErrorCode(code).message(l.code())),
+        Err(_) => {
+            rpc_codes::describe(code).map_or_else(|| l.t("protocol error").into(), str::to_owned)
+        }
     }
 }
 
-pub(super) async fn audit_page(
-    State(app): State<Arc<App>>,
-    SignedIn(session): SignedIn,
-) -> Response {
-    let entries = match app.store.audit_log(&session.account.domain).await {
+pub(super) async fn audit_page(State(app): State<Arc<App>>, who: SignedIn) -> Response {
+    let l = who.locale;
+    let entries = match app.store.audit_log(&who.session.account.domain).await {
         Ok(e) => e,
-        Err(e) => return e.into(),
+        Err(e) => return unavailable(e, who.viewer()),
     };
     let body = html! {
-        h1 { "Audit" }
-        p.summary { "Every change and privilege elevation, newest first." }
+        h1 { (l.t("Audit")) }
+        p.summary { (l.t("Every change and privilege elevation, newest first.")) }
         table.audit {
             thead { tr {
-                th { "When" } th { "Who" } th { "Lift" } th { "Action" } th { "Object" }
-                th { "Before" } th { "After" } th { "Result" }
+                th { (l.t("When")) } th { (l.t("Who")) } th { (l.t("Lift")) } th { (l.t("Action")) }
+                th { (l.t("Object")) } th { (l.t("Before")) } th { (l.t("After")) }
+                th { (l.t("Result")) }
             } }
             tbody {
                 @for e in &entries {
                     tr {
-                        td { (time(e.at)) }
+                        td { (time(e.at, l)) }
                         td { (e.account) }
                         td { a href={ "/lifts/" (e.lift) } { (e.lift) } }
                         td { (e.action) }
@@ -53,27 +59,29 @@ pub(super) async fn audit_page(
                         td { (e.old_value.as_deref().unwrap_or("")) }
                         td { (e.new_value) }
                         td class=(if e.result == "ok" { "ok" } else { "fault" }) {
-                            (result_text(&e.result))
+                            (result_text(&e.result, l))
                         }
                     }
                 }
             }
         }
     };
-    layout("Audit", Some(&session), None, body).into_response()
+    layout(l.t("Audit"), who.viewer(), None, body).into_response()
 }
 
 #[cfg(test)]
 mod tests {
-    use super::result_text;
+    use super::{result_text, Locale};
 
     #[test]
     fn results_in_words() {
-        assert_eq!(result_text("ok"), "ok");
-        let refused = result_text("error 134217761");
+        let en = |r| result_text(r, Locale::En);
+        assert_eq!(en("ok"), "ok");
+        let refused = en("error 134217761");
         assert!(refused.starts_with("08000021h: "), "{refused}");
-        assert_eq!(result_text("error -32602"), "invalid parameters");
-        assert_eq!(result_text("error -1"), "protocol error");
-        assert_eq!(result_text("timeout"), "timeout");
+        assert_eq!(en("error -32602"), "invalid parameters");
+        assert_eq!(en("error -1"), "protocol error");
+        assert_eq!(en("timeout"), "timeout");
+        assert_eq!(result_text("error -1", Locale::De), "Protokollfehler");
     }
 }

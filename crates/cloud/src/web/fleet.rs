@@ -13,7 +13,8 @@ use maud::{html, Markup};
 use serde::Deserialize;
 
 use super::alarms::severity_badge;
-use super::page::{layout, time};
+use super::i18n::Locale;
+use super::page::{layout, time, unavailable};
 use super::SignedIn;
 use crate::alarms::Alarm;
 use crate::api::App;
@@ -69,40 +70,42 @@ impl FleetState {
         }
     }
 
-    fn badge(self) -> Markup {
-        html! { span.badge.{ "state-" (self.key()) } { (self.text()) } }
+    fn badge(self, l: Locale) -> Markup {
+        html! { span.badge.{ "state-" (self.key()) } { (l.t(self.text())) } }
     }
 }
 
+/// The bits of the error register (CiA 301 §7.5.2.2), bit 0 first; the script shows them too.
+pub(super) const ERROR_BITS: [&str; 8] = [
+    "generic",
+    "current",
+    "voltage",
+    "temperature",
+    "communication",
+    "device profile",
+    "reserved",
+    "manufacturer",
+];
+
 /// The fault column: the error register's bits and an out-of-service lift state.
-fn faults(status: Option<LiftStatus>) -> Markup {
-    const BITS: [&str; 8] = [
-        "generic",
-        "current",
-        "voltage",
-        "temperature",
-        "communication",
-        "device profile",
-        "reserved",
-        "manufacturer",
-    ];
+fn faults(status: Option<LiftStatus>, l: Locale) -> Markup {
     let Some(status) = status.filter(|s| s.error_register.is_some() || s.lift_state.is_some())
     else {
-        return html! { span.muted { "no data" } };
+        return html! { span.muted { (l.t("no data")) } };
     };
     let register = status.error_register.unwrap_or(0);
-    let mut found: Vec<&str> = BITS
+    let mut found: Vec<&str> = ERROR_BITS
         .iter()
         .enumerate()
         .filter(|(i, _)| register & (1 << i) != 0)
-        .map(|(_, name)| *name)
+        .map(|(_, name)| l.t(name))
         .collect();
     if status.out_of_service() {
-        found.push("out of service");
+        found.push(l.t("out of service"));
     }
     html! {
         @if found.is_empty() {
-            span.ok { "none" }
+            span.ok { (l.t("none")) }
         } @else {
             span.fault { (found.join(", ")) }
         }
@@ -158,15 +161,16 @@ struct Row<'a> {
 
 pub(super) async fn fleet(
     State(app): State<Arc<App>>,
-    SignedIn(session): SignedIn,
+    who: SignedIn,
     Query(query): Query<FleetQuery>,
 ) -> Response {
+    let (session, l) = (&who.session, who.locale);
     let (all, worst) = match (
         app.store.lifts(&session.account.domain).await,
         app.store.worst_alarms(&session.account.domain).await,
     ) {
         (Ok(l), Ok(w)) => (l, w),
-        (Err(e), _) | (_, Err(e)) => return e.into(),
+        (Err(e), _) | (_, Err(e)) => return unavailable(e, who.viewer()),
     };
     let needle = query.q.as_deref().unwrap_or("").trim().to_lowercase();
     let mut counts: HashMap<FleetState, usize> = HashMap::new();
@@ -213,70 +217,74 @@ pub(super) async fn fleet(
         }
         format!("/?{}", serde_urlencoded::to_string(q).unwrap_or_default())
     };
-    let heading = |label: &str, by: Sort| {
+    let heading = |label: &'static str, by: Sort| {
         html! {
-            th { a.sort.current[sort == by] href=(link(1, query.show, by)) { (label) } }
+            th { a.sort.current[sort == by] href=(link(1, query.show, by)) { (l.t(label)) } }
         }
     };
     let body = html! {
-        h1 { "Fleet" }
+        h1 { (l.t("Fleet")) }
         @if all.is_empty() {
-            p { "No lift of domain " code { (session.account.domain) } " has connected yet." }
+            p { (l.fill("No lift of domain {} has connected yet.", &[&session.account.domain])) }
         } @else {
             p.summary {
                 a.current[query.show.is_none()] href=(link(1, None, sort)) {
-                    (all.len()) @if all.len() == 1 { " lift" } @else { " lifts" }
+                    @if all.len() == 1 {
+                        (l.fill("{} lift", &[&all.len()]))
+                    } @else {
+                        (l.fill("{} lifts", &[&all.len()]))
+                    }
                 }
                 @for state in FleetState::ALL {
                     " · "
                     a.current[query.show == Some(state)] data-count=(state.key())
                         href=(link(1, Some(state), sort)) {
-                        (counts.get(&state).copied().unwrap_or(0)) " " (state.text())
+                        (counts.get(&state).copied().unwrap_or(0)) " " (l.t(state.text()))
                     }
                 }
             }
             form.read method="get" {
-                input name="q" placeholder="lift id or number" value=(needle);
+                input name="q" placeholder=(l.t("lift id or number")) value=(needle);
                 @if let Some(s) = query.show { input type="hidden" name="show" value=(s.key()); }
-                button { "Find" }
+                button { (l.t("Find")) }
             }
             @if rows.is_empty() {
-                p.muted.none { "No lift matches." }
+                p.muted.none { (l.t("No lift matches.")) }
             } @else {
                 table.fleet {
                     thead { tr {
                         (heading("Lift", Sort::Lift)) (heading("Lift number", Sort::Number))
                         (heading("State", Sort::State)) (heading("Last value / seen", Sort::Seen))
-                        th { "Alarm" } th { "Active faults" }
+                        th { (l.t("Alarm")) } th { (l.t("Active faults")) }
                     } }
                     tbody {
                         @for row in rows.iter().skip((page - 1) * PAGE).take(PAGE) {
                             tr data-state=(row.state.key()) {
                                 td { a href={ "/lifts/" (row.lift.id) } { (row.lift.id) } }
                                 td { (row.lift.liftnum) }
-                                td { (row.state.badge()) }
-                                td { (time(row.seen)) }
+                                td { (row.state.badge(l)) }
+                                td { (time(row.seen, l)) }
                                 td.alarm {
                                     @if let Some(a) = worst.get(&row.lift.id) {
-                                        (severity_badge(a.severity)) " " (a.text)
+                                        (severity_badge(a.severity, l)) " " (a.text)
                                     } @else {
-                                        span.ok { "none" }
+                                        span.ok { (l.t("none")) }
                                     }
                                 }
-                                td { (faults(row.status)) }
+                                td { (faults(row.status, l)) }
                             }
                         }
                     }
                 }
                 p.ranges {
-                    "page " (page) " of " (pages) " "
-                    @if page > 1 { a href=(link(page - 1, query.show, sort)) { "← previous" } }
-                    @if page < pages { a href=(link(page + 1, query.show, sort)) { "next →" } }
+                    (l.fill("page {} of {}", &[&page, &pages])) " "
+                    @if page > 1 { a href=(link(page - 1, query.show, sort)) { (l.t("← previous")) } }
+                    @if page < pages { a href=(link(page + 1, query.show, sort)) { (l.t("next →")) } }
                 }
             }
         }
     };
-    layout("Fleet", Some(&session), None, body).into_response()
+    layout(l.t("Fleet"), who.viewer(), None, body).into_response()
 }
 
 #[cfg(test)]
@@ -285,7 +293,7 @@ mod tests {
 
     #[test]
     fn fault_column_and_state() {
-        let text = |s: Option<LiftStatus>| faults(s).into_string();
+        let text = |s: Option<LiftStatus>| faults(s, Locale::En).into_string();
         assert!(text(None).contains("no data"));
         let mut status = LiftStatus {
             error_register: Some(0),

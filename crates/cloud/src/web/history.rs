@@ -9,7 +9,8 @@ use axum::response::{IntoResponse, Response};
 use maud::{html, Markup};
 use serde::Deserialize;
 
-use super::page::{layout, problem, time, utc};
+use super::i18n::Locale;
+use super::page::{layout, problem, time, unavailable, utc};
 use super::{owned, SignedIn};
 use crate::api::App;
 use crate::store;
@@ -22,7 +23,7 @@ pub(super) struct HistoryQuery {
 }
 
 /// An SVG step chart of `points` (ms, value) between `from` and `to`.
-fn chart(points: &[(i64, f64)], from: i64, to: i64) -> Markup {
+fn chart(points: &[(i64, f64)], from: i64, to: i64, l: Locale) -> Markup {
     const W: f64 = 800.0;
     const H: f64 = 280.0;
     const LEFT: f64 = 70.0;
@@ -50,7 +51,7 @@ fn chart(points: &[(i64, f64)], from: i64, to: i64) -> Markup {
     }
     let (bottom, right, label_x, label_y) = (H - BOTTOM, W - 10.0, LEFT - 6.0, H - 8.0);
     html! {
-        svg.chart viewBox={ "0 0 " (W) " " (H) } role="img" aria-label="history chart" {
+        svg.chart viewBox={ "0 0 " (W) " " (H) } role="img" aria-label=(l.t("history chart")) {
             line x1=(LEFT) y1="10" x2=(LEFT) y2=(bottom) class="axis" {}
             line x1=(LEFT) y1=(bottom) x2=(right) y2=(bottom) class="axis" {}
             text x=(label_x) y="16" class="label" text-anchor="end" { (hi) }
@@ -64,21 +65,19 @@ fn chart(points: &[(i64, f64)], from: i64, to: i64) -> Markup {
 
 pub(super) async fn history_page(
     State(app): State<Arc<App>>,
-    SignedIn(session): SignedIn,
+    who: SignedIn,
     Path(id): Path<String>,
     Query(q): Query<HistoryQuery>,
 ) -> Response {
-    if let Err(r) = owned(&app, &session, &id).await {
+    let l = who.locale;
+    if let Err(r) = owned(&app, &who, &id).await {
         return r;
     }
     let mplex = match app.names.resolve(&q.mplex) {
         Ok(mplex) => mplex,
         Err(e) => {
-            return problem(
-                StatusCode::BAD_REQUEST,
-                Some(&session),
-                &format!("mplex: {e}"),
-            )
+            let message = l.fill("mplex: {}", &[&e]);
+            return problem(StatusCode::BAD_REQUEST, who.viewer(), &message);
         }
     };
     let mplex = mplex.to_string();
@@ -87,7 +86,7 @@ pub(super) async fn history_page(
     let from = to - i64::from(minutes) * 60_000;
     let rows = match app.store.history(&id, &mplex, from, to).await {
         Ok(r) => r,
-        Err(e) => return e.into(),
+        Err(e) => return unavailable(e, who.viewer()),
     };
     let points: Vec<(i64, f64)> = rows
         .iter()
@@ -101,7 +100,7 @@ pub(super) async fn history_page(
         (10080, "7 d"),
     ];
     let body = html! {
-        h1 { "History of " code { (mplex) } " on " a href={ "/lifts/" (id) } { (id) } }
+        h1 { (l.fill("History of {} on", &[&mplex])) " " a href={ "/lifts/" (id) } { (id) } }
         p.ranges {
             @for (m, label) in ranges {
                 a.current[m == minutes] href={ "/lifts/" (id) "/history?mplex=" (mplex) "&minutes=" (m) } {
@@ -110,23 +109,22 @@ pub(super) async fn history_page(
             }
         }
         p.summary {
-            (points.len()) " values, last "
+            (l.fill("{} values, last ", &[&points.len()]))
             @if let Some((at, v)) = points.last() {
-                (v) " at " (time(*at))
+                (v) (l.t(" at ")) (time(*at, l))
             } @else {
                 "—"
             }
         }
         @if points.is_empty() {
             p.muted {
-                "No stored numeric values in this period. Values are stored while the gateway \
-                 pushes them (the dashboard's objects, or a subscription)."
+                (l.t("No stored numeric values in this period. Values are stored while the gateway pushes them (the dashboard's objects, or a subscription)."))
             }
         } @else {
-            (chart(&points, from, to))
+            (chart(&points, from, to, l))
         }
     };
-    layout(&format!("History {mplex}"), Some(&session), None, body).into_response()
+    layout(&l.fill("History {}", &[&mplex]), who.viewer(), None, body).into_response()
 }
 
 #[cfg(test)]
@@ -135,7 +133,7 @@ mod tests {
 
     #[test]
     fn chart_steps_between_values() {
-        let svg = chart(&[(0, 1.0), (500, 3.0)], 0, 1000).into_string();
+        let svg = chart(&[(0, 1.0), (500, 3.0)], 0, 1000, Locale::En).into_string();
         assert!(svg.contains("<polyline"), "{svg}");
         // Three points per change: the old level to the change, then the new one to the end.
         let points = svg

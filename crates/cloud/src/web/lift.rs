@@ -6,7 +6,6 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use axum::extract::{Path, Query, State};
-use axum::http::HeaderMap;
 use axum::response::{IntoResponse, Response};
 use maud::{html, Markup};
 use nxg::meta::{FormType, PhysUnit, Privilege};
@@ -15,8 +14,9 @@ use nxg::msg::{Lang, ObjectAnswer, ObjectData};
 use nxg::portal::Failure;
 use serde::Deserialize;
 
-use super::page::{layout, online_badge, time};
-use super::{language, owned, SignedIn};
+use super::i18n::Locale;
+use super::page::{layout, online_badge, time, unavailable};
+use super::{owned, SignedIn};
 use crate::api::{read_params, App};
 use crate::rest::Form;
 use crate::store::AlarmFilter;
@@ -112,7 +112,7 @@ impl Object {
     }
 
     /// The `data-…` attributes the script formats values and fills the edit dialog with.
-    fn attributes(&self) -> Data {
+    fn attributes(&self, l: Locale) -> Data {
         let d = self.data();
         let number = |v: Option<u32>| v.map(|n| n.to_string()).unwrap_or_default();
         let limit = |v: Option<&serde_json::Number>| v.map(ToString::to_string).unwrap_or_default();
@@ -129,34 +129,34 @@ impl Object {
             unit: d
                 .and_then(|d| d.physunit)
                 .and_then(|u| PhysUnit::from_code(u).ok())
-                .map_or("", PhysUnit::text),
+                .map_or("", |u| unit(u, l)),
             list: serde_json::to_string(&d.and_then(|d| d.list.as_ref())).unwrap_or_default(),
             hints: serde_json::to_string(&self.answer.as_ref().ok().and_then(|a| a.hints))
                 .unwrap_or_default(),
         }
     }
 
-    fn history_link(&self, lift: &str) -> Markup {
+    fn history_link(&self, lift: &str, l: Locale) -> Markup {
         html! {
             @if self.numeric() {
-                a.chart href={ "/lifts/" (lift) "/history?mplex=" (self.mplex) } { "chart" }
+                a.chart href={ "/lifts/" (lift) "/history?mplex=" (self.mplex) } { (l.t("chart")) }
             }
         }
     }
 
-    fn card(&self, lift: &str) -> Markup {
+    fn card(&self, lift: &str, l: Locale) -> Markup {
         let content = html! {
             h3 { (self.name()) }
             p { span.v { (self.raw()) } " " span.u {} }
             @if let (Err(e), None) = (&self.answer, &self.stored) {
                 p.error { (e) }
             }
-            (self.history_link(lift))
+            (self.history_link(lift, l))
         };
-        with_data!(div.card, self.attributes(), content)
+        with_data!(div.card, self.attributes(l), content)
     }
 
-    fn row(&self, lift: &str) -> Markup {
+    fn row(&self, lift: &str, l: Locale) -> Markup {
         let d = self.data();
         let range = match (
             d.and_then(|d| d.min.as_ref()),
@@ -168,7 +168,7 @@ impl Object {
         let privilege = d
             .and_then(|d| d.privilege)
             .and_then(|p| Privilege::from_code(p).ok())
-            .map_or("", Privilege::text);
+            .map_or("", |p| l.t(p.text()));
         let content = html! {
             td { code { (self.mplex) } }
             td title=(d.and_then(|d| d.hint.as_deref()).unwrap_or_default()) { (self.name()) }
@@ -183,13 +183,22 @@ impl Object {
             td { (privilege) }
             td {
                 @if self.writable() {
-                    button.edit type="button" { "Edit" }
+                    button.edit type="button" { (l.t("Edit")) }
                 }
                 " "
-                (self.history_link(lift))
+                (self.history_link(lift, l))
             }
         };
-        with_data!(tr, self.attributes(), content)
+        with_data!(tr, self.attributes(l), content)
+    }
+}
+
+/// A unit as the page shows it: symbols as they are, the two units that are words in words of
+/// the page's language.
+fn unit(u: PhysUnit, l: Locale) -> &'static str {
+    match u {
+        PhysUnit::Trips | PhysUnit::Increments => l.t(u.text()),
+        _ => u.text(),
     }
 }
 
@@ -199,21 +208,21 @@ async fn read_all(
     app: &App,
     lift: &str,
     mplexes: &[Mplex],
-    lang: &str,
+    l: Locale,
     stored: &HashMap<String, (i64, String)>,
 ) -> Vec<Object> {
     let online = app.registry.online(lift);
     let reads = mplexes.iter().map(|&mplex| async move {
         let answer = if online {
-            let params = read_params(mplex.into(), Lang::new(lang, "en"), Form::Full);
+            let params = read_params(mplex.into(), Lang::new(l.code(), "en"), Form::Full);
             match tokio::time::timeout(READ_TIMEOUT, app.registry.call(lift, &params)).await {
                 Ok(Ok(v)) => Ok(v),
                 Ok(Err(Failure::Error(e))) => Err(e.to_string()),
                 Ok(Err(f)) => Err(format!("{f:?}").to_lowercase()),
-                Err(_) => Err("no answer in time".into()),
+                Err(_) => Err(l.t("no answer in time").into()),
             }
         } else {
-            Err("offline".into())
+            Err(l.t("offline (the lift is not connected)").into())
         };
         Object {
             mplex,
@@ -226,11 +235,10 @@ async fn read_all(
 
 #[derive(Deserialize)]
 pub(super) struct LiftQuery {
-    lang: Option<String>,
     read: Option<String>,
 }
 
-const TABLE_HEAD: [&str; 7] = [
+pub(super) const TABLE_HEAD: [&str; 7] = [
     "Object",
     "Name",
     "Value",
@@ -240,40 +248,40 @@ const TABLE_HEAD: [&str; 7] = [
     "",
 ];
 
-fn table(lift: &str, objects: &[Object]) -> Markup {
+fn table(lift: &str, objects: &[Object], l: Locale) -> Markup {
     html! {
         table.objects {
-            thead { tr { @for h in TABLE_HEAD { th { (h) } } } }
-            tbody { @for o in objects { (o.row(lift)) } }
+            thead { tr { @for h in TABLE_HEAD { th { (if h.is_empty() { "" } else { l.t(h) }) } } } }
+            tbody { @for o in objects { (o.row(lift, l)) } }
         }
     }
 }
 
-fn edit_dialog() -> Markup {
+fn edit_dialog(l: Locale) -> Markup {
     html! {
         dialog #edit {
             form method="dialog" {
                 h2.title {}
                 p.hint.muted {}
-                label { "New value " span.field {} }
+                label { (l.t("New value ")) span.field {} }
                 p.range.muted {}
                 fieldset.elevate hidden {
-                    legend { "Privilege needed" }
+                    legend { (l.t("Privilege needed")) }
                     p.why.muted {}
                     label {
-                        "Privilege "
+                        (l.t("Privilege "))
                         select name="privilege" {
-                            option value="1" { "service" }
-                            option value="2" { "setup" }
+                            option value="1" { (l.t("service")) }
+                            option value="2" { (l.t("setup")) }
                         }
                     }
-                    label { "The lift's password " input type="password" name="password" autocomplete="off"; }
+                    label { (l.t("The lift's password ")) input type="password" name="password" autocomplete="off"; }
                 }
                 p.status role="status" {}
                 menu {
                     // Save is the form's only submit button, so Enter saves.
-                    button.cancel type="button" { "Cancel" }
-                    button.save value="save" { "Save" }
+                    button.cancel type="button" { (l.t("Cancel")) }
+                    button.save value="save" { (l.t("Save")) }
                 }
             }
         }
@@ -282,30 +290,29 @@ fn edit_dialog() -> Markup {
 
 pub(super) async fn lift_page(
     State(app): State<Arc<App>>,
-    SignedIn(session): SignedIn,
-    headers: HeaderMap,
+    who: SignedIn,
     Path(id): Path<String>,
     Query(q): Query<LiftQuery>,
 ) -> Response {
-    let lift = match owned(&app, &session, &id).await {
+    let lift = match owned(&app, &who, &id).await {
         Ok(l) => l,
         Err(r) => return r,
     };
-    let lang = language(q.lang.as_deref(), &headers);
+    let (session, l) = (&who.session, who.locale);
     let (live, parameters) = (&app.dashboard.live, &app.dashboard.parameters);
     let asked = q.read.as_deref().map(str::trim).filter(|r| !r.is_empty());
     let read = asked.map(|text| app.names.resolve(text));
     let live_keys: Vec<String> = live.iter().map(ToString::to_string).collect();
     let stored = match app.store.latest(&id, &live_keys).await {
         Ok(s) => s,
-        Err(e) => return e.into(),
+        Err(e) => return unavailable(e, who.viewer()),
     };
     let mut wanted = live.clone();
     wanted.extend_from_slice(parameters);
     if let Some(Ok(m)) = read {
         wanted.push(m);
     }
-    let mut objects = read_all(&app, &id, &wanted, &lang, &stored).await;
+    let mut objects = read_all(&app, &id, &wanted, l, &stored).await;
     let read_object = matches!(read, Some(Ok(_))).then(|| objects.pop()).flatten();
     let parameter_objects = objects.split_off(live.len());
     let active = AlarmFilter {
@@ -318,7 +325,7 @@ pub(super) async fn lift_page(
         app.store.event_log(&id, None, 50).await,
     ) {
         (Ok(a), Ok(e)) => (a, e),
-        (Err(e), _) | (_, Err(e)) => return e.into(),
+        (Err(e), _) | (_, Err(e)) => return unavailable(e, who.viewer()),
     };
     let events: Vec<nxg::msg::Event> = events
         .iter()
@@ -334,46 +341,45 @@ pub(super) async fn lift_page(
         ("API", lift.api.to_string()),
     ];
     let body = html! {
-        h1 { "Lift " code { (id) } " " (online_badge(&id, app.registry.online(&id))) }
+        h1 { (l.fill("Lift {}", &[&""])) code { (id) } " " (online_badge(&id, app.registry.online(&id), l)) }
         dl.identity {
-            @for (term, value) in &identity { dt { (term) } dd { (value) } }
-            dt { "Last seen" } dd { (time(lift.last_seen)) }
+            @for (term, value) in &identity { dt { (l.t(term)) } dd { (value) } }
+            dt { (l.t("Last seen")) } dd { (time(lift.last_seen, l)) }
         }
         section #alarms {
-            h2 { "Alarms" }
+            h2 { (l.t("Alarms")) }
             @if alarms.is_empty() {
-                p.ok { "No active alarm." }
+                p.ok { (l.t("No active alarm.")) }
             } @else {
-                (super::alarms::table(&alarms, &session, &format!("/lifts/{id}"), false))
+                (super::alarms::table(&alarms, &who, &format!("/lifts/{id}"), false))
             }
         }
         p.rights.muted hidden role="status" {}
-        h2 { "Live values" }
-        div.cards { @for o in &objects { (o.card(&id)) } }
-        h2 { "Parameters" }
-        (table(&id, &parameter_objects))
-        h2 { "Read an object" }
+        h2 { (l.t("Live values")) }
+        div.cards { @for o in &objects { (o.card(&id, l)) } }
+        h2 { (l.t("Parameters")) }
+        (table(&id, &parameter_objects, l))
+        h2 { (l.t("Read an object")) }
         form.read method="get" {
-            input name="read" placeholder="0x652001, 0x6520:1 or a name"
+            input name="read" placeholder=(l.t("0x652001, 0x6520:1 or a name"))
                 value=(asked.unwrap_or_default()) required;
-            input type="hidden" name="lang" value=(lang);
-            button { "Read" }
+            button { (l.t("Read")) }
         }
         @if let Some(Err(e)) = &read {
             p.error { (e) }
         }
         @if let Some(o) = &read_object {
-            (table(&id, std::slice::from_ref(o)))
+            (table(&id, std::slice::from_ref(o), l))
         }
         section #events {
-            h2 { "Event log" }
+            h2 { (l.t("Event log")) }
             @if events.is_empty() {
-                p.muted { "No bus event stored (gateways that speak api 2 push them)." }
+                p.muted { (l.t("No bus event stored (gateways that speak api 2 push them).")) }
             } @else {
-                (super::alarms::event_log(&events))
+                (super::alarms::event_log(&events, l))
             }
         }
-        (edit_dialog())
+        (edit_dialog(l))
     };
-    layout(&format!("Lift {id}"), Some(&session), Some(&id), body).into_response()
+    layout(&l.fill("Lift {}", &[&id]), who.viewer(), Some(&id), body).into_response()
 }

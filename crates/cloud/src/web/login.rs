@@ -8,33 +8,38 @@ use axum::response::{IntoResponse, Redirect, Response};
 use maud::html;
 use serde::Deserialize;
 
-use super::page::{layout, problem};
+use super::i18n::Locale;
+use super::page::{layout, problem, unavailable, Viewer};
 use super::session::{COOKIE, IDLE};
 use crate::api::App;
 
-pub(super) async fn login_page() -> Response {
-    login_form(None)
+pub(super) async fn login_page(locale: Locale) -> Response {
+    login_form(None, locale)
 }
 
-fn login_form(error: Option<&str>) -> Response {
+fn login_form(error: Option<&str>, l: Locale) -> Response {
     let body = html! {
-        h1 { "Sign in" }
+        h1 { (l.t("Sign in")) }
         @if let Some(e) = error {
             p.error { (e) }
         }
         form.login method="post" action="/login" {
             label {
-                "API key "
+                (l.t("API key "))
                 input type="password" name="key" autocomplete="current-password" required autofocus;
             }
-            button { "Sign in" }
+            button { (l.t("Sign in")) }
         }
         p.hint {
-            "The key was printed once by " code { "canlift cloud account add" }
-            " (or by " code { "canlift demo" } ")."
+            (l.t("The key was printed once by ")) code { "canlift cloud account add" }
+            (l.t(" (or by ")) code { "canlift demo" } (l.t(")."))
         }
     };
-    layout("Sign in", None, None, body).into_response()
+    let viewer = Viewer {
+        session: None,
+        locale: l,
+    };
+    layout(l.t("Sign in"), viewer, None, body).into_response()
 }
 
 #[derive(Deserialize)]
@@ -42,7 +47,11 @@ pub(super) struct LoginForm {
     key: String,
 }
 
-pub(super) async fn login(State(app): State<Arc<App>>, Form(form): Form<LoginForm>) -> Response {
+pub(super) async fn login(
+    State(app): State<Arc<App>>,
+    locale: Locale,
+    Form(form): Form<LoginForm>,
+) -> Response {
     match app.store.account_by_key(form.key.trim()).await {
         Ok(Some(account)) => {
             tracing::info!(account = %account.name, "web sign-in");
@@ -59,10 +68,16 @@ pub(super) async fn login(State(app): State<Arc<App>>, Form(form): Form<LoginFor
         }
         Ok(None) => (
             StatusCode::UNAUTHORIZED,
-            login_form(Some("Unknown API key.")),
+            login_form(Some(locale.t("Unknown API key.")), locale),
         )
             .into_response(),
-        Err(e) => e.into(),
+        Err(e) => unavailable(
+            e,
+            Viewer {
+                session: None,
+                locale,
+            },
+        ),
     }
 }
 
@@ -73,12 +88,17 @@ pub(super) struct LogoutForm {
 
 pub(super) async fn logout(
     State(app): State<Arc<App>>,
+    locale: Locale,
     headers: HeaderMap,
     Form(form): Form<LogoutForm>,
 ) -> Response {
     if let Some(session) = app.sessions.get(&headers) {
         if !session.csrf_matches(Some(&form.csrf)) {
-            return problem(StatusCode::FORBIDDEN, Some(&session), "Wrong CSRF token.");
+            let viewer = Viewer {
+                session: Some(&session),
+                locale,
+            };
+            return problem(StatusCode::FORBIDDEN, viewer, locale.t("Wrong CSRF token."));
         }
         app.sessions.close(&headers);
     }

@@ -9,6 +9,7 @@ mod assets;
 mod audit;
 mod fleet;
 mod history;
+mod i18n;
 mod lift;
 mod login;
 mod page;
@@ -18,53 +19,55 @@ use std::sync::Arc;
 
 use axum::extract::FromRequestParts;
 use axum::http::request::Parts;
-use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
+use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{Redirect, Response};
 use axum::routing::{get, post};
 use axum::Router;
 
 use crate::api::App;
 use crate::store::LiftRecord;
+use i18n::Locale;
+use page::Viewer;
 pub use session::{Session, Sessions};
 
-/// A page's signed-in browser; without a session, the page redirects to the sign-in form.
-struct SignedIn(Session);
+/// A page's signed-in browser and its language; without a session, the page redirects to the
+/// sign-in form.
+struct SignedIn {
+    session: Session,
+    locale: Locale,
+}
+
+impl SignedIn {
+    fn viewer(&self) -> Viewer<'_> {
+        Viewer {
+            session: Some(&self.session),
+            locale: self.locale,
+        }
+    }
+}
 
 impl FromRequestParts<Arc<App>> for SignedIn {
     type Rejection = Redirect;
 
     async fn from_request_parts(parts: &mut Parts, app: &Arc<App>) -> Result<Self, Redirect> {
+        let Ok(locale) = Locale::from_request_parts(parts, app).await;
         app.sessions
             .get(&parts.headers)
-            .map(SignedIn)
+            .map(|session| SignedIn { session, locale })
             .ok_or_else(|| Redirect::to("/login"))
     }
 }
 
-/// The language of the page: `?lang=`, else the browser's first choice, else English.
-fn language(query: Option<&str>, headers: &HeaderMap) -> String {
-    let browser = headers
-        .get(header::ACCEPT_LANGUAGE)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.split([',', ';', '-']).next());
-    query
-        .or(browser)
-        .map(str::trim)
-        .filter(|l| (2..=8).contains(&l.len()) && l.chars().all(|c| c.is_ascii_alphabetic()))
-        .unwrap_or("en")
-        .to_ascii_lowercase()
-}
-
-/// The lift, if it is one of the session's account (a 404 page otherwise).
-async fn owned(app: &App, session: &Session, id: &str) -> Result<LiftRecord, Response> {
-    match app.store.lift(&session.account.domain, id).await {
+/// The lift, if it is one of the signed-in account's (a 404 page otherwise).
+async fn owned(app: &App, who: &SignedIn, id: &str) -> Result<LiftRecord, Response> {
+    match app.store.lift(&who.session.account.domain, id).await {
         Ok(Some(l)) => Ok(l),
         Ok(None) => Err(page::problem(
             StatusCode::NOT_FOUND,
-            Some(session),
-            "No such lift.",
+            who.viewer(),
+            who.locale.t("No such lift."),
         )),
-        Err(e) => Err(e.into()),
+        Err(e) => Err(page::unavailable(e, who.viewer())),
     }
 }
 
@@ -104,24 +107,7 @@ pub fn routes(app: Arc<App>) -> Router {
         .route("/alarms/{id}/ack", post(alarms::acknowledge))
         .route("/static/{file}", get(assets::serve))
         .route("/favicon.ico", get(assets::favicon))
+        .layer(axum::middleware::from_fn(i18n::remember))
         .layer(axum::middleware::map_response(harden))
         .with_state(app)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn page_language() {
-        let mut h = HeaderMap::new();
-        assert_eq!(language(None, &h), "en");
-        h.insert(
-            header::ACCEPT_LANGUAGE,
-            HeaderValue::from_static("de-DE,de;q=0.9"),
-        );
-        assert_eq!(language(None, &h), "de");
-        assert_eq!(language(Some("FR"), &h), "fr");
-        assert_eq!(language(Some("<x>"), &h), "en");
-    }
 }

@@ -3,46 +3,58 @@
 
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
-use maud::{html, Markup, DOCTYPE};
+use maud::{html, Markup, PreEscaped, DOCTYPE};
 
 use super::assets;
+use super::i18n::Locale;
 use super::session::Session;
 use crate::store::StoreError;
 
-/// A whole page. `session` absent: the sign-in page (no navigation); `lift`: the lift whose
-/// live events the page's script follows.
-pub(super) fn layout(
-    title: &str,
-    session: Option<&Session>,
-    lift: Option<&str>,
-    body: Markup,
-) -> Markup {
+/// What every page is rendered for: the signed-in browser (absent: the sign-in page, without
+/// navigation) and its language.
+#[derive(Clone, Copy)]
+pub(super) struct Viewer<'a> {
+    pub session: Option<&'a Session>,
+    pub locale: Locale,
+}
+
+/// A whole page. `lift`: the lift whose live events the page's script follows.
+pub(super) fn layout(title: &str, viewer: Viewer, lift: Option<&str>, body: Markup) -> Markup {
+    let l = viewer.locale;
     html! {
         (DOCTYPE)
-        html lang="en" {
+        html lang=(l.code()) {
             head {
                 meta charset="utf-8";
                 meta name="viewport" content="width=device-width, initial-scale=1";
-                @if let Some(s) = session {
+                @if let Some(s) = viewer.session {
                     meta name="csrf" content=(s.csrf);
                 }
                 title { (title) " · canlift" }
                 link rel="stylesheet" href=(assets::url("style.css"));
                 link rel="icon" href=(assets::url("favicon.svg")) type="image/svg+xml";
+                script type="application/json" #texts { (PreEscaped(l.script_texts())) }
                 script src=(assets::url("app.js")) defer {}
             }
             body data-lift=[lift] {
                 header {
                     a.brand href="/" { "canlift" }
-                    @if let Some(s) = session {
-                        nav {
-                            a href="/" { "Fleet" }
-                            a href="/alarms" { "Alarms" }
-                            a href="/audit" { "Audit" }
+                    nav {
+                        @if let Some(s) = viewer.session {
+                            a href="/" { (l.t("Fleet")) }
+                            a href="/alarms" { (l.t("Alarms")) }
+                            a href="/audit" { (l.t("Audit")) }
                             span.who { (s.account.name) }
                             form method="post" action="/logout" {
                                 input type="hidden" name="csrf" value=(s.csrf);
-                                button { "Sign out" }
+                                button { (l.t("Sign out")) }
+                            }
+                        }
+                        span.languages aria-label=(l.t("Language")) {
+                            @for other in Locale::ALL {
+                                a.current[other == l] href={ "?lang=" (other.code()) } lang=(other.code()) {
+                                    (other.name())
+                                }
                             }
                         }
                     }
@@ -53,24 +65,20 @@ pub(super) fn layout(
     }
 }
 
-/// A page that says what went wrong.
-pub(super) fn problem(status: StatusCode, session: Option<&Session>, message: &str) -> Response {
+/// A page that says what went wrong (`message` in the viewer's language).
+pub(super) fn problem(status: StatusCode, viewer: Viewer, message: &str) -> Response {
     let body = html! {
         h1 { (status.as_u16()) }
         p.error { (message) }
     };
-    (status, layout(status.as_str(), session, None, body)).into_response()
+    (status, layout(status.as_str(), viewer, None, body)).into_response()
 }
 
-impl From<StoreError> for Response {
-    fn from(e: StoreError) -> Response {
-        tracing::error!(error = %e, "web page failed on the database");
-        problem(
-            StatusCode::INTERNAL_SERVER_ERROR,
-            None,
-            "The database is unavailable.",
-        )
-    }
+/// The page for a database failure.
+pub(super) fn unavailable(e: StoreError, viewer: Viewer) -> Response {
+    tracing::error!(error = %e, "web page failed on the database");
+    let message = viewer.locale.t("The database is unavailable.");
+    problem(StatusCode::INTERNAL_SERVER_ERROR, viewer, message)
 }
 
 /// Milliseconds since the epoch as `YYYY-MM-DD HH:MM:SS UTC` (the script shows local time).
@@ -90,10 +98,10 @@ pub(super) fn utc(ms: i64) -> String {
 }
 
 /// A time the script shows in local time; "never" for none.
-pub(super) fn time(ms: i64) -> Markup {
+pub(super) fn time(ms: i64, l: Locale) -> Markup {
     html! {
         @if ms <= 0 {
-            "never"
+            (l.t("never"))
         } @else {
             time data-ms=(ms) { (utc(ms)) }
         }
@@ -101,10 +109,10 @@ pub(super) fn time(ms: i64) -> Markup {
 }
 
 /// The lift's online state, kept current by the script.
-pub(super) fn online_badge(lift: &str, online: bool) -> Markup {
-    let text = if online { "online" } else { "offline" };
+pub(super) fn online_badge(lift: &str, online: bool, l: Locale) -> Markup {
+    let class = if online { "online" } else { "offline" };
     html! {
-        span.badge.(text) data-online=(lift) { (text) }
+        span.badge.(class) data-online=(lift) { (l.t(class)) }
     }
 }
 
