@@ -295,6 +295,17 @@ async fn operator_uses_the_web_ui() {
     })
     .await;
     let position = number_of(&client, ".card[data-mplex=\"0x638301\"] .v").await;
+    // Chart links where values are stored (the live values), none on parameters.
+    let links = eval(
+        &client,
+        "return [document.querySelectorAll('.card a.chart').length,
+                 document.querySelectorAll('table.objects a.chart').length];",
+    )
+    .await;
+    assert!(
+        links[0].as_u64() > Some(0) && links[1] == 0,
+        "chart links: {links}"
+    );
 
     // A passenger call through the edit dialog: the car travels and the page follows by itself.
     edit(&client, "0x502200", "4").await;
@@ -555,6 +566,35 @@ async fn operator_uses_the_web_ui() {
     .await;
     let points = points.as_str().unwrap_or_default();
     assert!(points.split(' ').count() >= 3, "chart points {points:?}");
+    // Local times with the zone named, a hover value, the CSV of what is shown.
+    let zone = until("time zone named", 5, || text_of(&client, "p.zone")).await;
+    assert!(zone.starts_with("times in "), "{zone}");
+    let hover = eval(
+        &client,
+        "const svg = document.querySelector('svg.chart');
+         const r = svg.getBoundingClientRect();
+         svg.dispatchEvent(new PointerEvent('pointermove', {clientX: r.right - 20, clientY: r.top + 50}));
+         return [svg.querySelector('text.hover').textContent,
+                 svg.querySelector('line.cursor').getAttribute('visibility')];",
+    )
+    .await;
+    assert!(
+        hover[0].as_str().is_some_and(|t| t.contains(" at ")) && hover[1] == "visible",
+        "hover: {hover}"
+    );
+    let csv = client
+        .execute_async(
+            "const done = arguments[0];
+             fetch(document.querySelector('a.csv').getAttribute('href'))
+               .then(async r => done([r.status, r.headers.get('content-type'), await r.text()]), () => done(null));",
+            vec![],
+        )
+        .await
+        .unwrap();
+    assert_eq!(csv[0], json!(200), "{csv}");
+    let csv_text = csv[2].as_str().unwrap_or_default();
+    assert!(csv_text.starts_with("time,value\r\n20"), "{csv_text}");
+    assert!(csv_text.lines().count() >= 2, "{csv_text}");
     client
         .goto(&format!(
             "{base}/lifts/{LIFT}/history?mplex=0x652001&minutes=10"

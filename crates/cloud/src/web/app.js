@@ -107,9 +107,37 @@ function show(el, raw) {
 }
 
 function localTimes(root) {
-  for (const el of root.querySelectorAll("time[data-ms]")) {
+  for (const el of root.querySelectorAll("time[data-ms], svg [data-ms]")) {
     el.textContent = new Date(Number(el.dataset.ms)).toLocaleString(locale);
   }
+  const zone = Intl.DateTimeFormat().resolvedOptions().timeZone;
+  for (const el of root.querySelectorAll("p.zone")) el.textContent = t("times in {}", zone);
+}
+
+// The history chart's hover: the stored value nearest the pointer, with its local time.
+function chartHover(svg) {
+  const d = svg.dataset;
+  const points = (d.points || "").split(",").filter(Boolean).map((p) => p.split(":").map(Number));
+  const cursor = svg.querySelector("line.cursor");
+  const label = svg.querySelector("text.hover");
+  if (!points.length || !cursor || !label) return;
+  const [from, to, left, right] = [d.from, d.to, d.left, d.right].map(Number);
+  svg.addEventListener("pointermove", (e) => {
+    const box = svg.getBoundingClientRect();
+    const x = ((e.clientX - box.left) / box.width) * svg.viewBox.baseVal.width;
+    const at = from + ((x - left) / (right - left)) * (to - from);
+    let best = points[0];
+    for (const p of points) if (Math.abs(p[0] - at) < Math.abs(best[0] - at)) best = p;
+    const bx = left + ((best[0] - from) / (to - from)) * (right - left);
+    cursor.setAttribute("x1", bx);
+    cursor.setAttribute("x2", bx);
+    cursor.setAttribute("visibility", "visible");
+    label.textContent = t("{} at {}", best[1].toLocaleString(locale), new Date(best[0]).toLocaleString(locale));
+  });
+  svg.addEventListener("pointerleave", () => {
+    cursor.setAttribute("visibility", "hidden");
+    label.textContent = "";
+  });
 }
 
 function setOnline(lift, online) {
@@ -355,6 +383,7 @@ document.addEventListener("DOMContentLoaded", () => {
   for (const el of document.querySelectorAll("[data-mplex]")) show(el, el.dataset.raw);
   localTimes(document);
   labelCells(document);
+  for (const svg of document.querySelectorAll("svg.chart")) chartHover(svg);
   const lift = document.body.dataset.lift;
   if (lift) {
     liveValues(lift);

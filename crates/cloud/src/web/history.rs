@@ -4,7 +4,7 @@
 use std::sync::Arc;
 
 use axum::extract::{Path, Query, State};
-use axum::http::StatusCode;
+use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use maud::{html, Markup};
 use serde::Deserialize;
@@ -51,16 +51,101 @@ fn chart(points: &[(i64, f64)], from: i64, to: i64, l: Locale) -> Markup {
     }
     let (bottom, right, label_x, label_y) = (H - BOTTOM, W - 10.0, LEFT - 6.0, H - 8.0);
     html! {
-        svg.chart viewBox={ "0 0 " (W) " " (H) } role="img" aria-label=(l.t("history chart")) {
+        svg.chart viewBox={ "0 0 " (W) " " (H) } role="img" aria-label=(l.t("history chart"))
+            data-from=(from) data-to=(to) data-left=(LEFT) data-right=(W - 10.0)
+            data-points=(points.iter().map(|(t, v)| format!("{t}:{v}")).collect::<Vec<_>>().join(",")) {
             line x1=(LEFT) y1="10" x2=(LEFT) y2=(bottom) class="axis" {}
             line x1=(LEFT) y1=(bottom) x2=(right) y2=(bottom) class="axis" {}
             text x=(label_x) y="16" class="label" text-anchor="end" { (hi) }
             text x=(label_x) y=(bottom) class="label" text-anchor="end" { (lo) }
-            text x=(LEFT) y=(label_y) class="label" { (utc(from)) }
-            text x=(right) y=(label_y) class="label" text-anchor="end" { (utc(to)) }
+            text x=(LEFT) y=(label_y) class="label" data-ms=(from) { (utc(from)) }
+            text x=(right) y=(label_y) class="label" text-anchor="end" data-ms=(to) { (utc(to)) }
             polyline class="line" points=(path.join(" ")) {}
+            // The script's hover: a cursor line and the nearest value with its time.
+            line.cursor x1="0" y1="10" x2="0" y2=(bottom) visibility="hidden" {}
+            text.hover x=(LEFT + 6.0) y="24" {}
         }
     }
+}
+
+/// The stored values a history page or its CSV shows.
+struct Shown {
+    mplex: String,
+    minutes: u32,
+    from: i64,
+    to: i64,
+    rows: Vec<(i64, String)>,
+}
+
+/// The values of `q` on lift `id`, or the page that says why not.
+async fn shown(app: &App, who: &SignedIn, id: &str, q: &HistoryQuery) -> Result<Shown, Response> {
+    let l = who.locale;
+    owned(app, who, id).await?;
+    let mplex = match app.names.resolve(&q.mplex) {
+        Ok(mplex) => mplex.to_string(),
+        Err(e) => {
+            let message = l.fill("mplex: {}", &[&e]);
+            return Err(problem(StatusCode::BAD_REQUEST, who.viewer(), &message));
+        }
+    };
+    let minutes = q.minutes.unwrap_or(60).clamp(1, 31 * 24 * 60);
+    let to = store::now_ms();
+    let from = to - i64::from(minutes) * 60_000;
+    match app.store.history(id, &mplex, from, to).await {
+        Ok(rows) => Ok(Shown {
+            mplex,
+            minutes,
+            from,
+            to,
+            rows,
+        }),
+        Err(e) => Err(unavailable(e, who.viewer())),
+    }
+}
+
+/// `GET /lifts/{id}/history.csv?mplex=&minutes=`: what the page shows, as CSV (RFC 4180) with
+/// UTC times (ISO 8601).
+pub(super) async fn history_csv(
+    State(app): State<Arc<App>>,
+    who: SignedIn,
+    Path(id): Path<String>,
+    Query(q): Query<HistoryQuery>,
+) -> Response {
+    let shown = match shown(&app, &who, &id, &q).await {
+        Ok(s) => s,
+        Err(r) => return r,
+    };
+    let mut csv = String::from("time,value\r\n");
+    for (at, value) in &shown.rows {
+        let quoted = if value.contains([',', '"', '\r', '\n']) {
+            format!("\"{}\"", value.replace('"', "\"\""))
+        } else {
+            value.clone()
+        };
+        csv.push_str(&format!("{},{quoted}\r\n", iso(*at)));
+    }
+    let file = format!("{id}-{}.csv", shown.mplex);
+    (
+        [
+            (header::CONTENT_TYPE, "text/csv; charset=utf-8".to_owned()),
+            (
+                header::CONTENT_DISPOSITION,
+                format!("attachment; filename=\"{file}\""),
+            ),
+        ],
+        csv,
+    )
+        .into_response()
+}
+
+/// Milliseconds since the epoch as ISO 8601 UTC with milliseconds.
+fn iso(ms: i64) -> String {
+    let date = utc(ms.div_euclid(1000) * 1000);
+    let (day, time) = date
+        .trim_end_matches(" UTC")
+        .split_once(' ')
+        .unwrap_or((&date, ""));
+    format!("{day}T{time}.{:03}Z", ms.rem_euclid(1000))
 }
 
 pub(super) async fn history_page(
@@ -70,23 +155,15 @@ pub(super) async fn history_page(
     Query(q): Query<HistoryQuery>,
 ) -> Response {
     let l = who.locale;
-    if let Err(r) = owned(&app, &who, &id).await {
-        return r;
-    }
-    let mplex = match app.names.resolve(&q.mplex) {
-        Ok(mplex) => mplex,
-        Err(e) => {
-            let message = l.fill("mplex: {}", &[&e]);
-            return problem(StatusCode::BAD_REQUEST, who.viewer(), &message);
-        }
-    };
-    let mplex = mplex.to_string();
-    let minutes = q.minutes.unwrap_or(60).clamp(1, 31 * 24 * 60);
-    let to = store::now_ms();
-    let from = to - i64::from(minutes) * 60_000;
-    let rows = match app.store.history(&id, &mplex, from, to).await {
-        Ok(r) => r,
-        Err(e) => return unavailable(e, who.viewer()),
+    let Shown {
+        mplex,
+        minutes,
+        from,
+        to,
+        rows,
+    } = match shown(&app, &who, &id, &q).await {
+        Ok(s) => s,
+        Err(r) => return r,
     };
     let points: Vec<(i64, f64)> = rows
         .iter()
@@ -116,6 +193,10 @@ pub(super) async fn history_page(
                 "—"
             }
         }
+        p.muted.zone {}
+        @if !points.is_empty() {
+            p { a.csv href={ "/lifts/" (id) "/history.csv?mplex=" (mplex) "&minutes=" (minutes) } download { (l.t("CSV of these values")) } }
+        }
         @if points.is_empty() {
             p.muted {
                 (l.t("No stored numeric values in this period. Values are stored while the gateway pushes them (the dashboard's objects, or a subscription)."))
@@ -132,12 +213,18 @@ mod tests {
     use super::*;
 
     #[test]
+    fn csv_times_are_iso_8601_utc() {
+        assert_eq!(iso(951_782_400_123), "2000-02-29T00:00:00.123Z");
+        assert_eq!(iso(0), "1970-01-01T00:00:00.000Z");
+    }
+
+    #[test]
     fn chart_steps_between_values() {
         let svg = chart(&[(0, 1.0), (500, 3.0)], 0, 1000, Locale::En).into_string();
         assert!(svg.contains("<polyline"), "{svg}");
         // Three points per change: the old level to the change, then the new one to the end.
         let points = svg
-            .split("points=\"")
+            .split("class=\"line\" points=\"")
             .nth(1)
             .unwrap()
             .split('"')

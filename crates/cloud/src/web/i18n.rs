@@ -189,6 +189,8 @@ const SCRIPT: &[&str] = &[
     "Elevation refused: {}",
     "saved",
     "{} — elevate and save again.",
+    "times in {}",
+    "{} at {}",
 ];
 
 fn german() -> &'static HashMap<&'static str, &'static str> {
@@ -296,6 +298,9 @@ const GERMAN: &[(&str, &str)] = &[
     ("History {}", "Verlauf {}"),
     ("mplex: {}", "mplex: {}"),
     ("history chart", "Verlaufsdiagramm"),
+    ("CSV of these values", "CSV dieser Werte"),
+    ("times in {}", "Zeiten in {}"),
+    ("{} at {}", "{} um {}"),
     // Audit.
     ("Every change and privilege elevation, newest first.", "Jede Änderung und Rechteerhöhung, neueste zuerst."),
     ("When", "Wann"),

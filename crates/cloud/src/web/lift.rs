@@ -136,9 +136,10 @@ impl Object {
         }
     }
 
+    /// A chart link where values are stored (the live objects; parameters are not pushed).
     fn history_link(&self, lift: &str, l: Locale) -> Markup {
         html! {
-            @if self.numeric() {
+            @if self.numeric() && self.stored.is_some() {
                 a.chart href={ "/lifts/" (lift) "/history?mplex=" (self.mplex) } { (l.t("chart")) }
             }
         }

@@ -102,6 +102,7 @@ pub fn routes(app: Arc<App>) -> Router {
         .route("/logout", post(login::logout))
         .route("/lifts/{id}", get(lift::lift_page))
         .route("/lifts/{id}/history", get(history::history_page))
+        .route("/lifts/{id}/history.csv", get(history::history_csv))
         .route("/audit", get(audit::audit_page))
         .route("/alarms", get(alarms::alarms_page))
         .route("/alarms/{id}/ack", post(alarms::acknowledge))
