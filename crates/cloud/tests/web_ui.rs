@@ -326,6 +326,38 @@ async fn operator_uses_the_web_ui() {
     .await;
     assert_eq!(after, trips + 1);
 
+    // "Call the car": one button per floor of the lift (the simulator has 8), the passenger
+    // call's range is the lift's floors too, and a button calls the car.
+    assert_eq!(
+        eval(
+            &client,
+            "return document.querySelectorAll('div.floors button.floor').length;"
+        )
+        .await,
+        json!(8)
+    );
+    assert_eq!(
+        eval(
+            &client,
+            "return document.querySelector('tr[data-mplex=\"0x502200\"]').dataset.max;"
+        )
+        .await,
+        json!("8")
+    );
+    click(&client, "div.floors button.floor[value=\"2\"]").await;
+    let called = until("the car is called", 10, || {
+        text_of(&client, "p.call-status")
+    })
+    .await;
+    assert_eq!(called, "called to floor 2");
+    let floor = until("the car arrives at floor 2", 40, || async {
+        number_of(&client, ".card[data-mplex=\"0x502300\"] .v")
+            .await
+            .filter(|f| *f == 2)
+    })
+    .await;
+    assert_eq!(floor, 2);
+
     // Door open time needs service rights: the dialog asks for the lift's service password
     // before the first save, elevation grants the rights, the page counts them down.
     let elevate_hidden = "return document.querySelector('dialog#edit fieldset.elevate').hidden;";

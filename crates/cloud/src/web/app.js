@@ -379,6 +379,26 @@ function editDialog(lift) {
   });
 }
 
+// The floor buttons: a passenger call (privilege 0) to the floor pressed.
+function callButtons(lift) {
+  const holder = document.querySelector("div.floors");
+  const status = document.querySelector("p.call-status");
+  if (!holder || !status) return;
+  for (const button of holder.querySelectorAll("button.floor")) {
+    button.addEventListener("click", async () => {
+      const floor = button.value;
+      const d = holder.dataset;
+      const put = await api("PUT", `/api/v1/lifts/${encodeURIComponent(lift)}/objects/${d.mplex}`, {
+        value: floor,
+        datatype: Number(d.datatype),
+        physunit: Number(d.physunit),
+      });
+      status.textContent = put.ok ? t("called to floor {}", floor) : describe(put.answer);
+      status.className = put.ok ? "call-status ok" : "call-status error";
+    });
+  }
+}
+
 document.addEventListener("DOMContentLoaded", () => {
   for (const el of document.querySelectorAll("[data-mplex]")) show(el, el.dataset.raw);
   localTimes(document);
@@ -388,6 +408,7 @@ document.addEventListener("DOMContentLoaded", () => {
   if (lift) {
     liveValues(lift);
     editDialog(lift);
+    callButtons(lift);
   } else if (document.querySelector("table.fleet")) {
     refreshFleet();
   }

@@ -191,6 +191,7 @@ const SCRIPT: &[&str] = &[
     "{} — elevate and save again.",
     "times in {}",
     "{} at {}",
+    "called to floor {}",
 ];
 
 fn german() -> &'static HashMap<&'static str, &'static str> {
@@ -262,6 +263,9 @@ const GERMAN: &[(&str, &str)] = &[
     ("Last seen", "Zuletzt gesehen"),
     ("No active alarm.", "Kein aktiver Alarm."),
     ("Live values", "Live-Werte"),
+    ("Call the car", "Kabine rufen"),
+    ("Call the car to floor {}", "Kabine in Etage {} rufen"),
+    ("called to floor {}", "in Etage {} gerufen"),
     ("Parameters", "Parameter"),
     ("Read an object", "Objekt lesen"),
     ("0x652001, 0x6520:1 or a name", "0x652001, 0x6520:1 oder ein Name"),

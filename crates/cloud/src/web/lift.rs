@@ -21,6 +21,20 @@ use crate::api::{read_params, App};
 use crate::rest::Form;
 use crate::store::AlarmFilter;
 
+/// Floor level positions (CiA 417 manufacturer area, one element per floor): sub-index 0 is
+/// the lift's number of floors, which sizes the "call the car" buttons.
+const FLOOR_LEVELS: Mplex = Mplex {
+    index: 0x4010,
+    sub: 0,
+};
+/// Passenger call: writing a floor number calls the car there (privilege 0).
+const PASSENGER_CALL: Mplex = Mplex {
+    index: 0x5022,
+    sub: 0,
+};
+/// More floors than this get no buttons (the edit dialog still calls any floor).
+const MAX_FLOOR_BUTTONS: u8 = 64;
+
 /// How long a page waits for the gateway's metadata before it shows what it has.
 const READ_TIMEOUT: Duration = Duration::from_secs(4);
 
@@ -310,12 +324,34 @@ pub(super) async fn lift_page(
     };
     let mut wanted = live.clone();
     wanted.extend_from_slice(parameters);
+    wanted.push(PASSENGER_CALL);
+    wanted.push(FLOOR_LEVELS);
     if let Some(Ok(m)) = read {
         wanted.push(m);
     }
     let mut objects = read_all(&app, &id, &wanted, l, &stored).await;
     let read_object = matches!(read, Some(Ok(_))).then(|| objects.pop()).flatten();
-    let parameter_objects = objects.split_off(live.len());
+    let floors = objects
+        .pop()
+        .and_then(|o| o.raw().trim().parse::<u8>().ok())
+        .filter(|n| (2..=MAX_FLOOR_BUTTONS).contains(n));
+    // The buttons write as the dialog would: with the object's type and unit.
+    let call = objects
+        .pop()
+        .filter(|o| o.writable())
+        .map(|o| o.attributes(l));
+    let floors = floors.zip(call);
+    let mut parameter_objects = objects.split_off(live.len());
+    // The passenger call's range is the lift's floors, not the object's 1 … 254.
+    if let Some((n, _)) = floors {
+        for o in &mut parameter_objects {
+            if o.mplex == PASSENGER_CALL {
+                if let Ok(answer) = &mut o.answer {
+                    answer.object.max = Some(n.into());
+                }
+            }
+        }
+    }
     let active = AlarmFilter {
         active: true,
         lift: Some(id.clone()),
@@ -343,6 +379,17 @@ pub(super) async fn lift_page(
     ];
     let body = html! {
         h1 { (l.fill("Lift {}", &[&""])) code { (id) } " " (online_badge(&id, app.registry.online(&id), l)) }
+        @if let Some((n, call)) = &floors {
+            section.call {
+                h2 { (l.t("Call the car")) }
+                div.floors data-mplex=(call.mplex) data-datatype=(call.datatype) data-physunit=(call.physunit) {
+                    @for floor in 1..=*n {
+                        button.floor type="button" value=(floor) aria-label=(l.fill("Call the car to floor {}", &[&floor])) { (floor) }
+                    }
+                }
+                p.call-status.muted role="status" {}
+            }
+        }
         dl.identity {
             @for (term, value) in &identity { dt { (l.t(term)) } dd { (value) } }
             dt { (l.t("Last seen")) } dd { (time(lift.last_seen, l)) }
