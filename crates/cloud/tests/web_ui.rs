@@ -345,8 +345,10 @@ async fn operator_uses_the_web_ui() {
         json!("8")
     );
     click(&client, "div.floors button.floor[value=\"2\"]").await;
-    let called = until("the car is called", 10, || {
+    let called = until("the car is called", 10, || async {
         text_of(&client, "p.call-status")
+            .await
+            .filter(|t| !t.is_empty())
     })
     .await;
     assert_eq!(called, "called to floor 2");
@@ -625,8 +627,96 @@ async fn operator_uses_the_web_ui() {
         .unwrap();
     assert_eq!(csv[0], json!(200), "{csv}");
     let csv_text = csv[2].as_str().unwrap_or_default();
-    assert!(csv_text.starts_with("time,value\r\n20"), "{csv_text}");
+    assert!(
+        csv_text.starts_with("time,object,value\r\n20"),
+        "{csv_text}"
+    );
     assert!(csv_text.lines().count() >= 2, "{csv_text}");
+
+    // Several values on one time axis: the car position as a line with its unit, the lift
+    // state as a state timeline named by its choices; they follow the lift while the page is
+    // open; dragging across a chart zooms into that period.
+    client
+        .goto(&format!(
+            "{base}/lifts/{LIFT}/history?mplex=0x638301,Lift%20state&minutes=10"
+        ))
+        .await
+        .unwrap();
+    let captions = eval(
+        &client,
+        "return [...document.querySelectorAll('figure.series figcaption')].map(f => f.textContent);",
+    )
+    .await;
+    assert_eq!(captions.as_array().map(Vec::len), Some(2), "{captions}");
+    assert!(
+        captions[0].as_str().is_some_and(|c| c.contains("[mm]")),
+        "{captions}"
+    );
+    let states = eval(
+        &client,
+        "const svg = document.querySelectorAll('svg.chart')[1];
+         const r = svg.getBoundingClientRect();
+         svg.dispatchEvent(new PointerEvent('pointermove', {clientX: r.right - 20, clientY: r.top + 40}));
+         return [svg.querySelectorAll('rect.state').length, svg.querySelector('text.hover').textContent];",
+    )
+    .await;
+    assert!(states[0].as_u64() > Some(0), "state bands: {states}");
+    assert!(
+        ["idle", "doors cycling", "travelling up", "travelling down"]
+            .iter()
+            .any(|s| states[1].as_str().is_some_and(|h| h.starts_with(s))),
+        "the hover names the state: {states}"
+    );
+    let before = text_of(&client, "figure.series p.summary")
+        .await
+        .unwrap_or_default();
+    let (status, _) = rig
+        .call(
+            "PUT",
+            &format!("/api/v1/lifts/{LIFT}/objects/0x502200"),
+            Some(&rig.key),
+            Some(json!({"value": "6", "datatype": 7, "physunit": 0})),
+        )
+        .await;
+    assert_eq!(status, 200);
+    until("the chart follows the lift", 30, || async {
+        text_of(&client, "figure.series p.summary")
+            .await
+            .filter(|now| *now != before)
+    })
+    .await;
+    eval(
+        &client,
+        "const svg = document.querySelector('svg.chart');
+         const r = svg.getBoundingClientRect();
+         const at = (type, x) => svg.dispatchEvent(new PointerEvent(type, {clientX: x, clientY: r.top + 50, bubbles: true}));
+         at('pointerdown', r.left + r.width * 0.5);
+         at('pointermove', r.left + r.width * 0.8);
+         at('pointerup', r.left + r.width * 0.8);
+         return null;",
+    )
+    .await;
+    let zoomed = until("zoomed into the period", 10, || async {
+        let url = client.current_url().await.ok()?;
+        url.query()
+            .filter(|q| q.contains("from="))
+            .map(str::to_owned)
+    })
+    .await;
+    until("the zoomed page", 10, || text_of(&client, "#charts figure")).await;
+    assert!(
+        zoomed.contains("from=") && zoomed.contains("to=") && !zoomed.contains("minutes="),
+        "zoomed: {zoomed}"
+    );
+    assert_eq!(
+        eval(
+            &client,
+            "return document.querySelector('#charts').hasAttribute('data-live');"
+        )
+        .await,
+        json!(false),
+        "a fixed period does not move"
+    );
     client
         .goto(&format!(
             "{base}/lifts/{LIFT}/history?mplex=0x652001&minutes=10"
@@ -665,7 +755,10 @@ async fn operator_uses_the_web_ui() {
     let pages = [
         ("fleet", String::from("/")),
         ("lift", format!("/lifts/{LIFT}")),
-        ("history", format!("/lifts/{LIFT}/history?mplex=0x652001")),
+        (
+            "history",
+            format!("/lifts/{LIFT}/history?mplex=0x638301,0x502400,0x652001"),
+        ),
         ("audit", String::from("/audit")),
         ("alarms", String::from("/alarms")),
     ];

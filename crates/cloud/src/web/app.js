@@ -114,30 +114,72 @@ function localTimes(root) {
   for (const el of root.querySelectorAll("p.zone")) el.textContent = t("times in {}", zone);
 }
 
-// The history chart's hover: the stored value nearest the pointer, with its local time.
+// A history chart: the stored value in force at the pointer (a choice by its name) with its
+// local time; dragging across selects a period to zoom into.
 function chartHover(svg) {
   const d = svg.dataset;
   const points = (d.points || "").split(",").filter(Boolean).map((p) => p.split(":").map(Number));
+  const names = parse(d.labels, null);
   const cursor = svg.querySelector("line.cursor");
   const label = svg.querySelector("text.hover");
-  if (!points.length || !cursor || !label) return;
+  const band = svg.querySelector("rect.zoom");
+  if (!points.length || !cursor || !label || !band) return;
   const [from, to, left, right] = [d.from, d.to, d.left, d.right].map(Number);
-  svg.addEventListener("pointermove", (e) => {
+  const xOf = (e) => {
     const box = svg.getBoundingClientRect();
-    const x = ((e.clientX - box.left) / box.width) * svg.viewBox.baseVal.width;
-    const at = from + ((x - left) / (right - left)) * (to - from);
-    let best = points[0];
-    for (const p of points) if (Math.abs(p[0] - at) < Math.abs(best[0] - at)) best = p;
-    const bx = left + ((best[0] - from) / (to - from)) * (right - left);
-    cursor.setAttribute("x1", bx);
-    cursor.setAttribute("x2", bx);
+    return Math.min(right, Math.max(left, ((e.clientX - box.left) / box.width) * svg.viewBox.baseVal.width));
+  };
+  const timeOf = (x) => from + ((x - left) / (right - left)) * (to - from);
+  let start = null;
+  svg.addEventListener("pointerdown", (e) => {
+    start = xOf(e);
+  });
+  svg.addEventListener("pointermove", (e) => {
+    const x = xOf(e);
+    const at = timeOf(x);
+    let now = points[0];
+    for (const p of points) if (p[0] <= at) now = p;
+    const shown = names ? (names[now[1] - Number(d.min || 0)] ?? String(now[1])) : now[1].toLocaleString(locale);
+    cursor.setAttribute("x1", x);
+    cursor.setAttribute("x2", x);
     cursor.setAttribute("visibility", "visible");
-    label.textContent = t("{} at {}", best[1].toLocaleString(locale), new Date(best[0]).toLocaleString(locale));
+    label.textContent = t("{} at {}", shown, new Date(now[0]).toLocaleString(locale));
+    if (start !== null) {
+      band.setAttribute("x", Math.min(start, x));
+      band.setAttribute("width", Math.abs(x - start));
+      band.setAttribute("visibility", "visible");
+    }
   });
   svg.addEventListener("pointerleave", () => {
     cursor.setAttribute("visibility", "hidden");
+    band.setAttribute("visibility", "hidden");
     label.textContent = "";
+    start = null;
   });
+  svg.addEventListener("pointerup", (e) => {
+    const x = xOf(e);
+    if (start !== null && Math.abs(x - start) > 8) {
+      const url = new URL(location.href);
+      url.searchParams.set("from", Math.round(timeOf(Math.min(start, x))));
+      url.searchParams.set("to", Math.round(timeOf(Math.max(start, x))));
+      url.searchParams.delete("minutes");
+      location.href = url.toString();
+    }
+    start = null;
+    band.setAttribute("visibility", "hidden");
+  });
+}
+
+// A history page whose period ends now follows the lift: a pushed value of a charted object
+// redraws the charts (at most every 2 s).
+function liveCharts(mplex) {
+  const charts = document.querySelector("#charts[data-live]");
+  if (!charts || !charts.dataset.live.split(",").includes(normalMplex(mplex))) return;
+  clearTimeout(liveCharts.pending);
+  liveCharts.pending = setTimeout(async () => {
+    await refreshParts(["#charts"]);
+    for (const svg of document.querySelectorAll("svg.chart")) chartHover(svg);
+  }, 2000);
 }
 
 function setOnline(lift, online) {
@@ -154,6 +196,7 @@ function liveValues(lift) {
   events.addEventListener("value", (e) => {
     const object = parse(e.data, {}).object ?? {};
     if (object.node) return; // pushes from other nodes are not on this page
+    liveCharts(object.mplex);
     const value = Array.isArray(object.value) ? object.value.join(", ") : object.value;
     for (const el of document.querySelectorAll(`[data-mplex="${normalMplex(object.mplex)}"]`)) {
       show(el, value);

@@ -1,5 +1,7 @@
-//! The history page: the stored values of one object over a period, as an SVG step chart
-//! drawn by the portal.
+//! The history page: the stored values of one or several objects over a period, one SVG chart
+//! each on the same time axis, drawn by the portal — numbers as a step chart with their unit,
+//! choices (lift state, door state…) as a state timeline — with hover values, drag to zoom,
+//! live update while the period ends now, and the CSV of what is shown.
 
 use std::sync::Arc;
 
@@ -7,124 +9,141 @@ use axum::extract::{Path, Query, State};
 use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use maud::{html, Markup};
+use nxg::mplex::Mplex;
 use serde::Deserialize;
 
 use super::i18n::Locale;
+use super::lift::{describe, Described};
 use super::page::{layout, problem, time, unavailable, utc};
 use super::{owned, SignedIn};
 use crate::api::App;
 use crate::store;
 
+/// Objects on one page at most.
+const MAX_SERIES: usize = 6;
+
 #[derive(Deserialize)]
 pub(super) struct HistoryQuery {
+    /// One object, or several separated by commas (address forms or names).
     mplex: String,
     /// The period shown, ending now.
     minutes: Option<u32>,
+    /// A fixed period instead (ms since the epoch), as a zoom leaves it.
+    from: Option<i64>,
+    to: Option<i64>,
 }
 
-/// An SVG step chart of `points` (ms, value) between `from` and `to`.
-fn chart(points: &[(i64, f64)], from: i64, to: i64, l: Locale) -> Markup {
-    const W: f64 = 800.0;
-    const H: f64 = 280.0;
-    const LEFT: f64 = 70.0;
-    const BOTTOM: f64 = 30.0;
-    let lo = points.iter().map(|p| p.1).fold(f64::INFINITY, f64::min);
-    let hi = points.iter().map(|p| p.1).fold(f64::NEG_INFINITY, f64::max);
-    let (lo, hi) = if (hi - lo).abs() < f64::EPSILON {
-        (lo - 1.0, hi + 1.0)
-    } else {
-        (lo, hi)
-    };
-    let x = |t: i64| LEFT + (t - from) as f64 / (to - from).max(1) as f64 * (W - LEFT - 10.0);
-    let y = |v: f64| 10.0 + (hi - v) / (hi - lo) * (H - BOTTOM - 10.0);
-    let mut path = Vec::with_capacity(points.len() * 2 + 1);
-    let mut previous: Option<f64> = None;
-    for &(t, v) in points {
-        if let Some(p) = previous {
-            path.push(format!("{:.1},{:.1}", x(t), y(p)));
-        }
-        path.push(format!("{:.1},{:.1}", x(t), y(v)));
-        previous = Some(v);
-    }
-    if let Some(p) = previous {
-        path.push(format!("{:.1},{:.1}", x(to), y(p)));
-    }
-    let (bottom, right, label_x, label_y) = (H - BOTTOM, W - 10.0, LEFT - 6.0, H - 8.0);
-    html! {
-        svg.chart viewBox={ "0 0 " (W) " " (H) } role="img" aria-label=(l.t("history chart"))
-            data-from=(from) data-to=(to) data-left=(LEFT) data-right=(W - 10.0)
-            data-points=(points.iter().map(|(t, v)| format!("{t}:{v}")).collect::<Vec<_>>().join(",")) {
-            line x1=(LEFT) y1="10" x2=(LEFT) y2=(bottom) class="axis" {}
-            line x1=(LEFT) y1=(bottom) x2=(right) y2=(bottom) class="axis" {}
-            text x=(label_x) y="16" class="label" text-anchor="end" { (hi) }
-            text x=(label_x) y=(bottom) class="label" text-anchor="end" { (lo) }
-            text x=(LEFT) y=(label_y) class="label" data-ms=(from) { (utc(from)) }
-            text x=(right) y=(label_y) class="label" text-anchor="end" data-ms=(to) { (utc(to)) }
-            polyline class="line" points=(path.join(" ")) {}
-            // The script's hover: a cursor line and the nearest value with its time.
-            line.cursor x1="0" y1="10" x2="0" y2=(bottom) visibility="hidden" {}
-            text.hover x=(LEFT + 6.0) y="24" {}
-        }
-    }
-}
-
-/// The stored values a history page or its CSV shows.
-struct Shown {
-    mplex: String,
-    minutes: u32,
+/// The period a page shows: the last `minutes`, or a fixed one.
+struct Period {
     from: i64,
     to: i64,
+    /// `None`: a fixed period (no live update).
+    minutes: Option<u32>,
+}
+
+impl Period {
+    fn of(q: &HistoryQuery) -> Period {
+        let now = store::now_ms();
+        match (q.from, q.to) {
+            (Some(from), Some(to)) if from < to => Period {
+                from,
+                to: to.min(now.max(from + 1)),
+                minutes: None,
+            },
+            _ => {
+                let minutes = q.minutes.unwrap_or(60).clamp(1, 31 * 24 * 60);
+                Period {
+                    from: now - i64::from(minutes) * 60_000,
+                    to: now,
+                    minutes: Some(minutes),
+                }
+            }
+        }
+    }
+
+    /// The query string of this period for `mplexes`.
+    fn query(&self, mplexes: &str) -> String {
+        let mut q = vec![("mplex", mplexes.to_owned())];
+        match self.minutes {
+            Some(m) => q.push(("minutes", m.to_string())),
+            None => {
+                q.push(("from", self.from.to_string()));
+                q.push(("to", self.to.to_string()));
+            }
+        }
+        serde_urlencoded::to_string(q).unwrap_or_default()
+    }
+}
+
+/// One object's stored values.
+struct Series {
+    mplex: String,
     rows: Vec<(i64, String)>,
 }
 
-/// The values of `q` on lift `id`, or the page that says why not.
-async fn shown(app: &App, who: &SignedIn, id: &str, q: &HistoryQuery) -> Result<Shown, Response> {
+/// The objects of `q` on lift `id` with their values in its period, or the page that says why
+/// not.
+async fn shown(
+    app: &App,
+    who: &SignedIn,
+    id: &str,
+    q: &HistoryQuery,
+) -> Result<(Vec<Mplex>, Vec<Series>, Period), Response> {
     let l = who.locale;
     owned(app, who, id).await?;
-    let mplex = match app.names.resolve(&q.mplex) {
-        Ok(mplex) => mplex.to_string(),
-        Err(e) => {
-            let message = l.fill("mplex: {}", &[&e]);
-            return Err(problem(StatusCode::BAD_REQUEST, who.viewer(), &message));
+    let mut mplexes = Vec::new();
+    for text in q.mplex.split(',').map(str::trim).filter(|t| !t.is_empty()) {
+        match app.names.resolve(text) {
+            Ok(m) if !mplexes.contains(&m) => mplexes.push(m),
+            Ok(_) => {}
+            Err(e) => {
+                let message = l.fill("mplex: {}", &[&e]);
+                return Err(problem(StatusCode::BAD_REQUEST, who.viewer(), &message));
+            }
         }
-    };
-    let minutes = q.minutes.unwrap_or(60).clamp(1, 31 * 24 * 60);
-    let to = store::now_ms();
-    let from = to - i64::from(minutes) * 60_000;
-    match app.store.history(id, &mplex, from, to).await {
-        Ok(rows) => Ok(Shown {
-            mplex,
-            minutes,
-            from,
-            to,
-            rows,
-        }),
-        Err(e) => Err(unavailable(e, who.viewer())),
     }
+    mplexes.truncate(MAX_SERIES);
+    if mplexes.is_empty() {
+        let message = l.fill("mplex: {}", &[&"—"]);
+        return Err(problem(StatusCode::BAD_REQUEST, who.viewer(), &message));
+    }
+    let period = Period::of(q);
+    let mut series = Vec::with_capacity(mplexes.len());
+    for m in &mplexes {
+        let mplex = m.to_string();
+        match app.store.history(id, &mplex, period.from, period.to).await {
+            Ok(rows) => series.push(Series { mplex, rows }),
+            Err(e) => return Err(unavailable(e, who.viewer())),
+        }
+    }
+    Ok((mplexes, series, period))
 }
 
-/// `GET /lifts/{id}/history.csv?mplex=&minutes=`: what the page shows, as CSV (RFC 4180) with
-/// UTC times (ISO 8601).
+/// `GET /lifts/{id}/history.csv?mplex=&minutes=` (or `from`/`to`): what the page shows, as CSV
+/// (RFC 4180): `time,object,value` with UTC times (ISO 8601).
 pub(super) async fn history_csv(
     State(app): State<Arc<App>>,
     who: SignedIn,
     Path(id): Path<String>,
     Query(q): Query<HistoryQuery>,
 ) -> Response {
-    let shown = match shown(&app, &who, &id, &q).await {
+    let (_, series, _) = match shown(&app, &who, &id, &q).await {
         Ok(s) => s,
         Err(r) => return r,
     };
-    let mut csv = String::from("time,value\r\n");
-    for (at, value) in &shown.rows {
-        let quoted = if value.contains([',', '"', '\r', '\n']) {
-            format!("\"{}\"", value.replace('"', "\"\""))
-        } else {
-            value.clone()
-        };
-        csv.push_str(&format!("{},{quoted}\r\n", iso(*at)));
+    let mut csv = String::from("time,object,value\r\n");
+    for s in &series {
+        for (at, value) in &s.rows {
+            let quoted = if value.contains([',', '"', '\r', '\n']) {
+                format!("\"{}\"", value.replace('"', "\"\""))
+            } else {
+                value.clone()
+            };
+            csv.push_str(&format!("{},{},{quoted}\r\n", iso(*at), s.mplex));
+        }
     }
-    let file = format!("{id}-{}.csv", shown.mplex);
+    let names: Vec<&str> = series.iter().map(|s| s.mplex.as_str()).collect();
+    let file = format!("{id}-{}.csv", names.join("-"));
     (
         [
             (header::CONTENT_TYPE, "text/csv; charset=utf-8".to_owned()),
@@ -148,6 +167,113 @@ fn iso(ms: i64) -> String {
     format!("{day}T{time}.{:03}Z", ms.rem_euclid(1000))
 }
 
+/// Chart geometry (SVG user units).
+const W: f64 = 800.0;
+const LEFT: f64 = 70.0;
+const RIGHT: f64 = W - 10.0;
+
+/// Where time `t` of `period` lies on the x axis.
+fn x_of(t: i64, period: &Period) -> f64 {
+    LEFT + (t - period.from) as f64 / (period.to - period.from).max(1) as f64 * (RIGHT - LEFT)
+}
+
+/// The frame every chart shares: the time axis with local times, the hover cursor and label,
+/// and the data the script's hover and zoom read (`labels`: the names of a choice's values).
+fn frame(
+    period: &Period,
+    height: f64,
+    points: &[(i64, f64)],
+    labels: Option<(i64, &[String])>,
+    l: Locale,
+    content: Markup,
+) -> Markup {
+    let bottom = height - 30.0;
+    let data: Vec<String> = points.iter().map(|(t, v)| format!("{t}:{v}")).collect();
+    let names = labels.map(|(min, list)| (min, serde_json::to_string(list).unwrap_or_default()));
+    html! {
+        svg.chart viewBox={ "0 0 " (W) " " (height) } role="img" aria-label=(l.t("history chart"))
+            data-from=(period.from) data-to=(period.to) data-left=(LEFT) data-right=(RIGHT)
+            data-points=(data.join(",")) data-min=[names.as_ref().map(|n| n.0)]
+            data-labels=[names.as_ref().map(|n| n.1.as_str())] {
+            line x1=(LEFT) y1="10" x2=(LEFT) y2=(bottom) class="axis" {}
+            line x1=(LEFT) y1=(bottom) x2=(RIGHT) y2=(bottom) class="axis" {}
+            (content)
+            text x=(LEFT) y=(height - 8.0) class="label" data-ms=(period.from) { (utc(period.from)) }
+            text x=(RIGHT) y=(height - 8.0) class="label" text-anchor="end" data-ms=(period.to) { (utc(period.to)) }
+            line.cursor x1="0" y1="10" x2="0" y2=(bottom) visibility="hidden" {}
+            rect.zoom x="0" y="10" width="0" height=(bottom - 10.0) visibility="hidden" {}
+            text.hover x=(LEFT + 6.0) y="24" {}
+        }
+    }
+}
+
+/// A step chart of `points` (ms, value), the y axis labelled with `unit`.
+fn line_chart(points: &[(i64, f64)], period: &Period, unit: &str, l: Locale) -> Markup {
+    const H: f64 = 240.0;
+    let bottom = H - 30.0;
+    let lo = points.iter().map(|p| p.1).fold(f64::INFINITY, f64::min);
+    let hi = points.iter().map(|p| p.1).fold(f64::NEG_INFINITY, f64::max);
+    let (lo, hi) = if (hi - lo).abs() < f64::EPSILON {
+        (lo - 1.0, hi + 1.0)
+    } else {
+        (lo, hi)
+    };
+    let y = |v: f64| 10.0 + (hi - v) / (hi - lo) * (bottom - 10.0);
+    let mut path = Vec::with_capacity(points.len() * 2 + 1);
+    let mut previous: Option<f64> = None;
+    for &(t, v) in points {
+        if let Some(p) = previous {
+            path.push(format!("{:.1},{:.1}", x_of(t, period), y(p)));
+        }
+        path.push(format!("{:.1},{:.1}", x_of(t, period), y(v)));
+        previous = Some(v);
+    }
+    if let Some(p) = previous {
+        path.push(format!("{:.1},{:.1}", RIGHT, y(p)));
+    }
+    let content = html! {
+        text x=(LEFT - 6.0) y="16" class="label" text-anchor="end" { (hi) " " (unit) }
+        text x=(LEFT - 6.0) y=(bottom) class="label" text-anchor="end" { (lo) " " (unit) }
+        polyline class="line" points=(path.join(" ")) {}
+    };
+    frame(period, H, points, None, l, content)
+}
+
+/// A state timeline: one band per stretch of time in one state, named where there is room.
+fn state_chart(
+    points: &[(i64, f64)],
+    period: &Period,
+    (min, names): (i64, &[String]),
+    l: Locale,
+) -> Markup {
+    const H: f64 = 110.0;
+    let name = |v: f64| {
+        usize::try_from(v as i64 - min)
+            .ok()
+            .and_then(|i| names.get(i))
+            .map_or_else(|| v.to_string(), Clone::clone)
+    };
+    let bands: Vec<(f64, f64, f64)> = points
+        .iter()
+        .enumerate()
+        .map(|(i, &(t, v))| {
+            let end = points.get(i + 1).map_or(period.to, |p| p.0);
+            (x_of(t, period), x_of(end, period), v)
+        })
+        .collect();
+    let content = html! {
+        @for (x0, x1, v) in &bands {
+            // Colours by class: the page's CSP admits no inline style.
+            rect class={ "state s" ((*v as i64 - min).rem_euclid(12)) } x=(format!("{x0:.1}")) y="20"
+                width=(format!("{:.1}", (x1 - x0).max(0.5))) height="50" data-state=(v) {}
+            @if x1 - x0 > 8.0 * name(*v).chars().count() as f64 {
+                text.state-name x=(format!("{:.1}", x0 + 4.0)) y="50" { (name(*v)) }
+            }
+        }
+    };
+    frame(period, H, points, Some((min, names)), l, content)
+}
+
 pub(super) async fn history_page(
     State(app): State<Arc<App>>,
     who: SignedIn,
@@ -155,20 +281,13 @@ pub(super) async fn history_page(
     Query(q): Query<HistoryQuery>,
 ) -> Response {
     let l = who.locale;
-    let Shown {
-        mplex,
-        minutes,
-        from,
-        to,
-        rows,
-    } = match shown(&app, &who, &id, &q).await {
+    let (mplexes, series, period) = match shown(&app, &who, &id, &q).await {
         Ok(s) => s,
         Err(r) => return r,
     };
-    let points: Vec<(i64, f64)> = rows
-        .iter()
-        .filter_map(|(at, v)| v.trim().parse::<f64>().ok().map(|v| (*at, v)))
-        .collect();
+    let described = describe(&app, &id, &mplexes, l).await;
+    let list: Vec<String> = series.iter().map(|s| s.mplex.clone()).collect();
+    let list = list.join(",");
     let ranges = [
         (10u32, "10 min"),
         (60, "1 h"),
@@ -176,41 +295,100 @@ pub(super) async fn history_page(
         (1440, "24 h"),
         (10080, "7 d"),
     ];
-    let body = html! {
-        h1 { (l.fill("History of {} on", &[&mplex])) " " a href={ "/lifts/" (id) } { (id) } }
-        p.ranges {
-            @for (m, label) in ranges {
-                a.current[m == minutes] href={ "/lifts/" (id) "/history?mplex=" (mplex) "&minutes=" (m) } {
-                    (label)
-                }
+    let link = |p: &Period| format!("/lifts/{id}/history?{}", p.query(&list));
+    let charts = html! {
+        section #charts data-live=[period.minutes.map(|_| list.as_str())] {
+            @for (s, d) in series.iter().zip(&described) {
+                (figure(s, d, &period, l))
             }
         }
-        p.summary {
-            (l.fill("{} values, last ", &[&points.len()]))
-            @if let Some((at, v)) = points.last() {
-                (v) (l.t(" at ")) (time(*at, l))
-            } @else {
-                "—"
+    };
+    let title = described
+        .iter()
+        .map(|d| d.name.as_str())
+        .collect::<Vec<_>>()
+        .join(", ");
+    let body = html! {
+        h1 { (l.fill("History of {} on", &[&title])) " " a href={ "/lifts/" (id) } { (id) } }
+        p.ranges {
+            @for (m, label) in ranges {
+                @let p = Period { from: 0, to: 0, minutes: Some(m) };
+                a.current[period.minutes == Some(m)] href=(link(&p)) { (label) }
             }
         }
         p.muted.zone {}
-        @if !points.is_empty() {
-            p { a.csv href={ "/lifts/" (id) "/history.csv?mplex=" (mplex) "&minutes=" (minutes) } download { (l.t("CSV of these values")) } }
-        }
-        @if points.is_empty() {
-            p.muted {
-                (l.t("No stored numeric values in this period. Values are stored while the gateway pushes them (the dashboard's objects, or a subscription)."))
+        p {
+            a.csv href={ "/lifts/" (id) "/history.csv?" (period.query(&list)) } download {
+                (l.t("CSV of these values"))
             }
-        } @else {
-            (chart(&points, from, to, l))
         }
+        (charts)
+        p.muted { (l.t("Drag across a chart to zoom in.")) }
     };
-    layout(&l.fill("History {}", &[&mplex]), who.viewer(), None, body).into_response()
+    layout(
+        &l.fill("History {}", &[&list]),
+        who.viewer(),
+        Some(&id),
+        body,
+    )
+    .into_response()
+}
+
+/// A stored value in words where the object is a choice.
+fn state_name(d: &Described, value: &str) -> String {
+    let named = d.states.as_ref().and_then(|(min, names)| {
+        let v: i64 = value.trim().parse().ok()?;
+        names.get(usize::try_from(v - min).ok()?).cloned()
+    });
+    named.unwrap_or_else(|| value.to_owned())
+}
+
+/// One object's chart with its name, unit and last value.
+fn figure(s: &Series, d: &Described, period: &Period, l: Locale) -> Markup {
+    let points: Vec<(i64, f64)> = s
+        .rows
+        .iter()
+        .filter_map(|(at, v)| v.trim().parse::<f64>().ok().map(|v| (*at, v)))
+        .collect();
+    html! {
+        figure.series data-series=(s.mplex) {
+            figcaption {
+                strong { (d.name) }
+                @if !d.unit.is_empty() { " [" (d.unit) "]" }
+                " " code { (s.mplex) }
+            }
+            p.summary {
+                (l.fill("{} values, last ", &[&points.len()]))
+                @if let Some((at, v)) = s.rows.last() {
+                    (state_name(d, v)) (l.t(" at ")) (time(*at, l))
+                } @else {
+                    "—"
+                }
+            }
+            @if points.is_empty() {
+                p.muted {
+                    (l.t("No stored numeric values in this period. Values are stored while the gateway pushes them (the dashboard's objects, or a subscription)."))
+                }
+            } @else if let Some((min, names)) = &d.states {
+                (state_chart(&points, period, (*min, names), l))
+            } @else {
+                (line_chart(&points, period, d.unit, l))
+            }
+        }
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn hour() -> Period {
+        Period {
+            from: 0,
+            to: 1000,
+            minutes: None,
+        }
+    }
 
     #[test]
     fn csv_times_are_iso_8601_utc() {
@@ -219,10 +397,8 @@ mod tests {
     }
 
     #[test]
-    fn chart_steps_between_values() {
-        let svg = chart(&[(0, 1.0), (500, 3.0)], 0, 1000, Locale::En).into_string();
-        assert!(svg.contains("<polyline"), "{svg}");
-        // Three points per change: the old level to the change, then the new one to the end.
+    fn line_chart_steps_between_values_and_names_the_unit() {
+        let svg = line_chart(&[(0, 1.0), (500, 3.0)], &hour(), "mm", Locale::En).into_string();
         let points = svg
             .split("class=\"line\" points=\"")
             .nth(1)
@@ -231,5 +407,41 @@ mod tests {
             .next()
             .unwrap();
         assert_eq!(points.split(' ').count(), 4, "{points}");
+        assert!(svg.contains(">3 mm<"), "{svg}");
+    }
+
+    #[test]
+    fn state_chart_has_a_band_per_stretch_with_its_name() {
+        let names = ["idle".to_owned(), "doors cycling".to_owned()];
+        let svg =
+            state_chart(&[(0, 1.0), (500, 2.0)], &hour(), (1, &names), Locale::En).into_string();
+        assert_eq!(svg.matches("<rect class=\"state s").count(), 2, "{svg}");
+        assert!(
+            svg.contains(">idle<") && svg.contains(">doors cycling<"),
+            "{svg}"
+        );
+        assert!(svg.contains("data-labels="), "the hover names the states");
+    }
+
+    #[test]
+    fn a_period_is_the_last_minutes_or_fixed() {
+        let q = |minutes, from, to| HistoryQuery {
+            mplex: String::new(),
+            minutes,
+            from,
+            to,
+        };
+        let last = Period::of(&q(Some(10), None, None));
+        assert_eq!(last.to - last.from, 600_000);
+        assert_eq!(last.query("0x652001"), "mplex=0x652001&minutes=10");
+        let fixed = Period::of(&q(None, Some(1000), Some(5000)));
+        assert_eq!((fixed.from, fixed.to, fixed.minutes), (1000, 5000, None));
+        assert_eq!(fixed.query("a,b"), "mplex=a%2Cb&from=1000&to=5000");
+        let backwards = Period::of(&q(None, Some(5000), Some(1000)));
+        assert_eq!(
+            backwards.minutes,
+            Some(60),
+            "a backward range is the last hour"
+        );
     }
 }

@@ -303,6 +303,7 @@ const GERMAN: &[(&str, &str)] = &[
     ("mplex: {}", "mplex: {}"),
     ("history chart", "Verlaufsdiagramm"),
     ("CSV of these values", "CSV dieser Werte"),
+    ("Drag across a chart to zoom in.", "Zum Vergrößern über ein Diagramm ziehen."),
     ("times in {}", "Zeiten in {}"),
     ("{} at {}", "{} um {}"),
     // Audit.

@@ -248,6 +248,44 @@ async fn read_all(
     futures_util::future::join_all(reads).await
 }
 
+/// What a chart needs to know of an object: its name, unit and, for a choice, the names of its
+/// values (from `min` on).
+pub(super) struct Described {
+    pub name: String,
+    pub unit: &'static str,
+    pub states: Option<(i64, Vec<String>)>,
+}
+
+/// Names, units and choices of `mplexes` from the lift's gateway (the mplex itself where the
+/// lift is offline or does not say).
+pub(super) async fn describe(
+    app: &App,
+    lift: &str,
+    mplexes: &[Mplex],
+    l: Locale,
+) -> Vec<Described> {
+    read_all(app, lift, mplexes, l, &HashMap::new())
+        .await
+        .into_iter()
+        .map(|o| {
+            let choice = o.form() == Some(FormType::Choice);
+            let d = o.data();
+            let min = d
+                .and_then(|d| d.min.as_ref())
+                .and_then(serde_json::Number::as_i64)
+                .unwrap_or(0);
+            Described {
+                name: o.name(),
+                unit: o.attributes(l).unit,
+                states: d
+                    .and_then(|d| d.list.clone())
+                    .filter(|list| choice && !list.is_empty())
+                    .map(|list| (min, list)),
+            }
+        })
+        .collect()
+}
+
 #[derive(Deserialize)]
 pub(super) struct LiftQuery {
     read: Option<String>,
