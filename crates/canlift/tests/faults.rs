@@ -576,8 +576,11 @@ impl Proxy {
     }
 }
 
-/// The portal (in this process) and the simulated lift's gateway, connected through `proxy`,
-/// both with a 1 s heartbeat: a silent link is given up after 2 × 1 s + 30 s.
+/// The portal (in this process) and the simulated lift's gateway, connected through `proxy`.
+/// The portal asks for a heartbeat every second and gives a silent link up after 2 × 1 s + 30 s;
+/// the gateway expects one every 5 s and gives up after 2 × 5 s + 30 s, so the portal's end of a
+/// half-open link is seen before the gateway dials again (a new connection would replace the old
+/// one and hide whether the portal noticed the silence by itself).
 async fn rig_behind(proxy: &Arc<Proxy>) -> Rig {
     let proxy = proxy.clone();
     Rig::builder()
@@ -590,7 +593,7 @@ async fn rig_behind(proxy: &Arc<Proxy>) -> Rig {
                 .and_then(|(_, rest)| rest.trim_end_matches("/ws").parse().ok())
                 .expect("the portal's port");
             c.cloud.url = format!("wss://localhost:{}/ws", proxy.start(port));
-            c.cloud.heartbeat_s = 1;
+            c.cloud.heartbeat_s = GATEWAY_HEARTBEAT.as_secs();
         })
         .start()
         .await
@@ -607,8 +610,11 @@ async fn until(limit: Duration, what: &str, mut check: impl FnMut() -> bool) -> 
     until_async(limit, what, || std::future::ready(check())).await
 }
 
+/// The heartbeat the gateways behind the test proxy expect.
+const GATEWAY_HEARTBEAT: Duration = Duration::from_secs(5);
+
 /// A link that stops forwarding without closing: the portal marks the lift offline and the
-/// gateway dials again, each within the silence limit (2 × heartbeat + 30 s); the new connection
+/// gateway dials again, each within its silence limit (2 × heartbeat + 30 s); the new connection
 /// serves requests.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_half_open_link_is_given_up_by_both_sides() {
@@ -616,7 +622,9 @@ async fn a_half_open_link_is_given_up_by_both_sides() {
     let rig = rig_behind(&proxy).await;
     rig.online().await;
     assert_eq!(read_trips(&rig).await, 200);
-    let window = nxg::silence_limit(Duration::from_secs(1)) + Duration::from_secs(5);
+    // The gateway's limit, then a reconnection delay of at most 2 s (backoff after at most one
+    // failed attempt), with room for a loaded machine.
+    let window = nxg::silence_limit(GATEWAY_HEARTBEAT) + Duration::from_secs(10);
     proxy.stall_current();
     let (mut portal_gave_up, mut gateway_gave_up) = (None, None);
     let begin = tokio::time::Instant::now();
@@ -631,6 +639,16 @@ async fn a_half_open_link_is_given_up_by_both_sides() {
     })
     .await;
     eprintln!("half-open link: portal gave up after {portal_gave_up:?}, gateway after {gateway_gave_up:?}");
+    let portal = portal_gave_up.expect("until returns once both gave up");
+    let gateway = gateway_gave_up.expect("until returns once both gave up");
+    assert!(
+        portal <= nxg::silence_limit(Duration::from_secs(1)) + Duration::from_secs(5),
+        "the portal ends a silent link at its own limit: {portal:?}"
+    );
+    assert!(
+        gateway >= nxg::silence_limit(GATEWAY_HEARTBEAT) - Duration::from_secs(1),
+        "the gateway waits for its own limit: {gateway:?}"
+    );
     rig.online().await;
     assert_eq!(read_trips(&rig).await, 200);
     rig.stop().await;
