@@ -65,6 +65,9 @@ enum Command {
     /// Print the values a lift pushes for some objects.
     Watch(cmd::operator::WatchArgs),
     #[cfg(feature = "portal")]
+    /// A lift's cloud token on the portal: rotate it now, or reset it for a new gateway.
+    Token(cmd::operator::TokenArgs),
+    #[cfg(feature = "portal")]
     /// The account's alarms on the portal (`alarms ack ID` takes one on).
     Alarms(cmd::alarms::AlarmsArgs),
     #[cfg(feature = "portal")]
@@ -125,6 +128,8 @@ fn main() -> std::process::ExitCode {
             Command::Put(args) => cmd::operator::put(args).await,
             #[cfg(feature = "portal")]
             Command::Watch(args) => cmd::operator::watch(args).await,
+            #[cfg(feature = "portal")]
+            Command::Token(args) => cmd::operator::token(args).await,
             #[cfg(feature = "portal")]
             Command::Alarms(args) => cmd::alarms::alarms(args).await,
             #[cfg(feature = "portal")]

@@ -10,7 +10,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use testkit::constants::{LIFT, SERNUM};
-use testkit::portal::Rig;
+use testkit::portal::{until as until_async, Rig};
 use testkit::scripted;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
@@ -819,20 +819,6 @@ async fn a_killed_hub_costs_answers_not_the_connection() {
         kill(child).await;
     }
     portal.kill().await;
-}
-
-/// Wait until the async `check` holds, trying every 100 ms, for at most `limit`; how long it took.
-async fn until_async<F: std::future::Future<Output = bool>>(
-    limit: Duration,
-    what: &str,
-    mut check: impl FnMut() -> F,
-) -> Duration {
-    let begin = tokio::time::Instant::now();
-    while !check().await {
-        assert!(begin.elapsed() < limit, "{what}: not within {limit:?}");
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
-    begin.elapsed()
 }
 
 /// How long one read of the trip counter through the portal takes.

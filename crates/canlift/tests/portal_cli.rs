@@ -1,5 +1,6 @@
 //! The operator CLI against a running portal, gateway and simulated lift: `lifts`, `get`, `put`
-//! (learning datatype and unit first) and `watch` until the trip counter rises.
+//! (learning datatype and unit first), `watch` until the trip counter rises, `alarms`, `events`,
+//! and the cloud token: `token rotate|reset`, `cloud token reset` on the portal's machine.
 
 use std::time::Duration;
 
@@ -171,5 +172,76 @@ async fn alarms_ack_and_events() {
         serde_json::from_str(&output(&rig, &["events", LIFT, "--json", "--limit", "1"]).await)
             .unwrap();
     assert_eq!(json["events"].as_array().unwrap().len(), 1);
+    rig.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn token_rotate_and_reset() {
+    let rig = Rig::builder().start().await;
+    rig.online().await;
+    let tokens = || rig.gateway_token();
+    testkit::portal::until(Duration::from_secs(10), "a token", || async {
+        tokens().is_some()
+    })
+    .await;
+    let first = tokens();
+    let rotated = output(&rig, &["token", "rotate", LIFT]).await;
+    assert!(rotated.contains("stored a new token"), "{rotated}");
+    assert_ne!(tokens(), first);
+    let reset = output(&rig, &["token", "reset", LIFT]).await;
+    assert!(reset.contains("first contact"), "{reset}");
+    let unknown = canlift(&rig)
+        .args(["token", "rotate", "1-2-3"])
+        .output()
+        .await
+        .unwrap();
+    assert!(!unknown.status.success());
+    assert!(String::from_utf8_lossy(&unknown.stderr).contains("404"));
+
+    // On the portal's machine, with its configuration and no API key.
+    let config = rig.dir().join("cloud.toml");
+    let state = rig.dir().join("portal");
+    std::fs::write(
+        &config,
+        format!("[state]\ndir = {:?}\n", state.display().to_string()),
+    )
+    .unwrap();
+    let config = config.display().to_string();
+    let local = |lift: &'static str| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_canlift"))
+            .args(["cloud", "token", "reset", lift, "--config", &config])
+            .output()
+            .unwrap()
+    };
+    let out = local(LIFT);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("token forgotten"));
+    let out = local("1-2-3");
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("no lift"));
+    let (_, audit) = rig.call("GET", "/api/v1/audit", Some(&rig.key), None).await;
+    let actions: Vec<(&str, &str)> = audit
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| {
+            (
+                e["action"].as_str().unwrap(),
+                e["account"].as_str().unwrap(),
+            )
+        })
+        .collect();
+    assert_eq!(
+        actions,
+        [
+            ("token reset", "(administrator)"),
+            ("token reset", "masora"),
+            ("token rotated", "masora")
+        ]
+    );
     rig.stop().await;
 }

@@ -101,6 +101,25 @@ pub struct GatewaysSection {
     /// Messages a gateway may send per second, on average over two seconds; a connection
     /// above it is closed (1008) without touching the others.
     pub max_messages_per_s: u32,
+    /// What a CONNECT with a valid token from another board (`boardhash`) gets.
+    pub boardhash_change: BoardhashChange,
+    /// Days after which a gateway's token is replaced when it connects (NXg §5.4); 0: never.
+    pub token_rotate_days: u32,
+}
+
+/// What the portal does when a gateway with a valid token reports another `boardhash` than at
+/// its first contact: the board was replaced, or the token was copied to another device.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum BoardhashChange {
+    /// Refuse the connection (recorded with the refused attempts) until an administrator
+    /// resets the lift's token.
+    Refuse,
+    /// Accept it, record the new board, audit it and raise a `board-changed` alarm.
+    #[default]
+    Alarm,
+    /// Accept it, record the new board and audit it.
+    Accept,
 }
 
 impl Default for GatewaysSection {
@@ -113,11 +132,19 @@ impl Default for GatewaysSection {
             max_queued: 64,
             max_message_bytes: 65536,
             max_messages_per_s: 5000,
+            boardhash_change: BoardhashChange::default(),
+            token_rotate_days: 0,
         }
     }
 }
 
 impl GatewaysSection {
+    /// How old a token may be before it is replaced at CONNECT (`None`: never).
+    pub fn token_lifetime(&self) -> Option<Duration> {
+        (self.token_rotate_days > 0)
+            .then(|| Duration::from_secs(u64::from(self.token_rotate_days) * 86_400))
+    }
+
     /// The session settings.
     pub fn settings(&self) -> Settings {
         Settings {

@@ -152,6 +152,8 @@ impl Portal {
                 alarms: alarms.clone(),
                 closing: closing_rx,
                 max_messages_per_s: config.gateways.max_messages_per_s,
+                boardhash_change: config.gateways.boardhash_change,
+                token_lifetime: config.gateways.token_lifetime(),
             },
             max_message: config.gateways.max_message_bytes,
             metrics: metrics.clone(),

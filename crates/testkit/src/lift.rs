@@ -106,6 +106,13 @@ impl Lift {
         }
     }
 
+    /// Start a gateway with `config` in front of the simulator (after [`Lift::stop_gateway`]).
+    pub async fn start_gateway(&mut self, config: Config) {
+        self.stop_gateway().await;
+        let gateway = Gateway::bus_node(config).await.expect("the gateway starts");
+        self.gateway = Some(RunningGateway::spawn(gateway));
+    }
+
     /// Stop the gateway (the lift goes offline).
     pub async fn stop_gateway(&mut self) {
         if let Some(g) = self.gateway.take() {

@@ -22,6 +22,21 @@ use tokio::task::JoinHandle;
 use crate::constants::*;
 use crate::lift::{gateway_config, Lift};
 
+/// Wait until the async `check` holds, trying every 100 ms, for at most `limit` (then fail,
+/// naming `what`); how long it took.
+pub async fn until<F: std::future::Future<Output = bool>>(
+    limit: Duration,
+    what: &str,
+    mut check: impl FnMut() -> F,
+) -> Duration {
+    let begin = tokio::time::Instant::now();
+    while !check().await {
+        assert!(begin.elapsed() < limit, "{what}: not within {limit:?}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    begin.elapsed()
+}
+
 /// How a [`Rig`] is set up.
 pub struct Builder {
     database: Option<String>,
@@ -89,7 +104,7 @@ impl Builder {
             let ws = format!("wss://localhost:{}/ws", addr.port());
             let mut gw = gateway_config(&ws, &ca, &bus, &dir.path().join("gateway"));
             (self.gateway)(&mut gw);
-            lift = Some(Lift::start(&bus, gw).await);
+            lift = Some((Lift::start(&bus, gw.clone()).await, gw));
         }
         Rig {
             addr,
@@ -120,7 +135,8 @@ pub struct Rig {
     config: Config,
     registry: std::sync::Arc<cloud::gateways::Registry>,
     portal: Option<(watch::Sender<bool>, JoinHandle<()>)>,
-    lift: Option<Lift>,
+    /// The lift, and its gateway's configuration as the builder left it.
+    lift: Option<(Lift, gateway::config::Config)>,
     dir: tempfile::TempDir,
 }
 
@@ -216,14 +232,29 @@ impl Rig {
 
     /// Stop the gateway (the lift goes offline).
     pub async fn stop_gateway(&mut self) {
-        if let Some(lift) = &mut self.lift {
+        if let Some((lift, _)) = &mut self.lift {
             lift.stop_gateway().await;
         }
     }
 
+    /// Stop the gateway and start another in front of the same lift, with the rig's gateway
+    /// configuration changed by `change` (another board, a wiped state directory, …).
+    pub async fn restart_gateway(&mut self, change: impl FnOnce(&mut gateway::config::Config)) {
+        let (lift, base) = self.lift.as_mut().expect("a rig with a lift");
+        let mut config = base.clone();
+        change(&mut config);
+        lift.start_gateway(config).await;
+    }
+
+    /// The cloud token the gateway has stored, if any.
+    pub fn gateway_token(&self) -> Option<String> {
+        let (_, config) = self.lift.as_ref()?;
+        gateway::token::TokenStore::new(&config.state.dir).load()
+    }
+
     /// Stop everything; the scratch directory goes with the rig.
     pub async fn stop(mut self) {
-        if let Some(lift) = self.lift.take() {
+        if let Some((lift, _)) = self.lift.take() {
             lift.stop().await;
         }
         if let Some((stop, task)) = self.portal.take() {

@@ -1,5 +1,6 @@
 //! `canlift cloud --config FILE`: the cloud portal (docs/PORTAL.md); `canlift cloud account add` creates
-//! an operator account and prints its API key once.
+//! an operator account and prints its API key once; `canlift cloud token reset LIFT` forgets a
+//! lift's cloud token in the portal's database (the administrator's way, no API key needed).
 
 use std::path::PathBuf;
 
@@ -27,6 +28,21 @@ enum CloudCommand {
     Account {
         #[command(subcommand)]
         what: AccountCommand,
+    },
+    /// Gateways' cloud tokens.
+    Token {
+        #[command(subcommand)]
+        what: TokenCommand,
+    },
+}
+
+#[derive(Debug, clap::Subcommand)]
+enum TokenCommand {
+    /// Forget a lift's token: its gateway's next CONNECT is a first contact and gets a new one
+    /// (for a replaced or wiped gateway, refused otherwise for the token it no longer has).
+    Reset {
+        /// Lift id `VENDORID-PRODUCTCODE-SERNUM`.
+        lift: String,
     },
 }
 
@@ -69,6 +85,20 @@ pub async fn run(args: CloudArgs) -> anyhow::Result<()> {
             } else {
                 println!("account {name} for domain {domain}\nAPI key (shown only now): {key}");
             }
+            Ok(())
+        }
+        Some(CloudCommand::Token {
+            what: TokenCommand::Reset { lift },
+        }) => {
+            let store = Store::open(&config.database_url()).await?;
+            let domain = store
+                .domain_of(&lift)
+                .await?
+                .with_context(|| format!("no lift {lift:?} in the registry"))?;
+            store
+                .reset_token(&domain, &lift, cloud::store::BY_ADMINISTRATOR)
+                .await?;
+            println!("{lift}: token forgotten; the gateway's next connection is a first contact");
             Ok(())
         }
         None => {

@@ -129,7 +129,7 @@ pub struct WatchArgs {
 
 /// The body of a 200 answer as a `T`; any other answer is an error with the portal's message.
 pub(crate) fn check<T: DeserializeOwned>((status, body): (u16, Value)) -> anyhow::Result<T> {
-    if status != 200 {
+    if !(200..300).contains(&status) {
         match serde_json::from_value::<ErrorObject>(body.clone()) {
             Ok(e) => bail!("{status}: {e}"),
             Err(_) => bail!("{status}: {body}"),
@@ -152,6 +152,46 @@ fn query(node: &NodeArgs, form: Form) -> GetQuery {
 fn object_path(lift: &str, mplex: &str, query: &GetQuery) -> anyhow::Result<String> {
     let query = serde_urlencoded::to_string(query)?;
     Ok(format!("/api/v1/lifts/{lift}/objects/{mplex}?{query}"))
+}
+
+/// `canlift token rotate|reset LIFT`.
+#[derive(Debug, clap::Args)]
+pub struct TokenArgs {
+    #[command(subcommand)]
+    what: TokenCommand,
+    #[command(flatten)]
+    portal: PortalArgs,
+}
+
+#[derive(Debug, clap::Subcommand)]
+enum TokenCommand {
+    /// Send the online gateway a new cloud token now (NXg §5.4); the old one stops counting.
+    Rotate {
+        /// Lift id `VENDORID-PRODUCTCODE-SERNUM`.
+        lift: String,
+    },
+    /// Forget the lift's token: its gateway's next CONNECT is a first contact and gets a new
+    /// one (for a replaced or wiped gateway, which its old token no longer proves).
+    Reset {
+        /// Lift id `VENDORID-PRODUCTCODE-SERNUM`.
+        lift: String,
+    },
+}
+
+/// `canlift token`.
+pub async fn token(args: TokenArgs) -> anyhow::Result<()> {
+    let (method, lift, done) = match &args.what {
+        TokenCommand::Rotate { lift } => ("POST", lift, "the gateway stored a new token"),
+        TokenCommand::Reset { lift } => (
+            "DELETE",
+            lift,
+            "token forgotten: the gateway's next connection is a first contact",
+        ),
+    };
+    let path = format!("/api/v1/lifts/{lift}/token");
+    check::<Value>(args.portal.client()?.call(method, &path, None).await?)?;
+    println!("{lift}: {done}");
+    Ok(())
 }
 
 /// `canlift lifts`.

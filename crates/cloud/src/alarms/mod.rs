@@ -30,6 +30,9 @@ pub enum Kind {
     Bus,
     /// The lift's gateway has been offline for `offline_after_s`.
     LiftOffline,
+    /// The lift's gateway connected with its valid token from another board (`boardhash`);
+    /// it stays until someone acknowledges it (nothing on the lift ends it).
+    BoardChanged,
 }
 
 impl Kind {
@@ -40,14 +43,32 @@ impl Kind {
             Kind::NodeOffline => "node-offline",
             Kind::Bus => "bus",
             Kind::LiftOffline => "lift-offline",
+            Kind::BoardChanged => "board-changed",
         }
+    }
+
+    /// Whether it concerns the lift as a whole rather than a node or network.
+    pub fn is_lift_wide(self) -> bool {
+        matches!(self, Kind::LiftOffline | Kind::BoardChanged)
+    }
+
+    /// Whether acknowledging it also clears it: nothing the lift reports ends it, a person
+    /// confirming it does.
+    pub fn cleared_by_acknowledgement(self) -> bool {
+        self == Kind::BoardChanged
     }
 
     /// The kind called `name`.
     pub fn from_name(name: &str) -> Option<Kind> {
-        [Kind::Emcy, Kind::NodeOffline, Kind::Bus, Kind::LiftOffline]
-            .into_iter()
-            .find(|k| k.name() == name)
+        [
+            Kind::Emcy,
+            Kind::NodeOffline,
+            Kind::Bus,
+            Kind::LiftOffline,
+            Kind::BoardChanged,
+        ]
+        .into_iter()
+        .find(|k| k.name() == name)
     }
 }
 
@@ -104,7 +125,7 @@ pub struct Condition {
     pub lift: String,
     /// The kind.
     pub kind: Kind,
-    /// The node or network (none for `lift-offline`).
+    /// The node or network (none for `lift-offline` and `board-changed`).
     pub place: Option<Place>,
     /// The EMCY code (`0xFF01`) or the network's state (`bus-off`); empty otherwise.
     pub code: String,

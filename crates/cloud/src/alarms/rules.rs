@@ -11,6 +11,7 @@
 //! | `bus` `error-active` | — | the net's `bus` alarms |
 //! | gateway offline for `offline_after_s` | `lift-offline` | — |
 //! | gateway back | — | `lift-offline` |
+//! | a valid token from another board (`boardhash_change = "alarm"`) | `board-changed` (new hash) | — (its acknowledgement clears it) |
 //!
 //! `overrun` is stored as an event and raises nothing: frames were lost once, the network is
 //! not in a state.
@@ -37,6 +38,8 @@ pub struct Severities {
     pub node_offline: Severity,
     /// A node reported an error.
     pub emcy: Severity,
+    /// The gateway's board changed under its token.
+    pub board_changed: Severity,
 }
 
 impl Default for Severities {
@@ -48,6 +51,7 @@ impl Default for Severities {
             error_passive: Severity::Minor,
             node_offline: Severity::Major,
             emcy: Severity::Major,
+            board_changed: Severity::Major,
         }
     }
 }
@@ -201,6 +205,31 @@ impl Rules {
             },
             severity: self.severities.lift_offline,
             text: format!("The gateway has been offline for {}", duration(seconds)),
+        }
+    }
+
+    /// The lift's gateway connected from another board (`was` → `now`, the boardhashes).
+    pub fn board_changed(&self, lift: &str, was: &str, now: &str) -> Verdict {
+        Verdict::Raise {
+            condition: Condition {
+                lift: lift.to_owned(),
+                kind: Kind::BoardChanged,
+                place: None,
+                code: now.to_owned(),
+            },
+            severity: self.severities.board_changed,
+            text: format!("The gateway's board changed: boardhash {now:?}, was {was:?}"),
+        }
+    }
+
+    /// An alarm of a `kind` that only a person ends was acknowledged: the lift's alarms of
+    /// that kind are over.
+    pub fn acknowledged(&self, lift: &str, kind: Kind) -> Verdict {
+        Verdict::Clear {
+            lift: lift.to_owned(),
+            kind,
+            place: None,
+            keep: None,
         }
     }
 
@@ -451,5 +480,33 @@ mod tests {
         assert_eq!(active.len(), 1);
         assert_eq!(active.take_matching("L", Kind::Bus, place, None).len(), 1);
         assert!(active.is_empty());
+    }
+
+    #[test]
+    fn a_board_change_stays_until_acknowledged() {
+        let rules = Rules::default();
+        let mut active = Active::default();
+        let mut ids = 10..;
+        let mut apply = |v| active.apply(v, || ids.next().unwrap_or_default());
+        let raised = apply(rules.board_changed("L", "A1", "B2"));
+        assert!(matches!(
+            &raised,
+            Applied::Raised { condition, text, .. }
+                if condition.kind == Kind::BoardChanged && condition.code == "B2"
+                    && condition.place.is_none() && text.contains("\"B2\", was \"A1\"")
+        ));
+        assert_eq!(
+            apply(rules.board_changed("L", "A1", "B2")),
+            Applied::Unchanged
+        );
+        // The gateway coming back does not end it; the acknowledgement does.
+        assert_eq!(apply(rules.lift_online("L")), Applied::Cleared(Vec::new()));
+        assert_eq!(
+            apply(rules.acknowledged("L", Kind::BoardChanged)),
+            Applied::Cleared(vec![10])
+        );
+        assert!(Kind::BoardChanged.cleared_by_acknowledgement());
+        assert!(!Kind::Emcy.cleared_by_acknowledgement());
+        assert_eq!(Kind::from_name("board-changed"), Some(Kind::BoardChanged));
     }
 }

@@ -15,7 +15,7 @@ use tokio::sync::{mpsc, Notify};
 use tokio::time::Instant;
 
 use super::rules::{Active, Applied, Rules, Verdict};
-use super::{Alarm, AlarmChange, Change};
+use super::{Alarm, AlarmChange, Change, Kind};
 use crate::config::WebhookSection;
 use crate::gateways::{LiftEvent, Registry};
 use crate::store::{self, EventRow, Store, StoreError};
@@ -34,6 +34,22 @@ pub enum Input {
     Online(String),
     /// The lift's gateway went away.
     Offline(String),
+    /// The lift's gateway connected from another board (boardhashes `was` → `now`).
+    BoardChanged {
+        /// The lift.
+        lift: String,
+        /// The boardhash on record.
+        was: String,
+        /// The one the gateway sent.
+        now: String,
+    },
+    /// Someone acknowledged an alarm of `kind` that only a person ends.
+    Acknowledged {
+        /// The lift.
+        lift: String,
+        /// The kind.
+        kind: Kind,
+    },
 }
 
 /// Counts for `/metrics`.
@@ -122,6 +138,11 @@ impl Alarms {
         match (done, alarm) {
             (Some(true), Some(alarm)) => {
                 self.announce(Change::Acknowledged, alarm.clone()).await;
+                if alarm.kind.cleared_by_acknowledgement() {
+                    let lift = alarm.lift.clone();
+                    let kind = alarm.kind;
+                    let _ = self.inputs.send(Input::Acknowledged { lift, kind }).await;
+                }
                 Ok(alarm)
             }
             (Some(false), Some(alarm)) => Err(AckError::Already(Box::new(alarm))),
@@ -300,6 +321,14 @@ impl Service {
             Input::Offline(lift) => {
                 self.offline
                     .start(lift, Instant::now() + self.offline_after);
+            }
+            Input::BoardChanged { lift, was, now } => {
+                let verdict = self.rules.board_changed(&lift, &was, &now);
+                self.apply(vec![verdict]);
+            }
+            Input::Acknowledged { lift, kind } => {
+                let verdict = self.rules.acknowledged(&lift, kind);
+                self.apply(vec![verdict]);
             }
         }
     }

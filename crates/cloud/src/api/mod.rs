@@ -21,7 +21,7 @@ use futures_util::Stream;
 use nxg::errors::ErrorCode;
 use nxg::msg::{
     Done, ElevateAnswer, ElevateParams, ErrorObject, GetObject, GetParams, Lang, MplexText, NodeId,
-    NodeRef, ObjectAnswer, PutAnswer, PutObject, PutParams, RegParams, UnregParams,
+    NodeRef, ObjectAnswer, PutAnswer, PutObject, PutParams, RegParams, TokenParams, UnregParams,
 };
 use nxg::names::ObjectNames;
 use nxg::portal::Failure;
@@ -390,6 +390,55 @@ async fn privilege(
     Ok(Json(result?))
 }
 
+/// The lift's cloud token (NXg §5.4). POST replaces it now on the online gateway
+/// (`update_unique_token`; the new one is recorded as the next token before it is sent, so a
+/// lost answer does not lock the gateway out); DELETE forgets it, so the gateway's next CONNECT
+/// is a first contact that gets a new one — for a gateway that was replaced or wiped. Both are
+/// audited; neither shows a token.
+async fn token(
+    State(app): State<Arc<App>>,
+    method: Method,
+    caller: Caller,
+    Path(id): Path<String>,
+) -> Result<StatusCode, ApiError> {
+    let account = lift_of(&app, caller, &id).await?;
+    if method == Method::DELETE {
+        return if app
+            .store
+            .reset_token(&account.domain, &id, &account.name)
+            .await?
+        {
+            Ok(StatusCode::NO_CONTENT)
+        } else {
+            Err(error(StatusCode::NOT_FOUND, "no such lift"))
+        };
+    }
+    let sernum = app.registry.sernum(&id).ok_or(Failure::Gone)?;
+    let token = store::secret("");
+    app.store.set_next_token(&id, &token).await?;
+    let params = TokenParams {
+        sernum,
+        token: token.clone(),
+    };
+    let result = app.registry.call(&id, &params).await;
+    if result.is_ok() {
+        app.store.set_token(&id, &token).await?;
+    }
+    let entry = AuditEntry {
+        at: store::now_ms(),
+        account: account.name,
+        lift: id,
+        action: "token rotated".into(),
+        object: "cloud token".into(),
+        old_value: None,
+        new_value: "(new token)".into(),
+        result: outcome(&result),
+    };
+    app.store.audit(&entry).await?;
+    result?;
+    Ok(StatusCode::NO_CONTENT)
+}
+
 /// `reg_canopen_object` (POST) or `unreg_canopen_object` (DELETE).
 async fn subscriptions(
     State(app): State<Arc<App>>,
@@ -510,6 +559,10 @@ pub fn routes(app: Arc<App>) -> Router {
         .route(
             "/api/v1/lifts/{id}/privilege",
             axum::routing::post(privilege),
+        )
+        .route(
+            "/api/v1/lifts/{id}/token",
+            axum::routing::post(token).delete(token),
         )
         .route(
             "/api/v1/lifts/{id}/subscriptions",

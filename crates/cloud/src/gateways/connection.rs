@@ -14,7 +14,8 @@ use tokio::sync::{mpsc, oneshot};
 
 use super::{dashboard, LiftEvent, OperatorCall, Reply, Shared};
 use crate::alarms::Input;
-use crate::store::{self, Admission, TelemetryRow};
+use crate::config::BoardhashChange;
+use crate::store::{self, Admission, AuditEntry, TelemetryRow};
 
 /// The lift a connection serves, once it is admitted.
 struct Admitted {
@@ -189,11 +190,22 @@ impl Connection {
         }
     }
 
-    /// CONNECT came: admit the gateway (CONNACK, a token on first contact) or refuse it.
+    /// CONNECT came: admit the gateway (CONNACK, a token on first contact or when the one in
+    /// use is due for rotation) or refuse it; a valid token from another board is dealt with
+    /// per `[gateways] boardhash_change`.
     async fn identify(&mut self, connect: Connect) -> Vec<Output> {
         let lift = store::lift_id(&connect.identity);
         let peer = self.peer.clone();
-        match self.shared.store.admit(&connect).await {
+        let admission = match self.shared.store.admit(&connect).await {
+            Ok(Admission::Known(known)) => match known.board_was {
+                Some(was) => {
+                    board_changed(&self.shared, &peer, &connect, was, known.token_set).await
+                }
+                None => Ok(Admission::Known(known)),
+            },
+            other => other,
+        };
+        match admission {
             Ok(Admission::Refused(cause)) => {
                 tracing::warn!(%lift, %peer, %cause, "gateway refused");
                 let _ = self.shared.store.refused(&lift, &peer, &cause).await;
@@ -204,14 +216,15 @@ impl Connection {
                 self.session.refuse("registry unavailable".into())
             }
             Ok(admission) => {
-                let token = (admission == Admission::FirstContact).then(|| store::secret(""));
+                let token = token_to_issue(&self.shared, &lift, &admission).await;
                 let out = self.session.accept(&connect, token, Instant::now());
                 let api = self.session.api();
                 if let Err(e) = self.shared.store.upsert_gateway(&connect, api).await {
                     tracing::error!(error = %e, "gateway not recorded");
                 }
                 self.register(&lift, &connect, api);
-                tracing::info!(%lift, %peer, api, first = ?admission, "gateway online");
+                let first = admission == Admission::FirstContact;
+                tracing::info!(%lift, %peer, api, first, "gateway online");
                 self.shared.registry.publish(&lift, LiftEvent::Online(true));
                 self.shared.alarms.report(Input::Online(lift)).await;
                 out
@@ -312,6 +325,82 @@ impl Connection {
                 .await;
         }
         tracing::info!(lift = %a.lift, %peer, %cause, "gateway offline");
+    }
+}
+
+/// A valid token came from another board than the one on record: refuse, or accept with
+/// an alarm or without; audited either way.
+async fn board_changed(
+    shared: &Shared,
+    peer: &str,
+    connect: &Connect,
+    was: String,
+    token_set: i64,
+) -> Result<Admission, store::StoreError> {
+    let lift = store::lift_id(&connect.identity);
+    let now = connect.identity.boardhash.clone();
+    let policy = shared.boardhash_change;
+    let result = match policy {
+        BoardhashChange::Refuse => "refused",
+        BoardhashChange::Alarm => "accepted, alarm raised",
+        BoardhashChange::Accept => "accepted",
+    };
+    tracing::warn!(%lift, %peer, %was, %now, result, "the gateway's board changed");
+    shared
+        .store
+        .audit(&AuditEntry {
+            at: store::now_ms(),
+            account: store::BY_PORTAL.into(),
+            lift: lift.clone(),
+            action: "board changed".into(),
+            object: "boardhash".into(),
+            old_value: Some(was.clone()),
+            new_value: now.clone(),
+            result: result.into(),
+        })
+        .await?;
+    Ok(match policy {
+        BoardhashChange::Refuse => Admission::Refused(format!(
+            "boardhash {now:?} differs from the registered {was:?} (boardhash_change = refuse; reset the token to admit the new board)"
+        )),
+        BoardhashChange::Alarm => {
+            let input = Input::BoardChanged {
+                lift,
+                was,
+                now,
+            };
+            shared.alarms.report(input).await;
+            Admission::Known(store::Known { board_was: None, token_set })
+        }
+        BoardhashChange::Accept => Admission::Known(store::Known { board_was: None, token_set }),
+    })
+}
+
+/// The token to send with CONNACK: a first one at first contact, a new one when the one in
+/// use is older than `[gateways] token_rotate_days` (recorded as the next token first, so
+/// that a lost answer does not lock the gateway out).
+async fn token_to_issue(shared: &Shared, lift: &str, admission: &Admission) -> Option<String> {
+    match admission {
+        Admission::FirstContact => Some(store::secret("")),
+        Admission::Known(known) => {
+            let lifetime = shared.token_lifetime?;
+            let age = store::now_ms().saturating_sub(known.token_set);
+            if u128::try_from(age).unwrap_or(0) < lifetime.as_millis() {
+                return None;
+            }
+            let token = store::secret("");
+            match shared.store.set_next_token(lift, &token).await {
+                Ok(()) => {
+                    tracing::info!(%lift, age_days = age / 86_400_000, "token due: rotating");
+                    Some(token)
+                }
+                Err(e) => {
+                    tracing::error!(error = %e, %lift, "token rotation postponed");
+                    None
+                }
+            }
+        }
+        Admission::Refused(_) => None,
     }
 }
 

@@ -326,4 +326,8 @@ pub struct Shared {
     pub closing: tokio::sync::watch::Receiver<bool>,
     /// Messages per second a gateway may send (`[gateways] max_messages_per_s`).
     pub max_messages_per_s: u32,
+    /// What a valid token from another board gets (`[gateways] boardhash_change`).
+    pub boardhash_change: crate::config::BoardhashChange,
+    /// Tokens older than this are replaced at CONNECT (`[gateways] token_rotate_days`).
+    pub token_lifetime: Option<std::time::Duration>,
 }

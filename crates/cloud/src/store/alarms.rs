@@ -59,7 +59,7 @@ fn alarm_from(r: &AnyRow) -> Result<Alarm, sqlx::Error> {
     Ok(Alarm {
         id: r.try_get("id")?,
         lift: r.try_get("lift")?,
-        node: (kind != Kind::LiftOffline).then(|| Place {
+        node: (!kind.is_lift_wide()).then(|| Place {
             id: u8::try_from(node).ok().filter(|n| *n > 0),
             net: u8::try_from(net).unwrap_or(1),
         }),

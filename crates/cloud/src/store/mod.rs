@@ -110,6 +110,34 @@ pub fn secret(prefix: &str) -> String {
     format!("{prefix}{}", hex(&bytes))
 }
 
+/// Apply the [`MIGRATIONS`] not yet recorded, each with its record in one transaction (on
+/// PostgreSQL under a table lock, so that portal processes starting together apply each once).
+async fn migrate(pool: &AnyPool, sqlite: bool) -> Result<(), StoreError> {
+    for (version, statement) in MIGRATIONS {
+        let mut tx = pool.begin().await?;
+        if !sqlite {
+            sqlx::query("LOCK TABLE schema_migrations IN EXCLUSIVE MODE")
+                .execute(&mut *tx)
+                .await?;
+        }
+        let applied = sqlx::query("SELECT COUNT(*) AS n FROM schema_migrations WHERE version = $1")
+            .bind(version)
+            .fetch_one(&mut *tx)
+            .await?
+            .try_get::<i64, _>("n")?;
+        if applied == 0 {
+            sqlx::query(statement).execute(&mut *tx).await?;
+            sqlx::query("INSERT INTO schema_migrations (version, applied) VALUES ($1, $2)")
+                .bind(version)
+                .bind(now_ms())
+                .execute(&mut *tx)
+                .await?;
+        }
+        tx.commit().await?;
+    }
+    Ok(())
+}
+
 /// The id of a lift in the API: `VENDORID-PRODUCTCODE-SERNUM`.
 pub fn lift_id(identity: &Identity) -> String {
     format!(
@@ -170,13 +198,29 @@ pub struct LiftRecord {
 /// What the registry says about a CONNECT.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Admission {
-    /// No token on record: accept and issue one.
+    /// No token on record (never issued, or reset by an administrator): accept and issue one.
     FirstContact,
-    /// The token matches the one on record.
-    Known,
+    /// The token matches the one on record (or the one being rotated to, which now is).
+    Known(Known),
     /// Refused, with the cause to record.
     Refused(String),
 }
+
+/// What the registry knows of a gateway whose token matched.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Known {
+    /// The boardhash on record when the CONNECT's differs (the gateway's hardware changed, or
+    /// its token was copied to another board).
+    pub board_was: Option<String>,
+    /// When the token in use was confirmed (ms since the epoch; 0 when not recorded).
+    pub token_set: i64,
+}
+
+/// The audit's "who" for what the portal does by itself (a board change it saw).
+pub const BY_PORTAL: &str = "(portal)";
+/// The audit's "who" for what an administrator did with `canlift cloud` on the portal's
+/// configuration (a token reset).
+pub const BY_ADMINISTRATOR: &str = "(administrator)";
 
 /// One audit entry.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
@@ -222,6 +266,18 @@ const SCHEMA: &[&str] = &[
     "CREATE INDEX IF NOT EXISTS alarms_active ON alarms (cleared)",
     "CREATE TABLE IF NOT EXISTS webhook_outbox (id BIGINT PRIMARY KEY, url TEXT NOT NULL, body TEXT NOT NULL, lift TEXT NOT NULL, created BIGINT NOT NULL, attempts BIGINT NOT NULL, next_at BIGINT NOT NULL, delivered BIGINT, given_up BIGINT, last_error TEXT)",
     "CREATE INDEX IF NOT EXISTS webhook_outbox_due ON webhook_outbox (delivered, given_up, next_at)",
+    "CREATE TABLE IF NOT EXISTS schema_migrations (version BIGINT PRIMARY KEY, applied BIGINT NOT NULL)",
+];
+
+/// Changes to tables of an existing database, each applied once, in order (a database created
+/// before a change gets it when the portal next starts; a new one gets them all at once).
+const MIGRATIONS: &[(i64, &str)] = &[
+    // Token lifecycle: when the token in use was confirmed, and the one a rotation sent.
+    (
+        1,
+        "ALTER TABLE gateways ADD COLUMN token_set BIGINT NOT NULL DEFAULT 0",
+    ),
+    (2, "ALTER TABLE gateways ADD COLUMN token_next TEXT"),
 ];
 
 impl Store {
@@ -267,6 +323,7 @@ impl Store {
         for statement in SCHEMA {
             sqlx::query(statement).execute(&pool).await?;
         }
+        migrate(&pool, sqlite).await?;
         Ok(Store {
             pool,
             keys: std::sync::Arc::default(),
@@ -346,23 +403,41 @@ impl Store {
                 connect.domaintoken
             )));
         }
-        let row = sqlx::query("SELECT token_hash, domain FROM gateways WHERE id = $1")
-            .bind(lift_id(identity))
-            .fetch_optional(&self.pool)
-            .await?;
+        let lift = lift_id(identity);
+        let row = sqlx::query(
+            "SELECT token_hash, token_next, token_set, domain, boardhash FROM gateways WHERE id = $1",
+        )
+        .bind(&lift)
+        .fetch_optional(&self.pool)
+        .await?;
         let Some(row) = row else {
             return Ok(Admission::FirstContact);
         };
         let hash: Option<String> = row.try_get("token_hash")?;
+        let next: Option<String> = row.try_get("token_next")?;
         let domain: String = row.try_get("domain")?;
+        let board: String = row.try_get("boardhash")?;
         if domain != connect.domaintoken {
             return Ok(Admission::Refused(
                 "domain token differs from the registered one".into(),
             ));
         }
+        let known = |token_set| {
+            Admission::Known(Known {
+                board_was: (board != identity.boardhash).then(|| board.clone()),
+                token_set,
+            })
+        };
         Ok(match (hash, identity.cloudtoken.as_deref()) {
             (None, _) => Admission::FirstContact,
-            (Some(h), Some(t)) if nxg::digest::matches(&h, &digest(t)) => Admission::Known,
+            (Some(h), Some(t)) if nxg::digest::matches(&h, &digest(t)) => {
+                known(row.try_get("token_set")?)
+            }
+            // The gateway stored the token of a rotation whose answer the portal did not see.
+            (Some(_), Some(t)) if next.is_some_and(|n| nxg::digest::matches(&n, &digest(t))) => {
+                self.set_token(&lift, t).await?;
+                known(now_ms())
+            }
             (Some(_), Some(_)) => Admission::Refused("wrong cloud token".into()),
             (Some(_), None) => Admission::Refused("no cloud token although one was issued".into()),
         })
@@ -392,14 +467,72 @@ impl Store {
         Ok(())
     }
 
-    /// The gateway confirmed `token`: only its digest is kept.
+    /// The gateway confirmed `token`: only its digest is kept, with the time (for
+    /// `[gateways] token_rotate_days`); a rotation in progress is over.
     pub async fn set_token(&self, lift: &str, token: &str) -> Result<(), StoreError> {
-        sqlx::query("UPDATE gateways SET token_hash = $1 WHERE id = $2")
+        sqlx::query(
+            "UPDATE gateways SET token_hash = $1, token_set = $2, token_next = NULL WHERE id = $3",
+        )
+        .bind(digest(token))
+        .bind(now_ms())
+        .bind(lift)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    /// `token` is about to be sent to the gateway in place of its current one (NXg §5.4): until
+    /// the gateway confirms it, a CONNECT with either is the gateway's, so an answer lost with
+    /// the connection does not lock the gateway out.
+    pub async fn set_next_token(&self, lift: &str, token: &str) -> Result<(), StoreError> {
+        sqlx::query("UPDATE gateways SET token_next = $1 WHERE id = $2")
             .bind(digest(token))
             .bind(lift)
             .execute(&self.pool)
             .await?;
         Ok(())
+    }
+
+    /// Forget the token of `lift` (of `domain`) for `by`, audited: its next CONNECT is a first
+    /// contact and gets a new one, for a gateway that was replaced or wiped. False when there
+    /// is no such lift.
+    pub async fn reset_token(
+        &self,
+        domain: &str,
+        lift: &str,
+        by: &str,
+    ) -> Result<bool, StoreError> {
+        let done = sqlx::query(
+            "UPDATE gateways SET token_hash = NULL, token_next = NULL, token_set = 0 WHERE id = $1 AND domain = $2",
+        )
+        .bind(lift)
+        .bind(domain)
+        .execute(&self.pool)
+        .await?;
+        if done.rows_affected() == 0 {
+            return Ok(false);
+        }
+        self.audit(&AuditEntry {
+            at: now_ms(),
+            account: by.to_owned(),
+            lift: lift.to_owned(),
+            action: "token reset".into(),
+            object: "cloud token".into(),
+            old_value: None,
+            new_value: "(none: first contact next)".into(),
+            result: "ok".into(),
+        })
+        .await?;
+        Ok(true)
+    }
+
+    /// The domain (account) a registered lift belongs to.
+    pub async fn domain_of(&self, lift: &str) -> Result<Option<String>, StoreError> {
+        let row = sqlx::query("SELECT domain FROM gateways WHERE id = $1")
+            .bind(lift)
+            .fetch_optional(&self.pool)
+            .await?;
+        Ok(row.map(|r| r.try_get("domain")).transpose()?)
     }
 
     /// The gateway was heard now.
@@ -695,10 +828,10 @@ mod tests {
             .set_token(&lift_id(&gw(None).identity), "T0K3N")
             .await
             .unwrap();
-        assert_eq!(
+        assert!(matches!(
             store.admit(&gw(Some("T0K3N"))).await.unwrap(),
-            Admission::Known
-        );
+            Admission::Known(Known { board_was: None, token_set }) if token_set > 0
+        ));
         assert!(
             matches!(store.admit(&gw(Some("T0K3M"))).await.unwrap(), Admission::Refused(c) if c.contains("wrong"))
         );
@@ -740,5 +873,84 @@ mod tests {
         assert_eq!(store.forget_telemetry(200).await.unwrap(), 1);
         let h = store.history(lift, "0x652001", 0, 1000).await.unwrap();
         assert_eq!(h, [(300, "8".to_owned())]);
+        token_lifecycle_and_board(&store).await;
+    }
+
+    /// Rotation (old and new token both admitted until one is confirmed), reset (first contact
+    /// again, only by the lift's own account), and a board that changed under a valid token.
+    async fn token_lifecycle_and_board(store: &Store) {
+        let gw = |token: Option<&str>| connect("180917010200000102", "MAS", token);
+        let lift = lift_id(&gw(None).identity);
+        store.set_next_token(&lift, "N3XT").await.unwrap();
+        let known = |a: Admission| matches!(a, Admission::Known(_));
+        assert!(known(store.admit(&gw(Some("T0K3N"))).await.unwrap()));
+        // The gateway stored the new token but its answer was lost: admitted, and it counts.
+        assert!(known(store.admit(&gw(Some("N3XT"))).await.unwrap()));
+        assert!(
+            matches!(
+                store.admit(&gw(Some("T0K3N"))).await.unwrap(),
+                Admission::Refused(_)
+            ),
+            "the old token is over once the new one was used"
+        );
+        let mut swapped = gw(Some("N3XT"));
+        swapped.identity.boardhash = "B0ARD2".into();
+        assert!(matches!(
+            store.admit(&swapped).await.unwrap(),
+            Admission::Known(Known { board_was: Some(b), .. }) if b.is_empty()
+        ));
+        assert!(
+            !store.reset_token("OTH", &lift, "x").await.unwrap(),
+            "not OTH's lift"
+        );
+        assert!(!store.reset_token("MAS", "1-2-3", "x").await.unwrap());
+        assert!(store.reset_token("MAS", &lift, "ops").await.unwrap());
+        let audit = store.audit_log("MAS").await.unwrap();
+        assert_eq!(
+            (audit[0].action.as_str(), audit[0].account.as_str()),
+            ("token reset", "ops")
+        );
+        assert_eq!(
+            store.admit(&gw(Some("N3XT"))).await.unwrap(),
+            Admission::FirstContact
+        );
+        assert_eq!(
+            store.domain_of(&lift).await.unwrap().as_deref(),
+            Some("MAS")
+        );
+    }
+
+    /// A database made before the token columns existed gets them, once.
+    #[tokio::test]
+    async fn an_older_database_is_migrated() {
+        let dir = tempfile::tempdir().unwrap();
+        let url = format!("sqlite://{}", dir.path().join("old.db").display());
+        {
+            sqlx::any::install_default_drivers();
+            let pool = AnyPoolOptions::new()
+                .connect(&format!("{url}?mode=rwc"))
+                .await
+                .unwrap();
+            sqlx::query("CREATE TABLE gateways (id TEXT PRIMARY KEY, vendorid BIGINT NOT NULL, productcode BIGINT NOT NULL, sernum TEXT NOT NULL, liftnum TEXT NOT NULL, hardware TEXT NOT NULL, software TEXT NOT NULL, boardhash TEXT NOT NULL, domain TEXT NOT NULL, api BIGINT NOT NULL, token_hash TEXT, last_seen BIGINT NOT NULL)")
+                .execute(&pool)
+                .await
+                .unwrap();
+            sqlx::query("INSERT INTO gateways VALUES ('1050-4096-1', 1050, 4096, '1', '', '', '', 'B', 'MAS', 1, 'h', 0)")
+                .execute(&pool)
+                .await
+                .unwrap();
+            pool.close().await;
+        }
+        for _ in 0..2 {
+            let store = Store::open(&url).await.unwrap();
+            store.set_next_token("1050-4096-1", "N").await.unwrap();
+            let n: i64 = sqlx::query("SELECT COUNT(*) AS n FROM schema_migrations")
+                .fetch_one(&store.pool)
+                .await
+                .unwrap()
+                .get("n");
+            assert_eq!(n, MIGRATIONS.len() as i64);
+            store.pool.close().await;
+        }
     }
 }
