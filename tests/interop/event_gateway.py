@@ -1,5 +1,6 @@
 """A fake api-2 gateway in Python `websockets` (an independent WebSocket and TLS stack) that
-pushes bus events as told (crates/cloud/tests/python_events.rs).
+pushes bus events as told and reports the subscriptions the portal registers
+(crates/cloud/tests/python_events.rs, crates/cloud/tests/python_subscriptions.rs).
 
 usage: event_gateway.py URL CA_FILE SERNUM
 Connects (api 2), answers the portal's requests (every request succeeds with {"done": 0}; the
@@ -8,7 +9,8 @@ cloud token is kept for reconnections) and reads commands from standard input:
   CLOSE          close the connection
   CONNECT        connect again (with the token)
   QUIT           close and end
-It prints "CONNACK API", "EVENTS [kinds]" when the portal registers events, "CLOSED".
+It prints "CONNACK API", "EVENTS [kinds]" when the portal registers events, "REG INHIBIT
+THRESHOLD MPLEX,…" and "UNREG MPLEX,…" when it registers or unregisters objects, "CLOSED".
 """
 
 import asyncio
@@ -54,6 +56,12 @@ class Gateway:
                     self.token = message["params"]["token"]
                 elif method == "reg_canopen_event":
                     say("EVENTS", json.dumps(message["params"]["events"]))
+                elif method == "reg_canopen_object":
+                    params = message["params"]
+                    say("REG", params.get("inhibit", 0), float(params.get("threshold", 0)),
+                        ",".join(params["mplex"]))
+                elif method == "unreg_canopen_object":
+                    say("UNREG", ",".join(message["params"]["mplex"]))
                 if "id" in message and method is not None:
                     await ws.send(json.dumps({"jsonrpc": "2.0", "id": message["id"],
                                               "result": {"done": 0}}))

@@ -108,6 +108,21 @@ pub struct SubscriptionBody {
     pub threshold: Option<f64>,
 }
 
+/// The query of `GET …/lifts/{id}/events`: objects the stream holds subscriptions of while it
+/// is open, with their terms.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct EventsQuery {
+    /// Objects, comma-separated (mplex or name).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mplex: Option<String>,
+    /// Minimum gap between two pushes of one object (ms).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub inhibit: Option<u64>,
+    /// Smallest change pushed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub threshold: Option<f64>,
+}
+
 /// The query of `GET …/objects/{mplex}/history` (ms since the epoch).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct HistoryQuery {

@@ -119,6 +119,10 @@ impl Portal {
         let tls = server_tls(config)?;
         let registry = Arc::new(Registry::default());
         let dashboard = Arc::new(config.dashboard.dashboard().map_err(ServerError::Other)?);
+        let subscriptions = Arc::new(gateways::subscriptions::Subscriptions::new(
+            registry.clone(),
+            &dashboard,
+        ));
         let (telemetry, telemetry_rx) = mpsc::channel(config.database.telemetry_queue.max(1));
         let counters = Arc::new(gateways::TelemetryCounters::default());
         let mut tasks = vec![
@@ -149,6 +153,7 @@ impl Portal {
                 telemetry,
                 counters: counters.clone(),
                 dashboard: dashboard.clone(),
+                subscriptions: subscriptions.clone(),
                 alarms: alarms.clone(),
                 closing: closing_rx,
                 max_messages_per_s: config.gateways.max_messages_per_s,
@@ -180,6 +185,7 @@ impl Portal {
                     registry: registry.clone(),
                     sessions: crate::web::Sessions::default(),
                     dashboard,
+                    subscriptions,
                     alarms,
                     names: Arc::new(names),
                 });

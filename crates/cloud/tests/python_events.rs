@@ -2,89 +2,15 @@
 //! `websockets` and a webhook receiver written with Python's http.server and hmac (independent
 //! implementations of the connector's client side and of the signature check).
 
-use std::path::Path;
-use std::process::Stdio;
-use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use serde_json::{json, Value};
 use testkit::constants::WAIT;
 use testkit::portal::Rig;
-use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
-use tokio::process::{Child, ChildStdin, Command};
+use testkit::script::Script;
 
 const LIFT: &str = "1050-4096-PY-EVENTS";
 const SECRET: &str = "s3cret-for-the-receiver";
-
-/// A child process speaking lines.
-struct Script {
-    _child: Child,
-    stdin: ChildStdin,
-    lines: Arc<Mutex<Vec<String>>>,
-}
-
-impl Script {
-    fn start(python: &Path, name: &str, args: &[&str]) -> Script {
-        let mut child = Command::new(python)
-            .arg(testkit::interop_script(name))
-            .args(args)
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .kill_on_drop(true)
-            .spawn()
-            .unwrap();
-        let stdin = child.stdin.take().unwrap();
-        let lines = Arc::new(Mutex::new(Vec::new()));
-        let sink = lines.clone();
-        let mut out = BufReader::new(child.stdout.take().unwrap()).lines();
-        tokio::spawn(async move {
-            while let Ok(Some(line)) = out.next_line().await {
-                sink.lock().unwrap().push(line);
-            }
-        });
-        Script {
-            _child: child,
-            stdin,
-            lines,
-        }
-    }
-
-    async fn say(&mut self, line: &str) {
-        self.stdin
-            .write_all(format!("{line}\n").as_bytes())
-            .await
-            .unwrap();
-        self.stdin.flush().await.unwrap();
-    }
-
-    fn seen(&self, prefix: &str) -> Vec<String> {
-        self.lines
-            .lock()
-            .unwrap()
-            .iter()
-            .filter(|l| l.starts_with(prefix))
-            .cloned()
-            .collect()
-    }
-
-    /// Wait until `n` lines start with `prefix`; those lines.
-    async fn wait_for(&self, prefix: &str, n: usize, wait: Duration) -> Vec<String> {
-        let deadline = tokio::time::Instant::now() + wait;
-        loop {
-            let seen = self.seen(prefix);
-            if seen.len() >= n {
-                return seen;
-            }
-            assert!(
-                tokio::time::Instant::now() < deadline,
-                "{n} × {prefix:?} not seen; all: {:?}",
-                self.lines.lock().unwrap()
-            );
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    }
-}
 
 fn emcy(code: &str, register: &str, text: &str) -> String {
     let event = json!({"type": "emcy", "node": {"id": 1, "net": 1}, "time": "2026-11-23T10:11:12.345Z",

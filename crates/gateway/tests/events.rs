@@ -4,7 +4,6 @@
 
 mod common;
 
-use std::process::Stdio;
 use std::time::Duration;
 
 use canbus::Bus;
@@ -13,36 +12,28 @@ use canopen::sdo::client::ClientConfig;
 use common::*;
 use gateway::Gateway;
 use serde_json::{json, Value};
+use testkit::script::Script;
 use testkit::scripted::{connack_api, recv_within};
-use tokio::io::{AsyncBufReadExt, BufReader};
-use tokio::process::{Child, Command};
 
 /// The independent node.
 const PYTHON: u8 = 5;
 
 /// A python-canopen node from the test controller's EDS, heartbeat 200 ms, running once READY.
-async fn python_node(python: &std::path::Path, hub: &canbus::hub::HubHandle) -> Child {
+async fn python_node(python: &std::path::Path, hub: &canbus::hub::HubHandle) -> Script {
     let addr = hub.local_addr();
-    let mut child = Command::new(python)
-        .arg(testkit::interop_script("controller.py"))
-        .args(["--heartbeat", "200"])
-        .args([addr.ip().to_string(), addr.port().to_string()])
-        .arg(testkit::workspace().join("tests/fixtures/controller.eds"))
-        .arg(PYTHON.to_string())
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .kill_on_drop(true)
-        .spawn()
-        .unwrap();
-    let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
-    let ready = tokio::time::timeout(WAIT, lines.next_line()).await;
-    assert!(
-        matches!(&ready, Ok(Ok(Some(l))) if l == "READY"),
-        "{ready:?}"
-    );
-    tokio::spawn(async move { while let Ok(Some(_)) = lines.next_line().await {} });
-    child
+    let eds = testkit::workspace().join("tests/fixtures/controller.eds");
+    let args = [
+        "--heartbeat".to_owned(),
+        "200".to_owned(),
+        addr.ip().to_string(),
+        addr.port().to_string(),
+        eds.display().to_string(),
+        PYTHON.to_string(),
+    ];
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let node = Script::start(python, "controller.py", &args);
+    node.wait_for("READY", 1, WAIT).await;
+    node
 }
 
 fn request(id: &str, method: &str, params: Value) -> String {
@@ -134,7 +125,7 @@ async fn faults_and_silence_reach_the_portal_in_order_even_after_a_gap() {
     assert_eq!(seen.last().unwrap()["text"], "Error reset or no error");
 
     // The independent node dies: offline within 2 s (1.5 × 200 ms after its last heartbeat).
-    node.kill().await.unwrap();
+    node.kill().await;
     let died = std::time::Instant::now();
     until(&mut ws, WAIT, is_state(PYTHON, "offline")).await;
     assert!(
@@ -150,7 +141,7 @@ async fn faults_and_silence_reach_the_portal_in_order_even_after_a_gap() {
     drop(ws);
     sdo.write(1, 0x5030, 0, 2u8).await.unwrap();
     tokio::time::sleep(Duration::from_millis(300)).await;
-    node.kill().await.unwrap();
+    node.kill().await;
     tokio::time::sleep(Duration::from_millis(600)).await;
     sdo.write(1, 0x5030, 0, 0u8).await.unwrap();
     tokio::time::sleep(Duration::from_millis(300)).await;

@@ -15,6 +15,8 @@ pub mod portal;
 #[cfg(feature = "postgres")]
 mod postgres;
 pub mod sample;
+#[cfg(feature = "lift")]
+pub mod script;
 #[cfg(feature = "scripted")]
 pub mod scripted;
 

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context};
 use cloud::client::Client;
-use cloud::rest::{Form, GetQuery, LiftSummary, PutBody, SubscriptionBody, ValueEvent};
+use cloud::rest::{EventsQuery, Form, GetQuery, LiftSummary, PutBody, ValueEvent};
 use nxg::msg::{ErrorObject, ObjectAnswer};
 use serde::de::DeserializeOwned;
 use serde_json::Value;
@@ -298,7 +298,14 @@ pub async fn watch(mut args: WatchArgs) -> anyhow::Result<()> {
         .map(|m| object(m))
         .collect::<anyhow::Result<_>>()?;
     let client = args.portal.client()?;
-    let path = format!("/api/v1/lifts/{}/events", args.lift);
+    // The stream holds the subscriptions while it is open: ending it, however, lets go of them
+    // and of nothing anyone else holds.
+    let query = serde_urlencoded::to_string(EventsQuery {
+        mplex: Some(args.mplex.join(",")),
+        inhibit: Some(args.inhibit),
+        threshold: Some(args.threshold),
+    })?;
+    let path = format!("/api/v1/lifts/{}/events?{query}", args.lift);
     let mut events = match client.events(&path).await? {
         Ok(stream) => stream,
         Err(answer) => {
@@ -306,17 +313,6 @@ pub async fn watch(mut args: WatchArgs) -> anyhow::Result<()> {
             bail!("no event stream");
         }
     };
-    let body = serde_json::to_value(SubscriptionBody {
-        mplex: args.mplex.clone(),
-        inhibit: Some(args.inhibit),
-        threshold: Some(args.threshold),
-    })?;
-    let subscriptions = format!("/api/v1/lifts/{}/subscriptions", args.lift);
-    check::<Value>(
-        client
-            .call("POST", &subscriptions, Some(body.clone()))
-            .await?,
-    )?;
     let wanted: Vec<String> = args
         .mplex
         .iter()
@@ -357,6 +353,5 @@ pub async fn watch(mut args: WatchArgs) -> anyhow::Result<()> {
             _ => {}
         }
     }
-    let _ = client.call("DELETE", &subscriptions, Some(body)).await;
     Ok(())
 }

@@ -21,17 +21,18 @@ use futures_util::Stream;
 use nxg::errors::ErrorCode;
 use nxg::msg::{
     Done, ElevateAnswer, ElevateParams, ErrorObject, GetObject, GetParams, Lang, MplexText, NodeId,
-    NodeRef, ObjectAnswer, PutAnswer, PutObject, PutParams, RegParams, TokenParams, UnregParams,
+    NodeRef, ObjectAnswer, PutAnswer, PutObject, PutParams, TokenParams,
 };
 use nxg::names::ObjectNames;
 use nxg::portal::Failure;
 use serde::de::DeserializeOwned;
 
 use crate::config::Dashboard;
+use crate::gateways::subscriptions::{Holder, Subscriptions, Terms, WhenOffline};
 use crate::gateways::Registry;
 use crate::rest::{
-    Form, GetQuery, History, HistoryPoint, HistoryQuery, LiftSummary, NameQuery, PrivilegeBody,
-    PutBody, SubscriptionBody,
+    EventsQuery, Form, GetQuery, History, HistoryPoint, HistoryQuery, LiftSummary, NameQuery,
+    PrivilegeBody, PutBody, SubscriptionBody,
 };
 use crate::store::{self, Account, AuditEntry, Store};
 use crate::web::Sessions;
@@ -46,6 +47,8 @@ pub struct App {
     pub sessions: Sessions,
     /// What the web UI shows.
     pub dashboard: Arc<Dashboard>,
+    /// Who holds which subscriptions.
+    pub subscriptions: Arc<crate::gateways::subscriptions::Subscriptions>,
     /// Alarms.
     pub alarms: Arc<crate::alarms::Alarms>,
     /// Object names operators may use instead of an mplex (`?name=`, path, web forms).
@@ -439,7 +442,9 @@ async fn token(
     Ok(StatusCode::NO_CONTENT)
 }
 
-/// `reg_canopen_object` (POST) or `unreg_canopen_object` (DELETE).
+/// The account holds (POST) or lets go of (DELETE) subscriptions of objects; the gateway is
+/// asked for the union of what everyone holds on the lift (docs/PORTAL.md §Subscriptions), so
+/// one holder's terms or `DELETE` never change another's pushes.
 async fn subscriptions(
     State(app): State<Arc<App>>,
     method: Method,
@@ -447,61 +452,115 @@ async fn subscriptions(
     Path(id): Path<String>,
     ApiJson(body): ApiJson<SubscriptionBody>,
 ) -> Result<Json<Done>, ApiError> {
-    lift_of(&app, caller, &id).await?;
-    let list = body
-        .mplex
-        .iter()
-        .map(|m| mplex(&app.names, m))
-        .collect::<Result<Vec<_>, _>>()?;
-    let done = if method == Method::DELETE {
-        let params = UnregParams {
-            mplex: list,
-            node: None,
-        };
-        app.registry.call(&id, &params).await?
+    let account = lift_of(&app, caller, &id).await?;
+    let objects = objects(&app.names, &body.mplex)?;
+    let holder = Holder::Account(account.name);
+    if method == Method::DELETE {
+        app.subscriptions
+            .release(&id, &holder, Some(&objects))
+            .await?;
     } else {
-        let threshold = body.threshold.unwrap_or(0.0);
-        if threshold.is_nan() || threshold < 0.0 {
-            return Err(error(StatusCode::BAD_REQUEST, "threshold: a number ≥ 0"));
-        }
-        let params = RegParams {
-            mplex: list,
-            inhibit: body.inhibit.unwrap_or(0),
-            threshold,
-            node: None,
-        };
-        app.registry.call(&id, &params).await?
-    };
-    Ok(Json(done))
+        let terms = terms(body.inhibit, body.threshold)?;
+        app.subscriptions
+            .hold(&id, &holder, &objects, terms, WhenOffline::Refuse)
+            .await?;
+    }
+    Ok(Json(Done::OK))
 }
 
+/// The objects of a subscription, each as an mplex or a name.
+fn objects(names: &ObjectNames, list: &[String]) -> Result<Vec<nxg::mplex::Mplex>, ApiError> {
+    list.iter()
+        .map(|m| mplex(names, m).map(|t| t.mplex))
+        .collect()
+}
+
+/// A subscription's terms: no inhibit and no threshold unless given; a threshold is a number
+/// ≥ 0.
+fn terms(inhibit: Option<u64>, threshold: Option<f64>) -> Result<Terms, ApiError> {
+    let threshold = threshold.unwrap_or(0.0);
+    if threshold.is_nan() || threshold < 0.0 {
+        return Err(error(StatusCode::BAD_REQUEST, "threshold: a number ≥ 0"));
+    }
+    Ok(Terms {
+        inhibit: inhibit.unwrap_or(0),
+        threshold,
+    })
+}
+
+/// The lift's live events. With `?mplex=A,B…` (and `inhibit`, `threshold`) the stream holds
+/// subscriptions of those objects for as long as it is open — kept while the gateway is
+/// offline and registered when it connects — and lets go of them when it ends.
 async fn events(
     State(app): State<Arc<App>>,
     caller: Caller,
     Path(id): Path<String>,
+    ApiQuery(q): ApiQuery<EventsQuery>,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
     lift_of(&app, caller, &id).await?;
     let rx = app.registry.subscribe(&id);
+    let watching = match q.mplex.as_deref() {
+        Some(list) => {
+            let list: Vec<String> = list.split(',').map(str::to_owned).collect();
+            let objects = objects(&app.names, &list)?;
+            let terms = terms(q.inhibit, q.threshold)?;
+            let holder = app.subscriptions.watcher();
+            app.subscriptions
+                .hold(&id, &holder, &objects, terms, WhenOffline::Keep)
+                .await?;
+            Some(Watching {
+                subscriptions: app.subscriptions.clone(),
+                lift: id.clone(),
+                holder,
+            })
+        }
+        None => None,
+    };
     let online = crate::gateways::LiftEvent::Online(app.registry.online(&id));
     let (kind, data) = online.to_sse(&id);
     let first = Event::default().event(kind).data(data);
-    let stream =
-        futures_util::stream::unfold((rx, Some(first), id), |(mut rx, first, id)| async move {
-            if let Some(first) = first {
-                return Some((Ok(first), (rx, None, id)));
-            }
-            loop {
-                match rx.recv().await {
-                    Ok(event) => {
-                        let (kind, data) = event.to_sse(&id);
-                        return Some((Ok(Event::default().event(kind).data(data)), (rx, None, id)));
-                    }
-                    Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => continue,
-                    Err(tokio::sync::broadcast::error::RecvError::Closed) => return None,
+    // The watcher's subscriptions live in the stream's state: dropped with it.
+    let state = (rx, Some(first), id, watching);
+    let stream = futures_util::stream::unfold(state, |(mut rx, first, id, watching)| async move {
+        if let Some(first) = first {
+            return Some((Ok(first), (rx, None, id, watching)));
+        }
+        loop {
+            match rx.recv().await {
+                Ok(event) => {
+                    let (kind, data) = event.to_sse(&id);
+                    let event = Event::default().event(kind).data(data);
+                    return Some((Ok(event), (rx, None, id, watching)));
                 }
+                Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => continue,
+                Err(tokio::sync::broadcast::error::RecvError::Closed) => return None,
             }
-        });
+        }
+    });
     Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
+}
+
+/// The subscriptions an open event stream holds; let go of when the stream is dropped.
+struct Watching {
+    subscriptions: Arc<Subscriptions>,
+    lift: String,
+    holder: Holder,
+}
+
+impl Drop for Watching {
+    fn drop(&mut self) {
+        let subscriptions = self.subscriptions.clone();
+        let lift = std::mem::take(&mut self.lift);
+        let holder = self.holder.clone();
+        // Dropping cannot wait for the gateway; the release runs on its own.
+        if let Ok(runtime) = tokio::runtime::Handle::try_current() {
+            runtime.spawn(async move {
+                if let Err(e) = subscriptions.release(&lift, &holder, None).await {
+                    tracing::debug!(%lift, failure = ?e, "a watcher's subscriptions not released");
+                }
+            });
+        }
+    }
 }
 
 async fn history(

@@ -246,6 +246,7 @@ impl Connection {
         });
         tokio::spawn(dashboard::subscribe(
             registry.clone(),
+            self.shared.subscriptions.clone(),
             lift.to_owned(),
             self.shared.dashboard.clone(),
             api,

@@ -1,20 +1,20 @@
-//! The dashboard's subscriptions: every gateway is asked, as it connects, to push the objects
-//! the portal stores as telemetry and shows live (`[dashboard] live`) and, when it speaks api
-//! 2, the bus events the alarms are made of (`[dashboard] events`).
+//! What every gateway is asked as it connects: when it speaks api 2, the bus events the alarms
+//! are made of (`[dashboard] events`); then every subscription held on its lift — the
+//! dashboard's objects (`[dashboard] live`) and whatever accounts and live watchers hold
+//! (see `subscriptions`).
 
 use std::sync::Arc;
 
-use nxg::msg::{Lang, MplexText, RegEventParams, RegParams};
-use nxg::portal::Failure;
+use nxg::msg::{Lang, RegEventParams};
 
+use super::subscriptions::Subscriptions;
 use super::Registry;
 use crate::config::Dashboard;
 
-/// Ask a newly connected gateway to push the dashboard's objects, the way an operator would.
-/// `reg_canopen_object` is all or none (NXg §7.1): when one object is missing on this lift the
-/// others are registered one by one.
+/// Ask a newly connected gateway for the bus events and the subscriptions held on its lift.
 pub(super) async fn subscribe(
     registry: Arc<Registry>,
+    subscriptions: Arc<Subscriptions>,
     lift: String,
     dashboard: Arc<Dashboard>,
     api: u32,
@@ -28,27 +28,5 @@ pub(super) async fn subscribe(
             tracing::warn!(%lift, failure = ?e, "bus events not registered");
         }
     }
-    if dashboard.live.is_empty() {
-        return;
-    }
-    let params = |mplex: Vec<MplexText>| RegParams {
-        mplex,
-        inhibit: dashboard.inhibit_ms,
-        threshold: 0.0,
-        node: None,
-    };
-    let all = params(dashboard.live.iter().map(|m| (*m).into()).collect());
-    match registry.call(&lift, &all).await {
-        Ok(_) => return,
-        Err(Failure::Error(_)) => {}
-        Err(other) => {
-            tracing::debug!(%lift, failure = ?other, "dashboard objects not subscribed");
-            return;
-        }
-    }
-    for mplex in &dashboard.live {
-        if let Err(e) = registry.call(&lift, &params(vec![(*mplex).into()])).await {
-            tracing::debug!(%lift, %mplex, failure = ?e, "dashboard object not subscribed");
-        }
-    }
+    subscriptions.resubscribe(&lift).await;
 }

@@ -6,6 +6,7 @@
 
 pub mod connection;
 mod dashboard;
+pub mod subscriptions;
 pub mod telemetry;
 
 use std::collections::HashMap;
@@ -320,6 +321,8 @@ pub struct Shared {
     pub counters: Arc<TelemetryCounters>,
     /// What every gateway is asked to push (`live`, `inhibit_ms`, `events`), normalized.
     pub dashboard: Arc<Dashboard>,
+    /// Who holds which subscriptions, registered again on every connection.
+    pub subscriptions: Arc<subscriptions::Subscriptions>,
     /// Where bus events and connection changes go to become alarms.
     pub alarms: Arc<crate::alarms::Alarms>,
     /// Turns true when the portal stops: every connection closes.

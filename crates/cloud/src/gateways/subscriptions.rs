@@ -1,0 +1,448 @@
+//! Subscriptions that belong to someone (docs/PORTAL.md §Subscriptions), sans-IO.
+//!
+//! A gateway keeps one subscription per object (NXg §7.3: a second `reg_canopen_object` for an
+//! object replaces the first's inhibit and threshold; `unreg_canopen_object` ends it for
+//! everyone). Several parties at the portal want pushes of one lift — the dashboard on every
+//! lift, an account through the API, each live watcher — so the portal keeps who holds what and
+//! registers with the gateway the union: per object the smallest inhibit and the smallest
+//! threshold of its holders. An object leaves the gateway only when its last holder lets go, and
+//! after a reconnect everything held is registered again.
+//!
+//! The dashboard's objects are the same on every lift: they are the [`Base`] of each lift's
+//! [`Holders`] rather than an entry per lift, so an idle lift costs nothing here.
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
+
+use nxg::mplex::Mplex;
+use nxg::msg::{RegParams, UnregParams};
+use nxg::portal::Failure;
+
+use super::Registry;
+use crate::config::Dashboard;
+
+/// Who holds a subscription.
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Holder {
+    /// An account, through `POST /api/v1/lifts/{id}/subscriptions` (until its `DELETE`).
+    Account(String),
+    /// One live event stream that asked for objects (until the stream ends).
+    Watcher(u64),
+}
+
+/// What is asked of the pushes of one object.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Terms {
+    /// Minimum gap between two pushes (ms).
+    pub inhibit: u64,
+    /// Smallest change of a number that is pushed.
+    pub threshold: f64,
+}
+
+impl Terms {
+    /// Pushes that satisfy both: the smaller inhibit and the smaller threshold.
+    fn union(self, other: Terms) -> Terms {
+        Terms {
+            inhibit: self.inhibit.min(other.inhibit),
+            threshold: self.threshold.min(other.threshold),
+        }
+    }
+}
+
+/// The objects every lift holds for the dashboard, with their terms.
+pub type Base = BTreeMap<Mplex, Terms>;
+
+/// What to send to the gateway.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Change {
+    /// `reg_canopen_object` for these objects with these terms.
+    Register(Vec<Mplex>, Terms),
+    /// `unreg_canopen_object` for these objects.
+    Unregister(Vec<Mplex>),
+}
+
+/// The holders of one lift's subscriptions beyond the dashboard.
+#[derive(Debug, Clone, Default)]
+pub struct Holders {
+    objects: BTreeMap<Mplex, BTreeMap<Holder, Terms>>,
+}
+
+impl Holders {
+    /// `holder` asks for `objects` with `terms` (replacing what it asked for them before).
+    pub fn add(
+        &mut self,
+        base: &Base,
+        holder: &Holder,
+        objects: &[Mplex],
+        terms: Terms,
+    ) -> Vec<Change> {
+        let before = self.unions(base, objects);
+        for mplex in objects {
+            self.objects
+                .entry(*mplex)
+                .or_default()
+                .insert(holder.clone(), terms);
+        }
+        self.changes(base, before)
+    }
+
+    /// `holder` lets go of `objects` (all of its own when `None`); what it did not hold is
+    /// left alone.
+    pub fn remove(
+        &mut self,
+        base: &Base,
+        holder: &Holder,
+        objects: Option<&[Mplex]>,
+    ) -> Vec<Change> {
+        let objects: Vec<Mplex> = match objects {
+            Some(list) => list.to_vec(),
+            None => self
+                .objects
+                .iter()
+                .filter(|(_, holders)| holders.contains_key(holder))
+                .map(|(mplex, _)| *mplex)
+                .collect(),
+        };
+        let before = self.unions(base, &objects);
+        for mplex in &objects {
+            if let Some(holders) = self.objects.get_mut(mplex) {
+                holders.remove(holder);
+                if holders.is_empty() {
+                    self.objects.remove(mplex);
+                }
+            }
+        }
+        self.changes(base, before)
+    }
+
+    /// Everything held, for a gateway that has just connected (the dashboard's objects too).
+    pub fn all(&self, base: &Base) -> Vec<Change> {
+        let objects: Vec<Mplex> = base.keys().chain(self.objects.keys()).copied().collect();
+        let before = objects.iter().map(|m| (*m, None)).collect();
+        self.changes(base, before)
+    }
+
+    /// Whether no one beyond the dashboard holds anything.
+    pub fn is_empty(&self) -> bool {
+        self.objects.is_empty()
+    }
+
+    /// The terms registered for `mplex` (the union of its holders'), if anyone holds it.
+    pub fn union(&self, base: &Base, mplex: &Mplex) -> Option<Terms> {
+        let held = self.objects.get(mplex).into_iter().flat_map(|h| h.values());
+        base.get(mplex)
+            .into_iter()
+            .chain(held)
+            .copied()
+            .reduce(Terms::union)
+    }
+
+    fn unions(&self, base: &Base, objects: &[Mplex]) -> BTreeMap<Mplex, Option<Terms>> {
+        objects.iter().map(|m| (*m, self.union(base, m))).collect()
+    }
+
+    /// The gateway calls that take each object from its `before` union to its union now:
+    /// registrations grouped by terms (one call per distinct terms), then one unregistration.
+    fn changes(&self, base: &Base, before: BTreeMap<Mplex, Option<Terms>>) -> Vec<Change> {
+        let mut register: Vec<(Terms, Vec<Mplex>)> = Vec::new();
+        let mut unregister = Vec::new();
+        for (mplex, was) in before {
+            match (was, self.union(base, &mplex)) {
+                (Some(_), None) => unregister.push(mplex),
+                (was, Some(now)) if was != Some(now) => {
+                    match register.iter_mut().find(|(terms, _)| *terms == now) {
+                        Some((_, list)) => list.push(mplex),
+                        None => register.push((now, vec![mplex])),
+                    }
+                }
+                _ => {}
+            }
+        }
+        let mut changes: Vec<Change> = register
+            .into_iter()
+            .map(|(terms, list)| Change::Register(list, terms))
+            .collect();
+        if !unregister.is_empty() {
+            changes.push(Change::Unregister(unregister));
+        }
+        changes
+    }
+}
+
+/// Every lift's holders with the dashboard's base, and the gateway calls that keep each gateway
+/// at the union. The changes of one lift are made one at a time — computed, sent, then kept —
+/// so its gateway sees them in the order they were made, and a change the gateway refused is
+/// not kept.
+pub struct Subscriptions {
+    registry: Arc<Registry>,
+    base: Base,
+    lifts: Mutex<HashMap<String, Arc<tokio::sync::Mutex<Holders>>>>,
+    watchers: AtomicU64,
+}
+
+/// Whether a change for a lift whose gateway is offline is kept (for a live watcher: it is
+/// registered when the gateway connects) or refused (an API call answers 503).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum WhenOffline {
+    /// Keep it.
+    Keep,
+    /// Refuse it.
+    Refuse,
+}
+
+impl Subscriptions {
+    /// No one holds anything yet; every lift holds the dashboard's objects.
+    pub fn new(registry: Arc<Registry>, dashboard: &Dashboard) -> Subscriptions {
+        let terms = Terms {
+            inhibit: dashboard.inhibit_ms,
+            threshold: 0.0,
+        };
+        Subscriptions {
+            registry,
+            base: dashboard.live.iter().map(|m| (*m, terms)).collect(),
+            lifts: Mutex::default(),
+            watchers: AtomicU64::new(1),
+        }
+    }
+
+    /// A holder for a new live watcher.
+    pub fn watcher(&self) -> Holder {
+        Holder::Watcher(self.watchers.fetch_add(1, Ordering::Relaxed))
+    }
+
+    fn holders(&self, lift: &str) -> Arc<tokio::sync::Mutex<Holders>> {
+        let mut lifts = self.lifts.lock().unwrap_or_else(PoisonError::into_inner);
+        lifts.entry(lift.to_owned()).or_default().clone()
+    }
+
+    /// `holder` asks for `objects` of `lift` with `terms`. Kept when the gateway took the
+    /// change (or it is offline and `offline` says keep); otherwise the gateway's failure.
+    pub async fn hold(
+        &self,
+        lift: &str,
+        holder: &Holder,
+        objects: &[Mplex],
+        terms: Terms,
+        offline: WhenOffline,
+    ) -> Result<(), Failure> {
+        let cell = self.holders(lift);
+        let mut holders = cell.lock().await;
+        let mut next = holders.clone();
+        let changes = next.add(&self.base, holder, objects, terms);
+        match self.send(lift, changes).await {
+            Ok(()) => {}
+            Err(Failure::Gone) if offline == WhenOffline::Keep => {}
+            Err(failure) => {
+                self.forget_if_empty(lift, &cell, &holders);
+                return Err(failure);
+            }
+        }
+        *holders = next;
+        Ok(())
+    }
+
+    /// `holder` lets go of `objects` of `lift` (all of its own when `None`). The portal forgets
+    /// them whatever the gateway answers (an offline gateway is told by the next connection's
+    /// registrations); the gateway's failure is returned.
+    pub async fn release(
+        &self,
+        lift: &str,
+        holder: &Holder,
+        objects: Option<&[Mplex]>,
+    ) -> Result<(), Failure> {
+        let cell = self.holders(lift);
+        let mut holders = cell.lock().await;
+        let changes = holders.remove(&self.base, holder, objects);
+        self.forget_if_empty(lift, &cell, &holders);
+        match self.send(lift, changes).await {
+            Err(Failure::Gone) => Ok(()),
+            other => other,
+        }
+    }
+
+    /// A gateway has just connected: register everything held on its lift. A group the
+    /// gateway refuses as a whole (`reg_canopen_object` is all or none, NXg §7.3: one object
+    /// missing on this lift) is registered object by object.
+    pub async fn resubscribe(&self, lift: &str) {
+        let cell = self.holders(lift);
+        let holders = cell.lock().await;
+        self.forget_if_empty(lift, &cell, &holders);
+        for change in holders.all(&self.base) {
+            let Change::Register(objects, terms) = change else {
+                continue;
+            };
+            match self.register(lift, &objects, terms).await {
+                Ok(()) => continue,
+                Err(Failure::Error(_)) if objects.len() > 1 => {}
+                Err(other) => {
+                    tracing::debug!(%lift, failure = ?other, "subscriptions not registered");
+                    return;
+                }
+            }
+            for mplex in objects {
+                if let Err(e) = self.register(lift, &[mplex], terms).await {
+                    tracing::debug!(%lift, %mplex, failure = ?e, "object not subscribed");
+                }
+            }
+        }
+    }
+
+    /// The terms registered for `mplex` on `lift` now (the union), if anyone holds it.
+    pub async fn union(&self, lift: &str, mplex: &Mplex) -> Option<Terms> {
+        let cell = self.holders(lift);
+        let holders = cell.lock().await;
+        let union = holders.union(&self.base, mplex);
+        self.forget_if_empty(lift, &cell, &holders);
+        union
+    }
+
+    /// A lift whose holders are all gone takes no memory (only one that anyone holds a
+    /// subscription of beyond the dashboard's has an entry). Not while another call has the
+    /// entry in hand: copies are taken only under the map's lock, so the map's and `cell`'s
+    /// are the only ones when the count is two.
+    fn forget_if_empty(
+        &self,
+        lift: &str,
+        cell: &Arc<tokio::sync::Mutex<Holders>>,
+        holders: &Holders,
+    ) {
+        if holders.is_empty() {
+            let mut lifts = self.lifts.lock().unwrap_or_else(PoisonError::into_inner);
+            if Arc::strong_count(cell) == 2 {
+                lifts.remove(lift);
+            }
+        }
+    }
+
+    async fn send(&self, lift: &str, changes: Vec<Change>) -> Result<(), Failure> {
+        for change in changes {
+            match change {
+                Change::Register(objects, terms) => self.register(lift, &objects, terms).await?,
+                Change::Unregister(objects) => {
+                    let params = UnregParams {
+                        mplex: objects.into_iter().map(Into::into).collect(),
+                        node: None,
+                    };
+                    self.registry.call(lift, &params).await?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    async fn register(&self, lift: &str, objects: &[Mplex], terms: Terms) -> Result<(), Failure> {
+        let params = RegParams {
+            mplex: objects.iter().map(|m| (*m).into()).collect(),
+            inhibit: terms.inhibit,
+            threshold: terms.threshold,
+            node: None,
+        };
+        self.registry.call(lift, &params).await.map(|_| ())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn m(index: u16, sub: u8) -> Mplex {
+        Mplex { index, sub }
+    }
+
+    fn terms(inhibit: u64, threshold: f64) -> Terms {
+        Terms { inhibit, threshold }
+    }
+
+    fn dashboard() -> Base {
+        [(m(0x6520, 1), terms(500, 0.0))].into_iter().collect()
+    }
+
+    #[test]
+    fn the_union_is_registered_and_released_holder_by_holder() {
+        let base = dashboard();
+        let mut h = Holders::default();
+        let (a, w) = (Holder::Account("masora".into()), Holder::Watcher(1));
+        let trips = m(0x6520, 1);
+        let speed = m(0x6383, 1);
+        // A watcher wants the trip counter faster than the dashboard, and the speed (changes
+        // come in the order of the objects).
+        assert_eq!(
+            h.add(&base, &w, &[trips, speed], terms(100, 0.5)),
+            [
+                Change::Register(vec![speed], terms(100, 0.5)),
+                Change::Register(vec![trips], terms(100, 0.0)),
+            ]
+        );
+        // An account asks for the speed more coarsely: nothing changes at the gateway.
+        assert_eq!(h.add(&base, &a, &[speed], terms(1000, 2.0)), []);
+        // The watcher ends: the trip counter goes back to the dashboard's terms, the speed to
+        // the account's; nothing is unregistered.
+        assert_eq!(
+            h.remove(&base, &w, None),
+            [
+                Change::Register(vec![speed], terms(1000, 2.0)),
+                Change::Register(vec![trips], terms(500, 0.0)),
+            ]
+        );
+        // The account lets go of the trip counter it never held, then of the speed.
+        assert_eq!(h.remove(&base, &a, Some(&[trips])), []);
+        assert_eq!(
+            h.remove(&base, &a, Some(&[speed])),
+            [Change::Unregister(vec![speed])]
+        );
+        assert!(h.is_empty());
+        // After a reconnect: the dashboard's objects.
+        assert_eq!(
+            h.all(&base),
+            [Change::Register(vec![trips], terms(500, 0.0))]
+        );
+    }
+
+    proptest! {
+        /// Whatever holders add and remove, replaying the changes on a model of the gateway
+        /// leaves it with exactly the union of what is held, as a reconnect would register it.
+        #[test]
+        fn the_gateway_always_has_the_union(
+            steps in proptest::collection::vec(
+                (0u64..3, proptest::collection::vec(0u8..4, 0..4), 0u64..3, 0u8..3, any::<bool>()),
+                0..40,
+            )
+        ) {
+            let base = dashboard();
+            let mut h = Holders::default();
+            let mut gateway: BTreeMap<Mplex, Terms> = BTreeMap::new();
+            let apply = |gateway: &mut BTreeMap<Mplex, Terms>, changes: Vec<Change>| {
+                for change in changes {
+                    match change {
+                        Change::Register(list, t) => {
+                            for mplex in list {
+                                gateway.insert(mplex, t);
+                            }
+                        }
+                        Change::Unregister(list) => {
+                            for mplex in list {
+                                gateway.remove(&mplex);
+                            }
+                        }
+                    }
+                }
+            };
+            apply(&mut gateway, h.all(&base));
+            for (who, subs, inhibit, threshold, add) in steps {
+                let holder = Holder::Watcher(who);
+                let objects: Vec<Mplex> = subs.iter().map(|s| m(0x6520, *s)).collect();
+                let changes = if add {
+                    h.add(&base, &holder, &objects, terms(inhibit * 100, f64::from(threshold)))
+                } else {
+                    h.remove(&base, &holder, (!objects.is_empty()).then_some(&objects[..]))
+                };
+                apply(&mut gateway, changes);
+                let mut fresh = BTreeMap::new();
+                apply(&mut fresh, h.all(&base));
+                prop_assert_eq!(&gateway, &fresh);
+            }
+        }
+    }
+}
