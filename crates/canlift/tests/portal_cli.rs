@@ -245,3 +245,82 @@ async fn token_rotate_and_reset() {
     );
     rig.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn users_and_keys_on_the_command_line() {
+    let rig = Rig::builder().start().await;
+    rig.online().await;
+    let config = rig.dir().join("cloud.toml");
+    let state = rig.dir().join("portal").display().to_string();
+    std::fs::write(&config, format!("[state]\ndir = {state:?}\n")).unwrap();
+    let config = config.display().to_string();
+    let admin = |args: &str| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_canlift"))
+            .arg("cloud")
+            .args(args.split_whitespace())
+            .args(["--config", &config])
+            .output()
+            .unwrap();
+        let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+        let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+        (out.status.success(), stdout, stderr)
+    };
+    let (ok, out, err) = admin("user add tess --account masora --role technician --json");
+    assert!(ok, "{err}");
+    let added: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(
+        (&added["user"], &added["account"], &added["role"]),
+        (&"tess".into(), &"masora".into(), &"technician".into())
+    );
+    assert!(added["secret"].as_str().unwrap().starts_with("cls_"));
+    let (ok, _, err) = admin("user add tess --account masora --role viewer");
+    assert!(!ok && err.contains("taken"), "{err}");
+    let (ok, _, err) = admin("user add x --account masora --role boss");
+    assert!(!ok && err.contains("no role"), "{err}");
+
+    let (ok, out, err) = admin("key add --account masora --user tess --expires 90d --json");
+    assert!(ok, "{err}");
+    let key: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let (api_key, id) = (
+        key["api_key"].as_str().unwrap(),
+        key["id"].as_str().unwrap(),
+    );
+    let lifts = |key: &str| {
+        let mut cmd = common::canlift();
+        cmd.env("CANLIFT_PORTAL", rig.url())
+            .env("CANLIFT_API_KEY", key)
+            .env("CANLIFT_CA", &rig.ca)
+            .args(["lifts", "--json"]);
+        cmd
+    };
+    assert!(lifts(api_key).output().await.unwrap().status.success());
+    let (ok, out, _) = admin("user list --account masora");
+    assert!(ok && out.contains("tess") && out.contains("technician") && out.contains("enabled"));
+    let (ok, out, _) = admin("key list --account masora");
+    assert!(ok && out.contains(id) && out.contains("valid"), "{out}");
+
+    // Revoked: refused by the running portal within a second or two.
+    let (ok, _, err) = admin(&format!("key revoke {id} --account masora"));
+    assert!(ok, "{err}");
+    testkit::portal::until(
+        Duration::from_secs(5),
+        "the revoked key refused",
+        || async {
+            let out = lifts(api_key).output().await.unwrap();
+            !out.status.success() && String::from_utf8_lossy(&out.stderr).contains("401")
+        },
+    )
+    .await;
+    let (ok, out, _) = admin("user reset tess --account masora --json");
+    assert!(ok && out.contains("cls_"), "{out}");
+    let (ok, _, _) = admin("user role tess --account masora --role engineer");
+    assert!(ok);
+    let (ok, _, _) = admin("user disable tess --account masora");
+    assert!(ok);
+    let (ok, out, _) = admin("user list --account masora --json");
+    assert!(ok);
+    let users: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(users[0]["role"], "engineer");
+    assert_eq!(users[0]["disabled"], true);
+    rig.stop().await;
+}

@@ -1,6 +1,7 @@
 //! The cloud portal: the server side of the NXg CANopen-Lift Connector — the gateways'
 //! connections and registry ([`gateways`]), bus events and alarms with their webhooks
-//! ([`alarms`]), the store ([`store`]), the operator REST API
+//! ([`alarms`]), the store ([`store`]) with users and roles, who elevated which lift
+//! ([`elevation`]), the operator REST API
 //! ([`api`], its bodies in [`rest`]) with its client ([`client`]), the web UI ([`web`]) and
 //! the one TLS port serving them all ([`server`]).
 
@@ -11,6 +12,7 @@ pub mod api;
 pub mod client;
 pub mod config;
 pub mod devpki;
+pub mod elevation;
 pub mod gateways;
 pub mod rest;
 pub mod server;

@@ -143,6 +143,12 @@ impl Portal {
             )),
         ];
         let alarms = start_alarms(config, &store, &registry, &mut tasks)?;
+        // Rights taken away anywhere reach this process within a second.
+        tasks.push(tokio::spawn(
+            store
+                .clone()
+                .follow_auth_epoch(std::time::Duration::from_secs(1)),
+        ));
         let (closing, closing_rx) = watch::channel(false);
         let metrics = Arc::new(Metrics::default());
         let ws_state = Arc::new(WsState {
@@ -186,6 +192,7 @@ impl Portal {
                     sessions: crate::web::Sessions::default(),
                     dashboard,
                     subscriptions,
+                    elevations: crate::elevation::Elevations::default(),
                     alarms,
                     names: Arc::new(names),
                 });

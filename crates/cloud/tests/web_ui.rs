@@ -1,7 +1,8 @@
 //! The web UI in headless Chromium (Debian's `chromium`, driven through ChromeDriver by
 //! WebDriver): sign in, fleet, a lift page whose values move by themselves, a put through the
 //! edit dialog that makes the car travel, a put that needs service rights and gets them by
-//! elevation, the history chart, the audit log, CSRF protection and signing out.
+//! elevation, the history chart, the audit log, CSRF protection and signing out; users signing
+//! in with their secret and seeing what their role may do.
 
 use std::future::Future;
 use std::process::Stdio;
@@ -187,6 +188,33 @@ fn has_phrase(text: &str, phrase: &str) -> bool {
     })
 }
 
+/// Open the edit dialog of `mplex`'s row.
+async fn open_editor(client: &Client, mplex: &str) {
+    let button = format!("table.objects tr[data-mplex=\"{mplex}\"] button.edit");
+    click(client, &button).await;
+    until("dialog open", 5, || async {
+        dialog_open(client).await.then_some(())
+    })
+    .await;
+}
+
+/// In the open edit dialog, enter `value` and the lift's `password`, save, and wait until the
+/// dialog closed (the elevation and the put done).
+async fn save_with_password(client: &Client, value: &str, password: &str) {
+    let input = client
+        .find(Locator::Css("dialog#edit [name=value]"))
+        .await
+        .unwrap();
+    input.clear().await.unwrap();
+    input.send_keys(value).await.unwrap();
+    type_into(client, "dialog#edit [name=password]", password).await;
+    click(client, "dialog#edit button.save").await;
+    until("the dialog closes after elevation and put", 10, || async {
+        (!dialog_open(client).await).then_some(())
+    })
+    .await;
+}
+
 async fn dialog_open(client: &Client) -> bool {
     eval(client, "return document.getElementById('edit').open;").await == json!(true)
 }
@@ -210,7 +238,7 @@ async fn operator_uses_the_web_ui() {
     assert_sign_in_asked(&client, &format!("{base}/lifts/{LIFT}")).await;
     sign_in(&client, "clk_wrong").await;
     let refused = until("refusal shown", 10, || text_of(&client, "p.error")).await;
-    assert_eq!(refused, "Unknown API key.");
+    assert_eq!(refused, "Wrong user name, secret or API key.");
 
     // Sign in: the fleet shows the lift in service, with no fault.
     sign_in(&client, &rig.key).await;
@@ -363,15 +391,7 @@ async fn operator_uses_the_web_ui() {
     // Door open time needs service rights: the dialog asks for the lift's service password
     // before the first save, elevation grants the rights, the page counts them down.
     let elevate_hidden = "return document.querySelector('dialog#edit fieldset.elevate').hidden;";
-    click(
-        &client,
-        "table.objects tr[data-mplex=\"0x411300\"] button.edit",
-    )
-    .await;
-    until("dialog open", 5, || async {
-        dialog_open(&client).await.then_some(())
-    })
-    .await;
+    open_editor(&client, "0x411300").await;
     assert_eq!(eval(&client, elevate_hidden).await, json!(false));
     let why = text_of(&client, "dialog#edit .why")
         .await
@@ -380,18 +400,7 @@ async fn operator_uses_the_web_ui() {
         why.contains("service rights") && why.contains("service password"),
         "{why}"
     );
-    let input = client
-        .find(Locator::Css("dialog#edit [name=value]"))
-        .await
-        .unwrap();
-    input.clear().await.unwrap();
-    input.send_keys("7").await.unwrap();
-    type_into(&client, "dialog#edit [name=password]", SERVICE_PASSWORD).await;
-    click(&client, "dialog#edit button.save").await;
-    until("dialog closed after elevation and put", 10, || async {
-        (!dialog_open(&client).await).then_some(())
-    })
-    .await;
+    save_with_password(&client, "7", SERVICE_PASSWORD).await;
     assert_eq!(
         text_of(&client, "tr[data-mplex=\"0x411300\"] .v")
             .await
@@ -838,15 +847,11 @@ async fn operator_uses_the_web_ui() {
     rig.stop().await;
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_fault_reaches_the_fleet_page_and_is_acknowledged() {
-    let Some((chromium, chromedriver_path)) = testkit::browser() else {
-        return;
-    };
-    // A gateway that speaks api 2: the portal registers its bus events.
+/// The lift with a gateway that speaks api 2 (the portal registers its bus events) and a drive
+/// fault injected in the simulator (5030h bit 2, setup rights): an active alarm.
+async fn with_a_drive_fault() -> Rig {
     let rig = Rig::builder().gateway(|g| g.identity.api = 2).start().await;
     rig.online().await;
-    // A drive fault injected in the simulated lift (5030h bit 2, setup rights).
     let privilege = json!({"privilege": 2, "password": testkit::constants::SETUP_PASSWORD});
     let path = format!("/api/v1/lifts/{LIFT}/privilege");
     let (status, answer) = rig
@@ -857,6 +862,15 @@ async fn a_fault_reaches_the_fleet_page_and_is_acknowledged() {
     let path = format!("/api/v1/lifts/{LIFT}/objects/0x503000");
     let (status, answer) = rig.call("PUT", &path, Some(&rig.key), Some(fault)).await;
     assert_eq!(status, 200, "{answer}");
+    rig
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fault_reaches_the_fleet_page_and_is_acknowledged() {
+    let Some((chromium, chromedriver_path)) = testkit::browser() else {
+        return;
+    };
+    let rig = with_a_drive_fault().await;
 
     let driver = chromedriver(&chromedriver_path).await;
     let profile = rig.dir().join("chromium-profile");
@@ -897,5 +911,97 @@ async fn a_fault_reaches_the_fleet_page_and_is_acknowledged() {
     assert!(log.contains("0xF001"), "{log}");
     client.close().await.unwrap();
     drop(driver);
+    rig.stop().await;
+}
+
+/// Sign in with a user's name and secret.
+async fn sign_in_as(client: &Client, user: &str, secret: &str) {
+    type_into(client, "input[name=user]", user).await;
+    type_into(client, "input[name=secret]", secret).await;
+    click(client, "form.login button").await;
+}
+
+/// How many elements match `css`.
+async fn count(client: &Client, css: &str) -> u64 {
+    let script = format!("return document.querySelectorAll({}).length;", json!(css));
+    eval(client, &script).await.as_u64().unwrap_or(0)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn each_role_sees_what_it_may_do() {
+    let Some((chromium, chromedriver_path)) = testkit::browser() else {
+        return;
+    };
+    // An alarm to acknowledge (or not).
+    let rig = with_a_drive_fault().await;
+    let store = rig.store().await;
+    let viewer = store
+        .add_user("masora", "vera", cloud::store::Role::Viewer)
+        .await
+        .unwrap();
+    let engineer = store
+        .add_user("masora", "enzo", cloud::store::Role::Engineer)
+        .await
+        .unwrap();
+
+    let driver = chromedriver(&chromedriver_path).await;
+    let profile = rig.dir().join("chromium-profile");
+    let client = browser(&driver, &chromium, &profile).await;
+    let base = rig.url();
+    let lift_page = format!("{base}/lifts/{LIFT}");
+
+    // The viewer reads everything and is offered nothing to change.
+    client.goto(&lift_page).await.unwrap();
+    sign_in_as(&client, "vera", "cls_wrong").await;
+    let refused = until("refusal shown", 10, || text_of(&client, "p.error")).await;
+    assert_eq!(refused, "Wrong user name, secret or API key.");
+    screenshot(&client, "sign-in").await;
+    sign_in_as(&client, "vera", &viewer).await;
+    until("the fleet", 10, || text_of(&client, "table.fleet")).await;
+    assert_eq!(
+        text_of(&client, "span.who").await.as_deref(),
+        Some("vera · viewer")
+    );
+    client.goto(&lift_page).await.unwrap();
+    until("the alarm on the lift page", 30, || async {
+        client.refresh().await.ok()?;
+        text_of(&client, "section#alarms table.alarms").await
+    })
+    .await;
+    until("the parameters", 10, || text_of(&client, "table.objects")).await;
+    assert_eq!(count(&client, "button.edit").await, 0, "no edit button");
+    assert_eq!(count(&client, "section.call").await, 0, "no call buttons");
+    assert_eq!(count(&client, "form.ack").await, 0, "no acknowledge form");
+    screenshot(&client, "lift-viewer").await;
+
+    // Disabled: the next page asks for a sign-in again.
+    store.disable_user("masora", "vera").await.unwrap();
+    until("the disabled viewer signed out", 10, || async {
+        client.goto(&lift_page).await.ok()?;
+        let at = client.current_url().await.ok()?;
+        at.path().ends_with("/login").then_some(())
+    })
+    .await;
+
+    // The engineer is offered edits, elevates in the dialog and writes.
+    sign_in_as(&client, "enzo", &engineer).await;
+    until("the fleet", 10, || text_of(&client, "table.fleet")).await;
+    client.goto(&lift_page).await.unwrap();
+    until("the parameters", 10, || text_of(&client, "table.objects")).await;
+    assert!(count(&client, "button.edit").await > 0);
+    assert_eq!(count(&client, "section.call").await, 1);
+    assert_eq!(count(&client, "form.ack").await, 1);
+    open_editor(&client, "0x411300").await;
+    save_with_password(&client, "7", SERVICE_PASSWORD).await;
+    let (_, audit) = rig.call("GET", "/api/v1/audit", Some(&rig.key), None).await;
+    let by_enzo: Vec<&str> = audit
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e["account"] == "enzo")
+        .map(|e| e["action"].as_str().unwrap_or_default())
+        .collect();
+    assert_eq!(by_enzo, ["put", "elevate"], "{audit}");
+    client.close().await.unwrap();
     rig.stop().await;
 }

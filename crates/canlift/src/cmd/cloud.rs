@@ -1,13 +1,15 @@
 //! `canlift cloud --config FILE`: the cloud portal (docs/PORTAL.md); `canlift cloud account add` creates
 //! an operator account and prints its API key once; `canlift cloud token reset LIFT` forgets a
-//! lift's cloud token in the portal's database (the administrator's way, no API key needed).
+//! lift's cloud token in the portal's database; `user` and `key` manage an account's people and
+//! their API keys (docs/PORTAL.md §Users and roles). These are the administrator's commands on
+//! the portal's machine: they need the configuration, not an API key.
 
 use std::path::PathBuf;
 
 use anyhow::Context;
 use cloud::config::Config;
 use cloud::server::Portal;
-use cloud::store::Store;
+use cloud::store::{Role, Store};
 
 /// Command-line arguments of `canlift cloud`.
 #[derive(Debug, clap::Args)]
@@ -34,6 +36,109 @@ enum CloudCommand {
         #[command(subcommand)]
         what: TokenCommand,
     },
+    /// People of an account, with their roles (viewer, technician, engineer, admin).
+    User {
+        #[command(subcommand)]
+        what: UserCommand,
+    },
+    /// API keys of users.
+    Key {
+        #[command(subcommand)]
+        what: KeyCommand,
+    },
+}
+
+#[derive(Debug, clap::Subcommand)]
+enum UserCommand {
+    /// Add a user; prints its sign-in secret once.
+    Add {
+        /// User name (unique on the portal).
+        name: String,
+        #[arg(long)]
+        account: String,
+        #[arg(long)]
+        role: Role,
+        /// Print `{"user": …, "account": …, "role": …, "secret": …}`.
+        #[arg(long)]
+        json: bool,
+    },
+    /// The account's users.
+    List(Listing),
+    /// Disable a user: its keys and sessions stop working within a second.
+    Disable {
+        name: String,
+        #[arg(long)]
+        account: String,
+    },
+    /// A new sign-in secret for a user (printed once); the old one stops working.
+    Reset {
+        name: String,
+        #[arg(long)]
+        account: String,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Give a user another role.
+    Role {
+        name: String,
+        #[arg(long)]
+        account: String,
+        #[arg(long)]
+        role: Role,
+    },
+}
+
+#[derive(Debug, clap::Subcommand)]
+enum KeyCommand {
+    /// A new API key acting for a user with its role; printed once.
+    Add {
+        #[arg(long)]
+        account: String,
+        #[arg(long)]
+        user: String,
+        /// How long it works: `90d`, `12h` (default: until revoked).
+        #[arg(long, value_parser = parse_lifetime)]
+        expires: Option<std::time::Duration>,
+        /// Print `{"api_key": …, "id": …}`.
+        #[arg(long)]
+        json: bool,
+    },
+    /// The account's users' keys (never the keys themselves).
+    List(Listing),
+    /// Revoke a key by its id: it stops working within a second.
+    Revoke {
+        id: String,
+        #[arg(long)]
+        account: String,
+    },
+}
+
+/// What a `list` command lists, and how.
+#[derive(Debug, clap::Args)]
+struct Listing {
+    #[arg(long)]
+    account: String,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+/// `90d` or `12h`.
+fn parse_lifetime(text: &str) -> Result<std::time::Duration, String> {
+    let bad = || format!("{text:?}: a number of days or hours, like 90d or 12h");
+    let Some((at, unit)) = text.char_indices().last() else {
+        return Err(bad());
+    };
+    let n: u64 = text[..at].parse().map_err(|_| bad())?;
+    let seconds = match unit {
+        'd' => n.checked_mul(86_400),
+        'h' => n.checked_mul(3_600),
+        _ => None,
+    };
+    seconds
+        .filter(|s| *s > 0)
+        .map(std::time::Duration::from_secs)
+        .ok_or_else(bad)
 }
 
 #[derive(Debug, clap::Subcommand)]
@@ -74,9 +179,7 @@ pub async fn run(args: CloudArgs) -> anyhow::Result<()> {
         Some(CloudCommand::Account {
             what: AccountCommand::Add { name, domain, json },
         }) => {
-            std::fs::create_dir_all(&config.state.dir)
-                .with_context(|| format!("creating {}", config.state.dir.display()))?;
-            let store = Store::open(&config.database_url()).await?;
+            let store = store(&config).await?;
             let key = store.add_account(&name, &domain).await.with_context(|| {
                 format!("adding account {name:?} (names and domains are unique)")
             })?;
@@ -90,7 +193,7 @@ pub async fn run(args: CloudArgs) -> anyhow::Result<()> {
         Some(CloudCommand::Token {
             what: TokenCommand::Reset { lift },
         }) => {
-            let store = Store::open(&config.database_url()).await?;
+            let store = store(&config).await?;
             let domain = store
                 .domain_of(&lift)
                 .await?
@@ -101,6 +204,8 @@ pub async fn run(args: CloudArgs) -> anyhow::Result<()> {
             println!("{lift}: token forgotten; the gateway's next connection is a first contact");
             Ok(())
         }
+        Some(CloudCommand::User { what }) => users(&config, what).await,
+        Some(CloudCommand::Key { what }) => keys(&config, what).await,
         None => {
             let portal = Portal::bind(&config, lift417::catalog::Catalog::builtin().names())
                 .await
@@ -112,6 +217,144 @@ pub async fn run(args: CloudArgs) -> anyhow::Result<()> {
             let _ = stop.send(true);
             let _ = task.await;
             Ok(())
+        }
+    }
+}
+
+/// The portal's database, opened by an administrator's command.
+async fn store(config: &Config) -> anyhow::Result<Store> {
+    std::fs::create_dir_all(&config.state.dir)
+        .with_context(|| format!("creating {}", config.state.dir.display()))?;
+    Ok(Store::open(&config.database_url()).await?)
+}
+
+/// `canlift cloud user …`.
+async fn users(config: &Config, what: UserCommand) -> anyhow::Result<()> {
+    let store = store(config).await?;
+    match what {
+        UserCommand::Add {
+            name,
+            account,
+            role,
+            json,
+        } => {
+            let secret = store.add_user(&account, &name, role).await?;
+            print_secret(json, &name, &account, role, &secret);
+        }
+        UserCommand::List(Listing { account, json }) => {
+            let users = store.users(&account).await?;
+            if json {
+                println!("{}", serde_json::to_string(&users)?);
+            } else {
+                println!("{:<24} {:<12} STATE", "USER", "ROLE");
+                for u in users {
+                    let state = if u.disabled { "disabled" } else { "enabled" };
+                    println!("{:<24} {:<12} {state}", u.name, u.role.name());
+                }
+            }
+        }
+        UserCommand::Disable { name, account } => {
+            store.disable_user(&account, &name).await?;
+            println!("user {name} disabled: its keys and sessions no longer work");
+        }
+        UserCommand::Reset {
+            name,
+            account,
+            json,
+        } => {
+            let secret = store.reset_user(&account, &name).await?;
+            let role = store
+                .users(&account)
+                .await?
+                .into_iter()
+                .find(|u| u.name == name)
+                .map_or(Role::Viewer, |u| u.role);
+            print_secret(json, &name, &account, role, &secret);
+        }
+        UserCommand::Role {
+            name,
+            account,
+            role,
+        } => {
+            store.set_role(&account, &name, role).await?;
+            println!("user {name} is now {role}");
+        }
+    }
+    Ok(())
+}
+
+fn print_secret(json: bool, name: &str, account: &str, role: Role, secret: &str) {
+    if json {
+        let line =
+            serde_json::json!({"user": name, "account": account, "role": role, "secret": secret});
+        println!("{line}");
+    } else {
+        println!(
+            "user {name} of account {account}, {role}\nsign-in secret (shown only now): {secret}"
+        );
+    }
+}
+
+/// `canlift cloud key …`.
+async fn keys(config: &Config, what: KeyCommand) -> anyhow::Result<()> {
+    let store = store(config).await?;
+    match what {
+        KeyCommand::Add {
+            account,
+            user,
+            expires,
+            json,
+        } => {
+            let until = expires.map(|d| {
+                cloud::store::now_ms()
+                    .saturating_add(i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
+            });
+            let (id, key) = store.add_key(&account, &user, until).await?;
+            if json {
+                println!("{}", serde_json::json!({"api_key": key, "id": id}));
+            } else {
+                println!(
+                    "key {id} for {user} of account {account}\nAPI key (shown only now): {key}"
+                );
+            }
+        }
+        KeyCommand::List(Listing { account, json }) => {
+            let keys = store.keys(&account).await?;
+            if json {
+                println!("{}", serde_json::to_string(&keys)?);
+            } else {
+                println!("{:<14} {:<24} {:<10} EXPIRES (ms)", "ID", "USER", "STATE");
+                for k in keys {
+                    let state = if k.revoked { "revoked" } else { "valid" };
+                    let expires = k.expires.map_or("never".to_owned(), |e| e.to_string());
+                    println!("{:<14} {:<24} {:<10} {expires}", k.id, k.user, state);
+                }
+            }
+        }
+        KeyCommand::Revoke { id, account } => {
+            store.revoke_key(&account, &id).await?;
+            println!("key {id} revoked");
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lifetimes() {
+        assert_eq!(
+            parse_lifetime("90d"),
+            Ok(std::time::Duration::from_secs(90 * 86_400))
+        );
+        assert_eq!(
+            parse_lifetime("12h"),
+            Ok(std::time::Duration::from_secs(12 * 3_600))
+        );
+        for bad in ["", "d", "0d", "90", "90ä", "-1d", "99999999999999999d"] {
+            assert!(parse_lifetime(bad).is_err(), "{bad:?}");
         }
     }
 }

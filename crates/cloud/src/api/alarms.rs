@@ -1,5 +1,6 @@
 //! The alarm and event-log operations of the REST API (docs/PORTAL.md §Alarms): an account
-//! sees the alarms and events of its own lifts only (404 for any other).
+//! sees the alarms and events of its own lifts only (404 for any other); a viewer reads them, a
+//! technician also acknowledges.
 
 use std::sync::Arc;
 
@@ -7,24 +8,25 @@ use axum::extract::{Path, State};
 use axum::http::StatusCode;
 use axum::Json;
 
-use super::{error, lift_of, ApiError, ApiJson, ApiQuery, App, Caller};
+use super::{allowed, error, lift_of, ApiError, ApiJson, ApiQuery, App, Caller};
 use crate::alarms::service::AckError;
 use crate::alarms::Alarm;
 use crate::rest::{AckBody, AlarmList, AlarmState, AlarmsQuery, EventLog, EventLogQuery};
-use crate::store::AlarmFilter;
+use crate::store::{AlarmFilter, Role};
 
 /// `GET /api/v1/alarms`.
 pub(super) async fn list(
     State(app): State<Arc<App>>,
-    Caller(account): Caller,
+    caller: Caller,
     ApiQuery(q): ApiQuery<AlarmsQuery>,
 ) -> Result<Json<AlarmList>, ApiError> {
+    let operator = allowed(caller, Role::Viewer)?;
     let filter = AlarmFilter {
         active: q.state.unwrap_or_default() == AlarmState::Active,
         lift: q.lift,
         limit: q.limit.unwrap_or(500),
     };
-    let alarms = app.store.alarms(&account.domain, &filter).await?;
+    let alarms = app.store.alarms(&operator.account.domain, &filter).await?;
     Ok(Json(AlarmList { alarms }))
 }
 
@@ -32,10 +34,11 @@ pub(super) async fn list(
 /// before.
 pub(super) async fn acknowledge(
     State(app): State<Arc<App>>,
-    Caller(account): Caller,
+    caller: Caller,
     Path(id): Path<String>,
     ApiJson(body): ApiJson<AckBody>,
 ) -> Result<Json<Alarm>, ApiError> {
+    let operator = allowed(caller, Role::Technician)?;
     let Ok(id) = id.parse::<i64>() else {
         return Err(error(StatusCode::NOT_FOUND, "no such alarm"));
     };
@@ -47,7 +50,7 @@ pub(super) async fn acknowledge(
     }
     match app
         .alarms
-        .acknowledge(&account.domain, id, &account.name, &body.comment)
+        .acknowledge(&operator.account.domain, id, &operator.user, &body.comment)
         .await
     {
         Ok(alarm) => Ok(Json(alarm)),
@@ -70,7 +73,7 @@ pub(super) async fn event_log(
     Path(id): Path<String>,
     ApiQuery(q): ApiQuery<EventLogQuery>,
 ) -> Result<Json<EventLog>, ApiError> {
-    lift_of(&app, caller, &id).await?;
+    lift_of(&app, caller, &id, Role::Viewer).await?;
     let since = match q.since.as_deref() {
         None => None,
         Some(text) => Some(

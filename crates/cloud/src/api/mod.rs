@@ -34,7 +34,7 @@ use crate::rest::{
     EventsQuery, Form, GetQuery, History, HistoryPoint, HistoryQuery, LiftSummary, NameQuery,
     PrivilegeBody, PutBody, SubscriptionBody,
 };
-use crate::store::{self, Account, AuditEntry, Store};
+use crate::store::{self, AuditEntry, Operator, Role, Store};
 use crate::web::Sessions;
 
 /// What the handlers share.
@@ -49,6 +49,8 @@ pub struct App {
     pub dashboard: Arc<Dashboard>,
     /// Who holds which subscriptions.
     pub subscriptions: Arc<crate::gateways::subscriptions::Subscriptions>,
+    /// Who elevated which lift.
+    pub elevations: crate::elevation::Elevations,
     /// Alarms.
     pub alarms: Arc<crate::alarms::Alarms>,
     /// Object names operators may use instead of an mplex (`?name=`, path, web forms).
@@ -147,10 +149,10 @@ impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for ApiJson<T> {
     }
 }
 
-/// The account a request acts for: `Authorization: Bearer API_KEY`, or the web UI's session
+/// The operator a request acts for: `Authorization: Bearer API_KEY`, or the web UI's session
 /// cookie. A cookie alone never authorises a change: requests other than GET must also carry
 /// the session's `X-CSRF-Token`, which another site cannot read.
-pub struct Caller(pub Account);
+pub struct Caller(pub Operator);
 
 impl FromRequestParts<Arc<App>> for Caller {
     type Rejection = ApiError;
@@ -160,12 +162,12 @@ impl FromRequestParts<Arc<App>> for Caller {
         if let Some(key) = header("authorization").and_then(|v| v.strip_prefix("Bearer ")) {
             return app
                 .store
-                .account_by_key(key.trim())
+                .operator_by_key(key.trim())
                 .await?
                 .map(Caller)
                 .ok_or_else(|| error(StatusCode::UNAUTHORIZED, "unknown API key"));
         }
-        let Some(session) = app.sessions.get(&parts.headers) else {
+        let Some(session) = app.sessions.current(&parts.headers, &app.store).await? else {
             return Err(error(
                 StatusCode::UNAUTHORIZED,
                 "Authorization: Bearer API_KEY is required",
@@ -178,21 +180,48 @@ impl FromRequestParts<Arc<App>> for Caller {
                 "X-CSRF-Token missing or wrong",
             ));
         }
-        Ok(Caller(session.account))
+        Ok(Caller(session.operator))
     }
 }
 
-/// The caller's account, if the lift is one of the account's (404 otherwise).
-async fn lift_of(app: &App, caller: Caller, id: &str) -> Result<Account, ApiError> {
-    let account = caller.0;
+/// The caller, if its role includes `role` (403 otherwise) and the lift is one of its
+/// account's (404 otherwise).
+async fn lift_of(app: &App, caller: Caller, id: &str, role: Role) -> Result<Operator, ApiError> {
+    let operator = allowed(caller, role)?;
     // A connected lift's domain is known without the database (and without a query per request).
-    if app.registry.serves(&account.domain, id) {
-        return Ok(account);
+    if app.registry.serves(&operator.account.domain, id) {
+        return Ok(operator);
     }
-    if app.store.lift(&account.domain, id).await?.is_none() {
+    if app
+        .store
+        .lift(&operator.account.domain, id)
+        .await?
+        .is_none()
+    {
         return Err(error(StatusCode::NOT_FOUND, "no such lift"));
     }
-    Ok(account)
+    Ok(operator)
+}
+
+/// The caller, if its role includes `role` (docs/PORTAL.md §Users and roles); 403 otherwise.
+pub(crate) fn allowed(caller: Caller, role: Role) -> Result<Operator, ApiError> {
+    let operator = caller.0;
+    if operator.may(role) {
+        return Ok(operator);
+    }
+    Err(error(
+        StatusCode::FORBIDDEN,
+        format!(
+            "{} is {} {}; this needs the role {role}",
+            operator.user,
+            if operator.role == Role::Admin {
+                "an"
+            } else {
+                "a"
+            },
+            operator.role
+        ),
+    ))
 }
 
 /// The object of a path or `?name=`: an mplex as the gateway spells it is passed on as written
@@ -224,11 +253,12 @@ fn node(node: Option<u8>, net: Option<u8>) -> Result<Option<NodeRef>, ApiError> 
 
 async fn lifts(
     State(app): State<Arc<App>>,
-    Caller(account): Caller,
+    caller: Caller,
 ) -> Result<Json<Vec<LiftSummary>>, ApiError> {
+    let operator = allowed(caller, Role::Viewer)?;
     let lifts = app
         .store
-        .lifts(&account.domain)
+        .lifts(&operator.account.domain)
         .await?
         .into_iter()
         .map(|record| LiftSummary {
@@ -259,7 +289,7 @@ async fn get_object(
     Path((id, text)): Path<(String, String)>,
     ApiQuery(q): ApiQuery<GetQuery>,
 ) -> Result<Json<ObjectAnswer>, ApiError> {
-    lift_of(&app, caller, &id).await?;
+    lift_of(&app, caller, &id, Role::Viewer).await?;
     let lang = Lang::new(
         q.lang.as_deref().unwrap_or("en"),
         q.alt_lang.as_deref().unwrap_or("en"),
@@ -279,23 +309,39 @@ async fn put_object(
     Path((id, text)): Path<(String, String)>,
     ApiJson(body): ApiJson<PutBody>,
 ) -> Result<Json<PutAnswer>, ApiError> {
-    let account = lift_of(&app, caller, &id).await?;
+    let operator = lift_of(&app, caller, &id, Role::Technician).await?;
     let object = mplex(&app.names, &text)?;
     let sernum = app.registry.sernum(&id).ok_or(Failure::Gone)?;
     let node = node(body.node, body.net)?;
-    // The value before, for the audit log (best effort: a write-only object has none).
-    let mut read = read_params(object.clone(), Lang::default(), Form::Naked);
+    // The value before, for the audit log, and the privilege writing needs (best effort: a
+    // write-only object has no value, an object without metadata no privilege).
+    let mut read = read_params(object.clone(), Lang::default(), Form::Stripped);
     read.lang = None;
     read.node = node.map(|n| NodeRef {
         datatype: Some(body.datatype),
         ..n
     });
-    let old = app
-        .registry
-        .call(&id, &read)
-        .await
-        .ok()
-        .and_then(|a| a.object.value.into_iter().next());
+    let before = app.registry.call(&id, &read).await.ok();
+    let old = before
+        .as_ref()
+        .and_then(|a| a.object.value.first().cloned());
+    let mut entry = AuditEntry {
+        at: store::now_ms(),
+        account: operator.user.clone(),
+        lift: id.clone(),
+        action: "put".into(),
+        object: object.text.clone(),
+        old_value: old,
+        new_value: body.value.clone(),
+        result: String::new(),
+    };
+    // Unknown: as if it needed a privilege, so only the one who elevated may try.
+    let needed = before.map_or(Some(1), |a| a.object.privilege).unwrap_or(1);
+    if let Err(refused) = may_write(&app, &operator, &id, needed) {
+        entry.result = format!("refused: {}", refused.1.message);
+        app.store.audit(&entry).await?;
+        return Err(refused);
+    }
     let params = PutParams {
         sernum,
         lang: None,
@@ -304,22 +350,40 @@ async fn put_object(
             mplex: object,
             datatype: body.datatype,
             physunit: body.physunit,
-            value: body.value.clone(),
+            value: body.value,
         },
     };
     let result = app.registry.call(&id, &params).await;
-    let entry = AuditEntry {
-        at: store::now_ms(),
-        account: account.name,
-        lift: id,
-        action: "put".into(),
-        object: params.object.mplex.text.clone(),
-        old_value: old,
-        new_value: body.value,
-        result: outcome(&result),
-    };
+    entry.result = outcome(&result);
     app.store.audit(&entry).await?;
     Ok(Json(result?))
+}
+
+/// Whether `operator` may write an object of `lift` that needs privilege `needed`: above 0
+/// only an engineer, and only the one who elevated the lift's connection (docs/PORTAL.md
+/// §Users and roles).
+fn may_write(app: &App, operator: &Operator, lift: &str, needed: u32) -> Result<(), ApiError> {
+    if needed == 0 {
+        return Ok(());
+    }
+    if !operator.may(Role::Engineer) {
+        return Err(error(
+            StatusCode::FORBIDDEN,
+            format!(
+                "this object needs privilege {needed}: writing it needs the role engineer (who elevates first)"
+            ),
+        ));
+    }
+    let connection = app.registry.connection(lift);
+    app.elevations
+        .check(
+            lift,
+            &operator.user,
+            needed,
+            connection,
+            std::time::Instant::now(),
+        )
+        .map_err(|r| error(StatusCode::FORBIDDEN, r.to_string()))
 }
 
 /// The name of `…/objects?name=NAME`.
@@ -370,8 +434,9 @@ async fn privilege(
     Path(id): Path<String>,
     ApiJson(body): ApiJson<PrivilegeBody>,
 ) -> Result<Json<ElevateAnswer>, ApiError> {
-    let account = lift_of(&app, caller, &id).await?;
+    let operator = lift_of(&app, caller, &id, Role::Engineer).await?;
     let sernum = app.registry.sernum(&id).ok_or(Failure::Gone)?;
+    let connection = app.registry.connection(&id).ok_or(Failure::Gone)?;
     // NXg §6.4: the gateway compares the unsalted SHA-1; the password itself is never stored.
     let params = ElevateParams {
         sernum,
@@ -379,9 +444,19 @@ async fn privilege(
         passhash: store::passhash(&body.password),
     };
     let result = app.registry.call(&id, &params).await;
+    if let Ok(answer) = &result {
+        app.elevations.granted(
+            &id,
+            &operator.user,
+            params.privilege,
+            std::time::Duration::from_secs(answer.duration),
+            connection,
+            std::time::Instant::now(),
+        );
+    }
     let entry = AuditEntry {
         at: store::now_ms(),
-        account: account.name,
+        account: operator.user,
         lift: id,
         action: "elevate".into(),
         object: "privilege".into(),
@@ -404,11 +479,11 @@ async fn token(
     caller: Caller,
     Path(id): Path<String>,
 ) -> Result<StatusCode, ApiError> {
-    let account = lift_of(&app, caller, &id).await?;
+    let operator = lift_of(&app, caller, &id, Role::Admin).await?;
     if method == Method::DELETE {
         return if app
             .store
-            .reset_token(&account.domain, &id, &account.name)
+            .reset_token(&operator.account.domain, &id, &operator.user)
             .await?
         {
             Ok(StatusCode::NO_CONTENT)
@@ -429,7 +504,7 @@ async fn token(
     }
     let entry = AuditEntry {
         at: store::now_ms(),
-        account: account.name,
+        account: operator.user,
         lift: id,
         action: "token rotated".into(),
         object: "cloud token".into(),
@@ -442,7 +517,7 @@ async fn token(
     Ok(StatusCode::NO_CONTENT)
 }
 
-/// The account holds (POST) or lets go of (DELETE) subscriptions of objects; the gateway is
+/// The user holds (POST) or lets go of (DELETE) subscriptions of objects; the gateway is
 /// asked for the union of what everyone holds on the lift (docs/PORTAL.md §Subscriptions), so
 /// one holder's terms or `DELETE` never change another's pushes.
 async fn subscriptions(
@@ -452,9 +527,9 @@ async fn subscriptions(
     Path(id): Path<String>,
     ApiJson(body): ApiJson<SubscriptionBody>,
 ) -> Result<Json<Done>, ApiError> {
-    let account = lift_of(&app, caller, &id).await?;
+    let operator = lift_of(&app, caller, &id, Role::Technician).await?;
     let objects = objects(&app.names, &body.mplex)?;
-    let holder = Holder::Account(account.name);
+    let holder = Holder::User(operator.user);
     if method == Method::DELETE {
         app.subscriptions
             .release(&id, &holder, Some(&objects))
@@ -497,7 +572,7 @@ async fn events(
     Path(id): Path<String>,
     ApiQuery(q): ApiQuery<EventsQuery>,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
-    lift_of(&app, caller, &id).await?;
+    lift_of(&app, caller, &id, Role::Viewer).await?;
     let rx = app.registry.subscribe(&id);
     let watching = match q.mplex.as_deref() {
         Some(list) => {
@@ -569,7 +644,7 @@ async fn history(
     Path((id, text)): Path<(String, String)>,
     ApiQuery(q): ApiQuery<HistoryQuery>,
 ) -> Result<Json<History>, ApiError> {
-    lift_of(&app, caller, &id).await?;
+    lift_of(&app, caller, &id, Role::Viewer).await?;
     let m = mplex(&app.names, &text)?.mplex.to_string();
     let rows = app
         .store
@@ -588,9 +663,10 @@ async fn history(
 
 async fn audit(
     State(app): State<Arc<App>>,
-    Caller(account): Caller,
+    caller: Caller,
 ) -> Result<Json<Vec<AuditEntry>>, ApiError> {
-    Ok(Json(app.store.audit_log(&account.domain).await?))
+    let operator = allowed(caller, Role::Viewer)?;
+    Ok(Json(app.store.audit_log(&operator.account.domain).await?))
 }
 
 async fn openapi() -> Response {

@@ -143,6 +143,15 @@ pub struct Registry {
 }
 
 impl Registry {
+    /// The lift's connection now (a number that changes when its gateway reconnects).
+    pub fn connection(&self, lift: &str) -> Option<u64> {
+        self.live
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(lift)
+            .map(|l| l.serial)
+    }
+
     /// Whether the lift's gateway is connected.
     pub fn online(&self, lift: &str) -> bool {
         self.live

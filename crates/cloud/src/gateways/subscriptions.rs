@@ -3,7 +3,7 @@
 //! A gateway keeps one subscription per object (NXg §7.3: a second `reg_canopen_object` for an
 //! object replaces the first's inhibit and threshold; `unreg_canopen_object` ends it for
 //! everyone). Several parties at the portal want pushes of one lift — the dashboard on every
-//! lift, an account through the API, each live watcher — so the portal keeps who holds what and
+//! lift, a user through the API, each live watcher — so the portal keeps who holds what and
 //! registers with the gateway the union: per object the smallest inhibit and the smallest
 //! threshold of its holders. An object leaves the gateway only when its last holder lets go, and
 //! after a reconnect everything held is registered again.
@@ -25,8 +25,9 @@ use crate::config::Dashboard;
 /// Who holds a subscription.
 #[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub enum Holder {
-    /// An account, through `POST /api/v1/lifts/{id}/subscriptions` (until its `DELETE`).
-    Account(String),
+    /// A user (or an account's own key), through `POST /api/v1/lifts/{id}/subscriptions`
+    /// (until its `DELETE`).
+    User(String),
     /// One live event stream that asked for objects (until the stream ends).
     Watcher(u64),
 }
@@ -363,7 +364,7 @@ mod tests {
     fn the_union_is_registered_and_released_holder_by_holder() {
         let base = dashboard();
         let mut h = Holders::default();
-        let (a, w) = (Holder::Account("masora".into()), Holder::Watcher(1));
+        let (a, w) = (Holder::User("masora".into()), Holder::Watcher(1));
         let trips = m(0x6520, 1);
         let speed = m(0x6383, 1);
         // A watcher wants the trip counter faster than the dashboard, and the speed (changes

@@ -7,8 +7,10 @@
 //! the one on record in time independent of where they differ.
 
 mod alarms;
+mod users;
 
 pub use alarms::{new_id, AlarmFilter, EventRow, OutboxEntry};
+pub use users::{KeyInfo, Operator, Role, User, UserError};
 
 use std::collections::HashMap;
 use std::time::{SystemTime, UNIX_EPOCH};
@@ -50,13 +52,13 @@ const KEY_KEPT: std::time::Duration = std::time::Duration::from_secs(3600);
 /// Keys remembered at most (a full memory starts over).
 const KEY_CACHE_ENTRIES: usize = 10_000;
 
-/// Accounts of API keys recently looked up, by the key's digest.
+/// Operators of API keys recently looked up, by the key's digest.
 #[derive(Default)]
-struct KeyCache(std::sync::Mutex<HashMap<String, (Account, std::time::Instant)>>);
+struct KeyCache(std::sync::Mutex<HashMap<String, (Operator, std::time::Instant)>>);
 
 impl KeyCache {
-    /// The account of `digest` if it was looked up less than `age` ago.
-    fn get(&self, digest: &str, age: std::time::Duration) -> Option<Account> {
+    /// The operator of `digest` if it was looked up less than `age` ago.
+    fn get(&self, digest: &str, age: std::time::Duration) -> Option<Operator> {
         let keys = self
             .0
             .lock()
@@ -66,7 +68,7 @@ impl KeyCache {
             .map(|(account, _)| account.clone())
     }
 
-    fn put(&self, digest: String, account: Account) {
+    fn put(&self, digest: String, operator: Operator) {
         let mut keys = self
             .0
             .lock()
@@ -74,7 +76,15 @@ impl KeyCache {
         if keys.len() >= KEY_CACHE_ENTRIES {
             keys.clear();
         }
-        keys.insert(digest, (account, std::time::Instant::now()));
+        keys.insert(digest, (operator, std::time::Instant::now()));
+    }
+
+    /// Forget every key (rights were taken away somewhere).
+    fn clear(&self) {
+        self.0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clear();
     }
 }
 
@@ -248,6 +258,9 @@ pub struct AuditEntry {
 pub struct Store {
     pool: AnyPool,
     keys: std::sync::Arc<KeyCache>,
+    /// The auth epoch this process has seen (see `users`); sessions older than it are checked
+    /// again.
+    epoch: std::sync::Arc<std::sync::atomic::AtomicI64>,
 }
 
 const SCHEMA: &[&str] = &[
@@ -267,6 +280,10 @@ const SCHEMA: &[&str] = &[
     "CREATE TABLE IF NOT EXISTS webhook_outbox (id BIGINT PRIMARY KEY, url TEXT NOT NULL, body TEXT NOT NULL, lift TEXT NOT NULL, created BIGINT NOT NULL, attempts BIGINT NOT NULL, next_at BIGINT NOT NULL, delivered BIGINT, given_up BIGINT, last_error TEXT)",
     "CREATE INDEX IF NOT EXISTS webhook_outbox_due ON webhook_outbox (delivered, given_up, next_at)",
     "CREATE TABLE IF NOT EXISTS schema_migrations (version BIGINT PRIMARY KEY, applied BIGINT NOT NULL)",
+    "CREATE TABLE IF NOT EXISTS users (name TEXT PRIMARY KEY, account TEXT NOT NULL, role TEXT NOT NULL, secret_hash TEXT NOT NULL, disabled BIGINT, created BIGINT NOT NULL)",
+    "CREATE TABLE IF NOT EXISTS api_keys (id TEXT PRIMARY KEY, key_hash TEXT NOT NULL UNIQUE, user_name TEXT NOT NULL, created BIGINT NOT NULL, expires BIGINT, revoked BIGINT)",
+    "CREATE TABLE IF NOT EXISTS auth_epoch (id BIGINT PRIMARY KEY, epoch BIGINT NOT NULL)",
+    "INSERT INTO auth_epoch (id, epoch) SELECT 1, 0 WHERE NOT EXISTS (SELECT 1 FROM auth_epoch WHERE id = 1)",
 ];
 
 /// Changes to tables of an existing database, each applied once, in order (a database created
@@ -327,6 +344,7 @@ impl Store {
         Ok(Store {
             pool,
             keys: std::sync::Arc::default(),
+            epoch: std::sync::Arc::default(),
         })
     }
 
@@ -345,43 +363,59 @@ impl Store {
         Ok(key)
     }
 
-    /// The account an API key belongs to (found by the key's digest: an index lookup reveals
-    /// nothing of a random 128-bit key).
+    /// The operator an API key acts for (found by the key's digest: an index lookup reveals
+    /// nothing of a random 128-bit key): the account's administrator for the account's own key,
+    /// a user with its role for a user's key.
     ///
     /// A key found is remembered for a minute, so requests do not each cost a query, and while
     /// the database is unreachable a key that was valid within the hour still counts: operators
-    /// keep reading lifts, which needs no database, through an outage.
-    pub async fn account_by_key(&self, key: &str) -> Result<Option<Account>, StoreError> {
+    /// keep reading lifts, which needs no database, through an outage. What is remembered is
+    /// forgotten when the auth epoch rises (a user disabled, a key revoked: see
+    /// [`Store::follow_auth_epoch`]).
+    pub async fn operator_by_key(&self, key: &str) -> Result<Option<Operator>, StoreError> {
         let digest = digest(key);
-        if let Some(account) = self.keys.get(&digest, KEY_FRESH) {
-            return Ok(Some(account));
+        if let Some(operator) = self.keys.get(&digest, KEY_FRESH) {
+            return Ok(Some(operator));
         }
-        let row = sqlx::query("SELECT name, domain FROM accounts WHERE key_hash = $1")
-            .bind(&digest)
-            .fetch_optional(&self.pool)
-            .await;
-        let row = match row.map_err(StoreError::from) {
-            Ok(row) => row,
+        let operator = match self.operator_of_key(&digest).await {
+            Ok(operator) => operator,
             Err(e) if e.is_unavailable() => {
                 return match self.keys.get(&digest, KEY_KEPT) {
-                    Some(account) => Ok(Some(account)),
+                    Some(operator) => Ok(Some(operator)),
                     None => Err(e),
                 };
             }
             Err(e) => return Err(e),
         };
-        let account = row
-            .map(|r| -> Result<Account, sqlx::Error> {
-                Ok(Account {
-                    name: r.try_get("name")?,
-                    domain: r.try_get("domain")?,
-                })
-            })
-            .transpose()?;
-        if let Some(account) = &account {
-            self.keys.put(digest, account.clone());
+        if let Some(operator) = &operator {
+            self.keys.put(digest, operator.clone());
         }
-        Ok(account)
+        Ok(operator)
+    }
+
+    /// Check the auth epoch every `period` for as long as the store lives: when it rose, the
+    /// keys remembered are forgotten and sessions are checked again (docs/PORTAL.md §Users and
+    /// roles). Run by the portal.
+    pub async fn follow_auth_epoch(self, period: std::time::Duration) {
+        let mut ticks = tokio::time::interval(period);
+        ticks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        loop {
+            ticks.tick().await;
+            match self.auth_epoch().await {
+                Ok(epoch) => {
+                    let seen = self.epoch.swap(epoch, std::sync::atomic::Ordering::SeqCst);
+                    if seen != epoch {
+                        self.keys.clear();
+                    }
+                }
+                Err(e) => tracing::debug!(error = %e, "auth epoch not read"),
+            }
+        }
+    }
+
+    /// The auth epoch this process has seen.
+    pub fn seen_auth_epoch(&self) -> i64 {
+        self.epoch.load(std::sync::atomic::Ordering::SeqCst)
     }
 
     /// Whether an account owns `domain`.
@@ -801,10 +835,16 @@ mod tests {
         let key = store.add_account("masora", "MAS").await.unwrap();
         assert!(key.starts_with("clk_") && key.len() == 36);
         assert_eq!(
-            store.account_by_key(&key).await.unwrap().unwrap().domain,
+            store
+                .operator_by_key(&key)
+                .await
+                .unwrap()
+                .unwrap()
+                .account
+                .domain,
             "MAS"
         );
-        assert!(store.account_by_key("clk_wrong").await.unwrap().is_none());
+        assert!(store.operator_by_key("clk_wrong").await.unwrap().is_none());
         assert!(
             store.add_account("again", "MAS").await.is_err(),
             "one account per domain"
@@ -874,6 +914,7 @@ mod tests {
         let h = store.history(lift, "0x652001", 0, 1000).await.unwrap();
         assert_eq!(h, [(300, "8".to_owned())]);
         token_lifecycle_and_board(&store).await;
+        users::tests::users_keys_and_the_epoch(&store).await;
     }
 
     /// Rotation (old and new token both admitted until one is confirmed), reset (first contact

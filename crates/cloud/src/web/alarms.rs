@@ -17,7 +17,7 @@ use super::SignedIn;
 use crate::alarms::service::AckError;
 use crate::alarms::{Alarm, Severity};
 use crate::api::App;
-use crate::store::AlarmFilter;
+use crate::store::{AlarmFilter, Role};
 
 /// A severity as a coloured badge.
 pub(super) fn severity_badge(severity: Severity, l: Locale) -> Markup {
@@ -63,7 +63,7 @@ pub(super) fn table(alarms: &[Alarm], who: &SignedIn, back: &str, lifts: bool) -
                             @if let Some(ack) = &a.acknowledged {
                                 (ack.by) ", " (at(&ack.at, l))
                                 @if !ack.comment.is_empty() { br; span.muted { (ack.comment) } }
-                            } @else {
+                            } @else if who.session.operator.may(Role::Technician) {
                                 form.ack method="post" action={ "/alarms/" (a.id) "/ack" } {
                                     input type="hidden" name="csrf" value=(who.session.csrf);
                                     input type="hidden" name="back" value=(back);
@@ -116,7 +116,7 @@ pub(super) fn event_log(events: &[Event], l: Locale) -> Markup {
 
 pub(super) async fn alarms_page(State(app): State<Arc<App>>, who: SignedIn) -> Response {
     let l = who.locale;
-    let domain = &who.session.account.domain;
+    let domain = &who.session.operator.account.domain;
     let active = AlarmFilter {
         active: true,
         lift: None,
@@ -177,11 +177,23 @@ pub(super) async fn acknowledge(
             l.t("The form has expired; reload the page."),
         );
     }
+    if !session.operator.may(Role::Technician) {
+        return problem(
+            StatusCode::FORBIDDEN,
+            who.viewer(),
+            l.t("A viewer cannot acknowledge alarms."),
+        );
+    }
     let comment: String = form.comment.chars().take(1000).collect();
     let done = match id.parse::<i64>() {
         Ok(id) => {
             app.alarms
-                .acknowledge(&session.account.domain, id, &session.account.name, &comment)
+                .acknowledge(
+                    &session.operator.account.domain,
+                    id,
+                    &session.operator.user,
+                    &comment,
+                )
                 .await
         }
         Err(_) => Err(AckError::NotFound),

@@ -35,7 +35,11 @@ fn result_text(result: &str, l: Locale) -> String {
 
 pub(super) async fn audit_page(State(app): State<Arc<App>>, who: SignedIn) -> Response {
     let l = who.locale;
-    let entries = match app.store.audit_log(&who.session.account.domain).await {
+    let entries = match app
+        .store
+        .audit_log(&who.session.operator.account.domain)
+        .await
+    {
         Ok(e) => e,
         Err(e) => return unavailable(e, who.viewer()),
     };

@@ -166,8 +166,10 @@ pub(super) async fn fleet(
 ) -> Response {
     let (session, l) = (&who.session, who.locale);
     let (all, worst) = match (
-        app.store.lifts(&session.account.domain).await,
-        app.store.worst_alarms(&session.account.domain).await,
+        app.store.lifts(&session.operator.account.domain).await,
+        app.store
+            .worst_alarms(&session.operator.account.domain)
+            .await,
     ) {
         (Ok(l), Ok(w)) => (l, w),
         (Err(e), _) | (_, Err(e)) => return unavailable(e, who.viewer()),
@@ -225,7 +227,7 @@ pub(super) async fn fleet(
     let body = html! {
         h1 { (l.t("Fleet")) }
         @if all.is_empty() {
-            p { (l.fill("No lift of domain {} has connected yet.", &[&session.account.domain])) }
+            p { (l.fill("No lift of domain {} has connected yet.", &[&session.operator.account.domain])) }
         } @else {
             p.summary {
                 a.current[query.show.is_none()] href=(link(1, None, sort)) {

@@ -19,7 +19,7 @@ use super::page::{layout, online_badge, time, unavailable};
 use super::{owned, SignedIn};
 use crate::api::{read_params, App};
 use crate::rest::Form;
-use crate::store::AlarmFilter;
+use crate::store::{AlarmFilter, Role};
 
 /// Floor level positions (CiA 417 manufacturer area, one element per floor): sub-index 0 is
 /// the lift's number of floors, which sizes the "call the car" buttons.
@@ -115,6 +115,19 @@ impl Object {
             .is_some_and(|d| matches!(d.access.as_deref(), Some("rw" | "wo")))
     }
 
+    /// Whether someone with `role` may write it: privilege 0 from a technician on, above
+    /// only an engineer (who elevates first; docs/PORTAL.md §Users and roles).
+    fn writable_by(&self, role: Role) -> bool {
+        let needed = self.data().and_then(|d| d.privilege).unwrap_or(1);
+        self.writable()
+            && role
+                >= if needed == 0 {
+                    Role::Technician
+                } else {
+                    Role::Engineer
+                }
+    }
+
     fn numeric(&self) -> bool {
         match self.form() {
             Some(f) => matches!(
@@ -171,7 +184,7 @@ impl Object {
         with_data!(div.card, self.attributes(l), content)
     }
 
-    fn row(&self, lift: &str, l: Locale) -> Markup {
+    fn row(&self, lift: &str, role: Role, l: Locale) -> Markup {
         let d = self.data();
         let range = match (
             d.and_then(|d| d.min.as_ref()),
@@ -197,7 +210,7 @@ impl Object {
             td { (d.and_then(|d| d.access.as_deref()).unwrap_or_default()) }
             td { (privilege) }
             td {
-                @if self.writable() {
+                @if self.writable_by(role) {
                     button.edit type="button" { (l.t("Edit")) }
                 }
                 " "
@@ -301,11 +314,11 @@ pub(super) const TABLE_HEAD: [&str; 7] = [
     "",
 ];
 
-fn table(lift: &str, objects: &[Object], l: Locale) -> Markup {
+fn table(lift: &str, objects: &[Object], role: Role, l: Locale) -> Markup {
     html! {
         table.objects {
             thead { tr { @for h in TABLE_HEAD { th { (if h.is_empty() { "" } else { l.t(h) }) } } } }
-            tbody { @for o in objects { (o.row(lift, l)) } }
+            tbody { @for o in objects { (o.row(lift, role, l)) } }
         }
     }
 }
@@ -374,9 +387,10 @@ pub(super) async fn lift_page(
         .and_then(|o| o.raw().trim().parse::<u8>().ok())
         .filter(|n| (2..=MAX_FLOOR_BUTTONS).contains(n));
     // The buttons write as the dialog would: with the object's type and unit.
+    let role = session.operator.role;
     let call = objects
         .pop()
-        .filter(|o| o.writable())
+        .filter(|o| o.writable_by(role))
         .map(|o| o.attributes(l));
     let floors = floors.zip(call);
     let mut parameter_objects = objects.split_off(live.len());
@@ -396,7 +410,9 @@ pub(super) async fn lift_page(
         limit: 100,
     };
     let (alarms, events) = match (
-        app.store.alarms(&session.account.domain, &active).await,
+        app.store
+            .alarms(&session.operator.account.domain, &active)
+            .await,
         app.store.event_log(&id, None, 50).await,
     ) {
         (Ok(a), Ok(e)) => (a, e),
@@ -444,7 +460,7 @@ pub(super) async fn lift_page(
         h2 { (l.t("Live values")) }
         div.cards { @for o in &objects { (o.card(&id, l)) } }
         h2 { (l.t("Parameters")) }
-        (table(&id, &parameter_objects, l))
+        (table(&id, &parameter_objects, role, l))
         h2 { (l.t("Read an object")) }
         form.read method="get" {
             input name="read" placeholder=(l.t("0x652001, 0x6520:1 or a name"))
@@ -455,7 +471,7 @@ pub(super) async fn lift_page(
             p.error { (e) }
         }
         @if let Some(o) = &read_object {
-            (table(&id, std::slice::from_ref(o), l))
+            (table(&id, std::slice::from_ref(o), role, l))
         }
         section #events {
             h2 { (l.t("Event log")) }

@@ -1,4 +1,5 @@
-//! Signing in with an account's API key, and out.
+//! Signing in with a user's name and secret (or an API key), and out. A wrong secret and an
+//! unknown name get the same answer after the same work (docs/PORTAL.md §Users and roles).
 
 use std::sync::Arc;
 
@@ -10,8 +11,9 @@ use serde::Deserialize;
 
 use super::i18n::Locale;
 use super::page::{layout, problem, unavailable, Viewer};
-use super::session::{COOKIE, IDLE};
+use super::session::{Credential, COOKIE, IDLE};
 use crate::api::App;
+use crate::store;
 
 pub(super) async fn login_page(locale: Locale) -> Response {
     login_form(None, locale)
@@ -25,13 +27,23 @@ fn login_form(error: Option<&str>, l: Locale) -> Response {
         }
         form.login method="post" action="/login" {
             label {
+                (l.t("User name "))
+                input type="text" name="user" autocomplete="username" autofocus;
+            }
+            label {
+                (l.t("Secret "))
+                input type="password" name="secret" autocomplete="current-password";
+            }
+            p.or { (l.t("or with an API key")) }
+            label {
                 (l.t("API key "))
-                input type="password" name="key" autocomplete="current-password" required autofocus;
+                input type="password" name="key" autocomplete="off";
             }
             button { (l.t("Sign in")) }
         }
         p.hint {
-            (l.t("The key was printed once by ")) code { "canlift cloud account add" }
+            (l.t("A user's secret is printed once by ")) code { "canlift cloud user add" }
+            (l.t("; an account's key by ")) code { "canlift cloud account add" }
             (l.t(" (or by ")) code { "canlift demo" } (l.t(")."))
         }
     };
@@ -44,6 +56,11 @@ fn login_form(error: Option<&str>, l: Locale) -> Response {
 
 #[derive(Deserialize)]
 pub(super) struct LoginForm {
+    #[serde(default)]
+    user: String,
+    #[serde(default)]
+    secret: String,
+    #[serde(default)]
     key: String,
 }
 
@@ -52,10 +69,24 @@ pub(super) async fn login(
     locale: Locale,
     Form(form): Form<LoginForm>,
 ) -> Response {
-    match app.store.account_by_key(form.key.trim()).await {
-        Ok(Some(account)) => {
-            tracing::info!(account = %account.name, "web sign-in");
-            let id = app.sessions.open(account);
+    let epoch = app.store.seen_auth_epoch();
+    let key = form.key.trim();
+    let signed_in = if key.is_empty() {
+        let user = form.user.trim();
+        app.store
+            .sign_in(user, form.secret.trim())
+            .await
+            .map(|o| o.map(|o| (o, Credential::User(user.to_owned()))))
+    } else {
+        app.store
+            .operator_by_key(key)
+            .await
+            .map(|o| o.map(|o| (o, Credential::Key(store::digest(key)))))
+    };
+    match signed_in {
+        Ok(Some((operator, credential))) => {
+            tracing::info!(user = %operator.user, account = %operator.account.name, "web sign-in");
+            let id = app.sessions.open(operator, credential, epoch);
             let cookie = format!(
                 "{COOKIE}={id}; Path=/; HttpOnly; Secure; SameSite=Strict; Max-Age={}",
                 IDLE.as_secs()
@@ -68,7 +99,10 @@ pub(super) async fn login(
         }
         Ok(None) => (
             StatusCode::UNAUTHORIZED,
-            login_form(Some(locale.t("Unknown API key.")), locale),
+            login_form(
+                Some(locale.t("Wrong user name, secret or API key.")),
+                locale,
+            ),
         )
             .into_response(),
         Err(e) => unavailable(

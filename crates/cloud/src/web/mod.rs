@@ -28,7 +28,7 @@ use crate::api::App;
 use crate::store::LiftRecord;
 use i18n::Locale;
 use page::Viewer;
-pub use session::{Session, Sessions};
+pub use session::{Credential, Session, Sessions};
 
 /// A page's signed-in browser and its language; without a session, the page redirects to the
 /// sign-in form.
@@ -51,16 +51,21 @@ impl FromRequestParts<Arc<App>> for SignedIn {
 
     async fn from_request_parts(parts: &mut Parts, app: &Arc<App>) -> Result<Self, Redirect> {
         let Ok(locale) = Locale::from_request_parts(parts, app).await;
-        app.sessions
-            .get(&parts.headers)
-            .map(|session| SignedIn { session, locale })
-            .ok_or_else(|| Redirect::to("/login"))
+        match app.sessions.current(&parts.headers, &app.store).await {
+            Ok(Some(session)) => Ok(SignedIn { session, locale }),
+            // Rights changed and could not be checked again: sign in anew.
+            Ok(None) | Err(_) => Err(Redirect::to("/login")),
+        }
     }
 }
 
 /// The lift, if it is one of the signed-in account's (a 404 page otherwise).
 async fn owned(app: &App, who: &SignedIn, id: &str) -> Result<LiftRecord, Response> {
-    match app.store.lift(&who.session.account.domain, id).await {
+    match app
+        .store
+        .lift(&who.session.operator.account.domain, id)
+        .await
+    {
         Ok(Some(l)) => Ok(l),
         Ok(None) => Err(page::problem(
             StatusCode::NOT_FOUND,

@@ -8,7 +8,7 @@ use maud::{html, Markup, PreEscaped, DOCTYPE};
 use super::assets;
 use super::i18n::Locale;
 use super::session::Session;
-use crate::store::StoreError;
+use crate::store::{Role, StoreError};
 
 /// What every page is rendered for: the signed-in browser (absent: the sign-in page, without
 /// navigation) and its language.
@@ -44,7 +44,9 @@ pub(super) fn layout(title: &str, viewer: Viewer, lift: Option<&str>, body: Mark
                             a href="/" { (l.t("Fleet")) }
                             a href="/alarms" { (l.t("Alarms")) }
                             a href="/audit" { (l.t("Audit")) }
-                            span.who { (s.account.name) }
+                            span.who title=(role_text(s.operator.role, l)) {
+                                (s.operator.user) " · " (role_text(s.operator.role, l))
+                            }
                             form method="post" action="/logout" {
                                 input type="hidden" name="csrf" value=(s.csrf);
                                 button { (l.t("Sign out")) }
@@ -113,6 +115,16 @@ pub(super) fn online_badge(lift: &str, online: bool, l: Locale) -> Markup {
     let class = if online { "online" } else { "offline" };
     html! {
         span.badge.(class) data-online=(lift) { (l.t(class)) }
+    }
+}
+
+/// A role in the page's language.
+pub(super) fn role_text(role: Role, l: Locale) -> &'static str {
+    match role {
+        Role::Viewer => l.t("viewer"),
+        Role::Technician => l.t("technician"),
+        Role::Engineer => l.t("engineer"),
+        Role::Admin => l.t("administrator"),
     }
 }
 

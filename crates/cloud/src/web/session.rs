@@ -1,7 +1,9 @@
-//! Signed-in browsers: signing in with an account's API key opens a session — a random id in an
-//! `HttpOnly`, `Secure`, `SameSite=Strict` cookie, kept in memory only as its SHA-256 digest,
-//! ended after 12 h without a request. Changes through the REST API with the cookie also need
-//! the session's CSRF token (see [`crate::api::Caller`]).
+//! Signed-in browsers: signing in with a user's name and secret, or with an API key, opens a
+//! session — a random id in an `HttpOnly`, `Secure`, `SameSite=Strict` cookie, kept in memory
+//! only as its SHA-256 digest, ended after 12 h without a request. Changes through the REST API
+//! with the cookie also need the session's CSRF token (see [`crate::api::Caller`]). When rights
+//! change anywhere (the auth epoch rises) a session is checked again before its next request:
+//! a disabled user's or revoked key's session ends.
 
 use std::collections::HashMap;
 use std::sync::{Mutex, PoisonError};
@@ -9,7 +11,7 @@ use std::time::{Duration, Instant};
 
 use axum::http::{header, HeaderMap};
 
-use crate::store::{self, Account};
+use crate::store::{self, Operator, Store, StoreError};
 
 /// The cookie's name.
 pub(super) const COOKIE: &str = "canlift_session";
@@ -21,10 +23,23 @@ const MAX_SESSIONS: usize = 10_000;
 /// A signed-in browser.
 #[derive(Clone)]
 pub struct Session {
-    /// Whose session it is.
-    pub account: Account,
+    /// Who is signed in.
+    pub operator: Operator,
+    /// How, to check it again when rights change.
+    credential: Credential,
+    /// The auth epoch it was last checked in.
+    epoch: i64,
     pub(super) csrf: String,
     last_used: Instant,
+}
+
+/// What a session was opened with.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Credential {
+    /// An API key (its digest).
+    Key(String),
+    /// A user's name and secret (the name).
+    User(String),
 }
 
 impl Session {
@@ -68,8 +83,46 @@ impl Sessions {
         Some(session.clone())
     }
 
-    /// Open a session; the cookie value to set.
-    pub(super) fn open(&self, account: Account) -> String {
+    /// The session the request's cookie names, checked again if rights changed since it last
+    /// was (`None` when it ended, or the user or key no longer counts).
+    pub async fn current(
+        &self,
+        headers: &HeaderMap,
+        store: &Store,
+    ) -> Result<Option<Session>, StoreError> {
+        let Some(mut session) = self.get(headers) else {
+            return Ok(None);
+        };
+        let epoch = store.seen_auth_epoch();
+        if session.epoch == epoch {
+            return Ok(Some(session));
+        }
+        let operator = match &session.credential {
+            Credential::Key(digest) => store.operator_of_key(digest).await?,
+            Credential::User(name) => store.operator(name).await?,
+        };
+        let Some(operator) = operator else {
+            self.close(headers);
+            return Ok(None);
+        };
+        session.operator = operator;
+        session.epoch = epoch;
+        if let Some(id) = cookie(headers) {
+            let mut map = self
+                .by_digest
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner);
+            if let Some(kept) = map.get_mut(&store::digest(id)) {
+                kept.operator = session.operator.clone();
+                kept.epoch = epoch;
+            }
+        }
+        Ok(Some(session))
+    }
+
+    /// Open a session for `operator`, signed in with `credential` in auth epoch `epoch`; the
+    /// cookie value to set.
+    pub(super) fn open(&self, operator: Operator, credential: Credential, epoch: i64) -> String {
         let id = store::secret("");
         let mut map = self
             .by_digest
@@ -86,7 +139,9 @@ impl Sessions {
             }
         }
         let session = Session {
-            account,
+            operator,
+            credential,
+            epoch,
             csrf: store::secret(""),
             last_used: Instant::now(),
         };
@@ -112,18 +167,22 @@ mod tests {
     #[test]
     fn session_cookie_and_csrf() {
         let sessions = Sessions::default();
-        let account = Account {
-            name: "a".into(),
-            domain: "D".into(),
+        let operator = Operator {
+            account: store::Account {
+                name: "a".into(),
+                domain: "D".into(),
+            },
+            user: "a".into(),
+            role: store::Role::Admin,
         };
-        let id = sessions.open(account.clone());
+        let id = sessions.open(operator.clone(), Credential::User("a".into()), 0);
         let mut headers = HeaderMap::new();
         headers.insert(
             header::COOKIE,
             HeaderValue::from_str(&format!("theme=dark; {COOKIE}={id}")).unwrap(),
         );
         let session = sessions.get(&headers).unwrap();
-        assert_eq!(session.account, account);
+        assert_eq!(session.operator, operator);
         assert!(session.csrf_matches(Some(&session.csrf.clone())));
         assert!(!session.csrf_matches(Some("nope")));
         assert!(!session.csrf_matches(None));

@@ -1,0 +1,543 @@
+//! People inside an account (docs/PORTAL.md §Users and roles): users with a role and a sign-in
+//! secret (an argon2id hash is kept, never the secret), and API keys that belong to a user and
+//! act with its role (only their SHA-256 digest is kept: a key is 128 random bits, which a fast
+//! digest protects, while a secret a person may choose needs a slow KDF).
+//!
+//! The key an account was created with stays valid and acts as the account's administrator.
+//! Every change that takes rights away (a user disabled, a role lowered, a key revoked) raises
+//! the *auth epoch*; each portal process watches it and forgets what it remembered of keys and
+//! sessions, so the change takes effect in every process within a second.
+
+use argon2::password_hash::{PasswordHash, PasswordHasher, PasswordVerifier, SaltString};
+use argon2::Argon2;
+use rand::RngCore;
+use sqlx::Row;
+
+use super::{digest, now_ms, secret, Account, Store, StoreError};
+
+/// What a user may do, each role including the ones before it.
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum Role {
+    /// Reads objects, live values, events, alarms, history and the audit log.
+    Viewer,
+    /// Also puts privilege-0 objects (a passenger call), acknowledges alarms, holds
+    /// subscriptions.
+    Technician,
+    /// Also elevates privileges on a lift and puts objects above privilege 0.
+    Engineer,
+    /// Also manages the account's users, keys and gateway tokens.
+    Admin,
+}
+
+impl Role {
+    /// Every role, from the least to the most.
+    pub const ALL: [Role; 4] = [Role::Viewer, Role::Technician, Role::Engineer, Role::Admin];
+
+    /// The name in the CLI, the API and the store.
+    pub fn name(self) -> &'static str {
+        match self {
+            Role::Viewer => "viewer",
+            Role::Technician => "technician",
+            Role::Engineer => "engineer",
+            Role::Admin => "admin",
+        }
+    }
+
+    /// The role called `name`.
+    pub fn from_name(name: &str) -> Option<Role> {
+        Role::ALL.into_iter().find(|r| r.name() == name)
+    }
+}
+
+impl std::fmt::Display for Role {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Role {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Role, String> {
+        Role::from_name(s)
+            .ok_or_else(|| format!("{s:?} is no role (viewer, technician, engineer, admin)"))
+    }
+}
+
+/// Who is asking: a user of an account with its role.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Operator {
+    /// The account (its lifts are the domain's).
+    pub account: Account,
+    /// The user (the account's name for the account's own key).
+    pub user: String,
+    /// What the user may do.
+    pub role: Role,
+}
+
+impl Operator {
+    /// Whether the operator's role includes `role`.
+    pub fn may(&self, role: Role) -> bool {
+        self.role >= role
+    }
+}
+
+/// A user as listed.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+pub struct User {
+    /// Name (unique on the portal).
+    pub name: String,
+    /// Its account.
+    pub account: String,
+    /// Its role.
+    pub role: Role,
+    /// Whether it was disabled.
+    pub disabled: bool,
+}
+
+/// An API key as listed (the key itself is shown only when it is made).
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+pub struct KeyInfo {
+    /// Its id (for `key revoke`).
+    pub id: String,
+    /// The user it acts for.
+    pub user: String,
+    /// When it stops working (ms since the epoch), if ever.
+    pub expires: Option<i64>,
+    /// Whether it was revoked.
+    pub revoked: bool,
+}
+
+/// Why a user or key change did not happen.
+#[derive(Debug, thiserror::Error)]
+pub enum UserError {
+    /// The database failed.
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    /// No such account.
+    #[error("no account {0:?}")]
+    NoAccount(String),
+    /// No such user in the account.
+    #[error("no user {0:?} in account {1:?}")]
+    NoUser(String, String),
+    /// The name is taken (user names are unique on the portal).
+    #[error("the user name {0:?} is taken")]
+    Taken(String),
+    /// No such key in the account.
+    #[error("no key {0:?} in account {1:?}")]
+    NoKey(String, String),
+}
+
+impl From<sqlx::Error> for UserError {
+    fn from(e: sqlx::Error) -> Self {
+        UserError::Store(StoreError::from(e))
+    }
+}
+
+/// The argon2id hash of `secret` as a PHC string (the crate's default parameters: 19 MiB,
+/// two passes, the OWASP recommendation).
+fn hash_secret(secret: &str) -> String {
+    let mut salt = [0u8; 16];
+    rand::rng().fill_bytes(&mut salt);
+    SaltString::encode_b64(&salt)
+        .and_then(|salt| {
+            let hash = Argon2::default().hash_password(secret.as_bytes(), &salt)?;
+            Ok(hash.to_string())
+        })
+        // Only a salt of the wrong length fails, and this one has the recommended 16 bytes.
+        .unwrap_or_default()
+}
+
+/// Whether `secret` matches `hash` (a PHC string).
+fn secret_matches(secret: &str, hash: &str) -> bool {
+    PasswordHash::new(hash).is_ok_and(|h| {
+        Argon2::default()
+            .verify_password(secret.as_bytes(), &h)
+            .is_ok()
+    })
+}
+
+impl Store {
+    /// Add user `name` to `account` with `role`; its sign-in secret (shown only now).
+    pub async fn add_user(
+        &self,
+        account: &str,
+        name: &str,
+        role: Role,
+    ) -> Result<String, UserError> {
+        self.account_named(account).await?;
+        let secret = secret("cls_");
+        let done = sqlx::query(
+            "INSERT INTO users (name, account, role, secret_hash, disabled, created) VALUES ($1, $2, $3, $4, NULL, $5)",
+        )
+        .bind(name)
+        .bind(account)
+        .bind(role.name())
+        .bind(hash_secret(&secret))
+        .bind(now_ms())
+        .execute(&self.pool)
+        .await;
+        match done {
+            Ok(_) => Ok(secret),
+            Err(sqlx::Error::Database(e)) if e.is_unique_violation() => {
+                Err(UserError::Taken(name.to_owned()))
+            }
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    /// The users of `account`, by name.
+    pub async fn users(&self, account: &str) -> Result<Vec<User>, UserError> {
+        self.account_named(account).await?;
+        let rows = sqlx::query(
+            "SELECT name, account, role, disabled FROM users WHERE account = $1 ORDER BY name",
+        )
+        .bind(account)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| {
+                let role: String = r.try_get("role")?;
+                Ok(User {
+                    name: r.try_get("name")?,
+                    account: r.try_get("account")?,
+                    role: Role::from_name(&role).unwrap_or(Role::Viewer),
+                    disabled: r.try_get::<Option<i64>, _>("disabled")?.is_some(),
+                })
+            })
+            .collect()
+    }
+
+    /// Disable user `name` of `account`: its keys and sessions stop working (within a second in
+    /// every portal process).
+    pub async fn disable_user(&self, account: &str, name: &str) -> Result<(), UserError> {
+        self.change_user(
+            account,
+            name,
+            sqlx::query("UPDATE users SET disabled = $1 WHERE name = $2 AND account = $3")
+                .bind(now_ms()),
+        )
+        .await
+    }
+
+    /// A new sign-in secret for user `name` of `account` (shown only now); the old one and the
+    /// user's sessions stop working. A disabled user stays disabled.
+    pub async fn reset_user(&self, account: &str, name: &str) -> Result<String, UserError> {
+        let secret = secret("cls_");
+        self.change_user(
+            account,
+            name,
+            sqlx::query("UPDATE users SET secret_hash = $1 WHERE name = $2 AND account = $3")
+                .bind(hash_secret(&secret)),
+        )
+        .await?;
+        Ok(secret)
+    }
+
+    /// Give user `name` of `account` another role.
+    pub async fn set_role(&self, account: &str, name: &str, role: Role) -> Result<(), UserError> {
+        self.change_user(
+            account,
+            name,
+            sqlx::query("UPDATE users SET role = $1 WHERE name = $2 AND account = $3")
+                .bind(role.name()),
+        )
+        .await
+    }
+
+    /// Run `update` (its first parameter bound, `$2` the name, `$3` the account) on one user and
+    /// raise the auth epoch.
+    async fn change_user<'q>(
+        &self,
+        account: &'q str,
+        name: &'q str,
+        update: sqlx::query::Query<'q, sqlx::Any, sqlx::any::AnyArguments<'q>>,
+    ) -> Result<(), UserError> {
+        let done = update.bind(name).bind(account).execute(&self.pool).await?;
+        if done.rows_affected() == 0 {
+            return Err(UserError::NoUser(name.to_owned(), account.to_owned()));
+        }
+        self.raise_auth_epoch().await?;
+        Ok(())
+    }
+
+    /// A new API key for user `user` of `account`, valid until `expires` (ms since the epoch)
+    /// if given: (its id, the key — shown only now).
+    pub async fn add_key(
+        &self,
+        account: &str,
+        user: &str,
+        expires: Option<i64>,
+    ) -> Result<(String, String), UserError> {
+        let found = sqlx::query("SELECT COUNT(*) AS n FROM users WHERE name = $1 AND account = $2")
+            .bind(user)
+            .bind(account)
+            .fetch_one(&self.pool)
+            .await?
+            .try_get::<i64, _>("n")?;
+        if found == 0 {
+            return Err(UserError::NoUser(user.to_owned(), account.to_owned()));
+        }
+        let key = secret("clk_");
+        let id = secret("")[..12].to_owned();
+        sqlx::query(
+            "INSERT INTO api_keys (id, key_hash, user_name, created, expires, revoked) VALUES ($1, $2, $3, $4, $5, NULL)",
+        )
+        .bind(&id)
+        .bind(digest(&key))
+        .bind(user)
+        .bind(now_ms())
+        .bind(expires)
+        .execute(&self.pool)
+        .await?;
+        Ok((id, key))
+    }
+
+    /// The API keys of `account`'s users.
+    pub async fn keys(&self, account: &str) -> Result<Vec<KeyInfo>, UserError> {
+        self.account_named(account).await?;
+        let rows = sqlx::query(
+            "SELECT k.id, k.user_name, k.expires, k.revoked FROM api_keys k JOIN users u ON u.name = k.user_name WHERE u.account = $1 ORDER BY k.created",
+        )
+        .bind(account)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| {
+                Ok(KeyInfo {
+                    id: r.try_get("id")?,
+                    user: r.try_get("user_name")?,
+                    expires: r.try_get("expires")?,
+                    revoked: r.try_get::<Option<i64>, _>("revoked")?.is_some(),
+                })
+            })
+            .collect()
+    }
+
+    /// Revoke key `id` of `account`: it stops working (within a second in every process).
+    pub async fn revoke_key(&self, account: &str, id: &str) -> Result<(), UserError> {
+        let done = sqlx::query(
+            "UPDATE api_keys SET revoked = $1 WHERE id = $2 AND user_name IN (SELECT name FROM users WHERE account = $3)",
+        )
+        .bind(now_ms())
+        .bind(id)
+        .bind(account)
+        .execute(&self.pool)
+        .await?;
+        if done.rows_affected() == 0 {
+            return Err(UserError::NoKey(id.to_owned(), account.to_owned()));
+        }
+        self.raise_auth_epoch().await?;
+        Ok(())
+    }
+
+    /// The operator a web sign-in with `name` and `secret` is, if the secret is right and the
+    /// user is enabled.
+    pub async fn sign_in(&self, name: &str, secret: &str) -> Result<Option<Operator>, StoreError> {
+        let row = sqlx::query("SELECT secret_hash FROM users WHERE name = $1 AND disabled IS NULL")
+            .bind(name)
+            .fetch_optional(&self.pool)
+            .await?;
+        let Some(row) = row else {
+            // As slow as a wrong secret, so a response time tells no one which names exist.
+            secret_matches(secret, DUMMY_HASH.as_str());
+            return Ok(None);
+        };
+        let hash: String = row.try_get("secret_hash")?;
+        if !secret_matches(secret, &hash) {
+            return Ok(None);
+        }
+        self.operator(name).await
+    }
+
+    /// User `name` as an operator, if it exists and is enabled.
+    pub async fn operator(&self, name: &str) -> Result<Option<Operator>, StoreError> {
+        let row = sqlx::query(
+            "SELECT u.role, a.name AS account, a.domain FROM users u JOIN accounts a ON a.name = u.account WHERE u.name = $1 AND u.disabled IS NULL",
+        )
+        .bind(name)
+        .fetch_optional(&self.pool)
+        .await?;
+        row.map(|r| -> Result<Operator, sqlx::Error> {
+            let role: String = r.try_get("role")?;
+            Ok(Operator {
+                account: Account {
+                    name: r.try_get("account")?,
+                    domain: r.try_get("domain")?,
+                },
+                user: name.to_owned(),
+                role: Role::from_name(&role).unwrap_or(Role::Viewer),
+            })
+        })
+        .transpose()
+        .map_err(StoreError::from)
+    }
+
+    /// The operator a key acts for, looked up in the database: the account's own key (its
+    /// administrator), or a user's key that is neither revoked nor expired, of an enabled user.
+    pub(crate) async fn operator_of_key(
+        &self,
+        digest: &str,
+    ) -> Result<Option<Operator>, StoreError> {
+        let account = sqlx::query("SELECT name, domain FROM accounts WHERE key_hash = $1")
+            .bind(digest)
+            .fetch_optional(&self.pool)
+            .await?;
+        if let Some(r) = account {
+            let name: String = r.try_get("name")?;
+            return Ok(Some(Operator {
+                user: name.clone(),
+                account: Account {
+                    name,
+                    domain: r.try_get("domain")?,
+                },
+                role: Role::Admin,
+            }));
+        }
+        let key = sqlx::query(
+            "SELECT user_name FROM api_keys WHERE key_hash = $1 AND revoked IS NULL AND (expires IS NULL OR expires > $2)",
+        )
+        .bind(digest)
+        .bind(now_ms())
+        .fetch_optional(&self.pool)
+        .await?;
+        match key {
+            Some(r) => self.operator(&r.try_get::<String, _>("user_name")?).await,
+            None => Ok(None),
+        }
+    }
+
+    async fn account_named(&self, account: &str) -> Result<(), UserError> {
+        let n = sqlx::query("SELECT COUNT(*) AS n FROM accounts WHERE name = $1")
+            .bind(account)
+            .fetch_one(&self.pool)
+            .await?
+            .try_get::<i64, _>("n")?;
+        if n == 0 {
+            return Err(UserError::NoAccount(account.to_owned()));
+        }
+        Ok(())
+    }
+
+    /// Raise the auth epoch: every process forgets the keys and sessions it remembered.
+    async fn raise_auth_epoch(&self) -> Result<(), StoreError> {
+        sqlx::query("UPDATE auth_epoch SET epoch = epoch + 1 WHERE id = 1")
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
+    /// The auth epoch in the database.
+    pub async fn auth_epoch(&self) -> Result<i64, StoreError> {
+        let row = sqlx::query("SELECT epoch FROM auth_epoch WHERE id = 1")
+            .fetch_one(&self.pool)
+            .await?;
+        Ok(row.try_get("epoch")?)
+    }
+}
+
+/// A hash to compare against when there is no user, so that an unknown name costs as much time
+/// as a wrong secret.
+static DUMMY_HASH: std::sync::LazyLock<String> =
+    std::sync::LazyLock::new(|| hash_secret("no user has this secret"));
+
+#[cfg(test)]
+pub(super) mod tests {
+    use super::*;
+
+    /// Run by the store's tests on SQLite and PostgreSQL, with account `masora` (domain MAS)
+    /// and `other` made.
+    pub(in crate::store) async fn users_keys_and_the_epoch(store: &Store) {
+        let epoch = store.auth_epoch().await.unwrap();
+        let secret = store
+            .add_user("masora", "ann", Role::Engineer)
+            .await
+            .unwrap();
+        assert!(secret.starts_with("cls_"));
+        assert!(matches!(
+            store.add_user("other", "ann", Role::Viewer).await,
+            Err(UserError::Taken(_))
+        ));
+        assert!(matches!(
+            store.add_user("nobody", "bob", Role::Viewer).await,
+            Err(UserError::NoAccount(_))
+        ));
+        store.add_user("masora", "bob", Role::Viewer).await.unwrap();
+        // Sign-in: the right secret only, the hash is argon2id.
+        let ann = store.sign_in("ann", &secret).await.unwrap().unwrap();
+        assert_eq!(
+            (ann.role, ann.account.domain.as_str()),
+            (Role::Engineer, "MAS")
+        );
+        assert!(store.sign_in("ann", "cls_wrong").await.unwrap().is_none());
+        assert!(store.sign_in("carl", &secret).await.unwrap().is_none());
+        let hash: String = sqlx::query("SELECT secret_hash FROM users WHERE name = 'ann'")
+            .fetch_one(&store.pool)
+            .await
+            .unwrap()
+            .get("secret_hash");
+        assert!(hash.starts_with("$argon2id$"), "{hash}");
+        // Keys act with the user's role, until revoked or expired.
+        let (id, key) = store.add_key("masora", "bob", None).await.unwrap();
+        let bob = store.operator_by_key(&key).await.unwrap().unwrap();
+        assert_eq!((bob.user.as_str(), bob.role), ("bob", Role::Viewer));
+        assert!(matches!(
+            store.add_key("other", "bob", None).await,
+            Err(UserError::NoUser(..))
+        ));
+        let (_, old) = store
+            .add_key("masora", "ann", Some(now_ms() - 1))
+            .await
+            .unwrap();
+        assert!(
+            store.operator_by_key(&old).await.unwrap().is_none(),
+            "expired"
+        );
+        assert_eq!(store.keys("masora").await.unwrap().len(), 2);
+        assert!(matches!(
+            store.revoke_key("other", &id).await,
+            Err(UserError::NoKey(..))
+        ));
+        store.revoke_key("masora", &id).await.unwrap();
+        assert!(store
+            .operator_of_key(&digest(&key))
+            .await
+            .unwrap()
+            .is_none());
+        // Role changes, reset and disable raise the epoch.
+        store
+            .set_role("masora", "bob", Role::Technician)
+            .await
+            .unwrap();
+        assert_eq!(
+            store.operator("bob").await.unwrap().unwrap().role,
+            Role::Technician
+        );
+        let again = store.reset_user("masora", "ann").await.unwrap();
+        assert!(store.sign_in("ann", &secret).await.unwrap().is_none());
+        assert!(store.sign_in("ann", &again).await.unwrap().is_some());
+        store.disable_user("masora", "ann").await.unwrap();
+        assert!(store.sign_in("ann", &again).await.unwrap().is_none());
+        assert!(store.operator("ann").await.unwrap().is_none());
+        assert!(matches!(
+            store.disable_user("other", "bob").await,
+            Err(UserError::NoUser(..))
+        ));
+        assert_eq!(store.auth_epoch().await.unwrap(), epoch + 4);
+        let users = store.users("masora").await.unwrap();
+        let listed: Vec<(&str, Role, bool)> = users
+            .iter()
+            .map(|u| (u.name.as_str(), u.role, u.disabled))
+            .collect();
+        assert_eq!(
+            listed,
+            [
+                ("ann", Role::Engineer, true),
+                ("bob", Role::Technician, false)
+            ]
+        );
+    }
+}
