@@ -96,6 +96,30 @@ impl Client {
         self.connect().await?.call(method, path, body).await
     }
 
+    /// One request with its whole answer (status, `Retry-After`, body), on a connection of its
+    /// own: a JSON body, or with `form` an `application/x-www-form-urlencoded` one (the web UI's
+    /// forms).
+    pub async fn exchange(
+        &self,
+        method: &str,
+        path: &str,
+        body: Body<'_>,
+    ) -> Result<Reply, ClientError> {
+        let mut connection = self.connect().await?;
+        let response = connection.send_body(method, path, body).await?;
+        let retry_after = response
+            .headers()
+            .get(hyper::header::RETRY_AFTER)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.parse().ok());
+        let (status, body) = answer(response).await?;
+        Ok(Reply {
+            status,
+            retry_after,
+            body,
+        })
+    }
+
     /// Open the Server-Sent Events at `path` (the portal subscribes before answering, so
     /// nothing published after this returns is missed). `Err` carries a status other than 200.
     pub async fn events(&self, path: &str) -> Result<Result<EventStream, Answer>, ClientError> {
@@ -117,12 +141,44 @@ pub struct Connection {
     key: Option<String>,
 }
 
+/// The body of a request.
+#[derive(Debug, Clone, Copy)]
+pub enum Body<'a> {
+    /// None.
+    Empty,
+    /// JSON.
+    Json(&'a Value),
+    /// A form's fields.
+    Form(&'a [(&'a str, &'a str)]),
+}
+
+/// A whole answer.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Reply {
+    /// The HTTP status.
+    pub status: u16,
+    /// Seconds to wait before trying again (`Retry-After` of a 429 or 503).
+    pub retry_after: Option<u64>,
+    /// The body as JSON (a string when it is not JSON).
+    pub body: Value,
+}
+
 impl Connection {
     async fn send(
         &mut self,
         method: &str,
         path: &str,
         body: Option<&Value>,
+    ) -> Result<hyper::Response<hyper::body::Incoming>, ClientError> {
+        let body = body.map_or(Body::Empty, Body::Json);
+        self.send_body(method, path, body).await
+    }
+
+    async fn send_body(
+        &mut self,
+        method: &str,
+        path: &str,
+        body: Body<'_>,
     ) -> Result<hyper::Response<hyper::body::Incoming>, ClientError> {
         let io = |e: &dyn std::fmt::Display| ClientError::Io(format!("{}: {e}", self.host));
         let mut request = hyper::Request::builder()
@@ -133,11 +189,17 @@ impl Connection {
             request = request.header("authorization", format!("Bearer {k}"));
         }
         let bytes = match body {
-            Some(b) => {
+            Body::Json(b) => {
                 request = request.header("content-type", "application/json");
                 Bytes::from(b.to_string())
             }
-            None => Bytes::new(),
+            Body::Form(fields) => {
+                request = request.header("content-type", "application/x-www-form-urlencoded");
+                let text = serde_urlencoded::to_string(fields)
+                    .map_err(|e| ClientError::Io(e.to_string()))?;
+                Bytes::from(text)
+            }
+            Body::Empty => Bytes::new(),
         };
         let request = request.body(Full::new(bytes)).map_err(|e| io(&e))?;
         self.sender.ready().await.map_err(|e| io(&e))?;

@@ -26,6 +26,9 @@ pub struct ServerSection {
     pub tls_key: Option<PathBuf>,
     /// PEM CA certificates: gateways must present a certificate signed by one of them.
     pub client_ca: Option<PathBuf>,
+    /// Requests per second one API key may make, on average (bursts of two seconds' worth);
+    /// more are answered 429 with `Retry-After`. 0: no limit.
+    pub requests_per_key_s: u32,
 }
 
 impl Default for ServerSection {
@@ -35,6 +38,7 @@ impl Default for ServerSection {
             tls_cert: None,
             tls_key: None,
             client_ca: None,
+            requests_per_key_s: 100,
         }
     }
 }

@@ -17,5 +17,6 @@ pub mod gateways;
 pub mod rest;
 pub mod server;
 pub mod store;
+pub mod throttle;
 mod timer;
 pub mod web;

@@ -193,6 +193,10 @@ impl Portal {
                     dashboard,
                     subscriptions,
                     elevations: crate::elevation::Elevations::default(),
+                    key_rates: std::sync::Mutex::new(crate::throttle::KeyRates::new(
+                        config.server.requests_per_key_s,
+                    )),
+                    sign_ins: std::sync::Mutex::default(),
                     alarms,
                     names: Arc::new(names),
                 });

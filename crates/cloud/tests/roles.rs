@@ -4,6 +4,7 @@
 
 use std::time::Duration;
 
+use cloud::client::{Body, Reply};
 use cloud::store::Role;
 use serde_json::{json, Value};
 use testkit::constants::{LIFT, SERVICE_PASSWORD, WAIT};
@@ -249,5 +250,76 @@ async fn rights_taken_away_count_within_a_second() {
         || async { rig.call("GET", "/api/v1/lifts", Some(&carl), None).await.0 == 401 },
     )
     .await;
+    rig.stop().await;
+}
+
+/// The web UI's sign-in form, posted.
+async fn web_sign_in(client: &cloud::client::Client, user: &str, secret: &str) -> Reply {
+    let form = [("user", user), ("secret", secret), ("key", "")];
+    let reply = client.exchange("POST", "/login", Body::Form(&form)).await;
+    reply.expect("the portal answers")
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sign_ins_and_keys_are_throttled() {
+    let rig = Rig::builder()
+        .without_lift()
+        .portal(|c| c.server.requests_per_key_s = 1)
+        .start()
+        .await;
+    let client = cloud::client::Client::new(&rig.url(), None, Some(&rig.ca)).unwrap();
+    let secret = rig
+        .store()
+        .await
+        .add_user("masora", "dora", Role::Viewer)
+        .await
+        .unwrap();
+    let sign_in = |secret| web_sign_in(&client, "dora", secret);
+    // Five wrong secrets are free; the sixth makes the next attempt wait a second.
+    for _ in 0..6 {
+        assert_eq!(sign_in("cls_wrong").await.status, 401);
+    }
+    let throttled = sign_in("cls_wrong").await;
+    assert_eq!(throttled.status, 429);
+    assert_eq!(throttled.retry_after, Some(1));
+    assert!(throttled
+        .body
+        .as_str()
+        .unwrap()
+        .contains("try again in 1 s"));
+    // Even the right secret waits; then it signs in (303 to the fleet) and the count is over.
+    assert_eq!(sign_in(&secret).await.status, 429);
+    tokio::time::sleep(Duration::from_millis(1100)).await;
+    assert_eq!(sign_in(&secret).await.status, 303);
+    assert_eq!(sign_in("cls_wrong").await.status, 401);
+
+    // A key: a burst of two seconds' worth (2), then 429 with Retry-After; whatever refilled
+    // while the requests ran (one a second) counts too.
+    let keyed = cloud::client::Client::new(&rig.url(), Some(&rig.key), Some(&rig.ca)).unwrap();
+    let begin = std::time::Instant::now();
+    let mut answered = 0;
+    let refused = loop {
+        let reply = keyed
+            .exchange("GET", "/api/v1/lifts", Body::Empty)
+            .await
+            .unwrap();
+        if reply.status != 200 {
+            break reply;
+        }
+        answered += 1;
+        assert!(answered < 50, "never refused");
+    };
+    assert_eq!((refused.status, refused.retry_after), (429, Some(1)));
+    let refilled = begin.elapsed().as_secs() + 1;
+    assert!(
+        (2..=2 + refilled).contains(&answered),
+        "{answered} answered in {:?}",
+        begin.elapsed()
+    );
+    // Another key is not held back by this one.
+    let (status, _) = rig
+        .call("GET", "/api/v1/lifts", Some(&rig.other_key), None)
+        .await;
+    assert_eq!(status, 200);
     rig.stop().await;
 }

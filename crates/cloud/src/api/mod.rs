@@ -51,19 +51,35 @@ pub struct App {
     pub subscriptions: Arc<crate::gateways::subscriptions::Subscriptions>,
     /// Who elevated which lift.
     pub elevations: crate::elevation::Elevations,
+    /// Requests per API key (`[server] requests_per_key_s`).
+    pub key_rates: std::sync::Mutex<crate::throttle::KeyRates>,
+    /// Failed web sign-ins per user name and source address.
+    pub sign_ins: std::sync::Mutex<crate::throttle::SignIns>,
     /// Alarms.
     pub alarms: Arc<crate::alarms::Alarms>,
     /// Object names operators may use instead of an mplex (`?name=`, path, web forms).
     pub names: Arc<ObjectNames>,
 }
 
-/// An error answer: the status and an error object.
-pub struct ApiError(StatusCode, ErrorObject);
+/// An error answer: the status and an error object (and, for 429, when to try again).
+pub struct ApiError(StatusCode, ErrorObject, Option<std::time::Duration>);
 
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
-        (self.0, Json(self.1)).into_response()
+        let mut response = (self.0, Json(self.1)).into_response();
+        if let Some(wait) = self.2 {
+            response
+                .headers_mut()
+                .insert(axum::http::header::RETRY_AFTER, retry_after(wait));
+        }
+        response
     }
+}
+
+/// `Retry-After` in whole seconds, rounded up (RFC 9110 §10.2.3).
+pub(crate) fn retry_after(wait: std::time::Duration) -> axum::http::HeaderValue {
+    let seconds = wait.as_secs() + u64::from(wait.subsec_nanos() > 0);
+    axum::http::HeaderValue::from(seconds.max(1))
 }
 
 /// An error of the portal itself: the status as its code.
@@ -71,6 +87,7 @@ pub(crate) fn error(status: StatusCode, message: impl Into<String>) -> ApiError 
     ApiError(
         status,
         ErrorObject::rpc(i64::from(status.as_u16()), message),
+        None,
     )
 }
 
@@ -102,7 +119,7 @@ fn status_of(code: Option<ErrorCode>) -> StatusCode {
 impl From<Failure> for ApiError {
     fn from(f: Failure) -> Self {
         match f {
-            Failure::Error(e) => ApiError(status_of(e.abort_code()), e),
+            Failure::Error(e) => ApiError(status_of(e.abort_code()), e, None),
             Failure::Invalid(why) => error(
                 StatusCode::BAD_GATEWAY,
                 format!("the gateway's answer is not valid: {why}"),
@@ -111,10 +128,14 @@ impl From<Failure> for ApiError {
                 StatusCode::GATEWAY_TIMEOUT,
                 "the gateway did not answer in time",
             ),
-            Failure::Busy => error(
-                StatusCode::TOO_MANY_REQUESTS,
-                "too many requests for this gateway",
-            ),
+            Failure::Busy => {
+                let mut e = error(
+                    StatusCode::TOO_MANY_REQUESTS,
+                    "too many requests for this gateway",
+                );
+                e.2 = Some(std::time::Duration::from_secs(1));
+                e
+            }
             Failure::Gone => error(StatusCode::SERVICE_UNAVAILABLE, "the gateway is offline"),
         }
     }
@@ -160,12 +181,28 @@ impl FromRequestParts<Arc<App>> for Caller {
     async fn from_request_parts(parts: &mut Parts, app: &Arc<App>) -> Result<Self, ApiError> {
         let header = |name: &str| parts.headers.get(name).and_then(|v| v.to_str().ok());
         if let Some(key) = header("authorization").and_then(|v| v.strip_prefix("Bearer ")) {
-            return app
+            let key = key.trim();
+            let operator = app
                 .store
-                .operator_by_key(key.trim())
+                .operator_by_key(key)
                 .await?
-                .map(Caller)
-                .ok_or_else(|| error(StatusCode::UNAUTHORIZED, "unknown API key"));
+                .ok_or_else(|| error(StatusCode::UNAUTHORIZED, "unknown API key"))?;
+            let within = app
+                .key_rates
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner)
+                .take(&store::digest(key), std::time::Instant::now());
+            return match within {
+                Ok(()) => Ok(Caller(operator)),
+                Err(wait) => {
+                    let mut e = error(
+                        StatusCode::TOO_MANY_REQUESTS,
+                        "too many requests with this API key ([server] requests_per_key_s)",
+                    );
+                    e.2 = Some(wait);
+                    Err(e)
+                }
+            };
         }
         let Some(session) = app.sessions.current(&parts.headers, &app.store).await? else {
             return Err(error(

@@ -16,6 +16,7 @@ use super::{dashboard, LiftEvent, OperatorCall, Reply, Shared};
 use crate::alarms::Input;
 use crate::config::BoardhashChange;
 use crate::store::{self, Admission, AuditEntry, TelemetryRow};
+use crate::throttle::TokenBucket;
 
 /// The lift a connection serves, once it is admitted.
 struct Admitted {
@@ -38,38 +39,9 @@ pub struct Connection {
     waiting: HashMap<RequestId, Reply>,
     admitted: Option<Admitted>,
     closing: tokio::sync::watch::Receiver<bool>,
-    rate: MessageRate,
-}
-
-/// A token bucket over the messages a gateway sends: `per_s` on average, bursts of two
-/// seconds' worth (a gateway pushing its subscriptions after CONNACK).
-struct MessageRate {
-    per_s: f64,
-    tokens: f64,
-    at: Instant,
-}
-
-impl MessageRate {
-    fn new(per_s: u32, now: Instant) -> MessageRate {
-        let per_s = f64::from(per_s.max(1));
-        MessageRate {
-            per_s,
-            tokens: 2.0 * per_s,
-            at: now,
-        }
-    }
-
-    /// One message arrived at `now`: whether it is within the rate.
-    fn take(&mut self, now: Instant) -> bool {
-        let refill = now.saturating_duration_since(self.at).as_secs_f64() * self.per_s;
-        self.tokens = (self.tokens + refill).min(2.0 * self.per_s);
-        self.at = now;
-        if self.tokens < 1.0 {
-            return false;
-        }
-        self.tokens -= 1.0;
-        true
-    }
+    /// The gateway's messages: `[gateways] max_messages_per_s`, bursts of two seconds' worth
+    /// (a gateway pushing its subscriptions after CONNACK).
+    rate: TokenBucket,
 }
 
 /// Serve one gateway connection until it ends.
@@ -84,7 +56,7 @@ impl Connection {
             mpsc::channel(shared.settings.max_queued.max(1) + shared.settings.max_in_flight);
         let (close_tx, close_rx) = oneshot::channel();
         let closing = shared.closing.clone();
-        let rate = MessageRate::new(shared.max_messages_per_s, Instant::now());
+        let rate = TokenBucket::new(shared.max_messages_per_s, Instant::now());
         Connection {
             socket,
             shared,
@@ -152,13 +124,14 @@ impl Connection {
         tokio::select! {
             message = self.socket.recv() => {
                 let now = Instant::now();
-                if matches!(message, Some(Ok(_))) && !self.rate.take(now) {
+                if matches!(message, Some(Ok(_))) && self.rate.take(now).is_err() {
                     let frame = CloseFrame {
                         code: close_code::POLICY,
                         reason: "message rate above [gateways] max_messages_per_s".into(),
                     };
                     let _ = self.socket.send(Message::Close(Some(frame))).await;
-                    return Err(format!("more than {} messages/s", self.rate.per_s));
+                    let limit = self.shared.max_messages_per_s;
+                    return Err(format!("more than {limit} messages/s"));
                 }
                 match message {
                     Some(Ok(Message::Text(text))) => Ok(self.session.text(text.as_str(), now)),
@@ -402,35 +375,5 @@ async fn token_to_issue(shared: &Shared, lift: &str, admission: &Admission) -> O
             }
         }
         Admission::Refused(_) => None,
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use std::time::Duration;
-
-    #[test]
-    fn the_message_rate_allows_a_burst_of_two_seconds_then_the_average() {
-        let start = Instant::now();
-        let mut rate = MessageRate::new(100, start);
-        assert!(
-            (0..200).all(|_| rate.take(start)),
-            "two seconds' worth at once"
-        );
-        assert!(!rate.take(start), "then nothing more");
-        // 100 per second refill: 10 ms brings one.
-        assert!(rate.take(start + Duration::from_millis(10)));
-        assert!(!rate.take(start + Duration::from_millis(10)));
-        // A steady 100/s is always within the rate.
-        let steady = (1..=1000).all(|i| rate.take(start + Duration::from_millis(10 + 10 * i)));
-        assert!(steady);
-        // 200/s is not for long.
-        let later = start + Duration::from_secs(20);
-        let mut fast = MessageRate::new(100, later);
-        let accepted = (0..2000)
-            .take_while(|i| fast.take(later + Duration::from_millis(5 * i)))
-            .count();
-        assert!((390..=410).contains(&accepted), "{accepted}");
     }
 }

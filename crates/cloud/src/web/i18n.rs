@@ -222,6 +222,7 @@ const GERMAN: &[(&str, &str)] = &[
     (" (or by ", " (oder "),
     (").", ")."),
     ("Wrong user name, secret or API key.", "Benutzername, Geheimnis oder API-Schlüssel falsch."),
+    ("Too many failed sign-ins: try again in {} s.", "Zu viele fehlgeschlagene Anmeldungen: bitte in {} s erneut versuchen."),
     ("Wrong CSRF token.", "Falsches CSRF-Token."),
     ("A viewer cannot acknowledge alarms.", "Als Betrachter können Sie keine Alarme quittieren."),
     // Errors.

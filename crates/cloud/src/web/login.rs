@@ -1,9 +1,11 @@
 //! Signing in with a user's name and secret (or an API key), and out. A wrong secret and an
 //! unknown name get the same answer after the same work (docs/PORTAL.md §Users and roles).
 
-use std::sync::Arc;
+use std::net::SocketAddr;
+use std::sync::{Arc, PoisonError};
+use std::time::Instant;
 
-use axum::extract::{Form, State};
+use axum::extract::{ConnectInfo, Form, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Redirect, Response};
 use maud::html;
@@ -14,6 +16,7 @@ use super::page::{layout, problem, unavailable, Viewer};
 use super::session::{Credential, COOKIE, IDLE};
 use crate::api::App;
 use crate::store;
+use crate::throttle::SignIns;
 
 pub(super) async fn login_page(locale: Locale) -> Response {
     login_form(None, locale)
@@ -66,11 +69,43 @@ pub(super) struct LoginForm {
 
 pub(super) async fn login(
     State(app): State<Arc<App>>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
     locale: Locale,
     Form(form): Form<LoginForm>,
 ) -> Response {
     let epoch = app.store.seen_auth_epoch();
     let key = form.key.trim();
+    // Failed attempts make the next ones wait, per name (keys count as one name) and address.
+    let name = if key.is_empty() {
+        form.user.trim()
+    } else {
+        "(API key)"
+    };
+    let address = peer.ip().to_string();
+    let throttle = |f: &dyn Fn(&mut SignIns)| {
+        f(&mut app.sign_ins.lock().unwrap_or_else(PoisonError::into_inner));
+    };
+    let waiting = app
+        .sign_ins
+        .lock()
+        .unwrap_or_else(PoisonError::into_inner)
+        .check(name, &address, Instant::now());
+    if let Err(wait) = waiting {
+        tracing::warn!(user = name, %address, wait_s = wait.as_secs(), "sign-in throttled");
+        let text = locale.fill(
+            "Too many failed sign-ins: try again in {} s.",
+            &[&wait.as_secs().max(1)],
+        );
+        let mut response = (
+            StatusCode::TOO_MANY_REQUESTS,
+            login_form(Some(&text), locale),
+        )
+            .into_response();
+        response
+            .headers_mut()
+            .insert(header::RETRY_AFTER, crate::api::retry_after(wait));
+        return response;
+    }
     let signed_in = if key.is_empty() {
         let user = form.user.trim();
         app.store
@@ -85,6 +120,7 @@ pub(super) async fn login(
     };
     match signed_in {
         Ok(Some((operator, credential))) => {
+            throttle(&|s| s.succeeded(name, &address));
             tracing::info!(user = %operator.user, account = %operator.account.name, "web sign-in");
             let id = app.sessions.open(operator, credential, epoch);
             let cookie = format!(
@@ -97,14 +133,11 @@ pub(super) async fn login(
             }
             response
         }
-        Ok(None) => (
-            StatusCode::UNAUTHORIZED,
-            login_form(
-                Some(locale.t("Wrong user name, secret or API key.")),
-                locale,
-            ),
-        )
-            .into_response(),
+        Ok(None) => {
+            throttle(&|s| s.failed(name, &address, Instant::now()));
+            let text = locale.t("Wrong user name, secret or API key.");
+            (StatusCode::UNAUTHORIZED, login_form(Some(text), locale)).into_response()
+        }
         Err(e) => unavailable(
             e,
             Viewer {
