@@ -150,6 +150,8 @@ pub enum Body<'a> {
     Json(&'a Value),
     /// A form's fields.
     Form(&'a [(&'a str, &'a str)]),
+    /// Text sent as JSON as it is, well-formed or not.
+    Text(&'a str),
 }
 
 /// A whole answer.
@@ -198,6 +200,10 @@ impl Connection {
                 let text = serde_urlencoded::to_string(fields)
                     .map_err(|e| ClientError::Io(e.to_string()))?;
                 Bytes::from(text)
+            }
+            Body::Text(text) => {
+                request = request.header("content-type", "application/json");
+                Bytes::from(text.to_owned())
             }
             Body::Empty => Bytes::new(),
         };
