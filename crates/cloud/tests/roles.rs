@@ -69,6 +69,8 @@ fn operations() -> Vec<Operation> {
             Role::Engineer,
         ),
         op("POST", lift("/token"), None, Role::Admin),
+        op("GET", "/api/v1/users".into(), None, Role::Admin),
+        op("GET", "/api/v1/keys".into(), None, Role::Admin),
     ]
 }
 
@@ -321,5 +323,98 @@ async fn sign_ins_and_keys_are_throttled() {
         .call("GET", "/api/v1/lifts", Some(&rig.other_key), None)
         .await;
     assert_eq!(status, 200);
+    rig.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_administrator_manages_users_and_keys_through_the_api() {
+    let rig = Rig::builder().without_lift().start().await;
+    let admin = user(&rig, "root", Role::Admin).await;
+    let call = |method: &'static str, path: &'static str, body: Option<Value>| {
+        let admin = admin.clone();
+        let rig = &rig;
+        async move { rig.call(method, path, Some(&admin), body).await }
+    };
+    let (status, made) = call(
+        "POST",
+        "/api/v1/users",
+        Some(json!({"name": "tom", "role": "technician"})),
+    )
+    .await;
+    assert_eq!(status, 201, "{made}");
+    assert_eq!(
+        (&made["user"], &made["role"]),
+        (&json!("tom"), &json!("technician"))
+    );
+    let secret = made["secret"].as_str().unwrap().to_owned();
+    let again = json!({"name": "tom", "role": "viewer"});
+    assert_eq!(call("POST", "/api/v1/users", Some(again)).await.0, 409);
+    let bad = json!({"name": "no spaces please", "role": "viewer"});
+    assert_eq!(call("POST", "/api/v1/users", Some(bad)).await.0, 400);
+    let client = cloud::client::Client::new(&rig.url(), None, Some(&rig.ca)).unwrap();
+    assert_eq!(web_sign_in(&client, "tom", &secret).await.status, 303);
+
+    let (status, key) = call(
+        "POST",
+        "/api/v1/keys",
+        Some(json!({"user": "tom", "expires_days": 90})),
+    )
+    .await;
+    assert_eq!(status, 201, "{key}");
+    let tom = key["api_key"].as_str().unwrap().to_owned();
+    let (_, keys) = call("GET", "/api/v1/keys", None).await;
+    let listed = keys
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|k| k["id"] == key["id"])
+        .cloned();
+    assert!(
+        listed.is_some_and(|k| k["user"] == "tom" && k["expires"].is_i64()),
+        "{keys}"
+    );
+    // Tom may not manage anyone.
+    assert_eq!(
+        rig.call("GET", "/api/v1/users", Some(&tom), None).await.0,
+        403
+    );
+    assert_eq!(
+        rig.call("GET", "/api/v1/lifts", Some(&tom), None).await.0,
+        200
+    );
+    // Revoked: refused within a second or two; another account's admin cannot touch Tom.
+    let path = format!("/api/v1/keys/{}", key["id"].as_str().unwrap());
+    let (status, _) = rig.call("DELETE", &path, Some(&rig.other_key), None).await;
+    assert_eq!(status, 404);
+    assert_eq!(rig.call("DELETE", &path, Some(&admin), None).await.0, 204);
+    until(
+        Duration::from_secs(5),
+        "the revoked key refused",
+        || async { rig.call("GET", "/api/v1/lifts", Some(&tom), None).await.0 == 401 },
+    )
+    .await;
+    let role = json!({"role": "engineer"});
+    let path = "/api/v1/users/tom/role";
+    assert_eq!(rig.call("PUT", path, Some(&admin), Some(role)).await.0, 204);
+    let (status, reset) = call("POST", "/api/v1/users/tom/reset", None).await;
+    assert_eq!((status, &reset["role"]), (200, &json!("engineer")));
+    assert_eq!(
+        web_sign_in(&client, "tom", &secret).await.status,
+        401,
+        "the old secret"
+    );
+    assert_eq!(call("POST", "/api/v1/users/tom/disable", None).await.0, 204);
+    let (_, users) = call("GET", "/api/v1/users", None).await;
+    assert!(users
+        .as_array()
+        .unwrap()
+        .iter()
+        .any(|u| u["name"] == "tom" && u["disabled"] == true));
+    let fresh = reset["secret"].as_str().unwrap();
+    assert_eq!(
+        web_sign_in(&client, "tom", fresh).await.status,
+        401,
+        "disabled"
+    );
     rig.stop().await;
 }

@@ -5,6 +5,7 @@
 //! bodies are the types of [`crate::rest`]; alarms and the event log are in `alarms`.
 
 mod alarms;
+mod users;
 
 use std::convert::Infallible;
 use std::sync::Arc;
@@ -748,5 +749,17 @@ pub fn routes(app: Arc<App>) -> Router {
             axum::routing::post(alarms::acknowledge),
         )
         .route("/api/v1/audit", get(audit))
+        .route("/api/v1/users", get(users::list).post(users::add))
+        .route("/api/v1/users/{name}/role", axum::routing::put(users::role))
+        .route(
+            "/api/v1/users/{name}/disable",
+            axum::routing::post(users::disable),
+        )
+        .route(
+            "/api/v1/users/{name}/reset",
+            axum::routing::post(users::reset),
+        )
+        .route("/api/v1/keys", get(users::keys).post(users::add_key))
+        .route("/api/v1/keys/{id}", axum::routing::delete(users::revoke))
         .with_state(app)
 }
