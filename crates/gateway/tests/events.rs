@@ -92,6 +92,15 @@ async fn faults_and_silence_reach_the_portal_in_order_even_after_a_gap() {
     let mut node = python_node(&python, &hub).await;
     let mut config = config(&portal.url(), &pki, &bus, dir.path());
     config.identity.api = 2;
+    // The simulator's heartbeat period given, so the gateway does not read node 1's 1017h by
+    // SDO while the test's own client below writes to node 1: two clients' frames would mix on
+    // node 1's one SDO channel (CiA 301: one client per channel).
+    config.bus.nodes.push(gateway::config::NodeSection {
+        id: 1,
+        eds: None,
+        metadata: None,
+        heartbeat_ms: Some(lift417::sim::SimConfig::default().heartbeat_ms),
+    });
     let running = spawn(Gateway::bus_node(config).await.unwrap());
     // A direct SDO client for fault injection while the portal is away.
     let sdo = SdoClients::new(Bus::open(&bus).await.unwrap(), ClientConfig::default());
