@@ -177,6 +177,17 @@ where
     let mut running = 0usize;
     let mut served = false;
     loop {
+        // A lock-out state is on disk before the answer that follows from it goes out: a gateway
+        // stopped or killed right after answering still counts the failure.
+        for output in &outputs {
+            if let Output::Lockout(state) = output {
+                let (store, state) = (shared.lockout.clone(), *state);
+                let stored = tokio::task::spawn_blocking(move || store.store(&state)).await;
+                if let Ok(Err(e)) = stored {
+                    tracing::error!(error = %e, "elevation lock-out not stored");
+                }
+            }
+        }
         for output in outputs.drain(..) {
             match output {
                 Output::Send(text) => {
@@ -191,14 +202,8 @@ where
                 Output::Start(id, job) => jobs.push_back((id, job)),
                 Output::Watch(target, index, sub) => feed.watch(target, index, sub),
                 Output::Unwatch(target, index, sub) => feed.unwatch(target, index, sub),
-                Output::Lockout(state) => {
-                    let store = shared.lockout.clone();
-                    tokio::task::spawn_blocking(move || {
-                        if let Err(e) = store.store(&state) {
-                            tracing::error!(error = %e, "elevation lock-out not stored");
-                        }
-                    });
-                }
+                // Stored above, before anything of this batch was sent.
+                Output::Lockout(_) => {}
             }
         }
         // Jobs run at most `max_in_flight` at once (with the subscriptions' first reads there
