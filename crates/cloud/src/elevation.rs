@@ -106,18 +106,14 @@ impl Elevations {
         Ok(())
     }
 
-    /// Grants held at most: one per lift whose privilege someone elevated and that was not
-    /// written since it ran out (a lift's grant goes when it is next checked or replaced).
-    pub fn len(&self) -> usize {
+    /// Whether no lift has a grant (a lift's grant goes when it is next checked after it ran
+    /// out or its connection ended, or when it is replaced).
+    #[cfg(test)]
+    fn is_empty(&self) -> bool {
         self.grants
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
-            .len()
-    }
-
-    /// Whether no lift has a grant.
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
+            .is_empty()
     }
 }
 

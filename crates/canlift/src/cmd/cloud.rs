@@ -262,13 +262,7 @@ async fn users(config: &Config, what: UserCommand) -> anyhow::Result<()> {
             account,
             json,
         } => {
-            let secret = store.reset_user(&account, &name).await?;
-            let role = store
-                .users(&account)
-                .await?
-                .into_iter()
-                .find(|u| u.name == name)
-                .map_or(Role::Viewer, |u| u.role);
+            let (secret, role) = store.reset_user(&account, &name).await?;
             print_secret(json, &name, &account, role, &secret);
         }
         UserCommand::Role {

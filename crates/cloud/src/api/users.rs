@@ -139,14 +139,7 @@ pub(super) async fn reset(
 ) -> Result<Json<UserSecret>, ApiError> {
     let admin = allowed(caller, Role::Admin)?;
     let account = admin.account.name;
-    let secret = app.store.reset_user(&account, &name).await?;
-    let role = app
-        .store
-        .users(&account)
-        .await?
-        .into_iter()
-        .find(|u| u.name == name)
-        .map_or(Role::Viewer, |u| u.role);
+    let (secret, role) = app.store.reset_user(&account, &name).await?;
     tracing::info!(by = %admin.user, user = %name, "secret reset");
     Ok(Json(UserSecret {
         user: name,

@@ -333,21 +333,19 @@ async fn board_changed(
             result: result.into(),
         })
         .await?;
-    Ok(match policy {
-        BoardhashChange::Refuse => Admission::Refused(format!(
+    if policy == BoardhashChange::Refuse {
+        return Ok(Admission::Refused(format!(
             "boardhash {now:?} differs from the registered {was:?} (boardhash_change = refuse; reset the token to admit the new board)"
-        )),
-        BoardhashChange::Alarm => {
-            let input = Input::BoardChanged {
-                lift,
-                was,
-                now,
-            };
-            shared.alarms.report(input).await;
-            Admission::Known(store::Known { board_was: None, token_set })
-        }
-        BoardhashChange::Accept => Admission::Known(store::Known { board_was: None, token_set }),
-    })
+        )));
+    }
+    if policy == BoardhashChange::Alarm {
+        let input = Input::BoardChanged { lift, was, now };
+        shared.alarms.report(input).await;
+    }
+    Ok(Admission::Known(store::Known {
+        board_was: None,
+        token_set,
+    }))
 }
 
 /// The token to send with CONNACK: a first one at first contact, a new one when the one in

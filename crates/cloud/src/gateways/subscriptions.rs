@@ -130,7 +130,7 @@ impl Holders {
     }
 
     /// The terms registered for `mplex` (the union of its holders'), if anyone holds it.
-    pub fn union(&self, base: &Base, mplex: &Mplex) -> Option<Terms> {
+    fn union(&self, base: &Base, mplex: &Mplex) -> Option<Terms> {
         let held = self.objects.get(mplex).into_iter().flat_map(|h| h.values());
         base.get(mplex)
             .into_iter()
@@ -287,15 +287,6 @@ impl Subscriptions {
                 }
             }
         }
-    }
-
-    /// The terms registered for `mplex` on `lift` now (the union), if anyone holds it.
-    pub async fn union(&self, lift: &str, mplex: &Mplex) -> Option<Terms> {
-        let cell = self.holders(lift);
-        let holders = cell.lock().await;
-        let union = holders.union(&self.base, mplex);
-        self.forget_if_empty(lift, &cell, &holders);
-        union
     }
 
     /// A lift whose holders are all gone takes no memory (only one that anyone holds a

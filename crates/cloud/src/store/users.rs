@@ -137,6 +137,13 @@ impl From<sqlx::Error> for UserError {
     }
 }
 
+/// The `role` column of `row` (an unknown name, written by a later version, counts as the
+/// least role).
+fn role_of(row: &sqlx::any::AnyRow) -> Result<Role, sqlx::Error> {
+    let name: String = row.try_get("role")?;
+    Ok(Role::from_name(&name).unwrap_or(Role::Viewer))
+}
+
 /// The argon2id hash of `secret` as a PHC string (the crate's default parameters: 19 MiB,
 /// two passes, the OWASP recommendation).
 fn hash_secret(secret: &str) -> String {
@@ -200,11 +207,10 @@ impl Store {
         .await?;
         rows.iter()
             .map(|r| {
-                let role: String = r.try_get("role")?;
                 Ok(User {
                     name: r.try_get("name")?,
                     account: r.try_get("account")?,
-                    role: Role::from_name(&role).unwrap_or(Role::Viewer),
+                    role: role_of(r)?,
                     disabled: r.try_get::<Option<i64>, _>("disabled")?.is_some(),
                 })
             })
@@ -223,9 +229,9 @@ impl Store {
         .await
     }
 
-    /// A new sign-in secret for user `name` of `account` (shown only now); the old one and the
-    /// user's sessions stop working. A disabled user stays disabled.
-    pub async fn reset_user(&self, account: &str, name: &str) -> Result<String, UserError> {
+    /// A new sign-in secret for user `name` of `account` (shown only now) and the user's role;
+    /// the old secret and the user's sessions stop working. A disabled user stays disabled.
+    pub async fn reset_user(&self, account: &str, name: &str) -> Result<(String, Role), UserError> {
         let secret = secret("cls_");
         self.change_user(
             account,
@@ -234,7 +240,11 @@ impl Store {
                 .bind(hash_secret(&secret)),
         )
         .await?;
-        Ok(secret)
+        let row = sqlx::query("SELECT role FROM users WHERE name = $1")
+            .bind(name)
+            .fetch_one(&self.pool)
+            .await?;
+        Ok((secret, role_of(&row)?))
     }
 
     /// Give user `name` of `account` another role.
@@ -362,14 +372,13 @@ impl Store {
         .fetch_optional(&self.pool)
         .await?;
         row.map(|r| -> Result<Operator, sqlx::Error> {
-            let role: String = r.try_get("role")?;
             Ok(Operator {
                 account: Account {
                     name: r.try_get("account")?,
                     domain: r.try_get("domain")?,
                 },
                 user: name.to_owned(),
-                role: Role::from_name(&role).unwrap_or(Role::Viewer),
+                role: role_of(&r)?,
             })
         })
         .transpose()
@@ -516,7 +525,8 @@ pub(super) mod tests {
             store.operator("bob").await.unwrap().unwrap().role,
             Role::Technician
         );
-        let again = store.reset_user("masora", "ann").await.unwrap();
+        let (again, role) = store.reset_user("masora", "ann").await.unwrap();
+        assert_eq!(role, Role::Engineer);
         assert!(store.sign_in("ann", &secret).await.unwrap().is_none());
         assert!(store.sign_in("ann", &again).await.unwrap().is_some());
         store.disable_user("masora", "ann").await.unwrap();

@@ -16,7 +16,6 @@ use super::page::{layout, problem, unavailable, Viewer};
 use super::session::{Credential, COOKIE, IDLE};
 use crate::api::App;
 use crate::store;
-use crate::throttle::SignIns;
 
 pub(super) async fn login_page(locale: Locale) -> Response {
     login_form(None, locale)
@@ -82,14 +81,8 @@ pub(super) async fn login(
         "(API key)"
     };
     let address = peer.ip().to_string();
-    let throttle = |f: &dyn Fn(&mut SignIns)| {
-        f(&mut app.sign_ins.lock().unwrap_or_else(PoisonError::into_inner));
-    };
-    let waiting = app
-        .sign_ins
-        .lock()
-        .unwrap_or_else(PoisonError::into_inner)
-        .check(name, &address, Instant::now());
+    let sign_ins = || app.sign_ins.lock().unwrap_or_else(PoisonError::into_inner);
+    let waiting = sign_ins().check(name, &address, Instant::now());
     if let Err(wait) = waiting {
         tracing::warn!(user = name, %address, wait_s = wait.as_secs(), "sign-in throttled");
         let text = locale.fill(
@@ -120,7 +113,7 @@ pub(super) async fn login(
     };
     match signed_in {
         Ok(Some((operator, credential))) => {
-            throttle(&|s| s.succeeded(name, &address));
+            sign_ins().succeeded(name, &address);
             tracing::info!(user = %operator.user, account = %operator.account.name, "web sign-in");
             let id = app.sessions.open(operator, credential, epoch);
             let cookie = format!(
@@ -134,7 +127,7 @@ pub(super) async fn login(
             response
         }
         Ok(None) => {
-            throttle(&|s| s.failed(name, &address, Instant::now()));
+            sign_ins().failed(name, &address, Instant::now());
             let text = locale.t("Wrong user name, secret or API key.");
             (StatusCode::UNAUTHORIZED, login_form(Some(text), locale)).into_response()
         }
