@@ -29,6 +29,10 @@ pub struct ServerSection {
     /// Requests per second one API key may make, on average (bursts of two seconds' worth);
     /// more are answered 429 with `Retry-After`. 0: no limit.
     pub requests_per_key_s: u32,
+    /// Hours between rotations of the TLS session-ticket key (kept in the state directory, so
+    /// a restarted portal resumes its gateways' sessions; a ticket counts for at most two
+    /// periods). 0: no tickets, every handshake is a full one.
+    pub ticket_rotate_h: u32,
 }
 
 impl Default for ServerSection {
@@ -39,6 +43,7 @@ impl Default for ServerSection {
             tls_key: None,
             client_ca: None,
             requests_per_key_s: 100,
+            ticket_rotate_h: 12,
         }
     }
 }

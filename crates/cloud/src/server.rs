@@ -41,6 +41,9 @@ pub enum ServerError {
 struct Metrics {
     connections: AtomicU64,
     upgrades_refused: AtomicU64,
+    /// TLS handshakes with a certificate (full) and by a session ticket (resumed).
+    handshakes_full: AtomicU64,
+    handshakes_resumed: AtomicU64,
 }
 
 struct WsState {
@@ -87,6 +90,7 @@ pub struct Portal {
     tasks: Vec<tokio::task::JoinHandle<()>>,
     /// Closes the gateways' connections when the portal stops.
     closing: watch::Sender<bool>,
+    metrics: Arc<Metrics>,
 }
 
 fn server_tls(config: &Config) -> Result<Arc<rustls::ServerConfig>, ServerError> {
@@ -106,6 +110,15 @@ fn server_tls(config: &Config) -> Result<Arc<rustls::ServerConfig>, ServerError>
     };
     let mut tls = tls::server_config(&cert, &key, config.server.client_ca.as_deref())?;
     tls.alpn_protocols = vec![b"http/1.1".to_vec()];
+    if config.server.ticket_rotate_h > 0 {
+        let rotate =
+            std::time::Duration::from_secs(u64::from(config.server.ticket_rotate_h) * 3600);
+        let keys =
+            tls::tickets::TicketKeys::open(&config.state.dir.join("tls-ticket-keys"), rotate)?;
+        tls.ticketer = Arc::new(keys);
+        // A gateway holds one connection: one ticket per handshake is all it uses.
+        tls.send_tls13_tickets = 1;
+    }
     Ok(Arc::new(tls))
 }
 
@@ -216,6 +229,7 @@ impl Portal {
             registry,
             tasks,
             closing,
+            metrics,
         })
     }
 
@@ -239,6 +253,7 @@ impl Portal {
             router,
             tasks,
             closing,
+            metrics,
             ..
         } = self;
         loop {
@@ -254,11 +269,18 @@ impl Portal {
                 _ = shutdown.changed() => break,
             };
             let _ = tcp.set_nodelay(true);
-            let (tls, router) = (tls.clone(), router.clone());
+            let (tls, router, metrics) = (tls.clone(), router.clone(), metrics.clone());
             tokio::spawn(async move {
                 let handshake = tokio::time::timeout(HANDSHAKE_TIMEOUT, tls.accept(tcp)).await;
                 let stream = match handshake {
-                    Ok(Ok(s)) => s,
+                    Ok(Ok(s)) => {
+                        let counter = match s.get_ref().1.handshake_kind() {
+                            Some(rustls::HandshakeKind::Resumed) => &metrics.handshakes_resumed,
+                            _ => &metrics.handshakes_full,
+                        };
+                        counter.fetch_add(1, Ordering::Relaxed);
+                        s
+                    }
                     Ok(Err(e)) => {
                         tracing::debug!(%peer, error = %e, "TLS handshake failed");
                         return;
@@ -349,6 +371,14 @@ fn metrics_text(
         (
             "canlift_gateway_upgrades_refused_total",
             load(&m.upgrades_refused),
+        ),
+        (
+            "canlift_tls_handshakes_full_total",
+            load(&m.handshakes_full),
+        ),
+        (
+            "canlift_tls_handshakes_resumed_total",
+            load(&m.handshakes_resumed),
         ),
         ("canlift_telemetry_stored_total", load(&t.stored)),
         ("canlift_telemetry_dropped_total", load(&t.dropped)),

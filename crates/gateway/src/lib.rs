@@ -206,6 +206,19 @@ impl Gateway {
     /// Embedded mode: serve `od`, the dictionary of the controller the gateway is linked into
     /// (node `bus.lift_controller`); metadata as in bus-node mode (docs/GATEWAY.md §Metadata).
     pub fn embedded(config: Config, od: SharedDictionary) -> Result<Gateway, GatewayError> {
+        let tls = config.cloud.tls()?;
+        Gateway::embedded_with_tls(config, od, tls)
+    }
+
+    /// [`Gateway::embedded`] with the caller's TLS client configuration instead of one made
+    /// from `[cloud]`: one that outlives the gateway keeps its session tickets, so a gateway
+    /// made again resumes its TLS session (`canlift loadgen`'s fleets, the reconnect storm of
+    /// docs/BENCHMARKS.md).
+    pub fn embedded_with_tls(
+        config: Config,
+        od: SharedDictionary,
+        tls: Arc<rustls::ClientConfig>,
+    ) -> Result<Gateway, GatewayError> {
         config.validate()?;
         // The controller's own dictionary is its EDS, unless the configuration names one.
         let snapshot = od.lock().unwrap_or_else(PoisonError::into_inner).clone();
@@ -216,7 +229,6 @@ impl Gateway {
             },
             snapshot,
         );
-        let tls = config.cloud.tls()?;
         let backend = Backend::Local {
             od: od.clone(),
             node: config.bus.lift_controller,

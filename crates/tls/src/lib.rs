@@ -6,6 +6,8 @@
 
 #![warn(missing_docs)]
 
+pub mod tickets;
+
 use std::path::Path;
 use std::sync::Arc;
 
@@ -29,7 +31,7 @@ pub enum TlsError {
     Rustls(#[from] rustls::Error),
 }
 
-fn file_error(path: &Path, reason: impl ToString) -> TlsError {
+pub(crate) fn file_error(path: &Path, reason: impl ToString) -> TlsError {
     TlsError::File {
         path: path.display().to_string(),
         reason: reason.to_string(),

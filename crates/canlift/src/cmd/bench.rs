@@ -39,6 +39,9 @@ enum BenchKind {
     #[cfg(feature = "portal")]
     /// The portal's cost per bus event: alarm rules, and the alarm service with its database.
     Alarms(super::bench_alarms::AlarmsBench),
+    #[cfg(feature = "portal")]
+    /// The portal's telemetry writer alone: values/s stored and CPU per value.
+    Ingest(super::bench_ingest::IngestBench),
 }
 
 #[derive(Debug, Clone, clap::Args)]
@@ -361,7 +364,7 @@ async fn run_node_bench(args: NodeBench) -> anyhow::Result<()> {
 }
 
 /// CPU time (user + system) of process `pid` so far, summed over its threads.
-fn cpu_time(pid: u32) -> Option<Duration> {
+pub(crate) fn cpu_time(pid: u32) -> Option<Duration> {
     let tasks = std::fs::read_dir(format!("/proc/{pid}/task")).ok()?;
     let mut total = 0u64;
     for task in tasks.flatten() {
@@ -701,5 +704,7 @@ pub async fn run(args: BenchArgs) -> anyhow::Result<()> {
         BenchKind::Portal(p) => super::bench_portal::run(p).await,
         #[cfg(feature = "portal")]
         BenchKind::Alarms(a) => super::bench_alarms::run(a).await,
+        #[cfg(feature = "portal")]
+        BenchKind::Ingest(a) => super::bench_ingest::run(a).await,
     }
 }

@@ -60,6 +60,28 @@ fn event(i: usize, lifts: usize) -> (String, Event) {
     (lift, event)
 }
 
+/// The store a portal benchmark `name` writes to: `database`, or SQLite in a temporary directory
+/// (removed with the directory returned); its URL.
+pub(crate) async fn scratch_store(
+    name: &str,
+    database: Option<&str>,
+) -> anyhow::Result<(tempfile::TempDir, String, Store)> {
+    let dir = tempfile::Builder::new()
+        .prefix(&format!("canlift-bench-{name}-"))
+        .tempdir()?;
+    let url = database.map_or_else(
+        || {
+            format!(
+                "sqlite://{}",
+                dir.path().join(format!("{name}.db")).display()
+            )
+        },
+        str::to_owned,
+    );
+    let store = Store::open(&url).await?;
+    Ok((dir, url, store))
+}
+
 /// Run both measurements.
 pub async fn run(args: AlarmsBench) -> anyhow::Result<()> {
     let events: Vec<(String, Event)> = (0..args.events).map(|i| event(i, args.lifts)).collect();
@@ -89,14 +111,7 @@ pub async fn run(args: AlarmsBench) -> anyhow::Result<()> {
         args.lifts
     );
     // The whole service on a database.
-    let dir = tempfile::Builder::new()
-        .prefix("canlift-bench-alarms-")
-        .tempdir()?;
-    let url = args
-        .database
-        .clone()
-        .unwrap_or_else(|| format!("sqlite://{}", dir.path().join("alarms.db").display()));
-    let store = Store::open(&url).await?;
+    let (_dir, _, store) = scratch_store("alarms", args.database.as_deref()).await?;
     let (inputs, inputs_rx) = tokio::sync::mpsc::channel(65536);
     let alarms = Arc::new(Alarms {
         store,

@@ -14,8 +14,9 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context};
 use lift417::sim::{SimConfig, Simulator};
 
+use super::bench::cpu_time;
 use super::bench_gateway::{memory_kib, mib, percentile, Daemon};
-use super::loadgen::{Fleet, LoadgenArgs};
+use super::loadgen::{Fleet, LoadgenArgs, Sessions};
 
 /// Arguments of `canlift bench portal`.
 #[derive(Debug, Clone, clap::Args)]
@@ -48,6 +49,27 @@ pub struct PortalBench {
     /// Loopback source addresses for the gateways (127.0.0.1…127.0.0.N).
     #[arg(long, default_value_t = 8)]
     sources: u8,
+    /// The phases to run, in this order.
+    #[arg(
+        long,
+        value_enum,
+        value_delimiter = ',',
+        default_value = "idle,storm,ingest,latency"
+    )]
+    phases: Vec<Phase>,
+}
+
+/// A phase of `bench portal`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum Phase {
+    /// Idle gateways held, memory per connection.
+    Idle,
+    /// Reconnect storms: new TLS sessions, resumed, resumed after a portal restart.
+    Storm,
+    /// Values pushed and stored.
+    Ingest,
+    /// Operator reads through the portal.
+    Latency,
 }
 
 /// The portal process.
@@ -117,6 +139,15 @@ impl PortalProcess {
     async fn stop(self) {
         self.daemon.stop(Duration::from_secs(10)).await;
     }
+
+    /// Stop the portal and start it again on the same state directory and database.
+    async fn restart(&mut self, dir: &Path, database: &str) -> anyhow::Result<()> {
+        let fresh = PortalProcess::start(dir, database).await;
+        // The new process listens on a port of its own: both may run for a moment.
+        let old = std::mem::replace(self, fresh?);
+        old.stop().await;
+        Ok(())
+    }
 }
 
 /// `n` gateways of the BENCH account, from `args.sources` source addresses, all at once.
@@ -155,9 +186,10 @@ async fn idle(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyhow:
     let base = portal.rss_kib();
     let mut fleet_args = fleet_args(args, portal, dir, args.gateways);
     fleet_args.rate = args.rate;
-    let begin = Instant::now();
-    let fleet = Fleet::start(&fleet_args).await?;
-    let took = fleet.all_online(begin, Duration::from_secs(600)).await?;
+    let fleet = Fleet::start(&fleet_args, None).await?;
+    let took = fleet
+        .all_online(fleet.launched(), Duration::from_secs(600))
+        .await?;
     portal_online(portal, args.gateways, Duration::from_secs(30)).await?;
     // Let the first contact's token writes and dashboard subscriptions settle.
     tokio::time::sleep(Duration::from_secs(5)).await;
@@ -186,30 +218,120 @@ async fn idle(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyhow:
     portal_online(portal, 0, Duration::from_secs(60)).await
 }
 
-async fn storm(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyhow::Result<()> {
+/// CPU time the portal process and this one (the load generator) spend from now on.
+struct CpuMeter {
+    pid: u32,
+    start: (Duration, Duration),
+}
+
+impl CpuMeter {
+    fn now(pid: u32) -> (Duration, Duration) {
+        let of = |pid| cpu_time(pid).unwrap_or_default();
+        (of(pid), of(std::process::id()))
+    }
+
+    fn start(portal: &PortalProcess) -> CpuMeter {
+        CpuMeter {
+            pid: portal.daemon.pid,
+            start: CpuMeter::now(portal.daemon.pid),
+        }
+    }
+
+    /// (portal, load generator) since the start.
+    fn read(&self) -> (Duration, Duration) {
+        let (portal, own) = CpuMeter::now(self.pid);
+        (
+            portal.saturating_sub(self.start.0),
+            own.saturating_sub(self.start.1),
+        )
+    }
+}
+
+/// The portal's TLS handshakes so far: (full, resumed).
+async fn handshakes(portal: &PortalProcess) -> anyhow::Result<(f64, f64)> {
+    Ok((
+        portal.metric("canlift_tls_handshakes_full_total").await?,
+        portal
+            .metric("canlift_tls_handshakes_resumed_total")
+            .await?,
+    ))
+}
+
+/// `args.storm` gateways with known tokens at once (with `sessions`: resuming their TLS
+/// sessions); time until all have CONNACK, the handshakes the portal made, its CPU time.
+async fn storm_once(
+    args: &PortalBench,
+    portal: &PortalProcess,
+    dir: &Path,
+    sessions: Option<Sessions>,
+    what: &str,
+) -> anyhow::Result<Sessions> {
     let fleet_args = fleet_args(args, portal, dir, args.storm);
-    let begin = Instant::now();
-    let fleet = Fleet::start(&fleet_args).await?;
-    let took = fleet.all_online(begin, Duration::from_secs(600)).await?;
+    let (full0, resumed0) = handshakes(portal).await?;
+    let fleet = Fleet::start(&fleet_args, sessions).await?;
+    let meter = CpuMeter::start(portal);
+    let took = fleet
+        .all_online(fleet.launched(), Duration::from_secs(600))
+        .await?;
+    let (cpu, own) = meter.read();
+    let (full, resumed) = handshakes(portal).await?;
     println!(
-        "reconnect storm       {} gateways with known tokens at once: all CONNACK after {:.2} s ({:.0} /s)",
+        "reconnect storm       {} gateways with known tokens at once, {what}: all CONNACK after {:.2} s ({:.0} /s); handshakes {:.0} full, {:.0} resumed; CPU per connection: portal {:.0} µs, load generator {:.0} µs",
         args.storm,
         took.as_secs_f64(),
-        args.storm as f64 / took.as_secs_f64()
+        args.storm as f64 / took.as_secs_f64(),
+        full - full0,
+        resumed - resumed0,
+        cpu.as_secs_f64() * 1e6 / args.storm as f64,
+        own.as_secs_f64() * 1e6 / args.storm as f64,
     );
-    fleet.stop().await;
-    portal_online(portal, 0, Duration::from_secs(60)).await
+    let sessions = fleet.stop().await;
+    portal_online(portal, 0, Duration::from_secs(60)).await?;
+    Ok(sessions)
+}
+
+/// The reconnect storm three times: new gateway processes (full handshakes), gateways that
+/// keep their TLS sessions (resumed), and the same after the portal restarted (its ticket keys
+/// are in its state directory).
+async fn storm(
+    args: &PortalBench,
+    portal: &mut PortalProcess,
+    dir: &Path,
+    database: &str,
+) -> anyhow::Result<()> {
+    if !args.phases.contains(&Phase::Idle) {
+        // The storm is of known gateways: let them make first contact (not timed).
+        let fleet = Fleet::start(&fleet_args(args, portal, dir, args.storm), None).await?;
+        fleet
+            .all_online(Instant::now(), Duration::from_secs(600))
+            .await?;
+        fleet.stop().await;
+        portal_online(portal, 0, Duration::from_secs(60)).await?;
+    }
+    let sessions = storm_once(args, portal, dir, None, "new TLS sessions").await?;
+    let sessions = storm_once(args, portal, dir, Some(sessions), "resuming").await?;
+    portal.restart(dir, database).await?;
+    storm_once(
+        args,
+        portal,
+        dir,
+        Some(sessions),
+        "resuming after a portal restart",
+    )
+    .await?;
+    Ok(())
 }
 
 async fn ingest(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyhow::Result<()> {
     let fleet_args = fleet_args(args, portal, dir, args.pushers);
-    let fleet = Fleet::start(&fleet_args).await?;
+    let fleet = Fleet::start(&fleet_args, None).await?;
     fleet
         .all_online(Instant::now(), Duration::from_secs(120))
         .await?;
     tokio::time::sleep(Duration::from_secs(3)).await;
     let stored0 = portal.metric("canlift_telemetry_stored_total").await?;
     let dropped0 = portal.metric("canlift_telemetry_dropped_total").await?;
+    let meter = CpuMeter::start(portal);
     let begin = Instant::now();
     let mut tick = tokio::time::interval(Duration::from_millis(args.change_ms.max(1)));
     let mut step = 0u32;
@@ -223,13 +345,17 @@ async fn ingest(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyho
     let seconds = begin.elapsed().as_secs_f64();
     let stored = portal.metric("canlift_telemetry_stored_total").await? - stored0;
     let dropped = portal.metric("canlift_telemetry_dropped_total").await? - dropped0;
+    let (cpu, own) = meter.read();
     println!(
-        "ingest                {} gateways pushing: {:.0} values/s stored, {:.0} /s dropped ({} changes every {} ms)",
+        "ingest                {} gateways pushing: {:.0} values/s stored, {:.0} /s dropped ({} changes every {} ms); portal CPU {:.1} µs per value received ({:.0} % of a core), load generator {:.0} % of a core",
         args.pushers,
         stored / seconds,
         dropped / seconds,
         4,
-        args.change_ms
+        args.change_ms,
+        cpu.as_secs_f64() * 1e6 / (stored + dropped).max(1.0),
+        cpu.as_secs_f64() * 100.0 / seconds,
+        own.as_secs_f64() * 100.0 / seconds,
     );
     fleet.stop().await;
     portal_online(portal, 0, Duration::from_secs(60)).await
@@ -323,12 +449,17 @@ async fn measure(args: &PortalBench, dir: &Path) -> anyhow::Result<()> {
         "portal on {kind}; gateways from 127.0.0.1…127.0.0.{}",
         args.sources
     );
-    let portal = PortalProcess::start(dir, &url).await?;
+    let mut portal = PortalProcess::start(dir, &url).await?;
     let outcome = async {
-        idle(args, &portal, dir).await?;
-        storm(args, &portal, dir).await?;
-        ingest(args, &portal, dir).await?;
-        latency(args, &portal, dir).await
+        for phase in &args.phases {
+            match phase {
+                Phase::Idle => idle(args, &portal, dir).await?,
+                Phase::Storm => storm(args, &mut portal, dir, &url).await?,
+                Phase::Ingest => ingest(args, &portal, dir).await?,
+                Phase::Latency => latency(args, &portal, dir).await?,
+            }
+        }
+        anyhow::Ok(())
     }
     .await;
     portal.stop().await;
