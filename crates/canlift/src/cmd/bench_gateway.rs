@@ -57,15 +57,17 @@ impl GatewayBench {
     }
 }
 
-type Ws = WebSocketStream<TlsStream<TcpStream>>;
+pub(crate) type Ws = WebSocketStream<TlsStream<TcpStream>>;
 
-struct Portal {
+/// A stand-in portal: TLS WebSocket server that accepts one gateway's CONNECT, so requests can
+/// be timed at the gateway's own door.
+pub(crate) struct Portal {
     listener: TcpListener,
     acceptor: tokio_rustls::TlsAcceptor,
 }
 
 impl Portal {
-    async fn start(pki: &DevPki) -> anyhow::Result<Portal> {
+    pub(crate) async fn start(pki: &DevPki) -> anyhow::Result<Portal> {
         let config = tls::server_config(&pki.cert, &pki.key, None)?;
         Ok(Portal {
             listener: TcpListener::bind("127.0.0.1:0").await?,
@@ -73,7 +75,7 @@ impl Portal {
         })
     }
 
-    fn url(&self) -> anyhow::Result<String> {
+    pub(crate) fn url(&self) -> anyhow::Result<String> {
         Ok(format!(
             "wss://localhost:{}/ws",
             self.listener.local_addr()?.port()
@@ -81,7 +83,7 @@ impl Portal {
     }
 
     /// Accept a gateway and answer its CONNECT.
-    async fn accept(&self) -> anyhow::Result<Ws> {
+    pub(crate) async fn accept(&self) -> anyhow::Result<Ws> {
         let (tcp, _) = tokio::time::timeout(Duration::from_secs(20), self.listener.accept())
             .await
             .context("no gateway connected")??;
@@ -146,21 +148,31 @@ pub(crate) fn percentile(sorted: &[Duration], p: f64) -> f64 {
     sorted.get(rank).map_or(0.0, |d| d.as_secs_f64() * 1e6)
 }
 
+/// `n` gets of 0x652001 in `form` one after another; their round-trip times, sorted.
+pub(crate) async fn sequential_gets(
+    ws: &mut Ws,
+    form: &str,
+    n: usize,
+) -> anyhow::Result<Vec<Duration>> {
+    let mut times = Vec::with_capacity(n);
+    for id in 0..n {
+        let started = Instant::now();
+        ws.send(Message::Text(get(id, "0x652001", form).into()))
+            .await?;
+        let answer = recv(ws).await?;
+        if answer.get("result").is_none() {
+            bail!("{form} get failed: {answer}");
+        }
+        times.push(started.elapsed());
+    }
+    times.sort();
+    Ok(times)
+}
+
 /// Sequential requests (latency), then `window` outstanding (rate), for each form.
 async fn requests(ws: &mut Ws, what: &str, args: &GatewayBench) -> anyhow::Result<()> {
     for form in ["naked", "stripped", "full"] {
-        let mut times = Vec::with_capacity(args.requests);
-        for id in 0..args.requests {
-            let started = Instant::now();
-            ws.send(Message::Text(get(id, "0x652001", form).into()))
-                .await?;
-            let answer = recv(ws).await?;
-            if answer.get("result").is_none() {
-                bail!("{form} get failed: {answer}");
-            }
-            times.push(started.elapsed());
-        }
-        times.sort();
+        let times = sequential_gets(ws, form, args.requests).await?;
         let started = Instant::now();
         let (mut sent, mut done) = (0, 0);
         while done < args.requests {

@@ -361,11 +361,13 @@ async fn ingest(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyho
     portal_online(portal, 0, Duration::from_secs(60)).await
 }
 
-async fn latency(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyhow::Result<()> {
-    let store = cloud::store::Store::open(&database_url(args, dir)).await?;
-    let key = store.add_account("operator", "OPS").await?;
-    let bus = "mem://bench-portal";
-    let sim = Simulator::start(bus, SimConfig::default()).await?;
+/// The bench lift's gateway (bus-node mode, the simulator on `bus`) connecting to `url`.
+async fn lift_gateway(
+    url: &str,
+    ca: &Path,
+    bus: &str,
+    state: &Path,
+) -> anyhow::Result<gateway::Gateway> {
     let identity = nxg::gateway::Identity {
         sernum: "BENCH-LIFT".into(),
         vendorid: 1050,
@@ -373,14 +375,38 @@ async fn latency(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyh
         domaintoken: "OPS".into(),
         ..Default::default()
     };
-    let config = gateway::config::Config::for_portal(
-        identity,
+    let config = gateway::config::Config::for_portal(identity, url, ca, bus, state);
+    Ok(gateway::Gateway::bus_node(config).await?)
+}
+
+/// Operator gets through the portal, and the same gateway's gets timed at its own door: what
+/// the portal adds is the difference.
+async fn latency(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyhow::Result<()> {
+    let store = cloud::store::Store::open(&database_url(args, dir)).await?;
+    let key = store.add_account("operator", "OPS").await?;
+    let bus = "mem://bench-portal";
+    let sim = Simulator::start(bus, SimConfig::default()).await?;
+    // Directly: a stand-in portal with the portal's own certificate.
+    let pki = cloud::devpki::ensure(&dir.join("portal"))?;
+    let harness = super::bench_gateway::Portal::start(&pki).await?;
+    let gw = lift_gateway(&harness.url()?, &pki.ca, bus, &dir.join("direct")).await?;
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let task = tokio::spawn(gw.run(stopped));
+    let mut ws = harness.accept().await?;
+    let mut direct = Vec::new();
+    for form in ["naked", "full"] {
+        direct.push(super::bench_gateway::sequential_gets(&mut ws, form, args.requests).await?);
+    }
+    stop.send_replace(true);
+    let _ = task.await;
+    // Through the portal.
+    let gw = lift_gateway(
         &format!("wss://localhost:{}/ws", portal.port),
         &portal.ca,
         bus,
         &dir.join("lift-gateway"),
-    );
-    let gw = gateway::Gateway::bus_node(config).await?;
+    )
+    .await?;
     let mut online = gw.online();
     let (stop, stopped) = tokio::sync::watch::channel(false);
     let task = tokio::spawn(gw.run(stopped));
@@ -393,7 +419,10 @@ async fn latency(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyh
         Some(&portal.ca),
     )?;
     let mut connection = client.connect().await?;
-    for (form, query) in [("naked", "?form=naked"), ("full", "")] {
+    for ((form, query), direct) in [("naked", "?form=naked"), ("full", "")]
+        .into_iter()
+        .zip(direct)
+    {
         let path = format!("/api/v1/lifts/1050-4096-BENCH-LIFT/objects/0x652001{query}");
         let mut times = Vec::with_capacity(args.requests);
         for _ in 0..args.requests {
@@ -405,10 +434,14 @@ async fn latency(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyh
             times.push(sent.elapsed());
         }
         times.sort();
+        let (p50, p99) = (percentile(&times, 50.0), percentile(&times, 99.0));
+        let (d50, d99) = (percentile(&direct, 50.0), percentile(&direct, 99.0));
         println!(
-            "operator get ({form:<5})    p50 {:.0} µs   p99 {:.0} µs   (REST → portal → gateway → SDO → simulator, one connection)",
-            percentile(&times, 50.0),
-            percentile(&times, 99.0)
+            "operator get ({form:<5})    p50 {p50:.0} µs   p99 {p99:.0} µs   (REST → portal → gateway → SDO → simulator, one connection)"
+        );
+        println!(
+            "  the gateway directly    p50 {d50:.0} µs   p99 {d99:.0} µs   → the portal adds {:.0} µs at p50",
+            p50 - d50
         );
     }
     stop.send_replace(true);
