@@ -127,7 +127,9 @@ pub async fn run(shared: &Shared, shutdown: &mut tokio::sync::watch::Receiver<bo
         .max_message_size(Some(shared.config.limits.max_message_bytes))
         .max_frame_size(Some(shared.config.limits.max_message_bytes))
         .read_buffer_size(8 * 1024)
-        .write_buffer_size(0);
+        // Answers collect here until the loop has nothing else ready (then it flushes) or
+        // 16 KiB are waiting: one TLS write for many answers instead of a syscall each.
+        .write_buffer_size(16 * 1024);
     let handshake = tokio_tungstenite::client_async_with_config(request, tls, Some(ws_config));
     let (mut ws, response) = match tokio::time::timeout(timeout, handshake).await {
         Ok(Ok(pair)) => pair,
@@ -149,6 +151,49 @@ pub async fn run(shared: &Shared, shutdown: &mut tokio::sync::watch::Receiver<bo
     }
     tracing::info!(url = %cloud.url, ?local, subprotocol = selected, "connected; sending CONNECT");
     serve(shared, ws, shutdown).await
+}
+
+/// What woke the connection's loop.
+enum Wake {
+    /// The portal sent something (or the stream ended).
+    Message(Option<Result<Message, tokio_tungstenite::tungstenite::Error>>),
+    /// A job finished.
+    Job(JobId, JobResult),
+    /// A subscribed value changed.
+    Update(Update),
+    /// The session's timer.
+    Timer,
+    /// Bus events wait for the portal.
+    Events,
+    /// Time for a WebSocket ping.
+    Ping,
+    /// The gateway is shutting down.
+    Shutdown,
+}
+
+/// The next thing to act on. Every branch is cancel-safe: the loop polls this once without
+/// waiting, and drops it to flush what it wrote when nothing is ready.
+async fn next_wake<S>(
+    ws: &mut tokio_tungstenite::WebSocketStream<S>,
+    jobs: &mut mpsc::UnboundedReceiver<(JobId, JobResult)>,
+    feed: &mut mpsc::Receiver<Update>,
+    deadline: Option<Instant>,
+    shared: &Shared,
+    ping: &mut tokio::time::Interval,
+    shutdown: &mut tokio::sync::watch::Receiver<bool>,
+) -> Wake
+where
+    S: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin,
+{
+    tokio::select! {
+        message = ws.next() => Wake::Message(message),
+        Some((id, result)) = jobs.recv() => Wake::Job(id, result),
+        Some(update) = feed.recv() => Wake::Update(update),
+        _ = canopen::driver::sleep_until(deadline) => Wake::Timer,
+        _ = shared.events_ready.notified() => Wake::Events,
+        _ = ping.tick() => Wake::Ping,
+        _ = shutdown.changed() => Wake::Shutdown,
+    }
 }
 
 async fn serve<S>(
@@ -176,6 +221,9 @@ where
     let mut jobs = std::collections::VecDeque::new();
     let mut running = 0usize;
     let mut served = false;
+    // Answers written since the last flush: they go out together, in one TLS write, once
+    // nothing else is ready (a portal with 32 requests in flight gets one write, not 32).
+    let mut unflushed = false;
     loop {
         // A lock-out state is on disk before the answer that follows from it goes out: a gateway
         // stopped or killed right after answering still counts the failure.
@@ -191,9 +239,10 @@ where
         for output in outputs.drain(..) {
             match output {
                 Output::Send(text) => {
-                    if let Err(e) = ws.send(Message::Text(text.into())).await {
+                    if let Err(e) = ws.feed(Message::Text(text.into())).await {
                         return ended(served, format!("sending failed: {e}"));
                     }
+                    unflushed = true;
                 }
                 Output::Close(reason) => {
                     let _ = ws.close(None).await;
@@ -208,12 +257,18 @@ where
         }
         // Jobs run at most `max_in_flight` at once (with the subscriptions' first reads there
         // can be more jobs than requests); the rest wait here as small values, not as tasks.
+        // A job that is done at once (the local dictionary) is answered in this round.
         while running < max_jobs {
             let Some((id, job)) = jobs.pop_front() else {
                 break;
             };
-            running += 1;
-            start_job(shared, id, job, job_tx.clone());
+            match start_job(shared, id, job, job_tx.clone()) {
+                Some(result) => outputs.extend(session.complete(id, result, Instant::now())),
+                None => running += 1,
+            }
+        }
+        if !outputs.is_empty() {
+            continue;
         }
         if !served {
             if let Phase::Connected(api) = session.phase() {
@@ -222,9 +277,39 @@ where
                 tracing::info!(api, "CONNACK: serving the portal");
             }
         }
-        let timer = canopen::driver::sleep_until(session.poll_timeout());
-        outputs = tokio::select! {
-            message = ws.next() => {
+        let deadline = session.poll_timeout();
+        let ready = futures_util::FutureExt::now_or_never(next_wake(
+            &mut ws,
+            &mut job_rx,
+            &mut feed_rx,
+            deadline,
+            shared,
+            &mut ping,
+            shutdown,
+        ));
+        let wake = match ready {
+            Some(wake) => wake,
+            None => {
+                if unflushed {
+                    if let Err(e) = ws.flush().await {
+                        return ended(served, format!("sending failed: {e}"));
+                    }
+                    unflushed = false;
+                }
+                next_wake(
+                    &mut ws,
+                    &mut job_rx,
+                    &mut feed_rx,
+                    deadline,
+                    shared,
+                    &mut ping,
+                    shutdown,
+                )
+                .await
+            }
+        };
+        outputs = match wake {
+            Wake::Message(message) => {
                 let now = Instant::now();
                 match message {
                     Some(Ok(Message::Text(text))) => session.text(text.as_str(), now),
@@ -238,14 +323,19 @@ where
                         Vec::new()
                     }
                     Some(Ok(Message::Close(frame))) => {
-                        let why = frame.map(|f| format!("{} {}", u16::from(f.code), f.reason)).unwrap_or_default();
+                        let why = frame
+                            .map(|f| format!("{} {}", u16::from(f.code), f.reason))
+                            .unwrap_or_default();
                         return ended(served, format!("portal closed the connection {why}"));
                     }
                     Some(Ok(Message::Frame(_))) => Vec::new(),
                     Some(Err(e)) => {
                         let cause = format!("connection failed: {e}");
                         if matches!(e, tokio_tungstenite::tungstenite::Error::Capacity(_)) {
-                            let frame = CloseFrame { code: CloseCode::Size, reason: "message too big".into() };
+                            let frame = CloseFrame {
+                                code: CloseCode::Size,
+                                reason: "message too big".into(),
+                            };
                             let _ = ws.close(Some(frame)).await;
                         }
                         return ended(served, cause);
@@ -253,29 +343,46 @@ where
                     None => return ended(served, "portal went away"),
                 }
             }
-            Some((id, result)) = job_rx.recv() => {
+            Wake::Job(id, result) => {
                 running -= 1;
                 session.complete(id, result, Instant::now())
             }
-            Some((target, index, sub, bytes)) = feed_rx.recv() => session.bytes(target, index, sub, &bytes, Instant::now()),
-            _ = timer => session.timeout(Instant::now()),
-            _ = shared.events_ready.notified() => session.deliver_events(),
-            _ = ping.tick() => {
+            Wake::Update((target, index, sub, bytes)) => {
+                session.bytes(target, index, sub, &bytes, Instant::now())
+            }
+            Wake::Timer => session.timeout(Instant::now()),
+            Wake::Events => session.deliver_events(),
+            Wake::Ping => {
                 if let Err(e) = ws.send(Message::Ping(Vec::new().into())).await {
                     return ended(served, format!("ping failed: {e}"));
                 }
+                unflushed = false;
                 Vec::new()
             }
-            _ = shutdown.changed() => {
-                let frame = CloseFrame { code: CloseCode::Away, reason: "gateway shutting down".into() };
+            Wake::Shutdown => {
+                let frame = CloseFrame {
+                    code: CloseCode::Away,
+                    reason: "gateway shutting down".into(),
+                };
                 let _ = ws.close(Some(frame)).await;
-                return Ended { served, cause: "shutdown".into(), shutdown: true };
+                return Ended {
+                    served,
+                    cause: "shutdown".into(),
+                    shutdown: true,
+                };
             }
         };
     }
 }
 
-fn start_job(shared: &Shared, id: JobId, job: Job, tx: mpsc::UnboundedSender<(JobId, JobResult)>) {
+/// Start `job`: its result now when it has it at once (a read or write of the local
+/// dictionary), or `None` and the result comes through `tx` (SDO, the token on disk).
+fn start_job(
+    shared: &Shared,
+    id: JobId,
+    job: Job,
+    tx: mpsc::UnboundedSender<(JobId, JobResult)>,
+) -> Option<JobResult> {
     match job {
         Job::StoreToken(token) => {
             let store = shared.token.clone();
@@ -292,13 +399,20 @@ fn start_job(shared: &Shared, id: JobId, job: Job, tx: mpsc::UnboundedSender<(Jo
                 };
                 let _ = tx.send((id, result));
             });
+            None
         }
         job => {
             let backend = shared.backend.clone();
+            let mut run = Box::pin(async move { backend.run(job).await });
+            // No task and no wake-up of this loop for what needs no waiting.
+            if let Some(result) = futures_util::FutureExt::now_or_never(run.as_mut()) {
+                return Some(result);
+            }
             tokio::spawn(async move {
-                let result = backend.run(job).await;
+                let result = run.await;
                 let _ = tx.send((id, result));
             });
+            None
         }
     }
 }

@@ -46,6 +46,9 @@ pub struct GatewayBench {
     /// `--no-default-features` build, as a gateway device would run; default: this one.
     #[arg(long)]
     exe: Option<PathBuf>,
+    /// Only the gateway's CPU per request (its own process, read from /proc).
+    #[arg(long)]
+    cpu_only: bool,
 }
 
 impl GatewayBench {
@@ -370,9 +373,19 @@ pub(crate) struct Daemon {
 impl Daemon {
     /// `exe COMMAND --config CONFIG`.
     pub(crate) fn start(exe: &Path, command: &str, config: &Path) -> anyhow::Result<Daemon> {
+        Daemon::spawn(
+            exe,
+            &[command.as_ref(), "--config".as_ref(), config.as_os_str()],
+        )
+    }
+
+    /// `exe ARGS…`.
+    fn spawn(exe: &Path, args: &[&std::ffi::OsStr]) -> anyhow::Result<Daemon> {
+        let command = args
+            .first()
+            .map_or_else(Default::default, |c| c.to_string_lossy());
         let child = tokio::process::Command::new(exe)
-            .args([command, "--config"])
-            .arg(config)
+            .args(args)
             .env("RUST_LOG", "warn")
             .stdout(Stdio::null())
             .kill_on_drop(true)
@@ -429,6 +442,79 @@ fn subscribable(n: usize) -> Vec<String> {
     }
     out.truncate(n);
     out
+}
+
+/// The gateway's own CPU time per request, read from `/proc` while this process plays the
+/// portal: an embedded-mode gateway on a local dictionary (`canlift loadgen --gateways 1`: the
+/// real gateway in a process of its own) and `canlift gateway` in bus-node mode, reading the
+/// simulator by SDO through the hub. Naked gets of 0x652001, every answer checked; one at a time,
+/// then `--window` outstanding.
+async fn cpu_per_request(
+    args: &GatewayBench,
+    pki: &DevPki,
+    bus: &str,
+    dir: &Path,
+) -> anyhow::Result<()> {
+    let exe = args.exe()?;
+    for mode in ["local dictionary", "SDO via hub to sim"] {
+        let portal = Portal::start(pki).await?;
+        let url = portal.url()?;
+        let daemon = if mode == "local dictionary" {
+            let state = dir.join("cpu-local");
+            Daemon::spawn(
+                &exe,
+                &[
+                    "loadgen".as_ref(),
+                    "--portal".as_ref(),
+                    url.as_ref(),
+                    "--ca".as_ref(),
+                    pki.ca.as_os_str(),
+                    "--domain".as_ref(),
+                    "BENCH".as_ref(),
+                    "--gateways".as_ref(),
+                    "1".as_ref(),
+                    "--state".as_ref(),
+                    state.as_os_str(),
+                ],
+            )?
+        } else {
+            let config = config(&url, pki, bus, &dir.join("cpu-bus"));
+            let path = dir.join("cpu-gateway.toml");
+            std::fs::write(&path, toml::to_string_pretty(&config)?)?;
+            Daemon::start(&exe, "gateway", &path)?
+        };
+        let mut ws = portal.accept().await?;
+        // Warm up (first reads, allocations) and let the start settle.
+        sequential_gets(&mut ws, "naked", 200).await?;
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        for window in [1, args.window] {
+            let cpu = super::bench::cpu_time(daemon.pid).unwrap_or_default();
+            let (mut sent, mut done) = (0, 0);
+            while done < args.requests {
+                while sent < args.requests && sent - done < window {
+                    ws.feed(Message::Text(get(sent, "0x652001", "naked").into()))
+                        .await?;
+                    sent += 1;
+                }
+                ws.flush().await?;
+                let answer = recv(&mut ws).await?;
+                if answer.get("result").is_none() {
+                    bail!("naked get failed: {answer}");
+                }
+                done += 1;
+            }
+            let spent = super::bench::cpu_time(daemon.pid)
+                .unwrap_or_default()
+                .saturating_sub(cpu);
+            println!(
+                "gateway CPU per request  {mode:<20} {window:>2} in flight: {:.1} µs (the gateway process alone, {} naked gets)",
+                spent.as_secs_f64() * 1e6 / args.requests as f64,
+                args.requests
+            );
+        }
+        daemon.stop(Duration::from_secs(5)).await;
+    }
+    Ok(())
 }
 
 async fn memory(args: &GatewayBench, pki: &DevPki, bus: &str, dir: &Path) -> anyhow::Result<()> {
@@ -509,7 +595,27 @@ pub async fn run(args: GatewayBench) -> anyhow::Result<()> {
     result
 }
 
+/// A hub on a loopback port with the simulated lift on it; the bus URL.
+async fn hub_with_simulator() -> anyhow::Result<(canbus::hub::HubHandle, String, Simulator)> {
+    let hub = canbus::hub::Hub::bind(canbus::hub::HubConfig {
+        listen: std::net::SocketAddr::from(([127, 0, 0, 1], 0)),
+        ..canbus::hub::HubConfig::default()
+    })
+    .await?
+    .spawn()?;
+    let bus = format!("socketcand://{}/can0", hub.local_addr());
+    let sim = Simulator::start(&bus, SimConfig::default()).await?;
+    Ok((hub, bus, sim))
+}
+
 async fn measure(args: &GatewayBench, pki: &DevPki, dir: &Path) -> anyhow::Result<()> {
+    if args.cpu_only {
+        let (hub, bus, sim) = hub_with_simulator().await?;
+        let measured = cpu_per_request(args, pki, &bus, dir).await;
+        sim.stop().await;
+        hub.shutdown().await;
+        return measured;
+    }
     // On a local dictionary (embedded mode).
     let portal = Portal::start(pki).await?;
     let od = Catalog::builtin().dictionary(Device::Controller, 1, 8)?;
@@ -539,14 +645,7 @@ async fn measure(args: &GatewayBench, pki: &DevPki, dir: &Path) -> anyhow::Resul
     let _ = task.await;
     metadata_lookups(pki, &described)?;
     // By SDO through the hub to the simulated lift (bus-node mode).
-    let hub = canbus::hub::Hub::bind(canbus::hub::HubConfig {
-        listen: std::net::SocketAddr::from(([127, 0, 0, 1], 0)),
-        ..canbus::hub::HubConfig::default()
-    })
-    .await?
-    .spawn()?;
-    let bus = format!("socketcand://{}/can0", hub.local_addr());
-    let sim = Simulator::start(&bus, SimConfig::default()).await?;
+    let (hub, bus, sim) = hub_with_simulator().await?;
     let portal = Portal::start(pki).await?;
     let gateway = Gateway::bus_node(config(&portal.url()?, pki, &bus, &dir.join("bus"))).await?;
     let (stop, stopped) = tokio::sync::watch::channel(false);
@@ -556,6 +655,7 @@ async fn measure(args: &GatewayBench, pki: &DevPki, dir: &Path) -> anyhow::Resul
     let _ = stop.send(true);
     let _ = task.await;
     emcy_flood(args, pki, dir).await?;
+    cpu_per_request(args, pki, &bus, dir).await?;
     memory(args, pki, &bus, dir).await?;
     sim.stop().await;
     hub.shutdown().await;
