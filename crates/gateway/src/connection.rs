@@ -171,28 +171,49 @@ enum Wake {
     Shutdown,
 }
 
-/// The next thing to act on. Every branch is cancel-safe: the loop polls this once without
-/// waiting, and drops it to flush what it wrote when nothing is ready.
-async fn next_wake<S>(
-    ws: &mut tokio_tungstenite::WebSocketStream<S>,
-    jobs: &mut mpsc::UnboundedReceiver<(JobId, JobResult)>,
-    feed: &mut mpsc::Receiver<Update>,
-    deadline: Option<Instant>,
-    shared: &Shared,
-    ping: &mut tokio::time::Interval,
-    shutdown: &mut tokio::sync::watch::Receiver<bool>,
-) -> Wake
+/// What the loop waits on, borrowed for one wait.
+struct Sources<'a, S> {
+    ws: &'a mut tokio_tungstenite::WebSocketStream<S>,
+    jobs: &'a mut mpsc::UnboundedReceiver<(JobId, JobResult)>,
+    feed: &'a mut mpsc::Receiver<Update>,
+    shared: &'a Shared,
+    ping: &'a mut tokio::time::Interval,
+    shutdown: &'a mut tokio::sync::watch::Receiver<bool>,
+}
+
+impl<S> Sources<'_, S>
 where
     S: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin,
 {
-    tokio::select! {
-        message = ws.next() => Wake::Message(message),
-        Some((id, result)) = jobs.recv() => Wake::Job(id, result),
-        Some(update) = feed.recv() => Wake::Update(update),
-        _ = canopen::driver::sleep_until(deadline) => Wake::Timer,
-        _ = shared.events_ready.notified() => Wake::Events,
-        _ = ping.tick() => Wake::Ping,
-        _ = shutdown.changed() => Wake::Shutdown,
+    /// The next thing to act on. Every branch is cancel-safe: the loop polls this once without
+    /// waiting, and drops it to flush what it wrote when nothing is ready.
+    async fn next(&mut self, deadline: Option<Instant>) -> Wake {
+        tokio::select! {
+            message = self.ws.next() => Wake::Message(message),
+            Some((id, result)) = self.jobs.recv() => Wake::Job(id, result),
+            Some(update) = self.feed.recv() => Wake::Update(update),
+            _ = canopen::driver::sleep_until(deadline) => Wake::Timer,
+            _ = self.shared.events_ready.notified() => Wake::Events,
+            _ = self.ping.tick() => Wake::Ping,
+            _ = self.shutdown.changed() => Wake::Shutdown,
+        }
+    }
+
+    /// What is ready now; otherwise flush what was written (when `unflushed`, which is then
+    /// cleared) and wait.
+    async fn wait(
+        &mut self,
+        deadline: Option<Instant>,
+        unflushed: &mut bool,
+    ) -> Result<Wake, tokio_tungstenite::tungstenite::Error> {
+        if let Some(wake) = futures_util::FutureExt::now_or_never(self.next(deadline)) {
+            return Ok(wake);
+        }
+        if *unflushed {
+            self.ws.flush().await?;
+            *unflushed = false;
+        }
+        Ok(self.next(deadline).await)
     }
 }
 
@@ -277,36 +298,17 @@ where
                 tracing::info!(api, "CONNACK: serving the portal");
             }
         }
-        let deadline = session.poll_timeout();
-        let ready = futures_util::FutureExt::now_or_never(next_wake(
-            &mut ws,
-            &mut job_rx,
-            &mut feed_rx,
-            deadline,
+        let mut sources = Sources {
+            ws: &mut ws,
+            jobs: &mut job_rx,
+            feed: &mut feed_rx,
             shared,
-            &mut ping,
+            ping: &mut ping,
             shutdown,
-        ));
-        let wake = match ready {
-            Some(wake) => wake,
-            None => {
-                if unflushed {
-                    if let Err(e) = ws.flush().await {
-                        return ended(served, format!("sending failed: {e}"));
-                    }
-                    unflushed = false;
-                }
-                next_wake(
-                    &mut ws,
-                    &mut job_rx,
-                    &mut feed_rx,
-                    deadline,
-                    shared,
-                    &mut ping,
-                    shutdown,
-                )
-                .await
-            }
+        };
+        let wake = match sources.wait(session.poll_timeout(), &mut unflushed).await {
+            Ok(wake) => wake,
+            Err(e) => return ended(served, format!("sending failed: {e}")),
         };
         outputs = match wake {
             Wake::Message(message) => {
