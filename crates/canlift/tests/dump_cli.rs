@@ -32,6 +32,8 @@ async fn dump_shows_transfers_and_learned_pdos() {
     };
     let node = LocalNode::start(Bus::open(&url).await.unwrap(), od, config);
     node.wait_for_state(NmtState::PreOperational).await;
+    // dump reads the (still empty) mappings at the boot-up; the TPDO is configured after that.
+    tokio::time::sleep(Duration::from_millis(500)).await;
     node.configure_pdo(&PdoSetup {
         transmit: true,
         number: 1,
@@ -42,12 +44,14 @@ async fn dump_shows_transfers_and_learned_pdos() {
         event_ms: 0,
     })
     .unwrap();
-    // Give dump time to see a heartbeat and read the mappings.
-    tokio::time::sleep(Duration::from_millis(1500)).await;
+    tokio::time::sleep(Duration::from_millis(1000)).await;
     let sdo = SdoClients::new(Bus::open(&url).await.unwrap(), Default::default());
     assert_eq!(sdo.read::<String>(6, 0x100A, 0).await.unwrap(), "sim 1.0");
+    // Configured after the boot-up, as a master does: dump reads the mappings again when the
+    // node's heartbeat says operational (every 100 ms here), then decodes what follows.
     node.nmt(NmtCommand::Start);
     node.wait_for_state(NmtState::Operational).await;
+    tokio::time::sleep(Duration::from_millis(800)).await;
     node.set_value(POSITION, 0, &Value::Uint(1234)).unwrap();
     tokio::time::sleep(Duration::from_millis(300)).await;
 

@@ -1,6 +1,6 @@
 //! `canlift dump`: a candump-style bus monitor with a CANopen column.
 
-use std::collections::{HashMap, HashSet};
+use std::collections::HashMap;
 use std::io::{BufWriter, ErrorKind, Write};
 use std::time::{Duration, UNIX_EPOCH};
 
@@ -8,6 +8,7 @@ use anyhow::Context;
 use canbus::{Bus, BusEvent, BusUrl, CanId, Frame};
 use canopen::driver::SdoClients;
 use canopen::monitor::{decode_pdo, pdo_layouts, Meaning, PdoLayout, SdoTracker};
+use canopen::nmt::NmtState;
 use canopen::od::ObjectDictionary;
 use canopen::sdo::client::ClientConfig;
 
@@ -29,8 +30,8 @@ pub struct DumpArgs {
     /// `--eds 1=lift.eds`. Repeatable.
     #[arg(long, value_name = "NODE=FILE")]
     eds: Vec<String>,
-    /// Read the PDO mappings of every node over SDO when it is first heard (values are then
-    /// shown as unsigned integers, the types being unknown).
+    /// Read the PDO mappings of every node over SDO when it is first heard and again when it
+    /// turns operational (values are then shown as unsigned integers, the types being unknown).
     #[arg(long)]
     read_pdo_mappings: bool,
 }
@@ -133,7 +134,8 @@ pub async fn run(args: DumpArgs) -> anyhow::Result<()> {
     } else {
         None
     };
-    let mut asked: HashSet<u8> = HashSet::new();
+    // Each node's last heartbeat state, for when to read its mappings.
+    let mut states: HashMap<u8, u8> = HashMap::new();
     let mut out = BufWriter::new(std::io::stdout().lock());
     let mut seen = 0u64;
     let shutdown = crate::logging::shutdown_signal();
@@ -154,10 +156,15 @@ pub async fn run(args: DumpArgs) -> anyhow::Result<()> {
                     seen += 1;
                     let line = format_line(&channel, f, args.timestamp, !args.raw, &layouts);
                     let transfer = (!args.raw).then(|| tracker.feed(f)).flatten();
-                    if let (Some(sdo), Meaning::Heartbeat { node, .. }) =
+                    if let (Some(sdo), Meaning::Heartbeat { node, state, .. }) =
                         (&sdo, canopen::monitor::decode(f))
                     {
-                        if asked.insert(node) {
+                        // When first heard, and again when it turns operational: a master
+                        // configures PDOs in pre-operational, after the boot-up (CiA 301 §7.3.2),
+                        // and they count from the start on.
+                        let before = states.insert(node, state);
+                        let operational = NmtState::Operational.code();
+                        if before.is_none() || (state == operational && before != Some(state)) {
                             let (sdo, tx) = (sdo.clone(), learned_tx.clone());
                             tokio::spawn(async move {
                                 let _ = tx.send(read_mappings(&sdo, node).await);
