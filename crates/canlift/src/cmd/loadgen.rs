@@ -58,8 +58,7 @@ pub struct Fleet {
     status: Vec<watch::Receiver<bool>>,
     stop: watch::Sender<bool>,
     tasks: Vec<JoinHandle<()>>,
-    /// The simulated controllers, one per [`GATEWAYS_PER_DICTIONARY`] gateways.
-    ods: Vec<SharedDictionary>,
+    od: SharedDictionary,
     sessions: Sessions,
     launched: Instant,
 }
@@ -81,12 +80,7 @@ impl Sessions {
     }
 }
 
-/// Gateways sharing one simulated controller dictionary. Every pushing gateway locks its
-/// dictionary to read what changed: thousands on one lock made the load generator wait on itself
-/// (it offered at most ~80,000 values/s at 72 % of a core, whatever the push rate).
-const GATEWAYS_PER_DICTIONARY: usize = 64;
-
-/// A controller dictionary the gateways serve.
+/// The shared controller dictionary the gateways serve.
 fn dictionary() -> anyhow::Result<SharedDictionary> {
     let od = Catalog::builtin().dictionary(Device::Controller, 1, 8)?;
     Ok(Arc::new(Mutex::new(od)))
@@ -103,9 +97,7 @@ impl Fleet {
         // One CA file read for all: tens of thousands of gateways trust the same portal.
         let base = tls::client_config(Some(&args.ca), None)?;
         let mut sessions = sessions.unwrap_or(Sessions(Vec::new()));
-        let ods = (0..args.gateways.div_ceil(GATEWAYS_PER_DICTIONARY))
-            .map(|_| dictionary())
-            .collect::<anyhow::Result<Vec<_>>>()?;
+        let od = dictionary()?;
         let (stop, stopped) = watch::channel(false);
         // Every gateway is made before the first connects: a storm is of devices that exist,
         // and making one (its copy of the dictionary, its metadata) is no part of connecting.
@@ -130,8 +122,7 @@ impl Fleet {
             );
             let host = 1 + (i % usize::from(args.sources)) as u8;
             config.cloud.source_address = Some(IpAddr::V4(Ipv4Addr::new(127, 0, 0, host)));
-            let od = ods[i / GATEWAYS_PER_DICTIONARY].clone();
-            let gw = Gateway::embedded_with_tls(config, od, sessions.get(i, &base))
+            let gw = Gateway::embedded_with_tls(config, od.clone(), sessions.get(i, &base))
                 .with_context(|| format!("gateway {number}"))?;
             gateways.push(gw);
         }
@@ -149,7 +140,7 @@ impl Fleet {
             status,
             stop,
             tasks,
-            ods,
+            od,
             sessions,
             launched,
         })
@@ -183,18 +174,16 @@ impl Fleet {
     /// Move the simulated lift one step: the trip counter, position, speed and load change, so
     /// every gateway that has them subscribed pushes them.
     pub fn change(&self, step: u32) {
+        let mut od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
         let changes: [(u16, u8, Vec<u8>); 4] = [
             (0x6520, 1, step.to_le_bytes().to_vec()),
             (0x6383, 1, (1000 + step % 20_000).to_le_bytes().to_vec()),
             (0x6390, 1, ((step % 1600) as i16).to_le_bytes().to_vec()),
             (0x6480, 1, ((step % 600) as u16).to_le_bytes().to_vec()),
         ];
-        for od in &self.ods {
-            let mut od = od.lock().unwrap_or_else(PoisonError::into_inner);
-            for (index, sub, bytes) in &changes {
-                if let Err(e) = od.set(*index, *sub, bytes) {
-                    tracing::warn!(index, sub, error = %e, "loadgen could not change a value");
-                }
+        for (index, sub, bytes) in changes {
+            if let Err(e) = od.set(index, sub, &bytes) {
+                tracing::warn!(index, sub, error = %e, "loadgen could not change a value");
             }
         }
     }
