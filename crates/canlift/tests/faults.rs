@@ -283,14 +283,11 @@ impl PortalProcess {
 
     /// One counter or gauge from `/metrics`.
     async fn metric(&self, name: &str) -> u64 {
-        let answer = self.client("").call("GET", "/metrics", None).await;
-        let Ok((200, serde_json::Value::String(text))) = answer else {
-            panic!("/metrics: {answer:?}");
-        };
-        text.lines()
-            .find_map(|l| l.strip_prefix(name)?.strip_prefix(' '))
-            .and_then(|v| v.trim().parse().ok())
-            .unwrap_or_else(|| panic!("no {name} in {text}"))
+        let value = self.client("").metric(name).await;
+        match value {
+            Ok(Some(v)) => v as u64,
+            other => panic!("/metrics, {name}: {other:?}"),
+        }
     }
 
     /// Rows in the telemetry table and the result of SQLite's `integrity_check`.

@@ -96,6 +96,18 @@ impl Client {
         self.connect().await?.call(method, path, body).await
     }
 
+    /// One counter or gauge of the portal's `/metrics` (Prometheus text); `None` when the
+    /// answer is not 200 or has no such line.
+    pub async fn metric(&self, name: &str) -> Result<Option<f64>, ClientError> {
+        let (status, text) = self.call("GET", "/metrics", None).await?;
+        let text = text.as_str().filter(|_| status == 200);
+        Ok(text.and_then(|t| {
+            t.lines()
+                .find_map(|l| l.strip_prefix(name)?.strip_prefix(' '))
+                .and_then(|v| v.trim().parse().ok())
+        }))
+    }
+
     /// One request with its whole answer (status, `Retry-After`, body), on a connection of its
     /// own: a JSON body, or with `form` an `application/x-www-form-urlencoded` one (the web UI's
     /// forms).

@@ -278,16 +278,6 @@ async fn operator_reads_writes_and_watches_a_simulated_lift(database: Option<Str
     rig.stop().await;
 }
 
-/// One counter of the portal's `/metrics`.
-async fn metric(rig: &Rig, name: &str) -> f64 {
-    let (status, text) = rig.call("GET", "/metrics", None, None).await;
-    assert_eq!(status, 200);
-    let text = text.as_str().unwrap_or_default().to_owned();
-    text.lines()
-        .find_map(|l| l.strip_prefix(name)?.trim().parse().ok())
-        .unwrap_or_else(|| panic!("/metrics has no {name}: {text}"))
-}
-
 /// docs/PORTAL.md §TLS: the session-ticket keys live in the state directory, so a gateway
 /// resumes its TLS session with a restarted portal (no certificate, no signature) instead of
 /// making a full handshake.
@@ -299,17 +289,17 @@ async fn a_restarted_portal_resumes_its_gateways_tls_sessions() {
     assert!(keys.exists(), "no ticket keys in the state directory");
     rig.restart_portal().await;
     assert_eq!(
-        metric(&rig, "canlift_tls_handshakes_resumed_total").await,
+        rig.metric("canlift_tls_handshakes_resumed_total").await,
         0.0
     );
     rig.online().await;
     // The gateway's handshake came before its CONNACK; the operator calls above were full
     // handshakes of new clients.
     assert_eq!(
-        metric(&rig, "canlift_tls_handshakes_resumed_total").await,
+        rig.metric("canlift_tls_handshakes_resumed_total").await,
         1.0,
         "the gateway did not resume its session"
     );
-    assert!(metric(&rig, "canlift_tls_handshakes_full_total").await >= 2.0);
+    assert!(rig.metric("canlift_tls_handshakes_full_total").await >= 2.0);
     rig.stop().await;
 }

@@ -194,6 +194,16 @@ impl Rig {
             .expect("the portal answers")
     }
 
+    /// One counter or gauge of the portal's `/metrics`.
+    pub async fn metric(&self, name: &str) -> f64 {
+        let client = cloud::client::Client::new(&self.url(), None, Some(&self.ca))
+            .expect("a client of the portal");
+        match client.metric(name).await {
+            Ok(Some(value)) => value,
+            other => panic!("/metrics, {name}: {other:?}"),
+        }
+    }
+
     /// Wait until the lift is online at the portal; the list of lifts.
     pub async fn online(&self) -> Value {
         let deadline = tokio::time::Instant::now() + WAIT;

@@ -121,10 +121,9 @@ impl PortalProcess {
 
     /// One counter or gauge of `/metrics`.
     async fn metric(&self, name: &str) -> anyhow::Result<f64> {
-        let (_, text) = self.client.call("GET", "/metrics", None).await?;
-        let text = text.as_str().unwrap_or_default();
-        text.lines()
-            .find_map(|l| l.strip_prefix(name)?.trim().parse().ok())
+        self.client
+            .metric(name)
+            .await?
             .with_context(|| format!("/metrics has no {name}"))
     }
 
