@@ -172,22 +172,34 @@ pub(crate) async fn sequential_gets(
     Ok(times)
 }
 
+/// `n` gets of 0x652001 in `form` with `window` of them outstanding; an error answer ends it,
+/// notifications in between are passed over.
+async fn windowed_gets(ws: &mut Ws, form: &str, n: usize, window: usize) -> anyhow::Result<()> {
+    let (mut sent, mut done) = (0, 0);
+    while done < n {
+        while sent < n && sent - done < window {
+            ws.feed(Message::Text(get(sent, "0x652001", form).into()))
+                .await?;
+            sent += 1;
+        }
+        ws.flush().await?;
+        let answer = recv(ws).await?;
+        if answer.get("error").is_some() {
+            bail!("{form} get failed: {answer}");
+        }
+        if answer.get("result").is_some() {
+            done += 1;
+        }
+    }
+    Ok(())
+}
+
 /// Sequential requests (latency), then `window` outstanding (rate), for each form.
 async fn requests(ws: &mut Ws, what: &str, args: &GatewayBench) -> anyhow::Result<()> {
     for form in ["naked", "stripped", "full"] {
         let times = sequential_gets(ws, form, args.requests).await?;
         let started = Instant::now();
-        let (mut sent, mut done) = (0, 0);
-        while done < args.requests {
-            while sent < args.requests && sent - done < args.window {
-                ws.send(Message::Text(get(sent, "0x652001", form).into()))
-                    .await?;
-                sent += 1;
-            }
-            if recv(ws).await?.get("result").is_some() {
-                done += 1;
-            }
-        }
+        windowed_gets(ws, form, args.requests, args.window).await?;
         let rate = args.requests as f64 / started.elapsed().as_secs_f64();
         println!(
             "{what:<22} {form:<9} p50 {:>8.0} µs   p99 {:>8.0} µs   {rate:>8.0} requests/s (window {})",
@@ -489,20 +501,7 @@ async fn cpu_per_request(
         tokio::time::sleep(Duration::from_millis(500)).await;
         for window in [1, args.window] {
             let cpu = super::bench::cpu_time(daemon.pid).unwrap_or_default();
-            let (mut sent, mut done) = (0, 0);
-            while done < args.requests {
-                while sent < args.requests && sent - done < window {
-                    ws.feed(Message::Text(get(sent, "0x652001", "naked").into()))
-                        .await?;
-                    sent += 1;
-                }
-                ws.flush().await?;
-                let answer = recv(&mut ws).await?;
-                if answer.get("result").is_none() {
-                    bail!("naked get failed: {answer}");
-                }
-                done += 1;
-            }
+            windowed_gets(&mut ws, "naked", args.requests, window).await?;
             let spent = super::bench::cpu_time(daemon.pid)
                 .unwrap_or_default()
                 .saturating_sub(cpu);

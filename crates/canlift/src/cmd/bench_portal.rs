@@ -139,10 +139,10 @@ impl PortalProcess {
         self.daemon.stop(Duration::from_secs(10)).await;
     }
 
-    /// Stop the portal and start it again on the same state directory and database.
+    /// Replace the portal by a new process on the same state directory and database (the
+    /// new one starts first, on a port of its own; then the old one is stopped).
     async fn restart(&mut self, dir: &Path, database: &str) -> anyhow::Result<()> {
         let fresh = PortalProcess::start(dir, database).await;
-        // The new process listens on a port of its own: both may run for a moment.
         let old = std::mem::replace(self, fresh?);
         old.stop().await;
         Ok(())
