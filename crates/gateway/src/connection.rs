@@ -17,6 +17,7 @@ use tokio_tungstenite::tungstenite::protocol::frame::coding::CloseCode;
 use tokio_tungstenite::tungstenite::protocol::{CloseFrame, WebSocketConfig};
 use tokio_tungstenite::tungstenite::Message;
 
+use crate::access::Backend;
 use crate::feed::{Feed, Update};
 use crate::Shared;
 
@@ -406,9 +407,13 @@ fn start_job(
         job => {
             let backend = shared.backend.clone();
             let mut run = Box::pin(async move { backend.run(job).await });
-            // No task and no wake-up of this loop for what needs no waiting.
-            if let Some(result) = futures_util::FutureExt::now_or_never(run.as_mut()) {
-                return Some(result);
+            // The local dictionary answers at once: in this round, with no task and no wake-up.
+            // An SDO transfer is polled first in a task of its own, so its wake-ups go there
+            // alone.
+            if matches!(shared.backend, Backend::Local { .. }) {
+                if let Some(result) = futures_util::FutureExt::now_or_never(run.as_mut()) {
+                    return Some(result);
+                }
             }
             tokio::spawn(async move {
                 let result = run.await;
