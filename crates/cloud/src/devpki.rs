@@ -18,20 +18,6 @@ pub struct DevPki {
     pub key: PathBuf,
 }
 
-fn write_private(path: &Path, text: &str) -> anyhow::Result<()> {
-    use std::io::Write;
-    use std::os::unix::fs::OpenOptionsExt;
-    let mut file = std::fs::OpenOptions::new()
-        .write(true)
-        .create(true)
-        .truncate(true)
-        .mode(0o600)
-        .open(path)
-        .with_context(|| format!("writing {}", path.display()))?;
-    file.write_all(text.as_bytes())?;
-    Ok(())
-}
-
 /// The PKI in `dir`, generated if it is not there yet.
 pub fn ensure(dir: &Path) -> anyhow::Result<DevPki> {
     let pki = DevPki {
@@ -58,7 +44,7 @@ pub fn ensure(dir: &Path) -> anyhow::Result<DevPki> {
         .push(DnType::CommonName, "canlift development portal");
     let key = KeyPair::generate()?;
     let cert = params.signed_by(&key, &issuer)?;
-    write_private(&pki.key, &key.serialize_pem())?;
+    tls::write_private(&pki.key, &key.serialize_pem())?;
     std::fs::write(&pki.cert, cert.pem())?;
     std::fs::write(&pki.ca, ca_cert.pem())?;
     Ok(pki)

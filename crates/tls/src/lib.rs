@@ -38,6 +38,26 @@ pub(crate) fn file_error(path: &Path, reason: impl ToString) -> TlsError {
     }
 }
 
+/// Write `text` to `path` readable by the owner only (private keys, ticket keys), replacing it
+/// whole: a crash leaves the old file or the new one.
+pub fn write_private(path: &Path, text: &str) -> Result<(), TlsError> {
+    use std::io::Write;
+    use std::os::unix::fs::OpenOptionsExt;
+    let temporary = path.with_extension("new");
+    let written = std::fs::OpenOptions::new()
+        .write(true)
+        .create(true)
+        .truncate(true)
+        .mode(0o600)
+        .open(&temporary)
+        .and_then(|mut f| {
+            f.write_all(text.as_bytes())?;
+            f.sync_all()
+        })
+        .and_then(|()| std::fs::rename(&temporary, path));
+    written.map_err(|e| file_error(path, e))
+}
+
 /// Certificates of a PEM file (at least one).
 pub fn certificates(path: &Path) -> Result<Vec<CertificateDer<'static>>, TlsError> {
     let certs = CertificateDer::pem_file_iter(path)

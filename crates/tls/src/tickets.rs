@@ -17,13 +17,12 @@ use std::time::{Duration, SystemTime, UNIX_EPOCH};
 use ring::aead::{Aad, LessSafeKey, Nonce, UnboundKey, AES_256_GCM, NONCE_LEN};
 use ring::rand::{SecureRandom, SystemRandom};
 
-use crate::TlsError;
+use crate::{file_error, write_private, TlsError};
 
 const KEY_LEN: usize = 32;
 const ID_LEN: usize = 4;
 
 /// One ticket key: its id (the ticket's first bytes), when it was made, the secret.
-#[derive(Clone, PartialEq, Eq)]
 struct Key {
     id: [u8; ID_LEN],
     created: u64,
@@ -138,10 +137,6 @@ fn now_s() -> u64 {
         .map_or(0, |d| d.as_secs())
 }
 
-fn file_error(path: &Path, reason: impl ToString) -> TlsError {
-    crate::file_error(path, reason)
-}
-
 impl TicketKeys {
     /// The keys of `path`, made (and the file written) when it does not exist yet; rotated when
     /// the current key is older than `rotate`. A file that cannot be read as keys is an error,
@@ -205,26 +200,6 @@ impl TicketKeys {
             tracing::error!(error = %e, "ticket keys not written: a restart will not resume sessions");
         }
     }
-}
-
-/// Write `text` to `path` readable by the owner only, replacing it whole (a crash leaves the
-/// old file or the new one).
-fn write_private(path: &Path, text: &str) -> Result<(), TlsError> {
-    use std::io::Write;
-    use std::os::unix::fs::OpenOptionsExt;
-    let temporary = path.with_extension("new");
-    let written = std::fs::OpenOptions::new()
-        .write(true)
-        .create(true)
-        .truncate(true)
-        .mode(0o600)
-        .open(&temporary)
-        .and_then(|mut f| {
-            f.write_all(text.as_bytes())?;
-            f.sync_all()
-        })
-        .and_then(|()| std::fs::rename(&temporary, path));
-    written.map_err(|e| file_error(path, e))
 }
 
 impl rustls::server::ProducesTickets for TicketKeys {
