@@ -4,7 +4,6 @@
 //! Each test is bounded in time and stops what it started.
 
 use std::path::{Path, PathBuf};
-use std::process::Stdio;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
@@ -18,7 +17,7 @@ use tokio::process::Child;
 use tokio_tungstenite::tungstenite::Message;
 
 mod common;
-use common::{canlift, run, stderr};
+use common::{daemon, free_port, kill, PortalProcess};
 
 /// Kill rounds of the token test (the figure).
 const TOKEN_ROUNDS: u32 = 200;
@@ -26,25 +25,6 @@ const TOKEN_ROUNDS: u32 = 200;
 /// The token file's whole content for `token` (`None`: no file).
 fn token_file(token: Option<&str>) -> Option<String> {
     token.map(|t| format!("{t}\n"))
-}
-
-/// `canlift ARGS` in the background, its output discarded.
-fn daemon(args: &[&str]) -> Child {
-    canlift()
-        .args(args)
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("canlift starts")
-}
-
-/// Kill `child` with SIGKILL and reap it.
-async fn kill(child: &mut Child) {
-    child.start_kill().expect("SIGKILL sent");
-    let _ = tokio::time::timeout(Duration::from_secs(10), child.wait())
-        .await
-        .expect("a killed process ends");
 }
 
 /// A gateway process killed 200 times while it stores the token `update_unique_token` brought
@@ -158,160 +138,6 @@ async fn token_kills(lane: u32) -> Kills {
 }
 
 /// A free loopback port for a process the test restarts on the same address.
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .expect("a loopback port")
-        .port()
-}
-
-/// A portal process (`canlift cloud`) with its state in a directory of its own, SQLite by
-/// default, on a fixed port so it can be killed and started again where its gateways look.
-struct PortalProcess {
-    config: PathBuf,
-    state: PathBuf,
-    port: u16,
-    child: Option<Child>,
-}
-
-impl PortalProcess {
-    /// Configure (account `load` for domain `LOAD`; `extra` TOML appended) and start; returns
-    /// it and the API key.
-    async fn start(dir: &Path, extra: &str) -> (PortalProcess, String) {
-        let state = dir.join("portal");
-        let port = free_port();
-        let config = dir.join("portal.toml");
-        std::fs::write(
-            &config,
-            format!(
-                "[server]\nlisten = \"127.0.0.1:{port}\"\n[state]\ndir = \"{}\"\n{extra}",
-                state.display()
-            ),
-        )
-        .expect("written");
-        let out = run(&[
-            "cloud",
-            "account",
-            "add",
-            "load",
-            "--domain",
-            "LOAD",
-            "--json",
-            "--config",
-            config.to_str().expect("UTF-8"),
-        ])
-        .await;
-        assert!(out.status.success(), "{}", stderr(&out));
-        let account: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON");
-        let key = account["api_key"].as_str().expect("a key").to_owned();
-        let mut portal = PortalProcess {
-            config,
-            state,
-            port,
-            child: None,
-        };
-        portal.restart().await;
-        (portal, key)
-    }
-
-    /// Start the process again (after a kill) and wait until it listens.
-    async fn restart(&mut self) {
-        let config = self.config.to_str().expect("UTF-8");
-        self.child = Some(daemon(&["cloud", "--config", config]));
-        let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
-        while TcpStream::connect(("127.0.0.1", self.port)).await.is_err() {
-            assert!(
-                tokio::time::Instant::now() < deadline,
-                "the portal listens within 30 s"
-            );
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    }
-
-    /// SIGKILL: no shutdown, no flush, nothing the process could still do.
-    async fn kill(&mut self) {
-        if let Some(mut child) = self.child.take() {
-            kill(&mut child).await;
-        }
-    }
-
-    fn ca(&self) -> PathBuf {
-        self.state.join("dev-ca.pem")
-    }
-
-    fn database(&self) -> PathBuf {
-        self.state.join("canlift.db")
-    }
-
-    /// An operator client of this portal.
-    fn client(&self, key: &str) -> cloud::client::Client {
-        let url = format!("https://localhost:{}", self.port);
-        cloud::client::Client::new(&url, Some(key), Some(&self.ca())).expect("a client")
-    }
-
-    /// How many of the account's lifts the portal reports online (0 while it does not answer).
-    async fn online(&self, key: &str) -> usize {
-        match self.client(key).call("GET", "/api/v1/lifts", None).await {
-            Ok((200, serde_json::Value::Array(lifts))) => {
-                lifts.iter().filter(|l| l["online"] == true).count()
-            }
-            _ => 0,
-        }
-    }
-
-    /// Wait until `count` lifts are online; how long it took.
-    async fn wait_online(&self, key: &str, count: usize, limit: Duration) -> Duration {
-        let begin = tokio::time::Instant::now();
-        loop {
-            let online = self.online(key).await;
-            if online == count {
-                return begin.elapsed();
-            }
-            assert!(
-                begin.elapsed() < limit,
-                "{online} of {count} lifts online after {limit:?}"
-            );
-            tokio::time::sleep(Duration::from_millis(200)).await;
-        }
-    }
-
-    /// `canlift_telemetry_stored_total` from `/metrics`: values the portal has written to its
-    /// database (the counter moves after the transaction committed).
-    async fn stored(&self) -> u64 {
-        self.metric("canlift_telemetry_stored_total").await
-    }
-
-    /// One counter or gauge from `/metrics`.
-    async fn metric(&self, name: &str) -> u64 {
-        let value = self.client("").metric(name).await;
-        match value {
-            Ok(Some(v)) => v as u64,
-            other => panic!("/metrics, {name}: {other:?}"),
-        }
-    }
-
-    /// Rows in the telemetry table and the result of SQLite's `integrity_check`.
-    async fn inspect(&self) -> (u64, String) {
-        use sqlx::{Connection, Row};
-        let url = format!("sqlite://{}", self.database().display());
-        let mut db = sqlx::SqliteConnection::connect(&url)
-            .await
-            .expect("the portal's database opens");
-        let check: String = sqlx::query("PRAGMA integrity_check")
-            .fetch_one(&mut db)
-            .await
-            .expect("integrity_check")
-            .get(0);
-        let rows: i64 = sqlx::query("SELECT COUNT(*) FROM telemetry")
-            .fetch_one(&mut db)
-            .await
-            .expect("count")
-            .get(0);
-        let _ = db.close().await;
-        (u64::try_from(rows).unwrap_or(0), check)
-    }
-}
-
 /// `canlift loadgen`: `gateways` simulated gateways for domain LOAD whose values change every
 /// 50 ms, their tokens in `state`.
 fn loadgen(portal: &PortalProcess, gateways: usize, state: &Path) -> Child {

@@ -27,6 +27,8 @@ pub struct Client {
     host: String,
     port: u16,
     key: Option<String>,
+    /// A web session's `name=value`, sent as `Cookie`.
+    cookie: Option<String>,
     tls: tokio_rustls::TlsConnector,
 }
 
@@ -54,8 +56,16 @@ impl Client {
             host,
             port,
             key: key.map(str::to_owned),
+            cookie: None,
             tls: tokio_rustls::TlsConnector::from(Arc::new(tls)),
         })
+    }
+
+    /// The same client, sending `cookie` (`name=value`, as [`Reply::set_cookie`] gives it):
+    /// requests in a web session (docs/PORTAL.md §Web UI).
+    pub fn with_cookie(mut self, cookie: &str) -> Client {
+        self.cookie = Some(cookie.to_owned());
+        self
     }
 
     /// Open one keep-alive connection (TCP, TLS, HTTP/1.1) for many requests.
@@ -83,6 +93,7 @@ impl Client {
             sender,
             host: self.host.clone(),
             key: self.key.clone(),
+            cookie: self.cookie.clone(),
         })
     }
 
@@ -124,11 +135,18 @@ impl Client {
             .get(hyper::header::RETRY_AFTER)
             .and_then(|v| v.to_str().ok())
             .and_then(|v| v.parse().ok());
+        let set_cookie = response
+            .headers()
+            .get(hyper::header::SET_COOKIE)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.split(';').next())
+            .map(str::to_owned);
         let (status, body) = answer(response).await?;
         Ok(Reply {
             status,
             retry_after,
             body,
+            set_cookie,
         })
     }
 
@@ -151,6 +169,7 @@ pub struct Connection {
     sender: hyper::client::conn::http1::SendRequest<Full<Bytes>>,
     host: String,
     key: Option<String>,
+    cookie: Option<String>,
 }
 
 /// The body of a request.
@@ -175,6 +194,8 @@ pub struct Reply {
     pub retry_after: Option<u64>,
     /// The body as JSON (a string when it is not JSON).
     pub body: Value,
+    /// The `name=value` of a `Set-Cookie` (a sign-in's session).
+    pub set_cookie: Option<String>,
 }
 
 impl Connection {
@@ -201,6 +222,9 @@ impl Connection {
             .header("host", &self.host);
         if let Some(k) = &self.key {
             request = request.header("authorization", format!("Bearer {k}"));
+        }
+        if let Some(c) = &self.cookie {
+            request = request.header("cookie", c);
         }
         let bytes = match body {
             Body::Json(b) => {

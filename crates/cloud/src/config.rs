@@ -289,9 +289,45 @@ pub struct Config {
     pub dashboard: DashboardSection,
     /// `[alarms]`.
     pub alarms: AlarmsSection,
+    /// `[cluster]`.
+    pub cluster: ClusterSection,
+}
+
+/// `[cluster]`: several portal processes on one PostgreSQL database and one NATS server
+/// (docs/CLUSTER.md). Absent `nats`: a portal of its own.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ClusterSection {
+    /// `nats://HOST:PORT` of the NATS server (with JetStream, `nats-server -js`).
+    pub nats: Option<String>,
+    /// This process's name in the cluster; absent: the host name and the listening port.
+    pub node: Option<String>,
+    /// Seconds a lift's holder entry lives unless its holder refreshes it (every third of
+    /// this): how long a lift of a process that died may still look online.
+    pub holder_ttl_s: u64,
+}
+
+impl Default for ClusterSection {
+    fn default() -> Self {
+        ClusterSection {
+            nats: None,
+            node: None,
+            holder_ttl_s: 15,
+        }
+    }
 }
 
 impl Config {
+    /// The cluster node's name (`[cluster] node`, else `HOSTNAME:PORT`).
+    pub fn node_name(&self) -> String {
+        self.cluster.node.clone().unwrap_or_else(|| {
+            let host = std::fs::read_to_string("/proc/sys/kernel/hostname")
+                .map(|h| h.trim().to_owned())
+                .unwrap_or_else(|_| "portal".into());
+            format!("{host}:{}", self.server.listen.port())
+        })
+    }
+
     /// The database URL in force.
     pub fn database_url(&self) -> String {
         self.database

@@ -4,20 +4,12 @@
 //! a lift belongs to the user who entered the password, for the duration the gateway answered
 //! and for the connection it was granted on. A put above privilege 0 by anyone else, after the
 //! grant ran out, or after the gateway reconnected (the grant died with the connection) is
-//! refused by the portal before it reaches the gateway.
+//! refused by the portal before it reaches the gateway. Grants are kept in the database, so
+//! every process of a cluster knows them.
 
-use std::collections::HashMap;
-use std::sync::{Mutex, PoisonError};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-/// One lift's grant.
-#[derive(Debug, Clone, PartialEq, Eq)]
-struct Grant {
-    user: String,
-    privilege: u32,
-    until: Instant,
-    connection: u64,
-}
+use crate::store::{ElevationGrant, Store, StoreError};
 
 /// Why a put above privilege 0 is refused.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -38,134 +30,149 @@ pub enum Refusal {
     },
 }
 
-/// The grants of every lift, by lift id.
-#[derive(Debug, Default)]
+/// The grants of every lift, kept in the database: in a cluster the engineer may elevate
+/// through one process and write through another (the connection is named by its epoch, the
+/// same on every process: docs/CLUSTER.md §Holder entries).
+#[derive(Clone)]
 pub struct Elevations {
-    grants: Mutex<HashMap<String, Grant>>,
+    store: Store,
 }
 
 impl Elevations {
+    /// The grants in `store`.
+    pub fn new(store: Store) -> Elevations {
+        Elevations { store }
+    }
+
     /// The gateway granted `privilege` for `duration` to `user`'s request on `lift`'s
-    /// connection `connection` at `now` (replacing any other user's grant: the connection has
-    /// only one). Privilege 0 drops the grant.
-    pub fn granted(
+    /// connection `connection` at `now` (ms; replacing any other user's grant: the connection
+    /// has only one). Privilege 0 drops the grant.
+    pub async fn granted(
         &self,
         lift: &str,
         user: &str,
         privilege: u32,
         duration: Duration,
         connection: u64,
-        now: Instant,
-    ) {
-        let mut grants = self.grants.lock().unwrap_or_else(PoisonError::into_inner);
+        now: i64,
+    ) -> Result<(), StoreError> {
         if privilege == 0 {
-            grants.remove(lift);
-            return;
+            return self.store.drop_grant(lift).await;
         }
-        grants.insert(
-            lift.to_owned(),
-            Grant {
-                user: user.to_owned(),
-                privilege,
-                until: now + duration,
-                connection,
-            },
-        );
+        let grant = ElevationGrant {
+            user: user.to_owned(),
+            privilege,
+            until: now.saturating_add(i64::try_from(duration.as_millis()).unwrap_or(i64::MAX)),
+            connection,
+        };
+        self.store.set_grant(lift, &grant).await
     }
 
     /// Whether `user` may write an object that needs `needed` on `lift`, whose gateway is on
-    /// connection `connection` now.
-    pub fn check(
+    /// connection `connection` now (`now` in ms). A grant that ran out or whose connection
+    /// ended is dropped.
+    pub async fn check(
         &self,
         lift: &str,
         user: &str,
         needed: u32,
         connection: Option<u64>,
-        now: Instant,
-    ) -> Result<(), Refusal> {
+        now: i64,
+    ) -> Result<Result<(), Refusal>, StoreError> {
         if needed == 0 {
-            return Ok(());
+            return Ok(Ok(()));
         }
-        let mut grants = self.grants.lock().unwrap_or_else(PoisonError::into_inner);
-        let Some(grant) = grants.get(lift) else {
-            return Err(Refusal::NotElevated(needed));
-        };
-        if grant.until <= now || Some(grant.connection) != connection {
-            grants.remove(lift);
-            return Err(Refusal::NotElevated(needed));
+        let grant = self.store.grant(lift).await?;
+        let verdict = decide(grant.as_ref(), user, needed, connection, now);
+        if grant.is_some_and(|g| stale(&g, connection, now)) {
+            self.store.drop_grant(lift).await?;
         }
-        if grant.user != user {
-            return Err(Refusal::ByAnother(grant.user.clone()));
-        }
-        if grant.privilege < needed {
-            return Err(Refusal::Lower {
-                needed,
-                held: grant.privilege,
-            });
-        }
-        Ok(())
+        Ok(verdict)
     }
+}
 
-    /// Whether no lift has a grant (a lift's grant goes when it is next checked after it ran
-    /// out or its connection ended, or when it is replaced).
-    #[cfg(test)]
-    fn is_empty(&self) -> bool {
-        self.grants
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .is_empty()
+/// Whether `grant` ran out at `now` or belongs to another connection than `connection`.
+fn stale(grant: &ElevationGrant, connection: Option<u64>, now: i64) -> bool {
+    grant.until <= now || Some(grant.connection) != connection
+}
+
+/// The verdict on a put by `user` that needs `needed`, given the lift's `grant`.
+fn decide(
+    grant: Option<&ElevationGrant>,
+    user: &str,
+    needed: u32,
+    connection: Option<u64>,
+    now: i64,
+) -> Result<(), Refusal> {
+    if needed == 0 {
+        return Ok(());
     }
+    let Some(grant) = grant.filter(|g| !stale(g, connection, now)) else {
+        return Err(Refusal::NotElevated(needed));
+    };
+    if grant.user != user {
+        return Err(Refusal::ByAnother(grant.user.clone()));
+    }
+    if grant.privilege < needed {
+        return Err(Refusal::Lower {
+            needed,
+            held: grant.privilege,
+        });
+    }
+    Ok(())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    #[test]
-    fn a_grant_is_one_users_on_one_connection_for_its_duration() {
-        let e = Elevations::default();
-        let t0 = Instant::now();
-        let minute = Duration::from_secs(60);
-        assert_eq!(e.check("L", "ann", 0, Some(1), t0), Ok(()));
+    #[tokio::test]
+    async fn a_grant_is_one_users_on_one_connection_for_its_duration() {
+        let store = Store::open("sqlite::memory:").await.unwrap();
+        let e = Elevations::new(store.clone());
+        let check = |user: &'static str, needed, connection, now| {
+            let e = e.clone();
+            async move {
+                e.check("L", user, needed, Some(connection), now)
+                    .await
+                    .unwrap()
+            }
+        };
+        let (t0, minute) = (1_000_000, Duration::from_secs(60));
+        assert_eq!(check("ann", 0, 1, t0).await, Ok(()));
+        assert_eq!(check("ann", 1, 1, t0).await, Err(Refusal::NotElevated(1)));
+        e.granted("L", "ann", 1, minute, 1, t0).await.unwrap();
+        assert_eq!(check("ann", 1, 1, t0).await, Ok(()));
         assert_eq!(
-            e.check("L", "ann", 1, Some(1), t0),
-            Err(Refusal::NotElevated(1))
-        );
-        e.granted("L", "ann", 1, minute, 1, t0);
-        assert_eq!(e.check("L", "ann", 1, Some(1), t0), Ok(()));
-        assert_eq!(
-            e.check("L", "bob", 1, Some(1), t0),
+            check("bob", 1, 1, t0).await,
             Err(Refusal::ByAnother("ann".into()))
         );
         assert_eq!(
-            e.check("L", "ann", 2, Some(1), t0),
+            check("ann", 2, 1, t0).await,
             Err(Refusal::Lower { needed: 2, held: 1 })
         );
         assert_eq!(
-            e.check("M", "ann", 1, Some(1), t0),
+            e.check("M", "ann", 1, Some(1), t0).await.unwrap(),
             Err(Refusal::NotElevated(1))
         );
         // Bob elevates: the connection is his now.
-        e.granted("L", "bob", 2, minute, 1, t0);
+        e.granted("L", "bob", 2, minute, 1, t0).await.unwrap();
         assert_eq!(
-            e.check("L", "ann", 1, Some(1), t0),
+            check("ann", 1, 1, t0).await,
             Err(Refusal::ByAnother("bob".into()))
         );
         // The gateway reconnected: the grant died with the old connection.
-        assert_eq!(
-            e.check("L", "bob", 1, Some(2), t0),
-            Err(Refusal::NotElevated(1))
-        );
-        assert!(e.is_empty());
+        assert_eq!(check("bob", 1, 2, t0).await, Err(Refusal::NotElevated(1)));
+        assert_eq!(store.grant("L").await.unwrap(), None);
         // It runs out.
-        e.granted("L", "bob", 2, minute, 2, t0);
+        e.granted("L", "bob", 2, minute, 2, t0).await.unwrap();
         assert_eq!(
-            e.check("L", "bob", 2, Some(2), t0 + minute),
+            check("bob", 2, 2, t0 + 60_000).await,
             Err(Refusal::NotElevated(2))
         );
         // Privilege 0 drops it.
-        e.granted("L", "bob", 2, minute, 2, t0);
-        e.granted("L", "bob", 0, minute, 2, t0);
-        assert!(e.is_empty());
+        e.granted("L", "bob", 2, minute, 2, t0).await.unwrap();
+        e.granted("L", "bob", 0, minute, 2, t0).await.unwrap();
+        assert_eq!(store.grant("L").await.unwrap(), None);
     }
 }

@@ -131,6 +131,10 @@ impl Portal {
         let store = Store::open(&config.database_url()).await?;
         let tls = server_tls(config)?;
         let registry = Arc::new(Registry::default());
+        let mut tasks = Vec::new();
+        if let Some(url) = &config.cluster.nats {
+            join_cluster(config, url, &registry, &mut tasks).await?;
+        }
         let dashboard = Arc::new(config.dashboard.dashboard().map_err(ServerError::Other)?);
         let subscriptions = Arc::new(gateways::subscriptions::Subscriptions::new(
             registry.clone(),
@@ -138,7 +142,7 @@ impl Portal {
         ));
         let (telemetry, telemetry_rx) = mpsc::channel(config.database.telemetry_queue.max(1));
         let counters = Arc::new(gateways::TelemetryCounters::default());
-        let mut tasks = vec![
+        tasks.extend([
             tokio::spawn(telemetry::retention(
                 telemetry::Kept::Telemetry,
                 store.clone(),
@@ -154,7 +158,7 @@ impl Portal {
                 store.clone(),
                 config.database.events_days,
             )),
-        ];
+        ]);
         let alarms = start_alarms(config, &store, &registry, &mut tasks)?;
         // Rights taken away anywhere reach this process within a second.
         tasks.push(tokio::spawn(
@@ -189,7 +193,7 @@ impl Portal {
         let queue = ws_state.shared.telemetry.clone();
         let router = Router::new()
             .route("/ws", get(ws).with_state(ws_state))
-            .route("/healthz", get(|| async { "ok\n" }))
+            .route("/healthz", get(health).with_state(registry.clone()))
             .route(
                 "/metrics",
                 get(move || {
@@ -200,12 +204,12 @@ impl Portal {
             )
             .merge({
                 let app = Arc::new(App {
+                    elevations: crate::elevation::Elevations::new(store.clone()),
                     store,
                     registry: registry.clone(),
                     sessions: crate::web::Sessions::default(),
                     dashboard,
                     subscriptions,
-                    elevations: crate::elevation::Elevations::default(),
                     key_rates: std::sync::Mutex::new(crate::throttle::KeyRates::new(
                         config.server.requests_per_key_s,
                     )),
@@ -318,6 +322,48 @@ impl Portal {
     }
 }
 
+/// Join the cluster of `[cluster] nats`: one PostgreSQL database for all processes, the
+/// registry following the holder entries, live events published.
+async fn join_cluster(
+    config: &Config,
+    url: &str,
+    registry: &Arc<Registry>,
+    tasks: &mut Vec<tokio::task::JoinHandle<()>>,
+) -> Result<(), ServerError> {
+    let database = config.database_url();
+    if !(database.starts_with("postgres://") || database.starts_with("postgresql://")) {
+        return Err(ServerError::Other(format!(
+            "[cluster] needs the processes' shared database: set [database] url = \"postgres://…\" (now {database})"
+        )));
+    }
+    let ttl = std::time::Duration::from_secs(config.cluster.holder_ttl_s);
+    // The holder's own request timeout answers first; this one covers a holder that died.
+    let timeout = config.gateways.settings().request_timeout + std::time::Duration::from_secs(1);
+    let (cluster, events) = crate::cluster::Cluster::connect(url, config.node_name(), ttl, timeout)
+        .await
+        .map_err(|e| ServerError::Other(e.to_string()))?;
+    tracing::info!(
+        node = cluster.node(),
+        nats = url,
+        "portal process of a cluster"
+    );
+    registry.join(cluster.clone());
+    tasks.push(tokio::spawn(cluster.clone().run(Arc::downgrade(registry))));
+    tasks.push(tokio::spawn(cluster.publish_events(events)));
+    Ok(())
+}
+
+/// `/healthz`: `ok`, or in a cluster without NATS `degraded` with the reason (still 200: the
+/// process serves the gateways it holds).
+async fn health(State(registry): State<Arc<Registry>>) -> String {
+    match registry.cluster() {
+        Some(cluster) if !cluster.connected() => {
+            "degraded: NATS unreachable (lifts held by other processes answer 503)\n".into()
+        }
+        _ => "ok\n".into(),
+    }
+}
+
 /// How long a client may take for its TLS handshake, and then for each HTTP request head
 /// (docs/SECURITY.md §Bounds): a connection that says nothing, or says it slowly, is closed.
 pub const HANDSHAKE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(10);
@@ -408,6 +454,28 @@ fn metrics_text(
         ),
     ];
     let mut text = String::new();
+    let (mut gauges, mut counters) = (gauges.to_vec(), counters.to_vec());
+    if let Some(c) = r.cluster() {
+        gauges.extend([
+            ("canlift_cluster_nats_connected", u64::from(c.connected())),
+            ("canlift_cluster_lifts_held", c.held_count() as u64),
+            ("canlift_cluster_lifts_elsewhere", c.known_count() as u64),
+        ]);
+        let n = &c.counters;
+        counters.extend([
+            ("canlift_cluster_requests_relayed_total", load(&n.relayed)),
+            (
+                "canlift_cluster_requests_failed_total",
+                load(&n.relay_failed),
+            ),
+            ("canlift_cluster_requests_served_total", load(&n.served)),
+            ("canlift_cluster_replaced_total", load(&n.replaced)),
+            (
+                "canlift_cluster_events_dropped_total",
+                load(&n.events_dropped),
+            ),
+        ]);
+    }
     for (kind, list) in [("gauge", &gauges[..]), ("counter", &counters[..])] {
         for (name, value) in list {
             text.push_str(&format!("# TYPE {name} {kind}\n{name} {value}\n"));

@@ -351,11 +351,13 @@ async fn the_portal_keeps_the_contract_of_its_openapi_document() {
                             status: 200,
                             retry_after: None,
                             body: Value::Null,
+                            set_cookie: None,
                         },
                         Err((status, body)) => Reply {
                             status,
                             retry_after: None,
                             body,
+                            set_cookie: None,
                         },
                     }
                 } else {

@@ -3,11 +3,16 @@
 //! constants every test uses for its lift ([`constants`]), a sample dictionary ([`sample`]), and,
 //! behind features, a PostgreSQL database per test (`postgres`), a test PKI (`pki`), the
 //! simulated lift with its gateway (`lift`), the portal with a lift connected (`portal`) and a
-//! scripted portal for exact JSON-RPC exchanges with a gateway (`scripted`).
+//! scripted portal for exact JSON-RPC exchanges with a gateway (`scripted`), and for the cluster
+//! tests a NATS server (`nats`) and a TCP load balancer (`balancer`).
 
+#[cfg(feature = "portal")]
+pub mod balancer;
 pub mod constants;
 #[cfg(feature = "lift")]
 pub mod lift;
+#[cfg(feature = "portal")]
+pub mod nats;
 #[cfg(feature = "pki")]
 pub mod pki;
 #[cfg(feature = "portal")]

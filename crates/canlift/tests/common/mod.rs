@@ -5,6 +5,8 @@
 use std::process::{ExitStatus, Output, Stdio};
 use std::time::Duration;
 
+use tokio::process::Child;
+
 /// `canlift` with stdout and stderr captured, killed when dropped.
 pub fn canlift() -> tokio::process::Command {
     let mut cmd = tokio::process::Command::new(env!("CARGO_BIN_EXE_canlift"));
@@ -94,3 +96,36 @@ pub async fn python_node(
     assert_eq!(ready.as_deref(), Some("READY"));
     (node, lines)
 }
+
+/// `canlift ARGS` in the background, its output discarded.
+pub fn daemon(args: &[&str]) -> Child {
+    canlift()
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("canlift starts")
+}
+
+/// Kill `child` with SIGKILL and reap it.
+pub async fn kill(child: &mut Child) {
+    child.start_kill().expect("SIGKILL sent");
+    let _ = tokio::time::timeout(Duration::from_secs(10), child.wait())
+        .await
+        .expect("a killed process ends");
+}
+
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("a loopback port")
+        .port()
+}
+
+#[cfg(feature = "portal")]
+mod portal;
+// Not every test that includes these helpers starts a portal.
+#[cfg(feature = "portal")]
+#[allow(unused_imports)]
+pub use portal::PortalProcess;

@@ -339,6 +339,11 @@ impl Service {
             self.flush().await;
         }
         for lift in self.offline.due(now) {
+            // Online again by now, perhaps on another process of a cluster (whose alarm
+            // service saw it come back): no alarm.
+            if self.alarms.registry.online(&lift) {
+                continue;
+            }
             let verdict = self.rules.lift_offline(&lift, self.offline_after.as_secs());
             self.apply(vec![verdict]);
         }

@@ -375,7 +375,7 @@ async fn put_object(
     };
     // Unknown: as if it needed a privilege, so only the one who elevated may try.
     let needed = before.map_or(Some(1), |a| a.object.privilege).unwrap_or(1);
-    if let Err(refused) = may_write(&app, &operator, &id, needed) {
+    if let Err(refused) = may_write(&app, &operator, &id, needed).await {
         entry.result = format!("refused: {}", refused.1.message);
         app.store.audit(&entry).await?;
         return Err(refused);
@@ -400,7 +400,12 @@ async fn put_object(
 /// Whether `operator` may write an object of `lift` that needs privilege `needed`: above 0
 /// only an engineer, and only the one who elevated the lift's connection (docs/PORTAL.md
 /// §Users and roles).
-fn may_write(app: &App, operator: &Operator, lift: &str, needed: u32) -> Result<(), ApiError> {
+async fn may_write(
+    app: &App,
+    operator: &Operator,
+    lift: &str,
+    needed: u32,
+) -> Result<(), ApiError> {
     if needed == 0 {
         return Ok(());
     }
@@ -414,13 +419,8 @@ fn may_write(app: &App, operator: &Operator, lift: &str, needed: u32) -> Result<
     }
     let connection = app.registry.connection(lift);
     app.elevations
-        .check(
-            lift,
-            &operator.user,
-            needed,
-            connection,
-            std::time::Instant::now(),
-        )
+        .check(lift, &operator.user, needed, connection, store::now_ms())
+        .await?
         .map_err(|r| error(StatusCode::FORBIDDEN, r.to_string()))
 }
 
@@ -483,14 +483,16 @@ async fn privilege(
     };
     let result = app.registry.call(&id, &params).await;
     if let Ok(answer) = &result {
-        app.elevations.granted(
-            &id,
-            &operator.user,
-            params.privilege,
-            std::time::Duration::from_secs(answer.duration),
-            connection,
-            std::time::Instant::now(),
-        );
+        app.elevations
+            .granted(
+                &id,
+                &operator.user,
+                params.privilege,
+                std::time::Duration::from_secs(answer.duration),
+                connection,
+                store::now_ms(),
+            )
+            .await?;
     }
     let entry = AuditEntry {
         at: store::now_ms(),
@@ -611,7 +613,7 @@ async fn events(
     ApiQuery(q): ApiQuery<EventsQuery>,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
     lift_of(&app, caller, &id, Role::Viewer).await?;
-    let rx = app.registry.subscribe(&id);
+    let rx = app.registry.subscribe(&id).await;
     let watching = match q.mplex.as_deref() {
         Some(list) => {
             let list: Vec<String> = list.split(',').map(str::to_owned).collect();

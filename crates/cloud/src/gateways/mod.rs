@@ -11,7 +11,7 @@ pub mod telemetry;
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 
 use nxg::mplex::Mplex;
 use nxg::msg::{self, Call, Event, Method, Notification};
@@ -20,6 +20,8 @@ use serde_json::value::RawValue;
 use tokio::sync::{broadcast, mpsc, oneshot};
 
 use crate::alarms::AlarmChange;
+use crate::cluster::msgs::Holding;
+use crate::cluster::Cluster;
 use crate::config::Dashboard;
 use crate::rest::{BusEventEvent, OnlineEvent, ValueEvent};
 use crate::store::{Store, TelemetryRow};
@@ -27,8 +29,10 @@ use crate::store::{Store, TelemetryRow};
 pub use connection::serve;
 pub use telemetry::TelemetryCounters;
 
-/// An event for live viewers of a lift.
-#[derive(Debug, Clone, PartialEq)]
+/// An event for live viewers of a lift (in a cluster, published by the lift's holder for
+/// the other processes: docs/CLUSTER.md §Subjects).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(tag = "kind", content = "data", rename_all = "snake_case")]
 pub enum LiftEvent {
     /// A pushed value.
     Value(Notification),
@@ -134,42 +138,66 @@ impl LiftStatus {
     }
 }
 
-/// The gateways connected now, and the event channels of every lift.
+/// The gateways connected now, and the event channels of every lift; in a cluster, also
+/// what the other processes hold ([`Cluster`]).
 #[derive(Default)]
 pub struct Registry {
     live: Mutex<HashMap<String, Live>>,
     events: Mutex<HashMap<String, broadcast::Sender<LiftEvent>>>,
+    /// The newest connection epoch given out (µs since the Unix epoch, strictly rising).
     serial: AtomicU64,
+    cluster: OnceLock<Arc<Cluster>>,
 }
 
 impl Registry {
-    /// The lift's connection now (a number that changes when its gateway reconnects).
+    /// Serve as one process of `cluster`: lifts held elsewhere become reachable through it.
+    pub fn join(&self, cluster: Arc<Cluster>) {
+        let _ = self.cluster.set(cluster);
+    }
+
+    /// The cluster this process is one of, if any.
+    pub fn cluster(&self) -> Option<&Arc<Cluster>> {
+        self.cluster.get()
+    }
+
+    /// The holder entry of a lift another process of the cluster holds.
+    fn elsewhere(&self, lift: &str) -> Option<Holding> {
+        self.cluster.get()?.holding(lift)
+    }
+
+    /// The lift's connection now: a number that changes when its gateway reconnects, here or
+    /// on another process of the cluster.
     pub fn connection(&self, lift: &str) -> Option<u64> {
-        self.live
+        let local = self
+            .live
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .get(lift)
-            .map(|l| l.serial)
+            .map(|l| l.serial);
+        local.or_else(|| self.elsewhere(lift).map(|h| h.epoch))
     }
 
-    /// Whether the lift's gateway is connected.
+    /// Whether the lift's gateway is connected (here or to another process of the cluster).
     pub fn online(&self, lift: &str) -> bool {
         self.live
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .contains_key(lift)
+            || self.elsewhere(lift).is_some()
     }
 
     /// Whether `lift` is connected now as a lift of `domain`.
     pub fn serves(&self, domain: &str, lift: &str) -> bool {
-        self.live
+        let local = self
+            .live
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .get(lift)
-            .is_some_and(|live| live.domain == domain)
+            .map(|live| live.domain == domain);
+        local.unwrap_or_else(|| self.elsewhere(lift).is_some_and(|h| h.domain == domain))
     }
 
-    /// How many gateways are connected.
+    /// How many gateways are connected to this process.
     pub fn online_count(&self) -> usize {
         self.live
             .lock()
@@ -179,20 +207,31 @@ impl Registry {
 
     /// The serial number of a connected gateway (sent with puts and elevations).
     pub fn sernum(&self, lift: &str) -> Option<String> {
-        self.live
+        let local = self
+            .live
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .get(lift)
-            .map(|l| l.sernum.clone())
+            .map(|l| l.sernum.clone());
+        local.or_else(|| self.elsewhere(lift).map(|h| h.sernum))
     }
 
-    /// The condition of a connected lift (`None`: offline).
+    /// The condition of a connected lift (`None`: offline). Of a lift held by another
+    /// process, the error register and lift state its holder last wrote, without the time.
     pub fn status(&self, lift: &str) -> Option<LiftStatus> {
-        self.live
+        let local = self
+            .live
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .get(lift)
-            .map(|l| l.status)
+            .map(|l| l.status);
+        local.or_else(|| {
+            self.elsewhere(lift).map(|h| LiftStatus {
+                error_register: h.error_register,
+                lift_state: h.lift_state,
+                last_value: 0,
+            })
+        })
     }
 
     /// Take note of a pushed value of a connected lift, arrived at `at`.
@@ -209,24 +248,37 @@ impl Registry {
         match Mplex::parse(&n.mplex) {
             Ok(ERROR_REGISTER) => status.error_register = value,
             Ok(LIFT_STATE) => status.lift_state = value,
-            _ => {}
+            _ => return,
+        }
+        if let Some(cluster) = self.cluster.get() {
+            cluster.status(lift, status.error_register, status.lift_state);
         }
     }
 
-    /// Live events of a lift.
-    pub fn subscribe(&self, lift: &str) -> broadcast::Receiver<LiftEvent> {
-        self.events
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .entry(lift.to_owned())
-            .or_insert_with(|| broadcast::channel(1024).0)
-            .subscribe()
+    /// Live events of a lift (in a cluster, also those its holder publishes from another
+    /// process, from the moment NATS has this process's subscription: at most a second).
+    pub async fn subscribe(&self, lift: &str) -> broadcast::Receiver<LiftEvent> {
+        let (rx, forwarding) = {
+            let mut events = self.events.lock().unwrap_or_else(PoisonError::into_inner);
+            let tx = events
+                .entry(lift.to_owned())
+                .or_insert_with(|| broadcast::channel(1024).0);
+            let forwarding = self.cluster.get().and_then(|c| c.forward(lift, tx));
+            (tx.subscribe(), forwarding)
+        };
+        if let Some(subscribed) = forwarding {
+            let _ = tokio::time::timeout(std::time::Duration::from_secs(1), subscribed).await;
+        }
+        rx
     }
 
     /// Hand `event` to the lift's live viewers. A channel exists only while someone watches
     /// (its 1024 slots are allocated up front: one per idle gateway would cost more than the
     /// connection itself).
     pub(crate) fn publish(&self, lift: &str, event: LiftEvent) {
+        if let Some(cluster) = self.cluster.get() {
+            cluster.publish(lift, &event);
+        }
         let mut events = self.events.lock().unwrap_or_else(PoisonError::into_inner);
         if let Some(tx) = events.get(lift) {
             if tx.send(event).is_err() {
@@ -244,7 +296,27 @@ impl Registry {
         msg::read::<C::Answer>(&raw).map_err(Failure::Invalid)
     }
 
+    /// Send a request to the lift's gateway: through its connection here, else (in a
+    /// cluster) through the process holding it.
     async fn send(
+        &self,
+        lift: &str,
+        method: Method,
+        params: Option<Box<RawValue>>,
+    ) -> Result<String, Failure> {
+        let here = self
+            .live
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .contains_key(lift);
+        match self.cluster.get() {
+            Some(cluster) if !here => cluster.request(lift, method, params).await,
+            _ => self.send_local(lift, method, params).await,
+        }
+    }
+
+    /// Send a request to the lift's gateway through its connection on this process.
+    pub(crate) async fn send_local(
         &self,
         lift: &str,
         method: Method,
@@ -272,16 +344,42 @@ impl Registry {
         answer.await.map_err(|_| Failure::Gone)?
     }
 
-    /// A connection is in service for `lift`: it replaces an earlier one. Returns the serial
-    /// that [`Registry::unregister`] needs.
+    /// A new connection epoch: µs since the Unix epoch, above every earlier one of this
+    /// process (so that across the cluster the newer connection of a lift has the larger).
+    fn next_epoch(&self) -> u64 {
+        let now = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| u64::try_from(d.as_micros()).unwrap_or(u64::MAX));
+        let previous = self
+            .serial
+            .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |last| {
+                Some(now.max(last + 1))
+            })
+            .unwrap_or(now);
+        now.max(previous + 1)
+    }
+
+    /// A connection is in service for `lift`: it replaces an earlier one (here, or in a
+    /// cluster on any process). Returns the serial that [`Registry::unregister`] needs.
     fn register(
-        &self,
+        self: &Arc<Self>,
         lift: &str,
         connect: &nxg::msg::Connect,
         calls: mpsc::Sender<Box<OperatorCall>>,
         close: oneshot::Sender<()>,
     ) -> u64 {
-        let serial = self.serial.fetch_add(1, Ordering::Relaxed);
+        let serial = self.next_epoch();
+        if let Some(cluster) = self.cluster.get() {
+            let holding = Holding {
+                node: cluster.node().to_owned(),
+                epoch: serial,
+                domain: connect.domaintoken.clone(),
+                sernum: connect.identity.sernum.clone(),
+                error_register: None,
+                lift_state: None,
+            };
+            cluster.hold(self.clone(), lift, holding);
+        }
         let old = self
             .live
             .lock()
@@ -309,9 +407,30 @@ impl Registry {
         let mut live = self.live.lock().unwrap_or_else(PoisonError::into_inner);
         if live.get(lift).is_some_and(|l| l.serial == serial) {
             live.remove(lift);
+            if let Some(cluster) = self.cluster.get() {
+                cluster.release(lift, serial);
+            }
             return true;
         }
         false
+    }
+
+    /// Another process of the cluster admitted a connection of `lift` (`holding`): the one
+    /// here, if older, is closed without the lift going offline. Whether one was.
+    pub(crate) fn taken_over(&self, lift: &str, holding: &Holding) -> bool {
+        let mut live = self.live.lock().unwrap_or_else(PoisonError::into_inner);
+        let older = live.get(lift).is_some_and(|l| l.serial < holding.epoch);
+        if !older {
+            return false;
+        }
+        if let Some(old) = live.remove(lift) {
+            tracing::info!(lift, node = %holding.node, "the lift connected to another portal process: closing it here");
+            if let Some(cluster) = self.cluster.get() {
+                cluster.release(lift, old.serial);
+            }
+            let _ = old.close.send(());
+        }
+        true
     }
 }
 

@@ -10,7 +10,7 @@ mod alarms;
 mod users;
 
 pub use alarms::{new_id, AlarmFilter, EventRow, OutboxEntry};
-pub use users::{KeyInfo, Operator, Role, User, UserError};
+pub use users::{ElevationGrant, KeyInfo, Operator, Role, SessionRecord, User, UserError};
 
 use std::collections::HashMap;
 use std::time::{SystemTime, UNIX_EPOCH};
@@ -288,6 +288,11 @@ const SCHEMA: &[&str] = &[
     "CREATE TABLE IF NOT EXISTS api_keys (id TEXT PRIMARY KEY, key_hash TEXT NOT NULL UNIQUE, user_name TEXT NOT NULL, created BIGINT NOT NULL, expires BIGINT, revoked BIGINT)",
     "CREATE TABLE IF NOT EXISTS auth_epoch (id BIGINT PRIMARY KEY, epoch BIGINT NOT NULL)",
     "INSERT INTO auth_epoch (id, epoch) SELECT 1, 0 WHERE NOT EXISTS (SELECT 1 FROM auth_epoch WHERE id = 1)",
+    // Browser sessions, by the SHA-256 digest of their cookie: any process of a cluster (or
+    // the portal after a restart) knows them.
+    // Who elevated which lift's connection (crate::elevation), for every process of a cluster.
+    "CREATE TABLE IF NOT EXISTS elevations (lift TEXT PRIMARY KEY, user_name TEXT NOT NULL, privilege BIGINT NOT NULL, until BIGINT NOT NULL, connection BIGINT NOT NULL)",
+    "CREATE TABLE IF NOT EXISTS web_sessions (digest TEXT PRIMARY KEY, key_digest TEXT, user_name TEXT, csrf TEXT NOT NULL, last_used BIGINT NOT NULL)",
 ];
 
 /// Changes to tables of an existing database, each applied once, in order (a database created

@@ -453,6 +453,152 @@ impl Store {
 static DUMMY_HASH: std::sync::LazyLock<String> =
     std::sync::LazyLock::new(|| hash_secret("no user has this secret"));
 
+/// A browser session as the database keeps it (docs/PORTAL.md §Web UI): what it was opened
+/// with — an API key's digest or a user's name — its CSRF token, and when it was last used.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SessionRecord {
+    /// The digest of the API key it was opened with.
+    pub key_digest: Option<String>,
+    /// The user who signed in with name and secret.
+    pub user: Option<String>,
+    /// The session's CSRF token.
+    pub csrf: String,
+    /// ms since the Unix epoch.
+    pub last_used: i64,
+}
+
+impl Store {
+    /// Record a new session under its cookie's `digest`, and forget those idle since before
+    /// `expired` (ms).
+    pub async fn open_session(
+        &self,
+        digest: &str,
+        record: &SessionRecord,
+        expired: i64,
+    ) -> Result<(), StoreError> {
+        sqlx::query("DELETE FROM web_sessions WHERE last_used < $1")
+            .bind(expired)
+            .execute(&self.pool)
+            .await?;
+        sqlx::query(
+            "INSERT INTO web_sessions (digest, key_digest, user_name, csrf, last_used) VALUES ($1, $2, $3, $4, $5)",
+        )
+        .bind(digest)
+        .bind(record.key_digest.clone())
+        .bind(record.user.clone())
+        .bind(&record.csrf)
+        .bind(record.last_used)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    /// The session recorded under `digest`.
+    pub async fn session(&self, digest: &str) -> Result<Option<SessionRecord>, StoreError> {
+        let row = sqlx::query(
+            "SELECT key_digest, user_name, csrf, last_used FROM web_sessions WHERE digest = $1",
+        )
+        .bind(digest)
+        .fetch_optional(&self.pool)
+        .await?;
+        row.map(|r| -> Result<SessionRecord, sqlx::Error> {
+            Ok(SessionRecord {
+                key_digest: r.try_get("key_digest")?,
+                user: r.try_get("user_name")?,
+                csrf: r.try_get("csrf")?,
+                last_used: r.try_get("last_used")?,
+            })
+        })
+        .transpose()
+        .map_err(StoreError::from)
+    }
+
+    /// The session was used at `at` (ms).
+    pub async fn touch_session(&self, digest: &str, at: i64) -> Result<(), StoreError> {
+        sqlx::query("UPDATE web_sessions SET last_used = $1 WHERE digest = $2")
+            .bind(at)
+            .bind(digest)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
+    /// The session ended (signed out, or its user or key no longer counts). The auth epoch
+    /// rises, so that every process checks its sessions again and drops this one too.
+    pub async fn close_session(&self, digest: &str) -> Result<(), StoreError> {
+        let closed = sqlx::query("DELETE FROM web_sessions WHERE digest = $1")
+            .bind(digest)
+            .execute(&self.pool)
+            .await?;
+        if closed.rows_affected() > 0 {
+            self.raise_auth_epoch().await?;
+        }
+        Ok(())
+    }
+}
+
+/// A lift's elevation grant (crate::elevation): who elevated, to what, until when (ms since
+/// the Unix epoch), on which connection (its epoch).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ElevationGrant {
+    /// The user who entered the password.
+    pub user: String,
+    /// The privilege the gateway granted.
+    pub privilege: u32,
+    /// When it runs out (ms).
+    pub until: i64,
+    /// The connection it was granted on.
+    pub connection: u64,
+}
+
+impl Store {
+    /// The lift's grant, if one is recorded.
+    pub async fn grant(&self, lift: &str) -> Result<Option<ElevationGrant>, StoreError> {
+        let row = sqlx::query(
+            "SELECT user_name, privilege, until, connection FROM elevations WHERE lift = $1",
+        )
+        .bind(lift)
+        .fetch_optional(&self.pool)
+        .await?;
+        row.map(|r| -> Result<ElevationGrant, sqlx::Error> {
+            let number = |column: &str| -> Result<i64, sqlx::Error> { r.try_get(column) };
+            Ok(ElevationGrant {
+                user: r.try_get("user_name")?,
+                privilege: u32::try_from(number("privilege")?).unwrap_or(0),
+                until: number("until")?,
+                connection: u64::try_from(number("connection")?).unwrap_or(0),
+            })
+        })
+        .transpose()
+        .map_err(StoreError::from)
+    }
+
+    /// Record the lift's grant, replacing any other.
+    pub async fn set_grant(&self, lift: &str, grant: &ElevationGrant) -> Result<(), StoreError> {
+        sqlx::query(
+            "INSERT INTO elevations (lift, user_name, privilege, until, connection) VALUES ($1, $2, $3, $4, $5) \
+             ON CONFLICT (lift) DO UPDATE SET user_name = excluded.user_name, privilege = excluded.privilege, until = excluded.until, connection = excluded.connection",
+        )
+        .bind(lift)
+        .bind(&grant.user)
+        .bind(i64::from(grant.privilege))
+        .bind(grant.until)
+        .bind(i64::try_from(grant.connection).unwrap_or(i64::MAX))
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    /// Forget the lift's grant.
+    pub async fn drop_grant(&self, lift: &str) -> Result<(), StoreError> {
+        sqlx::query("DELETE FROM elevations WHERE lift = $1")
+            .bind(lift)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+}
+
 #[cfg(test)]
 pub(super) mod tests {
     use super::*;

@@ -115,7 +115,14 @@ pub(super) async fn login(
         Ok(Some((operator, credential))) => {
             sign_ins().succeeded(name, &address);
             tracing::info!(user = %operator.user, account = %operator.account.name, "web sign-in");
-            let id = app.sessions.open(operator, credential, epoch);
+            let id = match app
+                .sessions
+                .open(operator, credential, epoch, &app.store)
+                .await
+            {
+                Ok(id) => id,
+                Err(e) => return database_down(e, locale),
+            };
             let cookie = format!(
                 "{COOKIE}={id}; Path=/; HttpOnly; Secure; SameSite=Strict; Max-Age={}",
                 IDLE.as_secs()
@@ -131,14 +138,17 @@ pub(super) async fn login(
             let text = locale.t("Wrong user name, secret or API key.");
             (StatusCode::UNAUTHORIZED, login_form(Some(text), locale)).into_response()
         }
-        Err(e) => unavailable(
-            e,
-            Viewer {
-                session: None,
-                locale,
-            },
-        ),
+        Err(e) => database_down(e, locale),
     }
+}
+
+/// The page for a sign-in or sign-out the database failed.
+fn database_down(e: crate::store::StoreError, locale: Locale) -> Response {
+    let viewer = Viewer {
+        session: None,
+        locale,
+    };
+    unavailable(e, viewer)
 }
 
 #[derive(Deserialize)]
@@ -152,7 +162,11 @@ pub(super) async fn logout(
     headers: HeaderMap,
     Form(form): Form<LogoutForm>,
 ) -> Response {
-    if let Some(session) = app.sessions.get(&headers) {
+    let session = match app.sessions.get(&headers, &app.store).await {
+        Ok(session) => session,
+        Err(e) => return database_down(e, locale),
+    };
+    if let Some(session) = session {
         if !session.csrf_matches(Some(&form.csrf)) {
             let viewer = Viewer {
                 session: Some(&session),
@@ -160,7 +174,9 @@ pub(super) async fn logout(
             };
             return problem(StatusCode::FORBIDDEN, viewer, locale.t("Wrong CSRF token."));
         }
-        app.sessions.close(&headers);
+        if let Err(e) = app.sessions.close(&headers, &app.store).await {
+            return database_down(e, locale);
+        }
     }
     let mut response = Redirect::to("/login").into_response();
     response.headers_mut().insert(

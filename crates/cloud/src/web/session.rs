@@ -1,9 +1,11 @@
 //! Signed-in browsers: signing in with a user's name and secret, or with an API key, opens a
-//! session — a random id in an `HttpOnly`, `Secure`, `SameSite=Strict` cookie, kept in memory
-//! only as its SHA-256 digest, ended after 12 h without a request. Changes through the REST API
-//! with the cookie also need the session's CSRF token (see [`crate::api::Caller`]). When rights
-//! change anywhere (the auth epoch rises) a session is checked again before its next request:
-//! a disabled user's or revoked key's session ends.
+//! session — a random id in an `HttpOnly`, `Secure`, `SameSite=Strict` cookie, kept only as its
+//! SHA-256 digest, in the database (so that every process of a cluster, and the portal after a
+//! restart, knows it) and cached in memory; ended after 12 h without a request. Changes through
+//! the REST API with the cookie also need the session's CSRF token (see
+//! [`crate::api::Caller`]). When rights change anywhere, or a session is signed out anywhere,
+//! the auth epoch rises and each session is checked again before its next request: a disabled
+//! user's, a revoked key's or a signed-out session ends on every process.
 
 use std::collections::HashMap;
 use std::sync::{Mutex, PoisonError};
@@ -11,26 +13,28 @@ use std::time::{Duration, Instant};
 
 use axum::http::{header, HeaderMap};
 
-use crate::store::{self, Operator, Store, StoreError};
+use crate::store::{self, Operator, SessionRecord, Store, StoreError};
 
 /// The cookie's name.
 pub(super) const COOKIE: &str = "canlift_session";
 /// A session ends after this long without a request.
 pub(super) const IDLE: Duration = Duration::from_secs(12 * 3600);
-/// Sessions kept at most; the oldest go first.
-const MAX_SESSIONS: usize = 10_000;
+/// How often a session in use has its time of last use written to the database.
+const TOUCH: Duration = Duration::from_secs(60);
+/// Sessions cached at most; the least recently used go first (they stay in the database).
+const MAX_CACHED: usize = 10_000;
 
 /// A signed-in browser.
 #[derive(Clone)]
 pub struct Session {
     /// Who is signed in.
     pub operator: Operator,
-    /// How, to check it again when rights change.
-    credential: Credential,
     /// The auth epoch it was last checked in.
     epoch: i64,
     pub(super) csrf: String,
     last_used: Instant,
+    /// When its last use was written to the database.
+    touched: Instant,
 }
 
 /// What a session was opened with.
@@ -49,7 +53,7 @@ impl Session {
     }
 }
 
-/// The web UI's sessions, by the SHA-256 digest of their cookie.
+/// The web UI's sessions this process has seen, by the SHA-256 digest of their cookie.
 #[derive(Default)]
 pub struct Sessions {
     by_digest: Mutex<HashMap<String, Session>>,
@@ -66,96 +70,175 @@ fn cookie(headers: &HeaderMap) -> Option<&str> {
         .map(|(_, value)| value)
 }
 
+fn idle_ms() -> i64 {
+    i64::try_from(IDLE.as_millis()).unwrap_or(i64::MAX)
+}
+
 impl Sessions {
-    /// The session the request's cookie names, if it is still open.
-    pub fn get(&self, headers: &HeaderMap) -> Option<Session> {
-        let digest = store::digest(cookie(headers)?);
-        let mut map = self
-            .by_digest
+    fn cache(&self) -> std::sync::MutexGuard<'_, HashMap<String, Session>> {
+        self.by_digest
             .lock()
-            .unwrap_or_else(PoisonError::into_inner);
-        let session = map.get_mut(&digest)?;
-        if session.last_used.elapsed() > IDLE {
-            map.remove(&digest);
-            return None;
-        }
-        session.last_used = Instant::now();
-        Some(session.clone())
+            .unwrap_or_else(PoisonError::into_inner)
     }
 
-    /// The session the request's cookie names, checked again if rights changed since it last
-    /// was (`None` when it ended, or the user or key no longer counts).
+    /// The session the request's cookie names, if it is still open: from this process's
+    /// cache, else from the database (opened on another process, or before a restart).
+    pub async fn get(
+        &self,
+        headers: &HeaderMap,
+        store: &Store,
+    ) -> Result<Option<Session>, StoreError> {
+        let Some(id) = cookie(headers) else {
+            return Ok(None);
+        };
+        let digest = store::digest(id);
+        let cached = {
+            let mut cache = self.cache();
+            match cache.get_mut(&digest) {
+                // Idle here may still be in use on another process: the database decides.
+                Some(s) if s.last_used.elapsed() > IDLE => {
+                    cache.remove(&digest);
+                    None
+                }
+                Some(s) => {
+                    s.last_used = Instant::now();
+                    let touch = s.touched.elapsed() > TOUCH;
+                    if touch {
+                        s.touched = s.last_used;
+                    }
+                    Some((s.clone(), touch))
+                }
+                None => None,
+            }
+        };
+        if let Some((session, touch)) = cached {
+            if touch {
+                store.touch_session(&digest, store::now_ms()).await?;
+            }
+            return Ok(Some(session));
+        }
+        self.load(&digest, store).await
+    }
+
+    /// The session recorded under `digest`, checked against its user or key, and cached.
+    async fn load(&self, digest: &str, store: &Store) -> Result<Option<Session>, StoreError> {
+        let Some(record) = store.session(digest).await? else {
+            return Ok(None);
+        };
+        let now = store::now_ms();
+        let credential = match (record.key_digest, record.user) {
+            (Some(key), _) => Some(Credential::Key(key)),
+            (None, Some(user)) => Some(Credential::User(user)),
+            (None, None) => None,
+        };
+        let epoch = store.seen_auth_epoch();
+        let operator = match &credential {
+            Some(c) if now.saturating_sub(record.last_used) <= idle_ms() => {
+                operator_of(c, store).await?
+            }
+            _ => None,
+        };
+        let Some(operator) = operator else {
+            store.close_session(digest).await?;
+            return Ok(None);
+        };
+        store.touch_session(digest, now).await?;
+        Ok(Some(self.keep(digest, operator, epoch, record.csrf)))
+    }
+
+    /// Cache a session in use now (the least recently used goes when the cache is full).
+    fn keep(&self, digest: &str, operator: Operator, epoch: i64, csrf: String) -> Session {
+        let session = Session {
+            operator,
+            epoch,
+            csrf,
+            last_used: Instant::now(),
+            touched: Instant::now(),
+        };
+        let mut cache = self.cache();
+        if cache.len() >= MAX_CACHED {
+            if let Some(oldest) = cache
+                .iter()
+                .min_by_key(|(_, s)| s.last_used)
+                .map(|(k, _)| k.clone())
+            {
+                cache.remove(&oldest);
+            }
+        }
+        cache.insert(digest.to_owned(), session.clone());
+        session
+    }
+
+    /// The session the request's cookie names, checked again if rights changed (or a session
+    /// was signed out) anywhere since it last was (`None` when it ended, or the user or key no
+    /// longer counts).
     pub async fn current(
         &self,
         headers: &HeaderMap,
         store: &Store,
     ) -> Result<Option<Session>, StoreError> {
-        let Some(mut session) = self.get(headers) else {
+        let Some(session) = self.get(headers, store).await? else {
             return Ok(None);
         };
-        let epoch = store.seen_auth_epoch();
-        if session.epoch == epoch {
+        if session.epoch == store.seen_auth_epoch() {
             return Ok(Some(session));
         }
-        let operator = match &session.credential {
-            Credential::Key(digest) => store.operator_of_key(digest).await?,
-            Credential::User(name) => store.operator(name).await?,
-        };
-        let Some(operator) = operator else {
-            self.close(headers);
+        let Some(id) = cookie(headers) else {
             return Ok(None);
         };
-        session.operator = operator;
-        session.epoch = epoch;
-        if let Some(id) = cookie(headers) {
-            let mut map = self
-                .by_digest
-                .lock()
-                .unwrap_or_else(PoisonError::into_inner);
-            if let Some(kept) = map.get_mut(&store::digest(id)) {
-                kept.operator = session.operator.clone();
-                kept.epoch = epoch;
-            }
-        }
-        Ok(Some(session))
+        let digest = store::digest(id);
+        self.cache().remove(&digest);
+        self.load(&digest, store).await
     }
 
     /// Open a session for `operator`, signed in with `credential` in auth epoch `epoch`; the
     /// cookie value to set.
-    pub(super) fn open(&self, operator: Operator, credential: Credential, epoch: i64) -> String {
+    pub(super) async fn open(
+        &self,
+        operator: Operator,
+        credential: Credential,
+        epoch: i64,
+        store: &Store,
+    ) -> Result<String, StoreError> {
         let id = store::secret("");
-        let mut map = self
-            .by_digest
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner);
-        map.retain(|_, s| s.last_used.elapsed() <= IDLE);
-        if map.len() >= MAX_SESSIONS {
-            if let Some(oldest) = map
-                .iter()
-                .min_by_key(|(_, s)| s.last_used)
-                .map(|(k, _)| k.clone())
-            {
-                map.remove(&oldest);
-            }
-        }
-        let session = Session {
-            operator,
-            credential,
-            epoch,
-            csrf: store::secret(""),
-            last_used: Instant::now(),
+        let digest = store::digest(&id);
+        let (key_digest, user) = match &credential {
+            Credential::Key(key) => (Some(key.clone()), None),
+            Credential::User(name) => (None, Some(name.clone())),
         };
-        map.insert(store::digest(&id), session);
-        id
+        let now = store::now_ms();
+        let record = SessionRecord {
+            key_digest,
+            user,
+            csrf: store::secret(""),
+            last_used: now,
+        };
+        store
+            .open_session(&digest, &record, now.saturating_sub(idle_ms()))
+            .await?;
+        self.keep(&digest, operator, epoch, record.csrf);
+        Ok(id)
     }
 
-    pub(super) fn close(&self, headers: &HeaderMap) {
+    /// Sign the request's session out, here and (through the database) everywhere.
+    pub(super) async fn close(&self, headers: &HeaderMap, store: &Store) -> Result<(), StoreError> {
         if let Some(id) = cookie(headers) {
-            self.by_digest
-                .lock()
-                .unwrap_or_else(PoisonError::into_inner)
-                .remove(&store::digest(id));
+            let digest = store::digest(id);
+            self.cache().remove(&digest);
+            store.close_session(&digest).await?;
         }
+        Ok(())
+    }
+}
+
+/// Who `credential` signs in as now (`None`: the user is disabled, the key revoked).
+async fn operator_of(
+    credential: &Credential,
+    store: &Store,
+) -> Result<Option<Operator>, StoreError> {
+    match credential {
+        Credential::Key(digest) => store.operator_of_key(digest).await,
+        Credential::User(name) => store.operator(name).await,
     }
 }
 
@@ -164,35 +247,53 @@ mod tests {
     use super::*;
     use axum::http::HeaderValue;
 
-    #[test]
-    fn session_cookie_and_csrf() {
-        let sessions = Sessions::default();
-        let operator = Operator {
-            account: store::Account {
-                name: "a".into(),
-                domain: "D".into(),
-            },
-            user: "a".into(),
-            role: store::Role::Admin,
-        };
-        let id = sessions.open(operator.clone(), Credential::User("a".into()), 0);
+    fn with_cookie(value: &str) -> HeaderMap {
         let mut headers = HeaderMap::new();
-        headers.insert(
-            header::COOKIE,
-            HeaderValue::from_str(&format!("theme=dark; {COOKIE}={id}")).unwrap(),
-        );
-        let session = sessions.get(&headers).unwrap();
+        headers.insert(header::COOKIE, HeaderValue::from_str(value).unwrap());
+        headers
+    }
+
+    /// A session opened by one process is known to another on the same database (a cluster,
+    /// or the portal after a restart); signed out on one, it ends on the other once the
+    /// other has seen the auth epoch rise.
+    #[tokio::test]
+    async fn sessions_live_in_the_database() {
+        let store = Store::open("sqlite::memory:").await.unwrap();
+        let key = store.add_account("a", "D").await.unwrap();
+        let operator = store.operator_by_key(&key).await.unwrap().unwrap();
+        let (here, there) = (Sessions::default(), Sessions::default());
+        let credential = Credential::Key(store::digest(&key));
+        let epoch = store.seen_auth_epoch();
+        let id = here
+            .open(operator.clone(), credential, epoch, &store)
+            .await
+            .unwrap();
+        let headers = with_cookie(&format!("theme=dark; {COOKIE}={id}"));
+        let session = here.get(&headers, &store).await.unwrap().unwrap();
         assert_eq!(session.operator, operator);
         assert!(session.csrf_matches(Some(&session.csrf.clone())));
         assert!(!session.csrf_matches(Some("nope")));
         assert!(!session.csrf_matches(None));
-        sessions.close(&headers);
-        assert!(sessions.get(&headers).is_none());
-        let mut forged = HeaderMap::new();
-        forged.insert(
-            header::COOKIE,
-            HeaderValue::from_static("canlift_session=guess"),
+        let elsewhere = there.current(&headers, &store).await.unwrap().unwrap();
+        assert_eq!(elsewhere.operator, operator);
+        assert_eq!(
+            elsewhere.csrf, session.csrf,
+            "one CSRF token for the session"
         );
-        assert!(sessions.get(&forged).is_none());
+        here.close(&headers, &store).await.unwrap();
+        assert!(here.get(&headers, &store).await.unwrap().is_none());
+        // `follow_auth_epoch` does this every second in a portal.
+        let follow = tokio::spawn(store.clone().follow_auth_epoch(Duration::from_millis(10)));
+        tokio::time::timeout(Duration::from_secs(10), async {
+            while store.seen_auth_epoch() == epoch {
+                tokio::time::sleep(Duration::from_millis(10)).await;
+            }
+        })
+        .await
+        .expect("the raised epoch is seen");
+        follow.abort();
+        assert!(there.current(&headers, &store).await.unwrap().is_none());
+        let forged = with_cookie("canlift_session=guess");
+        assert!(there.get(&forged, &store).await.unwrap().is_none());
     }
 }

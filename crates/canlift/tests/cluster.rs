@@ -1,0 +1,332 @@
+//! The portal as a cluster (docs/CLUSTER.md): `canlift cloud` processes on one PostgreSQL
+//! database and one NATS server (both started here), a TCP load balancer in front of them and
+//! the simulated lift's gateway behind it. Every lift is read, written and watched through
+//! every process, also in a browser session opened on another and after elevating on another; a gateway that reconnects elsewhere is dropped by its old holder; a process
+//! killed with SIGKILL loses its lifts to the others; NATS down degrades, NATS back heals.
+
+use std::time::Duration;
+
+use serde_json::{json, Value};
+use testkit::balancer::Balancer;
+use testkit::constants::{DOMAIN, LIFT, SERVICE_PASSWORD};
+use testkit::lift::{gateway_config, Lift};
+use testkit::nats::Nats;
+use testkit::portal::until;
+
+mod common;
+use common::PortalProcess;
+
+/// How long any step may take before the test fails (each is expected within a few seconds).
+const LIMIT: Duration = Duration::from_secs(30);
+
+/// Portal processes, NATS, the balancer and the lift.
+struct Cluster {
+    nats: Nats,
+    portals: Vec<PortalProcess>,
+    balancer: Balancer,
+    lift: Lift,
+    /// The lift's account's API key, and another account's.
+    key: String,
+    other: String,
+    dir: tempfile::TempDir,
+}
+
+impl Cluster {
+    /// `count` portal processes (nodes `p0`, `p1`, …) sharing one database and one NATS; the
+    /// lift's gateway connects through the balancer to `p0`. `None`: no NATS or PostgreSQL
+    /// here (the test printed why it is skipped).
+    async fn start(name: &str, count: usize) -> Option<Cluster> {
+        let nats = Nats::start()?;
+        let database = testkit::postgres(name).await?;
+        let dir = testkit::scratch();
+        let pki = testkit::pki::pki(dir.path());
+        let portals: Vec<PortalProcess> = (0..count)
+            .map(|i| {
+                let extra = format!(
+                    "tls_cert = \"{}\"\ntls_key = \"{}\"\n[database]\nurl = \"{database}\"\n\
+                     [cluster]\nnats = \"{}\"\nnode = \"p{i}\"\nholder_ttl_s = 6\n",
+                    pki.cert.display(),
+                    pki.key.display(),
+                    nats.url()
+                );
+                let mut portal =
+                    PortalProcess::configure(&dir.path().join(format!("p{i}")), &extra);
+                portal.ca = pki.ca.clone();
+                portal
+            })
+            .collect();
+        let key = portals[0].add_account("masora", DOMAIN).await;
+        let other = portals[0].add_account("someone", "OTH").await;
+        let mut portals = portals;
+        for portal in &mut portals {
+            portal.restart().await;
+        }
+        let backends = portals
+            .iter()
+            .map(|p| std::net::SocketAddr::from(([127, 0, 0, 1], p.port)))
+            .collect();
+        let balancer = Balancer::start(backends).await;
+        let bus = format!("mem://cluster-{name}");
+        let ws = format!("wss://localhost:{}/ws", balancer.addr().port());
+        let gateway = gateway_config(&ws, &pki.ca, &bus, &dir.path().join("gateway"));
+        let lift = Lift::start(&bus, gateway).await;
+        let cluster = Cluster {
+            nats,
+            portals,
+            balancer,
+            lift,
+            key,
+            other,
+            dir,
+        };
+        cluster.wait_held_by(0).await;
+        Some(cluster)
+    }
+
+    /// Wait until process `index` holds the lift and every running process sees it online;
+    /// how long it took.
+    async fn wait_held_by(&self, index: usize) -> Duration {
+        let holder = &self.portals[index];
+        let held = until(LIMIT, &format!("p{index} holds the lift"), || async {
+            holder.metric("canlift_cluster_lifts_held").await == 1
+        })
+        .await;
+        held + until(LIMIT, "every process sees the lift online", || async {
+            for portal in self.portals.iter().filter(|p| p.child.is_some()) {
+                if portal.online(&self.key).await != 1 {
+                    return false;
+                }
+            }
+            true
+        })
+        .await
+    }
+
+    /// `METHOD PATH` on process `index` with the lift account's key.
+    async fn call(
+        &self,
+        index: usize,
+        method: &str,
+        path: &str,
+        body: Option<Value>,
+    ) -> (u16, Value) {
+        self.portals[index]
+            .client(&self.key)
+            .call(method, path, body)
+            .await
+            .expect("the portal answers")
+    }
+
+    /// The trip counter read through process `index`: the status and the answer.
+    async fn read(&self, index: usize) -> (u16, Value) {
+        let path = format!("/api/v1/lifts/{LIFT}/objects/0x652001?form=naked");
+        self.call(index, "GET", &path, None).await
+    }
+
+    async fn stop(self) {
+        self.lift.stop().await;
+        drop(self.balancer);
+        drop(self.portals);
+        drop(self.nats);
+        drop(self.dir);
+    }
+}
+
+/// A lift held by p0 is read, written, subscribed and watched through p1 and p2 exactly as
+/// through p0; another account's key gets 404 there; the gateway connecting again through p1
+/// makes p0 drop its connection; p1 killed with SIGKILL, the lift reconnects to another process
+/// and is reachable from every one left.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_lift_is_served_by_every_process() {
+    let Some(mut cluster) = Cluster::start("cluster_serve", 3).await else {
+        return;
+    };
+    let (status, direct) = cluster.read(0).await;
+    assert_eq!(status, 200, "{direct}");
+    for index in [1, 2] {
+        let (status, relayed) = cluster.read(index).await;
+        assert_eq!(status, 200, "through p{index}: {relayed}");
+        assert_eq!(relayed["object"]["mplex"], direct["object"]["mplex"]);
+    }
+    // Not found in another account, through any process (as for a lift held locally).
+    for index in 0..3 {
+        let (status, _) = cluster.portals[index]
+            .client(&cluster.other)
+            .call(
+                "GET",
+                &format!("/api/v1/lifts/{LIFT}/objects/0x652001"),
+                None,
+            )
+            .await
+            .expect("an answer");
+        assert_eq!(status, 404, "p{index} hides the lift from another account");
+    }
+    // A browser session opened on p0 works on p1 and p2.
+    let browser = |index: usize| {
+        let url = format!("https://localhost:{}", cluster.portals[index].port);
+        cloud::client::Client::new(&url, None, Some(&cluster.portals[index].ca)).expect("a client")
+    };
+    let form = [("key", cluster.key.as_str())];
+    let signed_in = browser(0)
+        .exchange("POST", "/login", cloud::client::Body::Form(&form))
+        .await
+        .expect("an answer");
+    let cookie = signed_in.set_cookie.expect("a session cookie");
+    for index in [1, 2] {
+        let (status, lifts) = browser(index)
+            .with_cookie(&cookie)
+            .call("GET", "/api/v1/lifts", None)
+            .await
+            .expect("an answer");
+        assert_eq!(status, 200, "the session on p{index}: {lifts}");
+        assert_eq!(lifts[0]["online"], true, "{lifts}");
+    }
+    // A write through p2, audited as any write.
+    let put = json!({"value": "3", "datatype": 7, "physunit": 0});
+    let (status, answer) = cluster
+        .call(
+            2,
+            "PUT",
+            &format!("/api/v1/lifts/{LIFT}/objects/0x502200"),
+            Some(put),
+        )
+        .await;
+    assert_eq!(
+        (status, answer),
+        (200, json!({"object": {"mplex": "0x502200"}}))
+    );
+    let (status, audit) = cluster.call(1, "GET", "/api/v1/audit", None).await;
+    assert_eq!(status, 200);
+    assert!(
+        audit.as_array().is_some_and(|a| a
+            .iter()
+            .any(|e| e["object"] == "0x502200" && e["result"] == "ok")),
+        "the relayed write is audited: {audit}"
+    );
+    // Elevated through p1, a write that needs the privilege through p0 (the lift's holder)
+    // and p2: the grant is known everywhere.
+    let elevate = json!({"privilege": 1, "password": SERVICE_PASSWORD});
+    let privilege = format!("/api/v1/lifts/{LIFT}/privilege");
+    let (status, granted) = cluster.call(1, "POST", &privilege, Some(elevate)).await;
+    assert_eq!(status, 200, "{granted}");
+    for index in [0, 2] {
+        let lantern = json!({"value": "1", "datatype": 5, "physunit": 0});
+        let path = format!("/api/v1/lifts/{LIFT}/objects?name=hall%20lantern%20options");
+        let (status, answer) = cluster.call(index, "PUT", &path, Some(lantern)).await;
+        assert_eq!(status, 200, "a privileged write through p{index}: {answer}");
+    }
+    // Watched through p1, subscribed through p2: the value the gateway pushes arrives.
+    let client = cluster.portals[1].client(&cluster.key);
+    let mut stream = client
+        .events(&format!("/api/v1/lifts/{LIFT}/events"))
+        .await
+        .expect("connected")
+        .expect("an event stream");
+    let (status, subscribed) = cluster
+        .call(
+            2,
+            "POST",
+            &format!("/api/v1/lifts/{LIFT}/subscriptions"),
+            Some(json!({"mplex": ["0x502200"]})),
+        )
+        .await;
+    assert_eq!(status, 200, "{subscribed}");
+    let value = tokio::time::timeout(LIMIT, async {
+        while let Some(Ok((name, data))) = stream.next().await {
+            // The dashboard's objects come too; a new subscription pushes its value first.
+            if name == "value" && data.contains("0x502200") {
+                return data;
+            }
+        }
+        panic!("the stream ended");
+    })
+    .await
+    .expect("a pushed value reaches p1's stream");
+    assert!(
+        value.contains("\"value\":\"3\""),
+        "the value written through p2: {value}"
+    );
+
+    // The same gateway connects again through p1 (its old connection to p0 still open, as
+    // after a NAT dropped it silently): p0 closes its connection within a second.
+    cluster.balancer.route_to(1);
+    let second = gateway_config(
+        &format!("wss://localhost:{}/ws", cluster.portals[1].port),
+        &cluster.portals[1].ca,
+        "mem://cluster-second",
+        &cluster.dir.path().join("gateway"),
+    );
+    let bus = second.bus.url.clone();
+    let sim = testkit::lift::simulator(&bus).await;
+    let replacement = gateway::Gateway::bus_node(second).await.expect("a gateway");
+    let replacement = testkit::lift::RunningGateway::spawn(replacement);
+    let dropped = until(LIMIT, "p0 drops the old connection", || async {
+        cluster.portals[0]
+            .metric("canlift_cluster_replaced_total")
+            .await
+            == 1
+    })
+    .await;
+    eprintln!("p0 dropped its connection {dropped:?} after the gateway connected to p1");
+    assert_eq!(
+        cluster.portals[0].metric("canlift_gateways_online").await,
+        0
+    );
+    replacement.stop().await;
+    sim.stop().await;
+    // The first gateway reconnects (through the balancer: to p1).
+    cluster.wait_held_by(1).await;
+
+    // p1 killed: the gateway reconnects through the balancer to p2, reachable from p0 and p2.
+    cluster.balancer.route_to(2);
+    cluster.portals[1].kill().await;
+    let back = cluster.wait_held_by(2).await;
+    eprintln!("the lift of the killed process was online again after {back:?}");
+    for index in [0, 2] {
+        let (status, answer) = cluster.read(index).await;
+        assert_eq!(status, 200, "through p{index} after the kill: {answer}");
+    }
+    cluster.stop().await;
+}
+
+/// NATS stopped: the holder still serves its lift, the other process answers 503 and reports
+/// itself degraded; NATS started again: full service without restarting a portal.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_nats_outage_degrades_and_heals() {
+    let Some(mut cluster) = Cluster::start("cluster_nats", 2).await else {
+        return;
+    };
+    assert_eq!(cluster.read(1).await.0, 200);
+    cluster.nats.stop();
+    until(LIMIT, "p1 reports itself degraded", || async {
+        let health = cluster.call(1, "GET", "/healthz", None).await;
+        health.1.as_str().is_some_and(|h| h.starts_with("degraded"))
+    })
+    .await;
+    assert_eq!(
+        cluster.portals[1]
+            .metric("canlift_cluster_nats_connected")
+            .await,
+        0
+    );
+    assert_eq!(cluster.read(0).await.0, 200, "the holder serves its lift");
+    let (status, answer) = cluster.read(1).await;
+    assert_eq!(status, 503, "a lift held elsewhere: {answer}");
+    cluster.nats.start_again();
+    let healed = until(LIMIT, "p1 reads the lift again", || async {
+        cluster.read(1).await.0 == 200
+    })
+    .await;
+    eprintln!("full service {healed:?} after NATS came back");
+    assert_eq!(
+        cluster.portals[1]
+            .metric("canlift_cluster_nats_connected")
+            .await,
+        1
+    );
+    assert_eq!(
+        cluster.call(1, "GET", "/healthz", None).await.1,
+        json!("ok\n")
+    );
+    cluster.stop().await;
+}

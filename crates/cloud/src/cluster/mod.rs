@@ -1,0 +1,605 @@
+//! The portal as a cluster (docs/CLUSTER.md): several `canlift cloud` processes share one
+//! PostgreSQL database and one NATS server. Which process holds which lift's gateway is a
+//! JetStream KV entry per lift, written by its holder, refreshed before it expires and
+//! watched by every process; an operator request for a lift held elsewhere travels as NATS
+//! request/reply on the lift's own subject, which only its holder subscribes to; live events
+//! go out on the lift's events subject to whoever watches it on any process. Without NATS a
+//! process goes on serving the gateways it holds, answers 503 for the others, and writes its
+//! entries again when NATS is back.
+
+pub mod msgs;
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, PoisonError, RwLock, Weak};
+use std::time::{Duration, Instant};
+
+use async_nats::jetstream::{self, kv};
+use futures_util::StreamExt;
+use nxg::msg::Method;
+use nxg::portal::Failure;
+use serde_json::value::RawValue;
+use tokio::sync::{broadcast, mpsc, oneshot, watch, Notify};
+
+use crate::gateways::{LiftEvent, Registry};
+use msgs::{Holding, RelayedAnswer, RelayedCall};
+
+/// Live events waiting to be published; beyond this they are dropped and counted.
+const EVENT_QUEUE: usize = 65_536;
+
+/// How a process learns that nobody on it watches a forwarded lift any more.
+const FORWARD_CHECK: Duration = Duration::from_secs(10);
+
+/// What `/metrics` shows of the cluster.
+#[derive(Debug, Default)]
+pub struct ClusterCounters {
+    /// Operator requests sent to another process.
+    pub relayed: AtomicU64,
+    /// Of those, the ones that found no holder or no NATS (503) or timed out (504).
+    pub relay_failed: AtomicU64,
+    /// Requests of other processes answered for lifts held here.
+    pub served: AtomicU64,
+    /// Connections closed because their lift connected to another process.
+    pub replaced: AtomicU64,
+    /// Live events not published because the queue was full.
+    pub events_dropped: AtomicU64,
+}
+
+/// A lift another process holds, as its KV entry says, and since when (the entry's age).
+struct Known {
+    holding: Holding,
+    written: Instant,
+}
+
+/// This process's membership of the cluster.
+pub struct Cluster {
+    node: String,
+    client: async_nats::Client,
+    /// The bucket, once created on the NATS server (again after NATS restarts).
+    kv: RwLock<Option<kv::Store>>,
+    ttl: Duration,
+    request_timeout: Duration,
+    known: Mutex<HashMap<String, Known>>,
+    /// The lifts held here: dropping a sender ends its holder task.
+    held: Mutex<HashMap<String, watch::Sender<Holding>>>,
+    /// The event forwarders running, by lift.
+    forwarded: Mutex<HashMap<String, broadcast::Sender<LiftEvent>>>,
+    /// Poked on every connection event of the NATS client.
+    nats_changed: Arc<Notify>,
+    /// Raised each time the bucket is ready after connecting: holders write their entries
+    /// again (a NATS server that restarted has none).
+    generation: watch::Sender<u64>,
+    events: mpsc::Sender<(String, Vec<u8>)>,
+    /// Counted for `/metrics`.
+    pub counters: ClusterCounters,
+}
+
+/// Why a portal cannot join its cluster.
+#[derive(Debug, thiserror::Error)]
+#[error("[cluster] nats = {url}: {why}")]
+pub struct ClusterError {
+    url: String,
+    why: String,
+}
+
+impl Cluster {
+    /// Connect to NATS at `url` as `node`. Returns at once: connecting, and connecting again
+    /// after losing the server, go on in the background. `request_timeout` bounds a relayed
+    /// request (the holder's own timeout answers first).
+    pub async fn connect(
+        url: &str,
+        node: String,
+        ttl: Duration,
+        request_timeout: Duration,
+    ) -> Result<(Arc<Cluster>, mpsc::Receiver<(String, Vec<u8>)>), ClusterError> {
+        let nats_changed = Arc::new(Notify::new());
+        let poke = nats_changed.clone();
+        let name = node.clone();
+        let client = async_nats::ConnectOptions::new()
+            .name(format!("canlift portal {node}"))
+            .retry_on_initial_connect()
+            .connection_timeout(Duration::from_secs(2))
+            .reconnect_delay_callback(|attempts| {
+                Duration::from_millis((250 * attempts as u64).min(2_000))
+            })
+            .event_callback(move |event| {
+                let (poke, name) = (poke.clone(), name.clone());
+                async move {
+                    match event {
+                        async_nats::Event::Connected => tracing::info!(node = %name, "NATS connected"),
+                        async_nats::Event::Disconnected => {
+                            tracing::warn!(node = %name, "NATS unreachable: serving the lifts held here only")
+                        }
+                        other => tracing::debug!(node = %name, event = %other, "NATS"),
+                    }
+                    poke.notify_waiters();
+                }
+            })
+            .connect(url)
+            .await
+            .map_err(|e| ClusterError {
+                url: url.into(),
+                why: e.to_string(),
+            })?;
+        let (events, events_rx) = mpsc::channel(EVENT_QUEUE);
+        let cluster = Arc::new(Cluster {
+            node,
+            client,
+            kv: RwLock::new(None),
+            ttl: ttl.max(Duration::from_secs(3)),
+            request_timeout,
+            known: Mutex::default(),
+            held: Mutex::default(),
+            forwarded: Mutex::default(),
+            nats_changed,
+            generation: watch::channel(0).0,
+            events,
+            counters: ClusterCounters::default(),
+        });
+        Ok((cluster, events_rx))
+    }
+
+    /// This process's name.
+    pub fn node(&self) -> &str {
+        &self.node
+    }
+
+    /// Whether NATS is reachable now.
+    pub fn connected(&self) -> bool {
+        self.client.connection_state() == async_nats::connection::State::Connected
+    }
+
+    /// How many lifts are held here.
+    pub fn held_count(&self) -> usize {
+        lock(&self.held).len()
+    }
+
+    /// How many lifts other processes hold, as far as this one knows.
+    pub fn known_count(&self) -> usize {
+        let ttl = self.ttl;
+        lock(&self.known)
+            .values()
+            .filter(|k| k.written.elapsed() < ttl)
+            .count()
+    }
+
+    /// The holder entry of a lift another process holds (`None`: not held elsewhere, or its
+    /// entry expired unrefreshed: the holder died).
+    pub fn holding(&self, lift: &str) -> Option<Holding> {
+        lock(&self.known)
+            .get(lift)
+            .filter(|k| k.written.elapsed() < self.ttl)
+            .map(|k| k.holding.clone())
+    }
+
+    fn kv(&self) -> Option<kv::Store> {
+        self.kv
+            .read()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
+    }
+
+    /// Wait until NATS's connection state may have changed (at most half a second).
+    async fn nats_event(&self) {
+        let _ =
+            tokio::time::timeout(Duration::from_millis(500), self.nats_changed.notified()).await;
+    }
+
+    /// Keep the bucket and this process's view of it: create the bucket whenever NATS is
+    /// (again) reachable, then follow every entry until the connection is lost.
+    pub async fn run(self: Arc<Self>, registry: Weak<Registry>) {
+        let js = jetstream::new(self.client.clone());
+        // The bucket's stream as the KV convention (NATS ADR-8) lays it out, created directly:
+        // `create_key_value` first reads the account's information, which it cannot parse
+        // from the NATS 2.9 of Debian 12.
+        let config = jetstream::stream::Config {
+            name: format!("KV_{}", msgs::BUCKET),
+            subjects: vec![format!("$KV.{}.>", msgs::BUCKET)],
+            max_messages_per_subject: 1,
+            max_age: self.ttl,
+            storage: jetstream::stream::StorageType::Memory,
+            discard: jetstream::stream::DiscardPolicy::New,
+            allow_rollup: true,
+            deny_delete: true,
+            allow_direct: true,
+            num_replicas: 1,
+            ..Default::default()
+        };
+        loop {
+            if !self.connected() {
+                self.nats_event().await;
+                continue;
+            }
+            let bucket = match js.get_or_create_stream(config.clone()).await {
+                Ok(_) => js
+                    .get_key_value(msgs::BUCKET)
+                    .await
+                    .map_err(|e| e.to_string()),
+                Err(e) => Err(e.to_string()),
+            };
+            let store = match bucket {
+                Ok(store) => store,
+                Err(e) => {
+                    tracing::warn!(error = %e, "NATS: no holder bucket");
+                    tokio::time::sleep(Duration::from_secs(1)).await;
+                    continue;
+                }
+            };
+            *self.kv.write().unwrap_or_else(PoisonError::into_inner) = Some(store.clone());
+            self.generation.send_modify(|g| *g += 1);
+            let mut prune = tokio::time::interval(self.ttl);
+            match store.watch_all().await {
+                Ok(mut entries) => loop {
+                    tokio::select! {
+                        _ = prune.tick() => self.forget_expired(),
+                        entry = entries.next() => match entry {
+                            Some(Ok(entry)) => self.learn(entry, &registry),
+                            Some(Err(e)) => {
+                                tracing::warn!(error = %e, "NATS: holder entries interrupted");
+                                break;
+                            }
+                            None => break,
+                        },
+                        _ = self.nats_event() => if !self.connected() { break },
+                    }
+                },
+                Err(e) => tracing::warn!(error = %e, "NATS: cannot follow holder entries"),
+            }
+            self.forget_expired();
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+    }
+
+    /// Entries that expired unrefreshed go (the KV drops them without telling watchers).
+    fn forget_expired(&self) {
+        let ttl = self.ttl;
+        lock(&self.known).retain(|_, k| k.written.elapsed() < ttl);
+    }
+
+    /// An entry changed: remember another process's holding; if it is of a newer connection
+    /// than one held here, close that one (the gateway moved).
+    fn learn(&self, entry: kv::Entry, registry: &Weak<Registry>) {
+        let Some(lift) = msgs::lift_of(&entry.key) else {
+            return;
+        };
+        if entry.operation != kv::Operation::Put {
+            lock(&self.known).remove(&lift);
+            return;
+        }
+        let Ok(holding) = serde_json::from_slice::<Holding>(&entry.value) else {
+            tracing::warn!(%lift, "NATS: a holder entry that is not one");
+            return;
+        };
+        if holding.node == self.node {
+            lock(&self.known).remove(&lift);
+            return;
+        }
+        if let Some(registry) = registry.upgrade() {
+            if registry.taken_over(&lift, &holding) {
+                self.counters.replaced.fetch_add(1, Ordering::Relaxed);
+            }
+        }
+        let age = (time::OffsetDateTime::now_utc() - entry.created).clamp(
+            time::Duration::ZERO,
+            time::Duration::try_from(self.ttl).unwrap_or(time::Duration::ZERO),
+        );
+        let written = Instant::now()
+            .checked_sub(Duration::try_from(age).unwrap_or_default())
+            .unwrap_or_else(Instant::now);
+        lock(&self.known).insert(lift, Known { holding, written });
+    }
+
+    /// A connection of `lift` was admitted here: claim the lift in the bucket and answer its
+    /// relayed requests until [`Cluster::release`].
+    pub(crate) fn hold(self: &Arc<Self>, registry: Arc<Registry>, lift: &str, holding: Holding) {
+        let (tx, rx) = watch::channel(holding);
+        lock(&self.held).insert(lift.to_owned(), tx);
+        tokio::spawn(self.clone().holder(registry, lift.to_owned(), rx));
+    }
+
+    /// The connection of `epoch` no longer serves `lift`: its holder task ends (and deletes
+    /// the entry, unless another process wrote it since).
+    pub(crate) fn release(&self, lift: &str, epoch: u64) {
+        let mut held = lock(&self.held);
+        if held.get(lift).is_some_and(|h| h.borrow().epoch == epoch) {
+            held.remove(lift);
+        }
+    }
+
+    /// The held lift's condition changed: other processes' fleet pages show it.
+    pub(crate) fn status(&self, lift: &str, error_register: Option<u8>, lift_state: Option<u8>) {
+        if let Some(holding) = lock(&self.held).get(lift) {
+            holding.send_if_modified(|h| {
+                let changed = (h.error_register, h.lift_state) != (error_register, lift_state);
+                h.error_register = error_register;
+                h.lift_state = lift_state;
+                changed
+            });
+        }
+    }
+
+    /// A held lift's task: its entry written and refreshed, its requests answered.
+    async fn holder(
+        self: Arc<Self>,
+        registry: Arc<Registry>,
+        lift: String,
+        mut holding: watch::Receiver<Holding>,
+    ) {
+        let key = msgs::token(&lift);
+        let mut generation = self.generation.subscribe();
+        let mut rpc = match self.client.subscribe(msgs::rpc_subject(&lift)).await {
+            Ok(rpc) => Some(rpc),
+            Err(e) => {
+                tracing::warn!(%lift, error = %e, "NATS: cannot answer relayed requests");
+                None
+            }
+        };
+        let current = holding.borrow_and_update().clone();
+        let mut written = self.write(&key, &current, None).await;
+        // Spread over the period, so that a process holding thousands does not write them
+        // all at once.
+        let period = self.ttl / 3;
+        let first = period.mul_f64(rand::random::<f64>());
+        let mut refresh = tokio::time::interval_at(tokio::time::Instant::now() + first, period);
+        loop {
+            let write_from = tokio::select! {
+                changed = holding.changed() => match changed {
+                    Ok(()) => written,
+                    Err(_) => break,
+                },
+                _ = refresh.tick() => written,
+                _ = generation.changed() => Written::Not,
+                Some(message) = next_message(&mut rpc) => {
+                    tokio::spawn(answer(self.clone(), registry.clone(), lift.clone(), message));
+                    continue;
+                }
+            };
+            let current = holding.borrow_and_update().clone();
+            written = self.write(&key, &current, write_from.revision()).await;
+            if let Written::Superseded(newer) = &written {
+                registry.taken_over(&lift, newer);
+                break;
+            }
+        }
+        if let Some(mut rpc) = rpc {
+            let _ = rpc.unsubscribe().await;
+        }
+        if let (Written::At(revision), Some(kv)) = (written, self.kv()) {
+            // Only the entry written last by this holder: not a newer holder's.
+            let _ = kv.delete_expect_revision(&key, Some(revision)).await;
+        }
+    }
+
+    /// Write the entry: over `revision` when given (so that another process's newer entry
+    /// is never overwritten), else unconditionally.
+    async fn write(&self, key: &str, holding: &Holding, revision: Option<u64>) -> Written {
+        let Some(kv) = self.kv() else {
+            return Written::Not;
+        };
+        let Ok(value) = serde_json::to_vec(holding) else {
+            return Written::Not;
+        };
+        let value = bytes::Bytes::from(value);
+        let Some(revision) = revision else {
+            return match kv.put(key, value).await {
+                Ok(revision) => Written::At(revision),
+                Err(e) => {
+                    tracing::debug!(key, error = %e, "NATS: holder entry not written");
+                    Written::Not
+                }
+            };
+        };
+        match kv.update(key, value.clone(), revision).await {
+            Ok(revision) => Written::At(revision),
+            Err(e) if e.kind() == kv::UpdateErrorKind::WrongLastRevision => {
+                let other = kv.entry(key).await.ok().flatten().and_then(|entry| {
+                    (entry.operation == kv::Operation::Put)
+                        .then(|| serde_json::from_slice::<Holding>(&entry.value).ok())
+                        .flatten()
+                });
+                match other {
+                    Some(other) if other.newer_than(holding) => Written::Superseded(other),
+                    // An older connection's late write, or the entry expired: ours stands.
+                    _ => match kv.put(key, value).await {
+                        Ok(revision) => Written::At(revision),
+                        Err(_) => Written::Not,
+                    },
+                }
+            }
+            Err(e) => {
+                tracing::debug!(key, error = %e, "NATS: holder entry not refreshed");
+                Written::At(revision)
+            }
+        }
+    }
+
+    /// Send an operator request to the process holding `lift`, and wait for its answer: no
+    /// holder (or no NATS) is [`Failure::Gone`] (503), no answer in time [`Failure::Timeout`].
+    pub(crate) async fn request(
+        &self,
+        lift: &str,
+        method: Method,
+        params: Option<Box<RawValue>>,
+    ) -> Result<String, Failure> {
+        self.counters.relayed.fetch_add(1, Ordering::Relaxed);
+        let outcome = self.relay(lift, method, params).await;
+        if matches!(outcome, Err(Failure::Gone | Failure::Timeout)) {
+            self.counters.relay_failed.fetch_add(1, Ordering::Relaxed);
+        }
+        outcome
+    }
+
+    async fn relay(
+        &self,
+        lift: &str,
+        method: Method,
+        params: Option<Box<RawValue>>,
+    ) -> Result<String, Failure> {
+        if !self.connected() {
+            return Err(Failure::Gone);
+        }
+        let call = RelayedCall {
+            method: method.name().into(),
+            params,
+        };
+        let payload = serde_json::to_vec(&call).map_err(|e| Failure::Invalid(e.to_string()))?;
+        let request = async_nats::Request::new()
+            .payload(payload.into())
+            .timeout(Some(self.request_timeout));
+        let reply = self
+            .client
+            .send_request(msgs::rpc_subject(lift), request)
+            .await
+            .map_err(|e| match e.kind() {
+                async_nats::client::RequestErrorKind::TimedOut => Failure::Timeout,
+                _ => Failure::Gone,
+            })?;
+        serde_json::from_slice::<RelayedAnswer>(&reply.payload)
+            .map_err(|e| Failure::Invalid(format!("the holder's answer: {e}")))?
+            .outcome()
+    }
+
+    /// Hand a held lift's live event to the other processes (dropped and counted when NATS
+    /// lags far behind).
+    pub(crate) fn publish(&self, lift: &str, event: &LiftEvent) {
+        let Ok(body) = serde_json::to_vec(event) else {
+            return;
+        };
+        if self.events.try_send((lift.to_owned(), body)).is_err() {
+            self.counters.events_dropped.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    /// Publish what [`Cluster::publish`] queued, in order.
+    pub async fn publish_events(self: Arc<Self>, mut queue: mpsc::Receiver<(String, Vec<u8>)>) {
+        while let Some((lift, body)) = queue.recv().await {
+            if !self.connected() {
+                continue;
+            }
+            let mut headers = async_nats::HeaderMap::new();
+            headers.insert(msgs::ORIGIN, self.node.as_str());
+            let subject = msgs::events_subject(&lift);
+            if let Err(e) = self
+                .client
+                .publish_with_headers(subject, headers, body.into())
+                .await
+            {
+                tracing::debug!(%lift, error = %e, "NATS: event not published");
+            }
+        }
+    }
+
+    /// Someone on this process watches `lift` (`tx` is its channel): pass on the events other
+    /// processes publish for it, until nobody here watches. The receiver (`None`: already
+    /// forwarding) tells when the NATS server has the subscription.
+    pub(crate) fn forward(
+        self: &Arc<Self>,
+        lift: &str,
+        tx: &broadcast::Sender<LiftEvent>,
+    ) -> Option<oneshot::Receiver<()>> {
+        {
+            let mut forwarded = lock(&self.forwarded);
+            if forwarded.get(lift).is_some_and(|f| f.same_channel(tx)) {
+                return None;
+            }
+            forwarded.insert(lift.to_owned(), tx.clone());
+        }
+        let (ready, subscribed) = oneshot::channel();
+        tokio::spawn(self.clone().forwarder(lift.to_owned(), tx.clone(), ready));
+        Some(subscribed)
+    }
+
+    async fn forwarder(
+        self: Arc<Self>,
+        lift: String,
+        tx: broadcast::Sender<LiftEvent>,
+        ready: oneshot::Sender<()>,
+    ) {
+        if let Ok(mut events) = self.client.subscribe(msgs::events_subject(&lift)).await {
+            if self.client.flush().await.is_ok() {
+                let _ = ready.send(());
+            }
+            let mut check = tokio::time::interval(FORWARD_CHECK);
+            loop {
+                tokio::select! {
+                    message = events.next() => {
+                        let Some(message) = message else { break };
+                        let origin = message.headers.as_ref().and_then(|h| h.get(msgs::ORIGIN));
+                        if origin.is_some_and(|o| o.as_str() == self.node) {
+                            continue;
+                        }
+                        let Ok(event) = serde_json::from_slice::<LiftEvent>(&message.payload) else {
+                            continue;
+                        };
+                        if tx.send(event).is_err() {
+                            break;
+                        }
+                    }
+                    _ = check.tick() => if tx.receiver_count() == 0 { break },
+                }
+            }
+            let _ = events.unsubscribe().await;
+        }
+        let mut forwarded = lock(&self.forwarded);
+        if forwarded.get(&lift).is_some_and(|f| f.same_channel(&tx)) {
+            forwarded.remove(&lift);
+        }
+    }
+}
+
+/// What the last write of a holder entry left.
+#[derive(Debug, Clone)]
+enum Written {
+    /// Written, at this revision.
+    At(u64),
+    /// Not written (no NATS, or the bucket is new): the next write is unconditional.
+    Not,
+    /// Another process holds a newer connection of the lift.
+    Superseded(Holding),
+}
+
+impl Written {
+    fn revision(&self) -> Option<u64> {
+        match self {
+            Written::At(revision) => Some(*revision),
+            _ => None,
+        }
+    }
+}
+
+async fn next_message(rpc: &mut Option<async_nats::Subscriber>) -> Option<async_nats::Message> {
+    match rpc {
+        Some(rpc) => rpc.next().await,
+        None => std::future::pending().await,
+    }
+}
+
+/// Answer one relayed request from the lift's connection here.
+async fn answer(
+    cluster: Arc<Cluster>,
+    registry: Arc<Registry>,
+    lift: String,
+    message: async_nats::Message,
+) {
+    let Some(reply) = message.reply else {
+        return;
+    };
+    cluster.counters.served.fetch_add(1, Ordering::Relaxed);
+    let outcome = match serde_json::from_slice::<RelayedCall>(&message.payload) {
+        Ok(call) => match Method::from_name(&call.method) {
+            Some(method) => registry.send_local(&lift, method, call.params).await,
+            None => Err(Failure::Invalid(format!("no method {:?}", call.method))),
+        },
+        Err(e) => Err(Failure::Invalid(e.to_string())),
+    };
+    let Ok(body) = serde_json::to_vec(&RelayedAnswer::of(outcome)) else {
+        return;
+    };
+    if let Err(e) = cluster.client.publish(reply, body.into()).await {
+        tracing::debug!(%lift, error = %e, "NATS: answer not sent");
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(PoisonError::into_inner)
+}

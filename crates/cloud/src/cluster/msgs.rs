@@ -1,0 +1,233 @@
+//! What portal processes tell each other over NATS (docs/CLUSTER.md §Subjects): the holder
+//! entry of a lift in the KV bucket, an operator request relayed to the holder and its
+//! answer, and the names of keys and subjects.
+
+use nxg::msg::ErrorObject;
+use nxg::portal::Failure;
+use serde::{Deserialize, Serialize};
+use serde_json::value::RawValue;
+
+/// The KV bucket of holder entries.
+pub const BUCKET: &str = "canlift-lifts";
+
+/// The NATS header naming the process that published a lift event (a process skips its own).
+pub const ORIGIN: &str = "Canlift-Node";
+
+/// The value of a lift's key in [`BUCKET`]: which process holds its gateway's connection now,
+/// and what every process needs to know of a lift it does not hold.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Holding {
+    /// The holding process (`[cluster] node`).
+    pub node: String,
+    /// The connection's epoch: µs since the Unix epoch when it was admitted, so a newer
+    /// connection of the lift has the larger one, whichever process took it.
+    pub epoch: u64,
+    /// The account's domain token the lift belongs to.
+    pub domain: String,
+    /// The gateway's serial number (sent with writes and elevations).
+    pub sernum: String,
+    /// The error register, once pushed (the fleet page's fault column).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error_register: Option<u8>,
+    /// The lift state, once pushed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lift_state: Option<u8>,
+}
+
+impl Holding {
+    /// Whether this entry is of a newer connection than `other` (ties: the larger node name,
+    /// so that every process decides alike).
+    pub fn newer_than(&self, other: &Holding) -> bool {
+        (self.epoch, &self.node) > (other.epoch, &other.node)
+    }
+}
+
+/// An operator request for a lift, relayed to its holder on [`rpc_subject`].
+#[derive(Debug, Serialize, Deserialize)]
+pub struct RelayedCall {
+    /// The method's name on the wire (`get_canopen_object`).
+    pub method: String,
+    /// Its parameters.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub params: Option<Box<RawValue>>,
+}
+
+/// The holder's answer to a [`RelayedCall`]: what the gateway answered, or the same failure a
+/// local request would have had (one of the two).
+#[derive(Debug, Serialize, Deserialize)]
+pub struct RelayedAnswer {
+    /// The gateway's `result`, as it sent it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub result: Option<Box<RawValue>>,
+    /// Why there is none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub failure: Option<RelayedFailure>,
+}
+
+/// A [`Failure`] on the wire between processes.
+#[derive(Debug, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum RelayedFailure {
+    /// The gateway answered with an error object.
+    Error {
+        /// As the gateway sent it.
+        error: ErrorObject,
+    },
+    /// The gateway's answer does not fit the method.
+    Invalid {
+        /// What is wrong.
+        why: String,
+    },
+    /// The gateway did not answer in time.
+    Timeout,
+    /// Too many requests wait for the gateway.
+    Busy,
+    /// The holder no longer holds the lift.
+    Gone,
+}
+
+impl RelayedAnswer {
+    /// The answer to send for `outcome`.
+    pub fn of(outcome: Result<String, Failure>) -> RelayedAnswer {
+        let failure = match outcome {
+            Ok(raw) => match RawValue::from_string(raw) {
+                Ok(result) => {
+                    return RelayedAnswer {
+                        result: Some(result),
+                        failure: None,
+                    }
+                }
+                Err(e) => RelayedFailure::Invalid { why: e.to_string() },
+            },
+            Err(Failure::Error(error)) => RelayedFailure::Error { error },
+            Err(Failure::Invalid(why)) => RelayedFailure::Invalid { why },
+            Err(Failure::Timeout) => RelayedFailure::Timeout,
+            Err(Failure::Busy) => RelayedFailure::Busy,
+            Err(Failure::Gone) => RelayedFailure::Gone,
+        };
+        RelayedAnswer {
+            result: None,
+            failure: Some(failure),
+        }
+    }
+
+    /// The outcome it carries.
+    pub fn outcome(self) -> Result<String, Failure> {
+        match (self.result, self.failure) {
+            (Some(result), None) => Ok(result.get().to_owned()),
+            (None, Some(RelayedFailure::Error { error })) => Err(Failure::Error(error)),
+            (None, Some(RelayedFailure::Invalid { why })) => Err(Failure::Invalid(why)),
+            (None, Some(RelayedFailure::Timeout)) => Err(Failure::Timeout),
+            (None, Some(RelayedFailure::Busy)) => Err(Failure::Busy),
+            (None, Some(RelayedFailure::Gone)) => Err(Failure::Gone),
+            _ => Err(Failure::Invalid(
+                "the holder's answer has neither a result nor a failure".into(),
+            )),
+        }
+    }
+}
+
+/// A lift id as one KV key and one subject token: letters, digits and `-` as they are, every
+/// other byte as `_` and two hex digits (a serial number may hold dots, spaces or `*`, which
+/// NATS reserves).
+pub fn token(lift: &str) -> String {
+    let mut out = String::with_capacity(lift.len());
+    for byte in lift.bytes() {
+        if byte.is_ascii_alphanumeric() || byte == b'-' {
+            out.push(char::from(byte));
+        } else {
+            out.push_str(&format!("_{byte:02X}"));
+        }
+    }
+    out
+}
+
+/// The lift id of a [`token`]; `None` for a key no portal wrote.
+pub fn lift_of(token: &str) -> Option<String> {
+    let mut bytes = Vec::with_capacity(token.len());
+    let mut rest = token.as_bytes();
+    while let Some((&first, tail)) = rest.split_first() {
+        if first == b'_' {
+            let hex = std::str::from_utf8(tail.get(..2)?).ok()?;
+            bytes.push(u8::from_str_radix(hex, 16).ok()?);
+            rest = &tail[2..];
+        } else {
+            bytes.push(first);
+            rest = tail;
+        }
+    }
+    String::from_utf8(bytes).ok()
+}
+
+/// Where the holder of `lift` answers relayed requests.
+pub fn rpc_subject(lift: &str) -> String {
+    format!("canlift.lift.{}.rpc", token(lift))
+}
+
+/// Where the holder of `lift` publishes its live events.
+pub fn events_subject(lift: &str) -> String {
+    format!("canlift.lift.{}.events", token(lift))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    #[test]
+    fn tokens_are_valid_keys_and_subject_tokens() {
+        assert_eq!(token("1234-5678-SN 1.2*"), "1234-5678-SN_201_2E2_2A");
+        assert_eq!(rpc_subject("a.b"), "canlift.lift.a_2Eb.rpc");
+        assert_eq!(lift_of("a_2Eb").as_deref(), Some("a.b"));
+        assert_eq!(lift_of("a_2"), None);
+        assert_eq!(lift_of("a_ZZ"), None);
+    }
+
+    proptest! {
+        #[test]
+        fn token_round_trips(lift in "\\PC{0,40}") {
+            let t = token(&lift);
+            prop_assert!(t.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_'));
+            prop_assert_eq!(lift_of(&t), Some(lift));
+        }
+    }
+
+    #[test]
+    fn a_relayed_answer_carries_every_outcome() {
+        let error = ErrorObject::rpc(-32603, "x");
+        for outcome in [
+            Ok("{\"done\":0}".to_owned()),
+            Err(Failure::Error(error)),
+            Err(Failure::Invalid("why".into())),
+            Err(Failure::Timeout),
+            Err(Failure::Busy),
+            Err(Failure::Gone),
+        ] {
+            let wire = serde_json::to_string(&RelayedAnswer::of(outcome.clone())).unwrap();
+            let back: RelayedAnswer = serde_json::from_str(&wire).unwrap();
+            assert_eq!(back.outcome(), outcome);
+        }
+    }
+
+    #[test]
+    fn the_newer_holding_wins_everywhere_alike() {
+        let a = Holding {
+            node: "a".into(),
+            epoch: 5,
+            domain: "d".into(),
+            sernum: "s".into(),
+            error_register: None,
+            lift_state: None,
+        };
+        let b = Holding {
+            node: "b".into(),
+            ..a.clone()
+        };
+        assert!(b.newer_than(&a) && !a.newer_than(&b));
+        let c = Holding {
+            epoch: 6,
+            ..a.clone()
+        };
+        assert!(c.newer_than(&b));
+    }
+}

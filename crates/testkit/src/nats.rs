@@ -1,0 +1,94 @@
+//! A NATS server of the test's own (Debian's `nats-server` with JetStream, on a loopback port,
+//! its storage in a scratch directory) for the cluster tests; stopped when dropped, and
+//! stoppable and startable again on the same port for the tests of NATS outages.
+
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+use crate::skip;
+
+/// A running (or stopped) `nats-server -js`.
+pub struct Nats {
+    port: u16,
+    store: tempfile::TempDir,
+    child: Option<Child>,
+}
+
+impl Nats {
+    /// Start a server, or `None` after printing why the test is skipped (no `nats-server` on
+    /// the PATH; with CANLIFT_REQUIRE_NATS=1 the test fails instead).
+    pub fn start() -> Option<Nats> {
+        if Command::new("nats-server")
+            .arg("--version")
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .status()
+            .is_err()
+        {
+            let reason = "nats: no nats-server on the PATH (apt-get install nats-server)";
+            if std::env::var("CANLIFT_REQUIRE_NATS").as_deref() == Ok("1") {
+                panic!("{reason}");
+            }
+            skip(reason);
+            return None;
+        }
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .expect("a loopback port")
+            .port();
+        let mut nats = Nats {
+            port,
+            store: crate::scratch(),
+            child: None,
+        };
+        nats.start_again();
+        Some(nats)
+    }
+
+    /// `nats://127.0.0.1:PORT`.
+    pub fn url(&self) -> String {
+        format!("nats://127.0.0.1:{}", self.port)
+    }
+
+    /// Stop the server (SIGKILL: as a crash or a lost link would look to its clients).
+    pub fn stop(&mut self) {
+        if let Some(mut child) = self.child.take() {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+
+    /// Start the stopped server again on the same port, and wait until it listens.
+    pub fn start_again(&mut self) {
+        self.stop();
+        let child = Command::new("nats-server")
+            .args([
+                "-js",
+                "-a",
+                "127.0.0.1",
+                "-p",
+                &self.port.to_string(),
+                "-sd",
+            ])
+            .arg(self.store.path())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("nats-server starts");
+        self.child = Some(child);
+        let begin = std::time::Instant::now();
+        while std::net::TcpStream::connect(("127.0.0.1", self.port)).is_err() {
+            assert!(
+                begin.elapsed() < Duration::from_secs(10),
+                "nats-server listens within 10 s"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+}
+
+impl Drop for Nats {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
