@@ -207,27 +207,30 @@ impl Gateway {
     /// (node `bus.lift_controller`); metadata as in bus-node mode (docs/GATEWAY.md §Metadata).
     pub fn embedded(config: Config, od: SharedDictionary) -> Result<Gateway, GatewayError> {
         let tls = config.cloud.tls()?;
-        Gateway::embedded_with_tls(config, od, tls)
+        let description = Arc::new(od.lock().unwrap_or_else(PoisonError::into_inner).clone());
+        Gateway::embedded_with_tls(config, od, description, tls)
     }
 
     /// [`Gateway::embedded`] with the caller's TLS client configuration instead of one made
-    /// from `[cloud]`: one that outlives the gateway keeps its session tickets, so a gateway
+    /// from `[cloud]` — one that outlives the gateway keeps its session tickets, so a gateway
     /// made again resumes its TLS session (`canlift loadgen`'s fleets, the reconnect storm of
-    /// docs/BENCHMARKS.md).
+    /// docs/BENCHMARKS.md) — and with `description`, the controller's dictionary as its EDS
+    /// would describe it (objects, types, access, limits), which gateways in front of the same
+    /// controller share.
     pub fn embedded_with_tls(
         config: Config,
         od: SharedDictionary,
+        description: Arc<ObjectDictionary>,
         tls: Arc<rustls::ClientConfig>,
     ) -> Result<Gateway, GatewayError> {
         config.validate()?;
         // The controller's own dictionary is its EDS, unless the configuration names one.
-        let snapshot = od.lock().unwrap_or_else(PoisonError::into_inner).clone();
         let metadata = BusMetadata::load(&config)?.with_dictionary(
             Target {
                 net: 1,
                 node: config.bus.lift_controller,
             },
-            snapshot,
+            description,
         );
         let backend = Backend::Local {
             od: od.clone(),

@@ -42,6 +42,9 @@ enum BenchKind {
     #[cfg(feature = "portal")]
     /// The portal's telemetry writer alone: values/s stored and CPU per value.
     Ingest(super::bench_ingest::IngestBench),
+    #[cfg(feature = "portal")]
+    /// The portal as a cluster: NATS, portal processes on PostgreSQL, load generators.
+    Cluster(super::bench_cluster::ClusterBench),
 }
 
 #[derive(Debug, Clone, clap::Args)]
@@ -706,5 +709,7 @@ pub async fn run(args: BenchArgs) -> anyhow::Result<()> {
         BenchKind::Alarms(a) => super::bench_alarms::run(a).await,
         #[cfg(feature = "portal")]
         BenchKind::Ingest(a) => super::bench_ingest::run(a).await,
+        #[cfg(feature = "portal")]
+        BenchKind::Cluster(c) => super::bench_cluster::run(c).await,
     }
 }

@@ -392,7 +392,7 @@ impl Daemon {
     }
 
     /// `exe ARGS…`.
-    fn spawn(exe: &Path, args: &[&std::ffi::OsStr]) -> anyhow::Result<Daemon> {
+    pub(crate) fn spawn(exe: &Path, args: &[&std::ffi::OsStr]) -> anyhow::Result<Daemon> {
         let command = args
             .first()
             .map_or_else(Default::default, |c| c.to_string_lossy());
@@ -400,10 +400,22 @@ impl Daemon {
             .args(args)
             .env("RUST_LOG", "warn")
             .stdout(Stdio::null())
+            // A load generator's thousands of gateways would each log a reconnect.
+            .stderr(if command == "loadgen" {
+                Stdio::null()
+            } else {
+                Stdio::inherit()
+            })
             .kill_on_drop(true)
             .spawn()?;
         let pid = child.id().with_context(|| format!("{command} process"))?;
         Ok(Daemon { child, pid })
+    }
+
+    /// SIGKILL: nothing the process could still do (a crash, a power cut).
+    pub(crate) async fn kill(mut self) {
+        let _ = self.child.start_kill();
+        let _ = self.child.wait().await;
     }
 
     /// SIGINT (the daemons' graceful shutdown), then wait up to `limit` for the exit.

@@ -72,32 +72,49 @@ enum Phase {
     Latency,
 }
 
-/// The portal process.
-struct PortalProcess {
-    daemon: Daemon,
-    port: u16,
-    ca: PathBuf,
-    client: cloud::client::Client,
+/// A portal process (`canlift cloud`) of a benchmark.
+pub(crate) struct PortalProcess {
+    pub(crate) daemon: Daemon,
+    pub(crate) port: u16,
+    pub(crate) ca: PathBuf,
+    pub(crate) client: cloud::client::Client,
+}
+
+/// The benchmarks' portal configuration: on a free loopback port, state in `dir/portal`,
+/// every change pushed (no inhibit: ingest is limited by the portal, not by the gateways' rate
+/// limiting) and no request limit per key (the latency figures read as fast as it answers).
+pub(crate) fn bench_config(dir: &Path, database: &str) -> anyhow::Result<cloud::config::Config> {
+    let port = std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port();
+    let mut config = cloud::config::Config::default();
+    config.server.listen = ([127, 0, 0, 1], port).into();
+    config.state.dir = dir.join("portal");
+    config.database.url = Some(database.to_owned());
+    config.dashboard.inhibit_ms = 0;
+    config.server.requests_per_key_s = 0;
+    Ok(config)
 }
 
 impl PortalProcess {
     async fn start(dir: &Path, database: &str) -> anyhow::Result<PortalProcess> {
-        let port = std::net::TcpListener::bind("127.0.0.1:0")?
-            .local_addr()?
-            .port();
-        let mut config = cloud::config::Config::default();
-        config.server.listen = ([127, 0, 0, 1], port).into();
-        config.state.dir = dir.join("portal");
-        config.database.url = Some(database.to_owned());
-        // Every change is pushed (no inhibit), so ingest is limited by the portal, not the
-        // gateways' rate limiting.
-        config.dashboard.inhibit_ms = 0;
-        // The operator latency phase reads as fast as the portal answers, on one key.
-        config.server.requests_per_key_s = 0;
-        let path = dir.join("portal.toml");
-        std::fs::write(&path, toml::to_string_pretty(&config)?)?;
-        let daemon = Daemon::start(&std::env::current_exe()?, "cloud", &path)?;
+        let config = bench_config(dir, database)?;
         let ca = config.state.dir.join("dev-ca.pem");
+        PortalProcess::start_with(dir, &config, ca).await
+    }
+
+    /// Start `canlift cloud` with `config` (written into `dir`); `ca` is what its certificate
+    /// is of. Returns once it listens.
+    pub(crate) async fn start_with(
+        dir: &Path,
+        config: &cloud::config::Config,
+        ca: PathBuf,
+    ) -> anyhow::Result<PortalProcess> {
+        let port = config.server.listen.port();
+        let path = dir.join("portal.toml");
+        std::fs::create_dir_all(dir)?;
+        std::fs::write(&path, toml::to_string_pretty(config)?)?;
+        let daemon = Daemon::start(&std::env::current_exe()?, "cloud", &path)?;
         let deadline = Instant::now() + Duration::from_secs(30);
         while tokio::net::TcpStream::connect(("127.0.0.1", port))
             .await
@@ -119,11 +136,12 @@ impl PortalProcess {
         })
     }
 
-    /// One counter or gauge of `/metrics`.
-    async fn metric(&self, name: &str) -> anyhow::Result<f64> {
-        self.client
-            .metric(name)
-            .await?
+    /// One counter or gauge of `/metrics` (an error after 10 s: a process at its file limit
+    /// accepts no connection).
+    pub(crate) async fn metric(&self, name: &str) -> anyhow::Result<f64> {
+        tokio::time::timeout(Duration::from_secs(10), self.client.metric(name))
+            .await
+            .with_context(|| format!("/metrics of port {}: no answer in 10 s", self.port))??
             .with_context(|| format!("/metrics has no {name}"))
     }
 
@@ -131,11 +149,11 @@ impl PortalProcess {
         Ok(self.metric("canlift_gateways_online").await? as usize)
     }
 
-    fn rss_kib(&self) -> u64 {
+    pub(crate) fn rss_kib(&self) -> u64 {
         memory_kib(self.daemon.pid).map_or(0, |m| m[0])
     }
 
-    async fn stop(self) {
+    pub(crate) async fn stop(self) {
         self.daemon.stop(Duration::from_secs(10)).await;
     }
 

@@ -9,6 +9,8 @@ pub mod bench;
 #[cfg(feature = "portal")]
 pub mod bench_alarms;
 #[cfg(feature = "portal")]
+pub mod bench_cluster;
+#[cfg(feature = "portal")]
 pub mod bench_gateway;
 #[cfg(feature = "portal")]
 pub mod bench_ingest;

@@ -205,8 +205,13 @@ impl Cluster {
             num_replicas: 1,
             ..Default::default()
         };
+        // Whether the connection was (re)made since the holders last wrote their entries: the
+        // first time, and after NATS was lost (it may have restarted, with an empty bucket). A
+        // watch interrupted on a live connection (a slow consumer) needs no rewrite.
+        let mut reconnected = true;
         loop {
             if !self.connected() {
+                reconnected = true;
                 self.nats_event().await;
                 continue;
             }
@@ -226,7 +231,9 @@ impl Cluster {
                 }
             };
             *self.kv.write().unwrap_or_else(PoisonError::into_inner) = Some(store.clone());
-            self.generation.send_modify(|g| *g += 1);
+            if std::mem::take(&mut reconnected) {
+                self.generation.send_modify(|g| *g += 1);
+            }
             let mut prune = tokio::time::interval(self.ttl);
             match store.watch_all().await {
                 Ok(mut entries) => loop {
@@ -470,7 +477,7 @@ impl Cluster {
         }
     }
 
-    /// Publish what [`Cluster::publish`] queued, in order.
+    /// Publish the live events the registry queued for other processes, in order.
     pub async fn publish_events(self: Arc<Self>, mut queue: mpsc::Receiver<(String, Vec<u8>)>) {
         while let Some((lift, body)) = queue.recv().await {
             if !self.connected() {

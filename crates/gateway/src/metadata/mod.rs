@@ -18,6 +18,7 @@ mod cia301;
 
 use std::collections::HashMap;
 use std::path::Path;
+use std::sync::Arc;
 
 use canopen::od::ObjectDictionary;
 use canopen::types::{DataType as CiaType, Value};
@@ -44,8 +45,9 @@ fn same_object(index: u16, catalog: &Texts, eds: &Texts) -> bool {
 /// What describes one node.
 #[derive(Default)]
 pub struct NodeMetadata {
-    /// The dictionary of its EDS or DCF.
-    pub eds: Option<ObjectDictionary>,
+    /// The dictionary of its EDS or DCF (shared: an embedded gateway's is its controller's,
+    /// and many gateways in one process may describe the same controller).
+    pub eds: Option<Arc<ObjectDictionary>>,
     /// The vendor's metadata (catalog format).
     pub vendor: Option<Catalog>,
 }
@@ -130,7 +132,7 @@ impl BusMetadata {
 
     /// `od` describes `target` (which objects exist, types, access, limits) unless an EDS
     /// was configured for it: the dictionary of the controller an embedded gateway serves.
-    pub fn with_dictionary(mut self, target: Target, od: ObjectDictionary) -> BusMetadata {
+    pub fn with_dictionary(mut self, target: Target, od: Arc<ObjectDictionary>) -> BusMetadata {
         let node = self.nodes.entry(target).or_default();
         if node.eds.is_none() {
             node.eds = Some(od);
@@ -279,11 +281,11 @@ impl Metadata for BusMetadata {
 /// Read a node's EDS and vendor metadata; the vendor's data types must agree with the EDS.
 fn load_node(n: &NodeSection) -> Result<NodeMetadata, GatewayError> {
     let eds = match &n.eds {
-        Some(path) => Some(canopen::eds::import_file(path, Some(n.id))?.od),
+        Some(path) => Some(Arc::new(canopen::eds::import_file(path, Some(n.id))?.od)),
         None => None,
     };
     let vendor = match &n.metadata {
-        Some(path) => Some(load_vendor(path, eds.as_ref())?),
+        Some(path) => Some(load_vendor(path, eds.as_deref())?),
         None => None,
     };
     Ok(NodeMetadata { eds, vendor })

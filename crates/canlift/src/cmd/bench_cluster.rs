@@ -1,0 +1,356 @@
+//! `canlift bench cluster`: the portal as a cluster (docs/CLUSTER.md) under load. Starts a NATS
+//! server (Debian's `nats-server -js`, on a free loopback port), P `canlift cloud` processes on
+//! one PostgreSQL database (an existing URL) and enough `canlift loadgen` processes — each
+//! under the per-process file limit, spread over loopback source addresses — to connect N
+//! gateways, each load generator to one portal process in turn (as a load balancer would).
+//!
+//! Figures: time until all N are online (held by some process, known to every other), the
+//! portals' memory per connection, operator reads of a lift held by the process asked vs by
+//! another (what NATS adds), and the time until every lift of a process killed with SIGKILL
+//! (and started again, as systemd's `Restart=always` does) is online again.
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context};
+
+use super::bench_gateway::{memory_kib, percentile, Daemon};
+use super::bench_portal::{bench_config, PortalProcess};
+
+/// Arguments of `canlift bench cluster`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ClusterBench {
+    /// The processes' shared database: `postgres://…` (a cluster needs PostgreSQL), a fresh
+    /// one (the gateways' serial numbers are the same in every run).
+    #[arg(long)]
+    database: String,
+    /// Portal processes.
+    #[arg(long, default_value_t = 6)]
+    portals: usize,
+    /// Gateways in all.
+    #[arg(long, default_value_t = 100_000)]
+    gateways: usize,
+    /// Gateways per load-generator process at most (each holds one file per gateway, under
+    /// the per-process limit); the load generators are a multiple of the portal processes, so
+    /// each process gets the same share.
+    #[arg(long, default_value_t = 16_000)]
+    per_loadgen: usize,
+    /// First-contact connections per second per load generator.
+    #[arg(long, default_value_t = 1000)]
+    rate: u32,
+    /// Loopback source addresses per load generator (127.0.0.1…127.0.0.N).
+    #[arg(long, default_value_t = 8)]
+    sources: u8,
+    /// Operator reads for each latency figure.
+    #[arg(long, default_value_t = 1000)]
+    reads: usize,
+    /// `[cluster] holder_ttl_s` of the portals.
+    #[arg(long, default_value_t = 30)]
+    holder_ttl_s: u64,
+    /// The NATS server binary.
+    #[arg(long, default_value = "nats-server")]
+    nats_server: PathBuf,
+}
+
+/// The NATS server of the benchmark.
+struct Nats {
+    child: tokio::process::Child,
+    url: String,
+}
+
+impl Nats {
+    async fn start(binary: &Path, dir: &Path) -> anyhow::Result<Nats> {
+        let port = std::net::TcpListener::bind("127.0.0.1:0")?
+            .local_addr()?
+            .port();
+        let child = tokio::process::Command::new(binary)
+            .args(["-js", "-a", "127.0.0.1", "-p", &port.to_string(), "-sd"])
+            .arg(dir)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .kill_on_drop(true)
+            .spawn()
+            .with_context(|| format!("{} (apt-get install nats-server)", binary.display()))?;
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while tokio::net::TcpStream::connect(("127.0.0.1", port))
+            .await
+            .is_err()
+        {
+            if Instant::now() > deadline {
+                bail!("nats-server did not start");
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        Ok(Nats {
+            child,
+            url: format!("nats://127.0.0.1:{port}"),
+        })
+    }
+
+    fn rss_kib(&self) -> u64 {
+        self.child.id().and_then(memory_kib).map_or(0, |m| m[0])
+    }
+}
+
+/// The portal processes, each with its configuration.
+struct Portals {
+    processes: Vec<PortalProcess>,
+    configs: Vec<(PathBuf, cloud::config::Config)>,
+    ca: PathBuf,
+}
+
+impl Portals {
+    /// The sum of a metric over all processes.
+    async fn sum(&self, name: &str) -> anyhow::Result<f64> {
+        let mut sum = 0.0;
+        for p in &self.processes {
+            sum += p.metric(name).await?;
+        }
+        Ok(sum)
+    }
+
+    /// The lifts held in all, and whether they are `n` and each process knows all `n`.
+    async fn count(&self, n: usize) -> anyhow::Result<(usize, bool)> {
+        let held = self.sum("canlift_cluster_lifts_held").await? as usize;
+        let mut everywhere = held == n;
+        if everywhere {
+            for p in &self.processes {
+                let known = p.metric("canlift_cluster_lifts_held").await?
+                    + p.metric("canlift_cluster_lifts_elsewhere").await?;
+                everywhere &= known as usize == n;
+            }
+        }
+        Ok((held, everywhere))
+    }
+
+    /// Wait until the processes hold `n` lifts together and each knows the others'; how long.
+    async fn all_held(
+        &self,
+        n: usize,
+        since: Instant,
+        limit: Duration,
+    ) -> anyhow::Result<Duration> {
+        let mut last_report = Instant::now();
+        loop {
+            // A process too busy to answer in time is asked again on the next round.
+            let (held, everywhere) = match self.count(n).await {
+                Ok(counts) => counts,
+                Err(e) => {
+                    println!("  {e:#}");
+                    (0, false)
+                }
+            };
+            if everywhere {
+                return Ok(since.elapsed());
+            }
+            if since.elapsed() > limit {
+                bail!("{held} of {n} lifts held after {limit:?}");
+            }
+            if last_report.elapsed() > Duration::from_secs(5) {
+                println!("  {held} held after {:.0} s", since.elapsed().as_secs_f64());
+                last_report = Instant::now();
+            }
+            tokio::time::sleep(Duration::from_millis(250)).await;
+        }
+    }
+
+    fn rss_kib(&self) -> u64 {
+        self.processes.iter().map(PortalProcess::rss_kib).sum()
+    }
+}
+
+/// How the gateways are spread: `loadgens` load generators (a multiple of the portal
+/// processes) of `per` gateways each (the last one fewer); load generator `j` connects to
+/// process `j % portals`.
+#[derive(Debug, Clone, Copy)]
+struct Layout {
+    loadgens: usize,
+    per: usize,
+    portals: usize,
+}
+
+impl Layout {
+    fn new(args: &ClusterBench) -> Layout {
+        let loadgens = args
+            .gateways
+            .div_ceil(args.per_loadgen)
+            .next_multiple_of(args.portals)
+            .min(args.gateways.max(1));
+        Layout {
+            loadgens,
+            per: args.gateways.div_ceil(loadgens),
+            portals: args.portals,
+        }
+    }
+
+    /// The process holding gateway `number` (from 1).
+    fn holder(&self, number: usize) -> usize {
+        ((number - 1) / self.per) % self.portals
+    }
+}
+
+/// The lift id of load-generator gateway `number` (`canlift loadgen`'s identities).
+fn lift_id(number: usize) -> String {
+    format!("1050-4097-LOAD-{number:06}")
+}
+
+/// `reads` gets of 0x652001, each of a lift held by process `h` asked of process `ask(h)`;
+/// their times, sorted.
+async fn reads(
+    args: &ClusterBench,
+    layout: Layout,
+    portals: &Portals,
+    key: &str,
+    ask: impl Fn(usize) -> usize,
+) -> anyhow::Result<Vec<Duration>> {
+    let mut connections = Vec::new();
+    for p in &portals.processes {
+        let url = format!("https://localhost:{}", p.port);
+        let client = cloud::client::Client::new(&url, Some(key), Some(&portals.ca))?;
+        connections.push(client.connect().await?);
+    }
+    let mut times = Vec::with_capacity(args.reads);
+    for k in 0..args.reads {
+        let number = 1 + (k * 7919) % args.gateways;
+        let holder = layout.holder(number);
+        let path = format!(
+            "/api/v1/lifts/{}/objects/0x652001?form=naked",
+            lift_id(number)
+        );
+        let begin = Instant::now();
+        let (status, body) = connections[ask(holder)].call("GET", &path, None).await?;
+        times.push(begin.elapsed());
+        if status != 200 {
+            bail!("GET {path}: {status} {body}");
+        }
+    }
+    times.sort();
+    Ok(times)
+}
+
+/// `canlift bench cluster`.
+pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
+    if !args.database.starts_with("postgres") {
+        bail!("--database: a cluster needs PostgreSQL (postgres://…)");
+    }
+    if args.portals == 0 || args.per_loadgen == 0 || args.gateways == 0 {
+        bail!("--portals, --per-loadgen and --gateways: at least 1");
+    }
+    let layout = Layout::new(&args);
+    let dir = tempfile::tempdir()?;
+    let nats = Nats::start(&args.nats_server, &dir.path().join("nats")).await?;
+    let pki = cloud::devpki::ensure(&dir.path().join("pki"))?;
+    let store = cloud::store::Store::open(&args.database).await?;
+    let domain = "CLUSTER".to_owned();
+    if store.domain_exists(&domain).await? {
+        bail!(
+            "{} already has the CLUSTER account: give a fresh database",
+            args.database
+        );
+    }
+    let key = store.add_account("bench-cluster", &domain).await?;
+    let mut portals = Portals {
+        processes: Vec::new(),
+        configs: Vec::new(),
+        ca: pki.ca.clone(),
+    };
+    for i in 0..args.portals {
+        let pdir = dir.path().join(format!("p{i}"));
+        let mut config = bench_config(&pdir, &args.database)?;
+        config.server.tls_cert = Some(pki.cert.clone());
+        config.server.tls_key = Some(pki.key.clone());
+        config.cluster.nats = Some(nats.url.clone());
+        config.cluster.node = Some(format!("bench-{i}"));
+        config.cluster.holder_ttl_s = args.holder_ttl_s;
+        portals
+            .processes
+            .push(PortalProcess::start_with(&pdir, &config, pki.ca.clone()).await?);
+        portals.configs.push((pdir, config));
+    }
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let (base_rss, base_nats) = (portals.rss_kib(), nats.rss_kib());
+    println!(
+        "{} portal processes, NATS {}, {} gateways from {} load generators of at most {}",
+        args.portals, nats.url, args.gateways, layout.loadgens, layout.per
+    );
+    let exe = std::env::current_exe()?;
+    let begin = Instant::now();
+    let mut loadgens = Vec::new();
+    for (j, first) in (1..=args.gateways).step_by(layout.per).enumerate() {
+        let n = layout.per.min(args.gateways + 1 - first);
+        let portal = &portals.processes[j % args.portals];
+        let url = format!("wss://localhost:{}/ws", portal.port);
+        let state = dir.path().join(format!("loadgen-{j}"));
+        let argv: Vec<std::ffi::OsString> = vec![
+            "loadgen".into(),
+            "--portal".into(),
+            url.into(),
+            "--ca".into(),
+            pki.ca.clone().into(),
+            "--domain".into(),
+            domain.clone().into(),
+            "--gateways".into(),
+            n.to_string().into(),
+            "--first".into(),
+            first.to_string().into(),
+            "--sources".into(),
+            args.sources.to_string().into(),
+            "--rate".into(),
+            args.rate.to_string().into(),
+            "--state".into(),
+            state.into(),
+        ];
+        let argv: Vec<&std::ffi::OsStr> = argv.iter().map(|a| a.as_os_str()).collect();
+        loadgens.push(Daemon::spawn(&exe, &argv)?);
+    }
+    let limit = Duration::from_secs(1800);
+    let online = portals.all_held(args.gateways, begin, limit).await?;
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let rss = portals.rss_kib().saturating_sub(base_rss);
+    let nats_rss = nats.rss_kib().saturating_sub(base_nats);
+    println!(
+        "all {} online (held once, known everywhere) after {:.1} s",
+        args.gateways,
+        online.as_secs_f64()
+    );
+    println!(
+        "portal memory: {:.1} KiB per connection ({} MiB over {} processes); NATS {:.2} KiB per lift",
+        rss as f64 / args.gateways as f64,
+        rss / 1024,
+        args.portals,
+        nats_rss as f64 / args.gateways as f64
+    );
+    let others = args.portals;
+    let local = reads(&args, layout, &portals, &key, |h| h).await?;
+    let remote = reads(&args, layout, &portals, &key, |h| (h + 1) % others).await?;
+    let (l50, l99) = (percentile(&local, 50.0), percentile(&local, 99.0));
+    let (r50, r99) = (percentile(&remote, 50.0), percentile(&remote, 99.0));
+    println!(
+        "operator reads ({} each): held by the process asked p50 {l50:.0} µs p99 {l99:.0} µs; \
+         held by another p50 {r50:.0} µs p99 {r99:.0} µs; NATS adds {:.0} µs at p50",
+        args.reads,
+        r50 - l50
+    );
+    if args.portals > 1 {
+        let victim = portals.processes.remove(0);
+        let (pdir, config) = portals.configs[0].clone();
+        let killed = Instant::now();
+        victim.daemon.kill().await;
+        let restarted = PortalProcess::start_with(&pdir, &config, pki.ca.clone()).await?;
+        portals.processes.insert(0, restarted);
+        let back = portals.all_held(args.gateways, killed, limit).await?;
+        println!(
+            "process 0 killed (SIGKILL) and started again: all {} online again after {:.1} s",
+            args.gateways,
+            back.as_secs_f64()
+        );
+    }
+    for loadgen in loadgens {
+        loadgen.stop(Duration::from_secs(30)).await;
+    }
+    for p in portals.processes {
+        p.stop().await;
+    }
+    drop(nats);
+    Ok(())
+}
