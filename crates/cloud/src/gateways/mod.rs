@@ -165,36 +165,31 @@ impl Registry {
         self.cluster.get()?.holding(lift)
     }
 
-    /// The lift's connection now: a number that changes when its gateway reconnects, here or
-    /// on another process of the cluster.
-    pub fn connection(&self, lift: &str) -> Option<u64> {
-        let local = self
-            .live
+    /// `f` of the lift's connection to this process, if it has one.
+    fn here<T>(&self, lift: &str, f: impl FnOnce(&Live) -> T) -> Option<T> {
+        self.live
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .get(lift)
-            .map(|l| l.serial);
-        local.or_else(|| self.elsewhere(lift).map(|h| h.epoch))
+            .map(f)
+    }
+
+    /// The lift's connection now: a number that changes when its gateway reconnects, here or
+    /// on another process of the cluster.
+    pub fn connection(&self, lift: &str) -> Option<u64> {
+        self.here(lift, |l| l.serial)
+            .or_else(|| self.elsewhere(lift).map(|h| h.epoch))
     }
 
     /// Whether the lift's gateway is connected (here or to another process of the cluster).
     pub fn online(&self, lift: &str) -> bool {
-        self.live
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .contains_key(lift)
-            || self.elsewhere(lift).is_some()
+        self.here(lift, |_| ()).is_some() || self.elsewhere(lift).is_some()
     }
 
     /// Whether `lift` is connected now as a lift of `domain`.
     pub fn serves(&self, domain: &str, lift: &str) -> bool {
-        let local = self
-            .live
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .get(lift)
-            .map(|live| live.domain == domain);
-        local.unwrap_or_else(|| self.elsewhere(lift).is_some_and(|h| h.domain == domain))
+        self.here(lift, |live| live.domain == domain)
+            .unwrap_or_else(|| self.elsewhere(lift).is_some_and(|h| h.domain == domain))
     }
 
     /// How many gateways are connected to this process.
@@ -207,25 +202,14 @@ impl Registry {
 
     /// The serial number of a connected gateway (sent with puts and elevations).
     pub fn sernum(&self, lift: &str) -> Option<String> {
-        let local = self
-            .live
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .get(lift)
-            .map(|l| l.sernum.clone());
-        local.or_else(|| self.elsewhere(lift).map(|h| h.sernum))
+        self.here(lift, |l| l.sernum.clone())
+            .or_else(|| self.elsewhere(lift).map(|h| h.sernum))
     }
 
     /// The condition of a connected lift (`None`: offline). Of a lift held by another
     /// process, the error register and lift state its holder last wrote, without the time.
     pub fn status(&self, lift: &str) -> Option<LiftStatus> {
-        let local = self
-            .live
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .get(lift)
-            .map(|l| l.status);
-        local.or_else(|| {
+        self.here(lift, |l| l.status).or_else(|| {
             self.elsewhere(lift).map(|h| LiftStatus {
                 error_register: h.error_register,
                 lift_state: h.lift_state,
@@ -304,11 +288,7 @@ impl Registry {
         method: Method,
         params: Option<Box<RawValue>>,
     ) -> Result<String, Failure> {
-        let here = self
-            .live
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .contains_key(lift);
+        let here = self.here(lift, |_| ()).is_some();
         match self.cluster.get() {
             Some(cluster) if !here => cluster.request(lift, method, params).await,
             _ => self.send_local(lift, method, params).await,
@@ -322,13 +302,7 @@ impl Registry {
         method: Method,
         params: Option<Box<RawValue>>,
     ) -> Result<String, Failure> {
-        let calls = self
-            .live
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .get(lift)
-            .map(|l| l.calls.clone())
-            .ok_or(Failure::Gone)?;
+        let calls = self.here(lift, |l| l.calls.clone()).ok_or(Failure::Gone)?;
         let (reply, answer) = oneshot::channel();
         // Boxed: the channel's first block of slots is allocated with it, for every idle
         // gateway, and a pointer is a fraction of a call.
