@@ -17,7 +17,8 @@ use tokio::process::Child;
 use tokio_tungstenite::tungstenite::Message;
 
 mod common;
-use common::{daemon, free_port, kill, PortalProcess};
+use common::{daemon, kill, PortalProcess};
+use testkit::free_port;
 
 /// Kill rounds of the token test (the figure).
 const TOKEN_ROUNDS: u32 = 200;

@@ -6,6 +6,7 @@ use std::time::Duration;
 
 use serde_json::{json, Value};
 use testkit::constants::WAIT;
+use testkit::free_port;
 use testkit::portal::Rig;
 use testkit::script::Script;
 
@@ -33,14 +34,6 @@ async fn until(rig: &Rig, path: &str, check: impl Fn(&Value) -> bool) -> Value {
         );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
-}
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
 }
 
 fn alarms_of(body: &Value) -> Vec<Value> {

@@ -21,11 +21,7 @@ struct Driver {
 }
 
 async fn chromedriver(path: &std::path::Path) -> Driver {
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
+    let port = testkit::free_port();
     let child = tokio::process::Command::new(path)
         .arg(format!("--port={port}"))
         .arg("--allowed-ips=127.0.0.1")

@@ -125,6 +125,14 @@ pub fn browser() -> Option<(PathBuf, PathBuf)> {
     }
 }
 
+/// A free TCP port on 127.0.0.1 (for a server a test starts as a separate process).
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("a loopback port")
+        .port()
+}
+
 /// A scratch directory, removed when dropped.
 pub fn scratch() -> tempfile::TempDir {
     tempfile::Builder::new()

@@ -32,10 +32,7 @@ impl Nats {
             skip(reason);
             return None;
         }
-        let port = std::net::TcpListener::bind("127.0.0.1:0")
-            .and_then(|l| l.local_addr())
-            .expect("a loopback port")
-            .port();
+        let port = crate::free_port();
         let mut nats = Nats {
             port,
             store: crate::scratch(),

@@ -71,10 +71,7 @@ impl Server {
                 "the postgres user owns the cluster directory"
             );
         }
-        let port = std::net::TcpListener::bind("127.0.0.1:0")
-            .and_then(|l| l.local_addr())
-            .expect("a loopback port")
-            .port();
+        let port = crate::free_port();
         let mut server = Server {
             bin,
             data,

@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context};
 
 use super::bench_gateway::{memory_kib, percentile, Daemon};
-use super::bench_portal::{bench_config, PortalProcess};
+use super::bench_portal::{bench_config, free_port, PortalProcess};
 
 /// Arguments of `canlift bench cluster`.
 #[derive(Debug, Clone, clap::Args)]
@@ -60,9 +60,7 @@ struct Nats {
 
 impl Nats {
     async fn start(binary: &Path, dir: &Path) -> anyhow::Result<Nats> {
-        let port = std::net::TcpListener::bind("127.0.0.1:0")?
-            .local_addr()?
-            .port();
+        let port = free_port()?;
         let child = tokio::process::Command::new(binary)
             .args(["-js", "-a", "127.0.0.1", "-p", &port.to_string(), "-sd"])
             .arg(dir)
@@ -100,27 +98,15 @@ struct Portals {
 }
 
 impl Portals {
-    /// The sum of a metric over all processes.
-    async fn sum(&self, name: &str) -> anyhow::Result<f64> {
-        let mut sum = 0.0;
-        for p in &self.processes {
-            sum += p.metric(name).await?;
-        }
-        Ok(sum)
-    }
-
     /// The lifts held in all, and whether they are `n` and each process knows all `n`.
     async fn count(&self, n: usize) -> anyhow::Result<(usize, bool)> {
-        let held = self.sum("canlift_cluster_lifts_held").await? as usize;
-        let mut everywhere = held == n;
-        if everywhere {
-            for p in &self.processes {
-                let known = p.metric("canlift_cluster_lifts_held").await?
-                    + p.metric("canlift_cluster_lifts_elsewhere").await?;
-                everywhere &= known as usize == n;
-            }
+        let (mut held, mut known) = (0, Vec::with_capacity(self.processes.len()));
+        for p in &self.processes {
+            let here = p.metric("canlift_cluster_lifts_held").await? as usize;
+            held += here;
+            known.push(here + p.metric("canlift_cluster_lifts_elsewhere").await? as usize);
         }
-        Ok((held, everywhere))
+        Ok((held, held == n && known.iter().all(|&k| k == n)))
     }
 
     /// Wait until the processes hold `n` lifts together and each knows the others'; how long.
@@ -301,7 +287,7 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
             state.into(),
         ];
         let argv: Vec<&std::ffi::OsStr> = argv.iter().map(|a| a.as_os_str()).collect();
-        loadgens.push(Daemon::spawn(&exe, &argv)?);
+        loadgens.push(Daemon::spawn(&exe, &argv, std::process::Stdio::null())?);
     }
     let limit = Duration::from_secs(1800);
     let online = portals.all_held(args.gateways, begin, limit).await?;

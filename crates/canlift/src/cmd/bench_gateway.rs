@@ -383,16 +383,22 @@ pub(crate) struct Daemon {
 }
 
 impl Daemon {
-    /// `exe COMMAND --config CONFIG`.
+    /// `exe COMMAND --config CONFIG`, its warnings on the benchmark's standard error.
     pub(crate) fn start(exe: &Path, command: &str, config: &Path) -> anyhow::Result<Daemon> {
         Daemon::spawn(
             exe,
             &[command.as_ref(), "--config".as_ref(), config.as_os_str()],
+            Stdio::inherit(),
         )
     }
 
-    /// `exe ARGS…`.
-    pub(crate) fn spawn(exe: &Path, args: &[&std::ffi::OsStr]) -> anyhow::Result<Daemon> {
+    /// `exe ARGS…` with its standard error to `stderr` (a load generator's thousands of
+    /// gateways would each log a reconnect: `Stdio::null()`).
+    pub(crate) fn spawn(
+        exe: &Path,
+        args: &[&std::ffi::OsStr],
+        stderr: Stdio,
+    ) -> anyhow::Result<Daemon> {
         let command = args
             .first()
             .map_or_else(Default::default, |c| c.to_string_lossy());
@@ -400,12 +406,7 @@ impl Daemon {
             .args(args)
             .env("RUST_LOG", "warn")
             .stdout(Stdio::null())
-            // A load generator's thousands of gateways would each log a reconnect.
-            .stderr(if command == "loadgen" {
-                Stdio::null()
-            } else {
-                Stdio::inherit()
-            })
+            .stderr(stderr)
             .kill_on_drop(true)
             .spawn()?;
         let pid = child.id().with_context(|| format!("{command} process"))?;
@@ -500,6 +501,7 @@ async fn cpu_per_request(
                     "--state".as_ref(),
                     state.as_os_str(),
                 ],
+                Stdio::null(),
             )?
         } else {
             let config = config(&url, pki, bus, &dir.join("cpu-bus"));

@@ -72,6 +72,13 @@ enum Phase {
     Latency,
 }
 
+/// A free TCP port on 127.0.0.1, for a server the benchmark starts as a process.
+pub(crate) fn free_port() -> anyhow::Result<u16> {
+    Ok(std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port())
+}
+
 /// A portal process (`canlift cloud`) of a benchmark.
 pub(crate) struct PortalProcess {
     pub(crate) daemon: Daemon,
@@ -84,9 +91,7 @@ pub(crate) struct PortalProcess {
 /// every change pushed (no inhibit: ingest is limited by the portal, not by the gateways' rate
 /// limiting) and no request limit per key (the latency figures read as fast as it answers).
 pub(crate) fn bench_config(dir: &Path, database: &str) -> anyhow::Result<cloud::config::Config> {
-    let port = std::net::TcpListener::bind("127.0.0.1:0")?
-        .local_addr()?
-        .port();
+    let port = free_port()?;
     let mut config = cloud::config::Config::default();
     config.server.listen = ([127, 0, 0, 1], port).into();
     config.state.dir = dir.join("portal");

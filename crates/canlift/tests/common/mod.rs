@@ -116,13 +116,6 @@ pub async fn kill(child: &mut Child) {
         .expect("a killed process ends");
 }
 
-pub fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .expect("a loopback port")
-        .port()
-}
-
 #[cfg(feature = "portal")]
 mod portal;
 // Not every test that includes these helpers starts a portal.

@@ -6,7 +6,9 @@ use std::time::Duration;
 use tokio::net::TcpStream;
 use tokio::process::Child;
 
-use super::{daemon, free_port, kill, run, stderr};
+use testkit::free_port;
+
+use super::{daemon, kill, run, stderr};
 
 /// A portal process (`canlift cloud`) with its state in a directory of its own, SQLite by
 /// default, on a fixed port so it can be killed and started again where its gateways look.
