@@ -215,6 +215,16 @@ async fn every_lift_is_served_by_every_process() {
         let (status, answer) = cluster.call(index, "PUT", &path, Some(lantern)).await;
         assert_eq!(status, 200, "a privileged write through p{index}: {answer}");
     }
+    // A watcher on p0 holds the hall lantern options: its terms follow the lift to every
+    // process that holds it later.
+    let mut lantern_watch = cluster.portals[0]
+        .client(&cluster.key)
+        .events(&format!(
+            "/api/v1/lifts/{LIFT}/events?mplex=hall%20lantern%20options"
+        ))
+        .await
+        .expect("connected")
+        .expect("an event stream");
     // Watched through p1, subscribed through p2: the value the gateway pushes arrives.
     let client = cluster.portals[1].client(&cluster.key);
     let mut stream = client
@@ -286,6 +296,39 @@ async fn every_lift_is_served_by_every_process() {
         let (status, answer) = cluster.read(index).await;
         assert_eq!(status, 200, "through p{index} after the kill: {answer}");
     }
+    // Two moves later, p2 registered the subscription made through p2 while p0 held the
+    // lift (from the database), and p0's watcher handed its objects to p1, then to p2: both
+    // objects' new values reach p0's stream.
+    let put = json!({"value": "5", "datatype": 7, "physunit": 0});
+    let path = format!("/api/v1/lifts/{LIFT}/objects/0x502200");
+    let (status, answer) = cluster.call(0, "PUT", &path, Some(put)).await;
+    assert_eq!(status, 200, "{answer}");
+    let elevate = json!({"privilege": 1, "password": SERVICE_PASSWORD});
+    let (status, granted) = cluster.call(0, "POST", &privilege, Some(elevate)).await;
+    assert_eq!(status, 200, "{granted}");
+    let lantern = json!({"value": "2", "datatype": 5, "physunit": 0});
+    let path = format!("/api/v1/lifts/{LIFT}/objects?name=hall%20lantern%20options");
+    let (status, answer) = cluster.call(0, "PUT", &path, Some(lantern)).await;
+    assert_eq!(status, 200, "{answer}");
+    let (mut subscribed, mut watched) = (false, false);
+    tokio::time::timeout(LIMIT, async {
+        while !(subscribed && watched) {
+            let Some(Ok((name, data))) = lantern_watch.next().await else {
+                panic!("the stream ended");
+            };
+            if name != "value" {
+                continue;
+            }
+            subscribed |= data.contains("0x502200") && data.contains("\"value\":\"5\"");
+            watched |= data.contains("0x4112") && data.contains("\"value\":\"2\"");
+        }
+    })
+    .await
+    .unwrap_or_else(|_| {
+        panic!(
+            "pushed after two moves: the user's subscription {subscribed}, the watcher's {watched}"
+        )
+    });
     cluster.stop().await;
 }
 

@@ -138,8 +138,12 @@ impl Portal {
         let dashboard = Arc::new(config.dashboard.dashboard().map_err(ServerError::Other)?);
         let subscriptions = Arc::new(gateways::subscriptions::Subscriptions::new(
             registry.clone(),
+            store.clone(),
             &dashboard,
         ));
+        if let Some(cluster) = registry.cluster() {
+            cluster.serve_subscriptions(&subscriptions);
+        }
         let (telemetry, telemetry_rx) = mpsc::channel(config.database.telemetry_queue.max(1));
         let counters = Arc::new(gateways::TelemetryCounters::default());
         tasks.extend([

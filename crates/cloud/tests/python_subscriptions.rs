@@ -2,7 +2,8 @@
 //! gateway written with Python `websockets` that reports every `reg_canopen_object` and
 //! `unreg_canopen_object` the portal sends: the gateway always has the union of what the
 //! dashboard, an account and a live watcher hold — the smallest inhibit and threshold — one
-//! holder letting go never ends another's pushes, and a reconnect registers everything again.
+//! holder letting go never ends another's pushes, and a reconnect registers everything again —
+//! the account's subscriptions also after the portal restarted.
 
 use std::time::Duration;
 
@@ -46,7 +47,7 @@ async fn the_gateway_has_the_union_of_what_everyone_holds() {
     let Some(python) = testkit::python() else {
         return;
     };
-    let rig = Rig::builder()
+    let mut rig = Rig::builder()
         .without_lift()
         .portal(|c| {
             c.dashboard.live = vec!["0x652001".into(), "0x100100".into()];
@@ -78,18 +79,14 @@ async fn the_gateway_has_the_union_of_what_everyone_holds() {
     // An account holds it more coarsely (nothing changes at the gateway) and the speed.
     let subscriptions = format!("/api/v1/lifts/{LIFT}/subscriptions");
     let hold = |body| rig.call("POST", &subscriptions, Some(&rig.key), Some(body));
+    let speed = json!({"mplex": ["0x638301"], "inhibit": 1000, "threshold": 2.0});
     assert_eq!(
         hold(json!({"mplex": ["0x652001"], "inhibit": 1000}))
             .await
             .0,
         200
     );
-    assert_eq!(
-        hold(json!({"mplex": ["0x638301"], "inhibit": 1000, "threshold": 2.0}))
-            .await
-            .0,
-        200
-    );
+    assert_eq!(hold(speed.clone()).await.0, 200);
     expected.push("REG 1000 2.0 0x638301");
     registrations(&gateway, &expected).await;
 
@@ -139,6 +136,19 @@ async fn the_gateway_has_the_union_of_what_everyone_holds() {
             .0,
         400
     );
+    registrations(&gateway, &expected).await;
+
+    // The account's subscriptions outlive the portal: after a restart the gateway's new
+    // connection gets them from the database (a watcher's ended with its stream).
+    assert_eq!(hold(speed.clone()).await.0, 200);
+    expected.push("REG 1000 2.0 0x638301");
+    registrations(&gateway, &expected).await;
+    gateway.say("CLOSE").await;
+    gateway.wait_for("CLOSED", 2, WAIT).await;
+    rig.restart_portal().await;
+    gateway.say("CONNECT").await;
+    gateway.wait_for("CONNACK", 3, WAIT).await;
+    expected.extend(["REG 500 0.0 0x100100,0x652001", "REG 1000 2.0 0x638301"]);
     registrations(&gateway, &expected).await;
     rig.stop().await;
 }

@@ -569,8 +569,14 @@ async fn subscriptions(
 ) -> Result<Json<Done>, ApiError> {
     let operator = lift_of(&app, caller, &id, Role::Technician).await?;
     let objects = objects(&app.names, &body.mplex)?;
-    let holder = Holder::User(operator.user);
+    let listed: Vec<String> = objects.iter().map(ToString::to_string).collect();
+    let holder = Holder::User(operator.user.clone());
+    // Recorded for the gateway's next connection, to whichever process (docs/PORTAL.md
+    // §Subscriptions): released whatever the gateway answers, held once it took them.
     if method == Method::DELETE {
+        app.store
+            .release_objects(&id, &operator.user, &listed)
+            .await?;
         app.subscriptions
             .release(&id, &holder, Some(&objects))
             .await?;
@@ -578,6 +584,9 @@ async fn subscriptions(
         let terms = terms(body.inhibit, body.threshold)?;
         app.subscriptions
             .hold(&id, &holder, &objects, terms, WhenOffline::Refuse)
+            .await?;
+        app.store
+            .hold_objects(&id, &operator.user, &listed, terms.inhibit, terms.threshold)
             .await?;
     }
     Ok(Json(Done::OK))

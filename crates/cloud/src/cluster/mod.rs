@@ -18,11 +18,15 @@ use async_nats::jetstream::{self, kv};
 use futures_util::StreamExt;
 use nxg::msg::Method;
 use nxg::portal::Failure;
-use serde_json::value::RawValue;
 use tokio::sync::{broadcast, mpsc, oneshot, watch, Notify};
 
+use crate::gateways::subscriptions::{Subscriptions, Terms};
 use crate::gateways::{LiftEvent, Registry};
-use msgs::{Holding, RelayedAnswer, RelayedCall};
+use msgs::{Holding, Relayed, RelayedAnswer};
+
+/// The result of a relayed hold or release the holder made (a JSON `null` would read back as
+/// no result at all).
+const DONE: &str = "true";
 
 /// Live events waiting to be published; beyond this they are dropped and counted.
 const EVENT_QUEUE: usize = 65_536;
@@ -70,6 +74,8 @@ pub struct Cluster {
     /// again (a NATS server that restarted has none).
     generation: watch::Sender<u64>,
     events: mpsc::Sender<(String, Vec<u8>)>,
+    /// Who holds which subscriptions here: told when a lift moves, asked by other processes.
+    subscriptions: std::sync::OnceLock<Weak<Subscriptions>>,
     /// Counted for `/metrics`.
     pub counters: ClusterCounters,
 }
@@ -134,6 +140,7 @@ impl Cluster {
             nats_changed,
             generation: watch::channel(0).0,
             events,
+            subscriptions: std::sync::OnceLock::new(),
             counters: ClusterCounters::default(),
         });
         Ok((cluster, events_rx))
@@ -180,6 +187,16 @@ impl Cluster {
     }
 
     /// Wait until NATS's connection state may have changed (at most half a second).
+    /// The subscriptions of this process: the holder keeps other processes' watchers' terms
+    /// in them, and each process hands its watchers' terms to a lift's new holder.
+    pub fn serve_subscriptions(&self, subscriptions: &Arc<Subscriptions>) {
+        let _ = self.subscriptions.set(Arc::downgrade(subscriptions));
+    }
+
+    fn subscriptions(&self) -> Option<Arc<Subscriptions>> {
+        self.subscriptions.get().and_then(Weak::upgrade)
+    }
+
     async fn nats_event(&self) {
         let _ =
             tokio::time::timeout(Duration::from_millis(500), self.nats_changed.notified()).await;
@@ -293,7 +310,14 @@ impl Cluster {
         let written = Instant::now()
             .checked_sub(Duration::try_from(age).unwrap_or_default())
             .unwrap_or_else(Instant::now);
-        lock(&self.known).insert(lift, Known { holding, written });
+        let connection = (holding.node.clone(), holding.epoch);
+        let before = lock(&self.known).insert(lift.clone(), Known { holding, written });
+        // A new connection (not a refresh): the watchers here ask its holder for their objects.
+        if before.is_none_or(|k| (k.holding.node, k.holding.epoch) != connection) {
+            if let Some(subscriptions) = self.subscriptions() {
+                subscriptions.moved(&lift);
+            }
+        }
     }
 
     /// A connection of `lift` was admitted here: claim the lift in the bucket and answer its
@@ -420,36 +444,22 @@ impl Cluster {
         }
     }
 
-    /// Send an operator request to the process holding `lift`, and wait for its answer: no
-    /// holder (or no NATS) is [`Failure::Gone`] (503), no answer in time [`Failure::Timeout`].
-    pub(crate) async fn request(
-        &self,
-        lift: &str,
-        method: Method,
-        params: Option<Box<RawValue>>,
-    ) -> Result<String, Failure> {
+    /// Send a request to the process holding `lift`, and wait for its answer: no holder (or
+    /// no NATS) is [`Failure::Gone`] (503), no answer in time [`Failure::Timeout`].
+    pub(crate) async fn request(&self, lift: &str, relayed: &Relayed) -> Result<String, Failure> {
         self.counters.relayed.fetch_add(1, Ordering::Relaxed);
-        let outcome = self.relay(lift, method, params).await;
+        let outcome = self.relay(lift, relayed).await;
         if matches!(outcome, Err(Failure::Gone | Failure::Timeout)) {
             self.counters.relay_failed.fetch_add(1, Ordering::Relaxed);
         }
         outcome
     }
 
-    async fn relay(
-        &self,
-        lift: &str,
-        method: Method,
-        params: Option<Box<RawValue>>,
-    ) -> Result<String, Failure> {
+    async fn relay(&self, lift: &str, relayed: &Relayed) -> Result<String, Failure> {
         if !self.connected() {
             return Err(Failure::Gone);
         }
-        let call = RelayedCall {
-            method: method.name().into(),
-            params,
-        };
-        let payload = serde_json::to_vec(&call).map_err(|e| Failure::Invalid(e.to_string()))?;
+        let payload = serde_json::to_vec(relayed).map_err(|e| Failure::Invalid(e.to_string()))?;
         let request = async_nats::Request::new()
             .payload(payload.into())
             .timeout(Some(self.request_timeout));
@@ -592,10 +602,36 @@ async fn answer(
         return;
     };
     cluster.counters.served.fetch_add(1, Ordering::Relaxed);
-    let outcome = match serde_json::from_slice::<RelayedCall>(&message.payload) {
-        Ok(call) => match Method::from_name(&call.method) {
+    let outcome = match serde_json::from_slice::<Relayed>(&message.payload) {
+        Ok(Relayed::Call(call)) => match Method::from_name(&call.method) {
             Some(method) => registry.send_local(&lift, method, call.params).await,
             None => Err(Failure::Invalid(format!("no method {:?}", call.method))),
+        },
+        Ok(Relayed::Hold(hold)) => match cluster.subscriptions() {
+            Some(subscriptions) => {
+                let objects: Vec<_> = hold.mplex.iter().map(|m| m.mplex).collect();
+                let terms = Terms {
+                    inhibit: hold.inhibit,
+                    threshold: hold.threshold,
+                };
+                subscriptions
+                    .hold_here(&lift, &hold.holder, &objects, terms)
+                    .await
+                    .map(|()| DONE.to_owned())
+            }
+            None => Err(Failure::Gone),
+        },
+        Ok(Relayed::Release(release)) => match cluster.subscriptions() {
+            Some(subscriptions) => {
+                let objects: Option<Vec<_>> = release
+                    .mplex
+                    .map(|list| list.iter().map(|m| m.mplex).collect());
+                subscriptions
+                    .release_here(&lift, &release.holder, objects.as_deref())
+                    .await
+                    .map(|()| DONE.to_owned())
+            }
+            None => Err(Failure::Gone),
         },
         Err(e) => Err(Failure::Invalid(e.to_string())),
     };

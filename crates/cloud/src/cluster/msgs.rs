@@ -2,10 +2,12 @@
 //! entry of a lift in the KV bucket, an operator request relayed to the holder and its
 //! answer, and the names of keys and subjects.
 
-use nxg::msg::ErrorObject;
+use nxg::msg::{ErrorObject, MplexText};
 use nxg::portal::Failure;
 use serde::{Deserialize, Serialize};
 use serde_json::value::RawValue;
+
+use crate::gateways::subscriptions::Holder;
 
 /// The KV bucket of holder entries.
 pub const BUCKET: &str = "canlift-lifts";
@@ -42,7 +44,22 @@ impl Holding {
     }
 }
 
-/// An operator request for a lift, relayed to its holder on [`rpc_subject`].
+/// What another process asks of a lift's holder on [`rpc_subject`]. Externally tagged
+/// (`{"call": …}`): a call's raw parameters pass through untouched, which serde's buffering of
+/// internally tagged enums would not allow.
+#[derive(Debug, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Relayed {
+    /// An operator request for the gateway.
+    Call(RelayedCall),
+    /// A holder there asks for subscriptions (docs/PORTAL.md §Subscriptions): the lift's
+    /// holder keeps every holder's terms and registers the union with the gateway.
+    Hold(RelayedHold),
+    /// A holder there lets go of subscriptions.
+    Release(RelayedRelease),
+}
+
+/// An operator request for a lift, relayed to its holder.
 #[derive(Debug, Serialize, Deserialize)]
 pub struct RelayedCall {
     /// The method's name on the wire (`get_canopen_object`).
@@ -50,6 +67,29 @@ pub struct RelayedCall {
     /// Its parameters.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub params: Option<Box<RawValue>>,
+}
+
+/// [`Relayed::Hold`]: `holder` asks for `mplex` with these terms.
+#[derive(Debug, Serialize, Deserialize)]
+pub struct RelayedHold {
+    /// Who asks.
+    pub holder: Holder,
+    /// The objects.
+    pub mplex: Vec<MplexText>,
+    /// Minimum gap between two pushes (ms).
+    pub inhibit: u64,
+    /// Smallest change of a number that is pushed.
+    pub threshold: f64,
+}
+
+/// [`Relayed::Release`]: `holder` lets go of `mplex` (of all it holds when absent).
+#[derive(Debug, Serialize, Deserialize)]
+pub struct RelayedRelease {
+    /// Who lets go.
+    pub holder: Holder,
+    /// The objects.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mplex: Option<Vec<MplexText>>,
 }
 
 /// The holder's answer to a [`RelayedCall`]: what the gateway answered, or the same failure a
@@ -190,6 +230,43 @@ mod tests {
             prop_assert!(t.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_'));
             prop_assert_eq!(lift_of(&t), Some(lift));
         }
+    }
+
+    /// A call's raw parameters pass through byte for byte; holds and releases name their
+    /// holder and objects.
+    #[test]
+    fn relayed_requests_round_trip() {
+        let params = RawValue::from_string("{\"mplex\": \"0x652001\"}".into()).unwrap();
+        let call = Relayed::Call(RelayedCall {
+            method: "get_canopen_object".into(),
+            params: Some(params),
+        });
+        let wire = serde_json::to_string(&call).unwrap();
+        let Relayed::Call(back) = serde_json::from_str(&wire).unwrap() else {
+            panic!("{wire}");
+        };
+        assert_eq!(back.params.unwrap().get(), "{\"mplex\": \"0x652001\"}");
+        let hold = Relayed::Hold(RelayedHold {
+            holder: Holder::Watcher(7 << 32 | 1),
+            mplex: vec![nxg::mplex::Mplex {
+                index: 0x6520,
+                sub: 1,
+            }
+            .into()],
+            inhibit: 100,
+            threshold: 0.5,
+        });
+        let wire = serde_json::to_string(&hold).unwrap();
+        assert_eq!(
+            wire,
+            "{\"hold\":{\"holder\":{\"watcher\":30064771073},\"mplex\":[\"0x652001\"],\"inhibit\":100,\"threshold\":0.5}}"
+        );
+        let release = r#"{"release":{"holder":{"user":"masora"}}}"#;
+        let Relayed::Release(back) = serde_json::from_str(release).unwrap() else {
+            panic!("{release}");
+        };
+        assert_eq!(back.holder, Holder::User("masora".into()));
+        assert!(back.mplex.is_none());
     }
 
     #[test]

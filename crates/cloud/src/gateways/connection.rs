@@ -290,6 +290,7 @@ impl Connection {
         let (store, lift) = (self.shared.store.clone(), a.lift.clone());
         tokio::spawn(async move { store.seen(&lift).await });
         if self.shared.registry.unregister(&a.lift, a.serial) {
+            self.shared.subscriptions.offline(&a.lift).await;
             self.shared
                 .registry
                 .publish(&a.lift, LiftEvent::Online(false));

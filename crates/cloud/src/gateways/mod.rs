@@ -174,6 +174,11 @@ impl Registry {
             .map(f)
     }
 
+    /// Whether the lift's gateway is connected to this process.
+    pub(crate) fn connected_here(&self, lift: &str) -> bool {
+        self.here(lift, |_| ()).is_some()
+    }
+
     /// The lift's connection now: a number that changes when its gateway reconnects, here or
     /// on another process of the cluster.
     pub fn connection(&self, lift: &str) -> Option<u64> {
@@ -290,7 +295,15 @@ impl Registry {
     ) -> Result<String, Failure> {
         let here = self.here(lift, |_| ()).is_some();
         match self.cluster.get() {
-            Some(cluster) if !here => cluster.request(lift, method, params).await,
+            Some(cluster) if !here => {
+                let call = crate::cluster::msgs::RelayedCall {
+                    method: method.name().into(),
+                    params,
+                };
+                cluster
+                    .request(lift, &crate::cluster::msgs::Relayed::Call(call))
+                    .await
+            }
             _ => self.send_local(lift, method, params).await,
         }
     }

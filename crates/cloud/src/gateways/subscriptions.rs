@@ -10,6 +10,12 @@
 //!
 //! The dashboard's objects are the same on every lift: they are the [`Base`] of each lift's
 //! [`Holders`] rather than an entry per lift, so an idle lift costs nothing here.
+//!
+//! Users' subscriptions are in the database (the API writes them): the process the gateway
+//! connects to — after a portal restart, or another process of a cluster — reads them at
+//! CONNACK. In a cluster (docs/CLUSTER.md §Subscriptions) the lift's holder keeps the terms of
+//! every holder on any process and registers the union; another process relays its holders'
+//! requests there and hands its own watchers' terms to each new holder of the lift.
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -18,17 +24,23 @@ use std::sync::{Arc, Mutex, PoisonError};
 use nxg::mplex::Mplex;
 use nxg::msg::{RegParams, UnregParams};
 use nxg::portal::Failure;
+use serde::{Deserialize, Serialize};
 
 use super::Registry;
+use crate::cluster::msgs::{Relayed, RelayedHold, RelayedRelease};
+use crate::cluster::Cluster;
 use crate::config::Dashboard;
+use crate::store::Store;
 
 /// Who holds a subscription.
-#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord, Hash)]
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
 pub enum Holder {
     /// A user (or an account's own key), through `POST /api/v1/lifts/{id}/subscriptions`
     /// (until its `DELETE`).
     User(String),
-    /// One live event stream that asked for objects (until the stream ends).
+    /// One live event stream that asked for objects (until the stream ends). The upper 32
+    /// bits are its process's, drawn at random when it starts: unique across a cluster.
     Watcher(u64),
 }
 
@@ -129,6 +141,32 @@ impl Holders {
         self.objects.is_empty()
     }
 
+    /// Forget every holder `keep` says no to, without any change at the gateway (for a lift
+    /// whose connection here ended, or that moved to another process).
+    pub fn retain(&mut self, keep: impl Fn(&Holder) -> bool) {
+        self.objects.retain(|_, holders| {
+            holders.retain(|holder, _| keep(holder));
+            !holders.is_empty()
+        });
+    }
+
+    /// What each holder asks for, grouped by terms: one request per holder and terms.
+    pub fn requests(&self) -> Vec<(Holder, Terms, Vec<Mplex>)> {
+        let mut requests: Vec<(Holder, Terms, Vec<Mplex>)> = Vec::new();
+        for (mplex, holders) in &self.objects {
+            for (holder, terms) in holders {
+                match requests
+                    .iter_mut()
+                    .find(|(h, t, _)| h == holder && t == terms)
+                {
+                    Some((_, _, list)) => list.push(*mplex),
+                    None => requests.push((holder.clone(), *terms, vec![*mplex])),
+                }
+            }
+        }
+        requests
+    }
+
     /// The terms registered for `mplex` (the union of its holders'), if anyone holds it.
     fn union(&self, base: &Base, mplex: &Mplex) -> Option<Terms> {
         let held = self.objects.get(mplex).into_iter().flat_map(|h| h.values());
@@ -177,8 +215,11 @@ impl Holders {
 /// not kept.
 pub struct Subscriptions {
     registry: Arc<Registry>,
+    store: Store,
     base: Base,
     lifts: Mutex<HashMap<String, Arc<tokio::sync::Mutex<Holders>>>>,
+    /// This process's part of its watchers' ids (the upper 32 bits).
+    process: u64,
     watchers: AtomicU64,
 }
 
@@ -193,23 +234,40 @@ pub enum WhenOffline {
 }
 
 impl Subscriptions {
-    /// No one holds anything yet; every lift holds the dashboard's objects.
-    pub fn new(registry: Arc<Registry>, dashboard: &Dashboard) -> Subscriptions {
+    /// No one holds anything yet; every lift holds the dashboard's objects, and the users'
+    /// subscriptions in `store` once its gateway connects.
+    pub fn new(registry: Arc<Registry>, store: Store, dashboard: &Dashboard) -> Subscriptions {
         let terms = Terms {
             inhibit: dashboard.inhibit_ms,
             threshold: 0.0,
         };
         Subscriptions {
             registry,
+            store,
             base: dashboard.live.iter().map(|m| (*m, terms)).collect(),
             lifts: Mutex::default(),
+            process: u64::from(rand::random::<u32>()) << 32,
             watchers: AtomicU64::new(1),
         }
     }
 
     /// A holder for a new live watcher.
     pub fn watcher(&self) -> Holder {
-        Holder::Watcher(self.watchers.fetch_add(1, Ordering::Relaxed))
+        let serial = self.watchers.fetch_add(1, Ordering::Relaxed) & u64::from(u32::MAX);
+        Holder::Watcher(self.process | serial)
+    }
+
+    /// Whether `holder` is a watcher of this process (its terms stay here when the lift's
+    /// connection ends or moves; users' are in the database, other processes' with them).
+    fn own(&self, holder: &Holder) -> bool {
+        matches!(holder, Holder::Watcher(id) if id & !u64::from(u32::MAX) == self.process)
+    }
+
+    /// The cluster, when `lift` is not connected here (its holder, if any, is elsewhere).
+    fn elsewhere(&self, lift: &str) -> Option<&Arc<Cluster>> {
+        self.registry
+            .cluster()
+            .filter(|_| !self.registry.connected_here(lift))
     }
 
     fn holders(&self, lift: &str) -> Arc<tokio::sync::Mutex<Holders>> {
@@ -219,7 +277,50 @@ impl Subscriptions {
 
     /// `holder` asks for `objects` of `lift` with `terms`. Kept when the gateway took the
     /// change (or it is offline and `offline` says keep); otherwise the gateway's failure.
+    /// For a lift held by another process of the cluster, the request goes to its holder.
     pub async fn hold(
+        &self,
+        lift: &str,
+        holder: &Holder,
+        objects: &[Mplex],
+        terms: Terms,
+        offline: WhenOffline,
+    ) -> Result<(), Failure> {
+        let Some(cluster) = self.elsewhere(lift) else {
+            return self.hold_local(lift, holder, objects, terms, offline).await;
+        };
+        match cluster
+            .request(lift, &hold_request(holder.clone(), objects, terms))
+            .await
+        {
+            Ok(_) => {}
+            Err(Failure::Gone) if offline == WhenOffline::Keep => {}
+            Err(failure) => return Err(failure),
+        }
+        if self.own(holder) {
+            // Kept here as well: handed to the lift's next holder.
+            let cell = self.holders(lift);
+            cell.lock().await.add(&self.base, holder, objects, terms);
+        }
+        Ok(())
+    }
+
+    /// [`Subscriptions::hold`] asked by another process of the cluster of the lift held here.
+    pub(crate) async fn hold_here(
+        &self,
+        lift: &str,
+        holder: &Holder,
+        objects: &[Mplex],
+        terms: Terms,
+    ) -> Result<(), Failure> {
+        if !self.registry.connected_here(lift) {
+            return Err(Failure::Gone);
+        }
+        self.hold_local(lift, holder, objects, terms, WhenOffline::Refuse)
+            .await
+    }
+
+    async fn hold_local(
         &self,
         lift: &str,
         holder: &Holder,
@@ -245,8 +346,48 @@ impl Subscriptions {
 
     /// `holder` lets go of `objects` of `lift` (all of its own when `None`). The portal forgets
     /// them whatever the gateway answers (an offline gateway is told by the next connection's
-    /// registrations); the gateway's failure is returned.
+    /// registrations); the gateway's failure is returned. For a lift held by another process
+    /// of the cluster, its holder is told.
     pub async fn release(
+        &self,
+        lift: &str,
+        holder: &Holder,
+        objects: Option<&[Mplex]>,
+    ) -> Result<(), Failure> {
+        let Some(cluster) = self.elsewhere(lift) else {
+            return self.release_local(lift, holder, objects).await;
+        };
+        {
+            let cell = self.holders(lift);
+            let mut holders = cell.lock().await;
+            holders.remove(&self.base, holder, objects);
+            self.forget_if_empty(lift, &cell, &holders);
+        }
+        let request = Relayed::Release(RelayedRelease {
+            holder: holder.clone(),
+            mplex: objects.map(|list| list.iter().map(|m| (*m).into()).collect()),
+        });
+        match cluster.request(lift, &request).await {
+            Ok(_) | Err(Failure::Gone) => Ok(()),
+            Err(failure) => Err(failure),
+        }
+    }
+
+    /// [`Subscriptions::release`] asked by another process of the cluster of the lift held
+    /// here.
+    pub(crate) async fn release_here(
+        &self,
+        lift: &str,
+        holder: &Holder,
+        objects: Option<&[Mplex]>,
+    ) -> Result<(), Failure> {
+        if !self.registry.connected_here(lift) {
+            return Err(Failure::Gone);
+        }
+        self.release_local(lift, holder, objects).await
+    }
+
+    async fn release_local(
         &self,
         lift: &str,
         holder: &Holder,
@@ -262,12 +403,33 @@ impl Subscriptions {
         }
     }
 
-    /// A gateway has just connected: register everything held on its lift. A group the
-    /// gateway refuses as a whole (`reg_canopen_object` is all or none, NXg §7.3: one object
-    /// missing on this lift) is registered object by object.
+    /// A gateway has just connected: register everything held on its lift — the users'
+    /// subscriptions as the database has them, this process's watchers', and those other
+    /// processes' watchers asked for since. A group the gateway refuses as a whole
+    /// (`reg_canopen_object` is all or none, NXg §7.3: one object missing on this lift) is
+    /// registered object by object.
     pub async fn resubscribe(&self, lift: &str) {
+        let users = match self.store.held_objects(lift).await {
+            Ok(users) => users,
+            Err(e) => {
+                tracing::warn!(%lift, error = %e, "users' subscriptions not read: not registered");
+                Vec::new()
+            }
+        };
         let cell = self.holders(lift);
-        let holders = cell.lock().await;
+        let mut holders = cell.lock().await;
+        holders.retain(|holder| !matches!(holder, Holder::User(_)));
+        for held in users {
+            let Ok(mplex) = Mplex::parse(&held.mplex) else {
+                tracing::warn!(%lift, mplex = %held.mplex, "a stored subscription that is no mplex");
+                continue;
+            };
+            let terms = Terms {
+                inhibit: held.inhibit,
+                threshold: held.threshold,
+            };
+            holders.add(&self.base, &Holder::User(held.user), &[mplex], terms);
+        }
         self.forget_if_empty(lift, &cell, &holders);
         for change in holders.all(&self.base) {
             let Change::Register(objects, terms) = change else {
@@ -287,6 +449,49 @@ impl Subscriptions {
                 }
             }
         }
+    }
+
+    /// The lift's connection here ended: only this process's watchers stay (registered again
+    /// on the next connection, or handed to the lift's next holder); users' come from the
+    /// database again, other processes' watchers from their processes.
+    pub async fn offline(&self, lift: &str) {
+        let Some(cell) = self.existing(lift) else {
+            return;
+        };
+        let mut holders = cell.lock().await;
+        holders.retain(|holder| self.own(holder));
+        self.forget_if_empty(lift, &cell, &holders);
+    }
+
+    /// Another process of the cluster now holds `lift`: this process's watchers of it ask
+    /// the new holder for their objects (in the background).
+    pub(crate) fn moved(self: Arc<Self>, lift: &str) {
+        let Some(cell) = self.existing(lift) else {
+            return;
+        };
+        let lift = lift.to_owned();
+        tokio::spawn(async move {
+            let requests = {
+                let mut holders = cell.lock().await;
+                holders.retain(|holder| self.own(holder));
+                self.forget_if_empty(&lift, &cell, &holders);
+                holders.requests()
+            };
+            let Some(cluster) = self.registry.cluster() else {
+                return;
+            };
+            for (holder, terms, objects) in requests {
+                let request = hold_request(holder, &objects, terms);
+                if let Err(e) = cluster.request(&lift, &request).await {
+                    tracing::debug!(%lift, failure = ?e, "a watcher's objects not handed to the lift's holder");
+                }
+            }
+        });
+    }
+
+    fn existing(&self, lift: &str) -> Option<Arc<tokio::sync::Mutex<Holders>>> {
+        let lifts = self.lifts.lock().unwrap_or_else(PoisonError::into_inner);
+        lifts.get(lift).cloned()
     }
 
     /// A lift whose holders are all gone takes no memory (only one that anyone holds a
@@ -332,6 +537,16 @@ impl Subscriptions {
         };
         self.registry.call(lift, &params).await.map(|_| ())
     }
+}
+
+/// `holder`'s request for `objects` with `terms`, to the lift's holder in the cluster.
+fn hold_request(holder: Holder, objects: &[Mplex], terms: Terms) -> Relayed {
+    Relayed::Hold(RelayedHold {
+        holder,
+        mplex: objects.iter().map(|m| (*m).into()).collect(),
+        inhibit: terms.inhibit,
+        threshold: terms.threshold,
+    })
 }
 
 #[cfg(test)]
@@ -390,6 +605,35 @@ mod tests {
             h.all(&base),
             [Change::Register(vec![trips], terms(500, 0.0))]
         );
+    }
+
+    /// What stays when a lift's connection ends or moves, and what is handed to its next
+    /// holder: one request per holder and terms.
+    #[test]
+    fn holders_are_kept_by_kind_and_asked_for_by_terms() {
+        let base = dashboard();
+        let mut h = Holders::default();
+        let (user, mine, theirs) = (
+            Holder::User("masora".into()),
+            Holder::Watcher(1 << 32 | 1),
+            Holder::Watcher(2 << 32 | 1),
+        );
+        let (trips, speed, door) = (m(0x6520, 1), m(0x6383, 1), m(0x6300, 1));
+        h.add(&base, &user, &[trips], terms(1000, 0.0));
+        h.add(&base, &mine, &[speed, door], terms(100, 0.5));
+        h.add(&base, &mine, &[trips], terms(0, 0.0));
+        h.add(&base, &theirs, &[speed], terms(10, 0.0));
+        h.retain(|holder| holder == &mine);
+        assert_eq!(
+            h.requests(),
+            [
+                (mine.clone(), terms(100, 0.5), vec![door, speed]),
+                (mine.clone(), terms(0, 0.0), vec![trips]),
+            ]
+        );
+        h.retain(|_| false);
+        assert!(h.is_empty());
+        assert_eq!(h.requests(), []);
     }
 
     proptest! {

@@ -7,9 +7,11 @@
 //! the one on record in time independent of where they differ.
 
 mod alarms;
+mod subscriptions;
 mod users;
 
 pub use alarms::{new_id, AlarmFilter, EventRow, OutboxEntry};
+pub use subscriptions::HeldObject;
 pub use users::{ElevationGrant, KeyInfo, Operator, Role, SessionRecord, User, UserError};
 
 use std::collections::HashMap;
@@ -293,6 +295,8 @@ const SCHEMA: &[&str] = &[
     // Who elevated which lift's connection (crate::elevation), for every process of a cluster.
     "CREATE TABLE IF NOT EXISTS elevations (lift TEXT PRIMARY KEY, user_name TEXT NOT NULL, privilege BIGINT NOT NULL, until BIGINT NOT NULL, connection BIGINT NOT NULL)",
     "CREATE TABLE IF NOT EXISTS web_sessions (digest TEXT PRIMARY KEY, key_digest TEXT, user_name TEXT, csrf TEXT NOT NULL, last_used BIGINT NOT NULL)",
+    // Users' subscriptions, registered again by whichever process the lift's gateway connects to.
+    "CREATE TABLE IF NOT EXISTS subscriptions (lift TEXT NOT NULL, user_name TEXT NOT NULL, mplex TEXT NOT NULL, inhibit BIGINT NOT NULL, threshold DOUBLE PRECISION NOT NULL, PRIMARY KEY (lift, user_name, mplex))",
 ];
 
 /// Changes to tables of an existing database, each applied once, in order (a database created
@@ -1023,6 +1027,7 @@ mod tests {
         assert_eq!(h, [(300, "8".to_owned())]);
         token_lifecycle_and_board(&store).await;
         users::tests::users_keys_and_the_epoch(&store).await;
+        subscriptions::tests::held_released_and_per_lift(&store).await;
     }
 
     /// Rotation (old and new token both admitted until one is confirmed), reset (first contact
