@@ -1,8 +1,10 @@
 //! The portal as a cluster (docs/CLUSTER.md): `canlift cloud` processes on one PostgreSQL
 //! database and one NATS server (both started here), a TCP load balancer in front of them and
 //! the simulated lift's gateway behind it. Every lift is read, written and watched through
-//! every process, also in a browser session opened on another and after elevating on another; a gateway that reconnects elsewhere is dropped by its old holder; a process
-//! killed with SIGKILL loses its lifts to the others; NATS down degrades, NATS back heals.
+//! every process, also in a browser session opened on another and after elevating on another;
+//! subscriptions follow the lift from process to process; a gateway that reconnects elsewhere
+//! is dropped by its old holder; a process killed with SIGKILL loses its lifts to the others,
+//! which resume its TLS sessions; NATS down degrades, NATS back heals.
 
 use std::time::Duration;
 
@@ -292,6 +294,15 @@ async fn every_lift_is_served_by_every_process() {
     cluster.portals[1].kill().await;
     let back = cluster.wait_held_by(2).await;
     eprintln!("the lift of the killed process was online again after {back:?}");
+    // The processes share their TLS ticket keys: the gateway resumed on p2 the session p1
+    // gave it (operators' clients here start each with an empty session cache).
+    assert_eq!(
+        cluster.portals[2]
+            .metric("canlift_tls_handshakes_resumed_total")
+            .await,
+        1,
+        "the gateway's session resumed on another process"
+    );
     for index in [0, 2] {
         let (status, answer) = cluster.read(index).await;
         assert_eq!(status, 200, "through p{index} after the kill: {answer}");

@@ -4,6 +4,7 @@
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
+use std::time::Duration;
 
 use axum::extract::{ConnectInfo, State, WebSocketUpgrade};
 use axum::http::StatusCode;
@@ -13,6 +14,7 @@ use axum::Router;
 use hyper_util::rt::{TokioIo, TokioTimer};
 use hyper_util::service::TowerToHyperService;
 use nxg::names::ObjectNames;
+use tls::tickets::TicketKeys;
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
 
@@ -93,7 +95,10 @@ pub struct Portal {
     metrics: Arc<Metrics>,
 }
 
-fn server_tls(config: &Config) -> Result<Arc<rustls::ServerConfig>, ServerError> {
+fn server_tls(
+    config: &Config,
+    tickets: Option<Arc<TicketKeys>>,
+) -> Result<Arc<rustls::ServerConfig>, ServerError> {
     let (cert, key) = match (&config.server.tls_cert, &config.server.tls_key) {
         (Some(c), Some(k)) => (c.clone(), k.clone()),
         (None, None) => {
@@ -110,16 +115,83 @@ fn server_tls(config: &Config) -> Result<Arc<rustls::ServerConfig>, ServerError>
     };
     let mut tls = tls::server_config(&cert, &key, config.server.client_ca.as_deref())?;
     tls.alpn_protocols = vec![b"http/1.1".to_vec()];
-    if config.server.ticket_rotate_h > 0 {
-        let rotate =
-            std::time::Duration::from_secs(u64::from(config.server.ticket_rotate_h) * 3600);
-        let keys =
-            tls::tickets::TicketKeys::open(&config.state.dir.join("tls-ticket-keys"), rotate)?;
-        tls.ticketer = Arc::new(keys);
+    if let Some(keys) = tickets {
+        tls.ticketer = keys;
         // A gateway holds one connection: one ticket per handshake is all it uses.
         tls.send_tls13_tickets = 1;
     }
     Ok(Arc::new(tls))
+}
+
+/// How often a cluster's process looks for rotated ticket keys: a ticket made with a new key
+/// resumes on every process within this time.
+const TICKET_KEYS_CHECK: Duration = Duration::from_secs(60);
+
+/// The TLS session-ticket keys (docs/SECURITY.md §TLS sessions): none when `ticket_rotate_h` is
+/// 0; the state directory's file for one process; for a cluster the database's, which every
+/// process follows (the task returned).
+async fn ticket_keys(
+    config: &Config,
+    store: &Store,
+) -> Result<(Option<Arc<TicketKeys>>, Option<tokio::task::JoinHandle<()>>), ServerError> {
+    if config.server.ticket_rotate_h == 0 {
+        return Ok((None, None));
+    }
+    let rotate = Duration::from_secs(u64::from(config.server.ticket_rotate_h) * 3600);
+    if config.cluster.nats.is_none() {
+        let keys = TicketKeys::open(&config.state.dir.join("tls-ticket-keys"), rotate)?;
+        return Ok((Some(Arc::new(keys)), None));
+    }
+    let text = shared_ticket_keys(store, rotate).await?;
+    let keys =
+        Arc::new(TicketKeys::shared(&text, rotate).map_err(|e| ServerError::Other(e.to_string()))?);
+    let follow = tokio::spawn(follow_ticket_keys(store.clone(), keys.clone(), rotate));
+    Ok((Some(keys), Some(follow)))
+}
+
+/// The cluster's ticket keys as they should be now: made by the first process, rotated by the
+/// first that finds them due — over the version it read, so of two at once one wins and the
+/// other takes its keys.
+async fn shared_ticket_keys(store: &Store, rotate: Duration) -> Result<String, ServerError> {
+    for _ in 0..3 {
+        let row = store.ticket_keys().await?;
+        let now = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs());
+        let due = TicketKeys::due(row.as_ref().map(|(text, _)| text.as_str()), rotate, now)
+            .map_err(|e| ServerError::Other(format!("the database's {e}")))?;
+        match (due, row) {
+            (None, Some((text, _))) => return Ok(text),
+            (Some(next), row) => {
+                if store
+                    .replace_ticket_keys(&next, row.map(|(_, version)| version))
+                    .await?
+                {
+                    return Ok(next);
+                }
+            }
+            (None, None) => {}
+        }
+    }
+    Err(ServerError::Other(
+        "the database's TLS ticket keys keep changing under this process".into(),
+    ))
+}
+
+/// Keep `keys` the cluster's: rotated by whichever process finds them due first.
+async fn follow_ticket_keys(store: Store, keys: Arc<TicketKeys>, rotate: Duration) {
+    let mut check = tokio::time::interval(TICKET_KEYS_CHECK.min(rotate / 4));
+    check.tick().await;
+    loop {
+        check.tick().await;
+        let installed = shared_ticket_keys(&store, rotate).await.and_then(|text| {
+            keys.install(&text)
+                .map_err(|e| ServerError::Other(e.to_string()))
+        });
+        if let Err(e) = installed {
+            tracing::warn!(error = %e, "TLS ticket keys not followed: sessions resume on this process only");
+        }
+    }
 }
 
 impl Portal {
@@ -129,9 +201,10 @@ impl Portal {
         std::fs::create_dir_all(&config.state.dir)
             .map_err(|e| ServerError::Other(format!("{}: {e}", config.state.dir.display())))?;
         let store = Store::open(&config.database_url()).await?;
-        let tls = server_tls(config)?;
+        let (tickets, follow_tickets) = ticket_keys(config, &store).await?;
+        let tls = server_tls(config, tickets)?;
         let registry = Arc::new(Registry::default());
-        let mut tasks = Vec::new();
+        let mut tasks: Vec<_> = follow_tickets.into_iter().collect();
         if let Some(url) = &config.cluster.nats {
             join_cluster(config, url, &registry, &mut tasks).await?;
         }

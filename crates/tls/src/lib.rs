@@ -29,6 +29,9 @@ pub enum TlsError {
     /// rustls refused the configuration.
     #[error("TLS: {0}")]
     Rustls(#[from] rustls::Error),
+    /// Shared session-ticket keys that are none.
+    #[error("ticket keys: {0}")]
+    TicketKeys(&'static str),
 }
 
 pub(crate) fn file_error(path: &Path, reason: impl ToString) -> TlsError {

@@ -6,6 +6,9 @@
 //! handshake at once (the reconnect storm of docs/BENCHMARKS.md). [`TicketKeys`] keeps the keys
 //! in a file of the state directory (mode 0600) instead, rotates them (a ticket is accepted for
 //! at most two rotation periods), and encrypts tickets with AES-256-GCM under a random nonce.
+//! Processes of a portal cluster share one set of keys kept by their database instead
+//! ([`TicketKeys::shared`], [`TicketKeys::due`]): a gateway resumes its session on whichever
+//! process it reaches.
 //!
 //! Ticket layout: key id (4 bytes) ‖ nonce (12 bytes) ‖ AES-256-GCM(ticket plaintext) ‖ tag.
 
@@ -18,6 +21,17 @@ use ring::aead::{Aad, LessSafeKey, Nonce, UnboundKey, AES_256_GCM, NONCE_LEN};
 use ring::rand::{SecureRandom, SystemRandom};
 
 use crate::{file_error, write_private, TlsError};
+
+/// Why a text of keys is none.
+#[derive(Debug, thiserror::Error)]
+#[error("ticket keys: {0}")]
+pub struct BadKeys(&'static str);
+
+impl From<BadKeys> for TlsError {
+    fn from(e: BadKeys) -> TlsError {
+        TlsError::TicketKeys(e.0)
+    }
+}
 
 const KEY_LEN: usize = 32;
 const ID_LEN: usize = 4;
@@ -93,6 +107,41 @@ fn keyed(key: Key) -> Option<(Key, LessSafeKey)> {
 }
 
 impl Ring {
+    /// The keys of `text` (as [`Ring::file_text`] writes them): the current key, then the
+    /// previous one if there is one.
+    fn parse(text: &str) -> Result<Ring, BadKeys> {
+        let mut keys = text
+            .lines()
+            .filter(|l| !l.trim().is_empty())
+            .map(Key::parse);
+        let current = keys.next().flatten().ok_or(BadKeys("no ticket key"))?;
+        let previous = keys
+            .next()
+            .map(|k| k.ok_or(BadKeys("the second line is no ticket key")))
+            .transpose()?;
+        Ring::from_keys(current, previous).ok_or(BadKeys("unusable ticket key"))
+    }
+
+    /// One new key, nothing previous.
+    fn fresh(rng: &SystemRandom, now: u64) -> Result<Ring, BadKeys> {
+        let key = Key::generate(rng, now).ok_or(BadKeys("no randomness for a ticket key"))?;
+        Ring::from_keys(key, None).ok_or(BadKeys("unusable ticket key"))
+    }
+
+    /// A new current key when the current one is `rotate` old at `now`: whether it rotated.
+    fn rotate_if_due(&mut self, rng: &SystemRandom, rotate: Duration, now: u64) -> bool {
+        if now.saturating_sub(self.current.0.created) < rotate.as_secs() {
+            return false;
+        }
+        let Some(next) = Key::generate(rng, now).and_then(keyed) else {
+            tracing::error!("no randomness for a new ticket key: the old one stays");
+            return false;
+        };
+        let old = std::mem::replace(&mut self.current, next);
+        self.previous = Some(old);
+        true
+    }
+
     fn from_keys(current: Key, previous: Option<Key>) -> Option<Ring> {
         let previous = match previous {
             Some(k) => Some(keyed(k)?),
@@ -113,9 +162,13 @@ impl Ring {
     }
 }
 
-/// Session-ticket keys kept in a file, for [`rustls::ServerConfig::ticketer`].
+/// Session-ticket keys kept in a file (or by a cluster's database), for
+/// [`rustls::ServerConfig::ticketer`].
 pub struct TicketKeys {
-    path: PathBuf,
+    /// The file; `None`: shared keys, rotated by whoever keeps them and [installed] here.
+    ///
+    /// [installed]: TicketKeys::install
+    path: Option<PathBuf>,
     rotate: Duration,
     rng: SystemRandom,
     keys: Mutex<Ring>,
@@ -144,34 +197,16 @@ impl TicketKeys {
     pub fn open(path: &Path, rotate: Duration) -> Result<TicketKeys, TlsError> {
         let rng = SystemRandom::new();
         let ring = match std::fs::read_to_string(path) {
-            Ok(text) => {
-                let mut keys = text
-                    .lines()
-                    .filter(|l| !l.trim().is_empty())
-                    .map(Key::parse);
-                let current = keys
-                    .next()
-                    .flatten()
-                    .ok_or_else(|| file_error(path, "no ticket key in the file"))?;
-                let previous = keys
-                    .next()
-                    .map(|k| k.ok_or_else(|| file_error(path, "the second line is no ticket key")));
-                let previous = previous.transpose()?;
-                Ring::from_keys(current, previous)
-                    .ok_or_else(|| file_error(path, "unusable ticket key"))?
-            }
+            Ok(text) => Ring::parse(&text).map_err(|e| file_error(path, e.0))?,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-                let key = Key::generate(&rng, now_s())
-                    .ok_or_else(|| file_error(path, "no randomness for a ticket key"))?;
-                let ring = Ring::from_keys(key, None)
-                    .ok_or_else(|| file_error(path, "unusable ticket key"))?;
+                let ring = Ring::fresh(&rng, now_s()).map_err(|e| file_error(path, e.0))?;
                 write_private(path, &ring.file_text())?;
                 ring
             }
             Err(e) => return Err(file_error(path, e)),
         };
         let keys = TicketKeys {
-            path: path.to_owned(),
+            path: Some(path.to_owned()),
             rotate: rotate.max(Duration::from_secs(1)),
             rng,
             keys: Mutex::new(ring),
@@ -180,23 +215,53 @@ impl TicketKeys {
         Ok(keys)
     }
 
+    /// Keys kept elsewhere (a portal cluster's database) as `text`, which [`TicketKeys::due`]
+    /// made: not rotated here, replaced by [`TicketKeys::install`].
+    pub fn shared(text: &str, rotate: Duration) -> Result<TicketKeys, BadKeys> {
+        Ok(TicketKeys {
+            path: None,
+            rotate: rotate.max(Duration::from_secs(1)),
+            rng: SystemRandom::new(),
+            keys: Mutex::new(Ring::parse(text)?),
+        })
+    }
+
+    /// Use the keys of `text` from now on.
+    pub fn install(&self, text: &str) -> Result<(), BadKeys> {
+        *self.lock() = Ring::parse(text)?;
+        Ok(())
+    }
+
+    /// The keys that should replace `text` at `now` (s since the Unix epoch): new ones when
+    /// there are none, a rotation when the current key is `rotate` old; `None` while `text` is
+    /// still good.
+    pub fn due(text: Option<&str>, rotate: Duration, now: u64) -> Result<Option<String>, BadKeys> {
+        let rng = SystemRandom::new();
+        let Some(text) = text else {
+            return Ring::fresh(&rng, now).map(|ring| Some(ring.file_text()));
+        };
+        let mut ring = Ring::parse(text)?;
+        let rotate = rotate.max(Duration::from_secs(1));
+        Ok(ring
+            .rotate_if_due(&rng, rotate, now)
+            .then(|| ring.file_text()))
+    }
+
     fn lock(&self) -> std::sync::MutexGuard<'_, Ring> {
         self.keys.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
     /// A new current key when the current one is older than the rotation period; the file
     /// follows (a failure to write it costs restarts their resumption, not this process's).
+    /// Shared keys are rotated by their keeper.
     fn rotate_if_due(&self, ring: &mut Ring, now: u64) {
-        if now.saturating_sub(ring.current.0.created) < self.rotate.as_secs() {
-            return;
-        }
-        let Some(next) = Key::generate(&self.rng, now).and_then(keyed) else {
-            tracing::error!("no randomness for a new ticket key: the old one stays");
+        let Some(path) = &self.path else {
             return;
         };
-        let old = std::mem::replace(&mut ring.current, next);
-        ring.previous = Some(old);
-        if let Err(e) = write_private(&self.path, &ring.file_text()) {
+        if !ring.rotate_if_due(&self.rng, self.rotate, now) {
+            return;
+        }
+        if let Err(e) = write_private(path, &ring.file_text()) {
             tracing::error!(error = %e, "ticket keys not written: a restart will not resume sessions");
         }
     }
@@ -303,6 +368,41 @@ mod tests {
         }
         let other = TicketKeys::open(&dir.path().join("u"), Duration::from_secs(3600)).unwrap();
         assert!(other.decrypt(&ticket).is_none());
+    }
+
+    /// Two processes on one shared text open each other's tickets; a rotation made by one
+    /// and installed by the other keeps the previous key's tickets open.
+    #[test]
+    fn shared_keys_are_rotated_by_their_keeper_and_installed() {
+        let hour = Duration::from_secs(3600);
+        let now = now_s();
+        let text = TicketKeys::due(None, hour, now).unwrap().unwrap();
+        assert_eq!(TicketKeys::due(Some(&text), hour, now + 10).unwrap(), None);
+        let (a, b) = (
+            TicketKeys::shared(&text, hour).unwrap(),
+            TicketKeys::shared(&text, hour).unwrap(),
+        );
+        let ticket = a.encrypt(b"state").unwrap();
+        assert_eq!(b.decrypt(&ticket).unwrap(), b"state");
+        // Shared keys do not rotate by themselves, even long after.
+        b.rotate_if_due(&mut b.lock(), now + 10 * 3600);
+        assert_eq!(b.decrypt(&ticket).unwrap(), b"state");
+        let rotated = TicketKeys::due(Some(&text), hour, now + 3600)
+            .unwrap()
+            .unwrap();
+        a.install(&rotated).unwrap();
+        b.install(&rotated).unwrap();
+        let fresh = b.encrypt(b"new").unwrap();
+        assert_ne!(fresh[..ID_LEN], ticket[..ID_LEN]);
+        assert_eq!(a.decrypt(&ticket).unwrap(), b"state");
+        assert_eq!(a.decrypt(&fresh).unwrap(), b"new");
+        assert!(a.install("damaged").is_err());
+        assert_eq!(
+            a.decrypt(&fresh).unwrap(),
+            b"new",
+            "a damaged text changes nothing"
+        );
+        assert!(TicketKeys::due(Some("damaged"), hour, now).is_err());
     }
 
     #[test]

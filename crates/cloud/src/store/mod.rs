@@ -8,6 +8,7 @@
 
 mod alarms;
 mod subscriptions;
+mod ticket_keys;
 mod users;
 
 pub use alarms::{new_id, AlarmFilter, EventRow, OutboxEntry};
@@ -290,11 +291,13 @@ const SCHEMA: &[&str] = &[
     "CREATE TABLE IF NOT EXISTS api_keys (id TEXT PRIMARY KEY, key_hash TEXT NOT NULL UNIQUE, user_name TEXT NOT NULL, created BIGINT NOT NULL, expires BIGINT, revoked BIGINT)",
     "CREATE TABLE IF NOT EXISTS auth_epoch (id BIGINT PRIMARY KEY, epoch BIGINT NOT NULL)",
     "INSERT INTO auth_epoch (id, epoch) SELECT 1, 0 WHERE NOT EXISTS (SELECT 1 FROM auth_epoch WHERE id = 1)",
-    // Browser sessions, by the SHA-256 digest of their cookie: any process of a cluster (or
-    // the portal after a restart) knows them.
     // Who elevated which lift's connection (crate::elevation), for every process of a cluster.
     "CREATE TABLE IF NOT EXISTS elevations (lift TEXT PRIMARY KEY, user_name TEXT NOT NULL, privilege BIGINT NOT NULL, until BIGINT NOT NULL, connection BIGINT NOT NULL)",
+    // Browser sessions, by the SHA-256 digest of their cookie: any process of a cluster (or
+    // the portal after a restart) knows them.
     "CREATE TABLE IF NOT EXISTS web_sessions (digest TEXT PRIMARY KEY, key_digest TEXT, user_name TEXT, csrf TEXT NOT NULL, last_used BIGINT NOT NULL)",
+    // A cluster's TLS session-ticket keys (one row): every process resumes every session.
+    "CREATE TABLE IF NOT EXISTS tls_ticket_keys (id BIGINT PRIMARY KEY, keys TEXT NOT NULL, version BIGINT NOT NULL)",
     // Users' subscriptions, registered again by whichever process the lift's gateway connects to.
     "CREATE TABLE IF NOT EXISTS subscriptions (lift TEXT NOT NULL, user_name TEXT NOT NULL, mplex TEXT NOT NULL, inhibit BIGINT NOT NULL, threshold DOUBLE PRECISION NOT NULL, PRIMARY KEY (lift, user_name, mplex))",
 ];
@@ -1028,6 +1031,7 @@ mod tests {
         token_lifecycle_and_board(&store).await;
         users::tests::users_keys_and_the_epoch(&store).await;
         subscriptions::tests::held_released_and_per_lift(&store).await;
+        ticket_keys::tests::made_once_replaced_over_the_version(&store).await;
     }
 
     /// Rotation (old and new token both admitted until one is confirmed), reset (first contact
