@@ -570,7 +570,11 @@ fn subscriptions_register_all_or_none_and_respect_inhibit_and_threshold() {
     // A change that returns within the threshold cancels the pending push.
     p.now += Duration::from_millis(100);
     assert!(value(&mut p, 140).is_empty());
+    let gap_end = p.now + Duration::from_millis(900);
+    assert_eq!(p.session.poll_timeout(), Some(gap_end));
     assert!(value(&mut p, 127).is_empty());
+    // Nothing is owed: the only timer left is the connection's own.
+    assert!(p.session.poll_timeout() > Some(gap_end));
     assert!(p.later(Duration::from_secs(2)).is_empty());
     // Registering again (a second viewer) pushes the current value once more, although it did
     // not change, and keeps the object watched only once.
@@ -586,6 +590,12 @@ fn subscriptions_register_all_or_none_and_respect_inhibit_and_threshold() {
         p.now,
     ));
     assert_eq!(repeated[0]["result"]["value"], "126");
+    // A value owed when the subscription ends is never pushed, nor timed.
+    assert!(value(&mut p, 150).is_empty());
+    assert_eq!(
+        p.session.poll_timeout(),
+        Some(p.now + Duration::from_millis(1000))
+    );
     let unreg = r#"{"jsonrpc":"2.0","method":"unreg_canopen_object","id":"12345","params":{"mplex":["0x652001","0x652002"]}}"#;
     let out = p.send(unreg);
     assert_eq!(
@@ -593,6 +603,8 @@ fn subscriptions_register_all_or_none_and_respect_inhibit_and_threshold() {
         [json!({"jsonrpc":"2.0","id":"12345","result":{"done":0}})]
     );
     assert!(out.contains(&Output::Unwatch(t, 0x6520, 1)));
+    assert!(p.session.poll_timeout() > Some(p.now + Duration::from_millis(1000)));
+    assert!(p.later(Duration::from_secs(2)).is_empty());
     assert!(value(&mut p, 1000).is_empty());
     // At most max_subscriptions (4).
     let many = r#"{"jsonrpc":"2.0","method":"reg_canopen_object","id":"m","params":{"mplex":["0x638301","0x639001","0x639101","0x630101","0x630201"]}}"#;

@@ -49,6 +49,10 @@ pub struct GatewayBench {
     /// Only the gateway's CPU per request (its own process, read from /proc).
     #[arg(long)]
     cpu_only: bool,
+    /// Only the growth curve of request latency against subscriptions held (1…10,000), as
+    /// CSV and SVG into this directory.
+    #[arg(long)]
+    curves: Option<PathBuf>,
 }
 
 impl GatewayBench {
@@ -621,7 +625,97 @@ async fn hub_with_simulator() -> anyhow::Result<(canbus::hub::HubHandle, String,
     Ok((hub, bus, sim))
 }
 
+/// Request latency (naked gets, one at a time) of an embedded gateway on a local dictionary
+/// of 8 lifts and 254 floors while it holds more and more subscriptions of objects that do not
+/// change — the cost of holding them, not of pushing.
+async fn subscriptions_curve(
+    args: &GatewayBench,
+    pki: &DevPki,
+    dir: &Path,
+    out: &Path,
+) -> anyhow::Result<()> {
+    let od = Catalog::builtin().dictionary(Device::Controller, 8, 254)?;
+    let readable: Vec<String> = od
+        .objects()
+        .filter(|o| o.index != 0x6520)
+        .flat_map(|o| {
+            o.subs
+                .iter()
+                .filter(|(sub, v)| **sub > 0 && v.access.readable())
+                .map(|(sub, _)| {
+                    nxg::mplex::Mplex {
+                        index: o.index,
+                        sub: *sub,
+                    }
+                    .to_string()
+                })
+        })
+        .collect();
+    let portal = Portal::start(pki).await?;
+    let mut c = config(&portal.url()?, pki, "mem://unused", &dir.join("curve"));
+    c.limits.max_subscriptions = readable.len() + 1;
+    let gateway = Gateway::embedded(c, Arc::new(Mutex::new(od)))?;
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let task = tokio::spawn(gateway.run(stopped));
+    let mut ws = portal.accept().await?;
+    let (mut p50, mut p99) = (Vec::new(), Vec::new());
+    let mut held = 0;
+    for target in [1, 10, 100, 1000, 2000, 5000, 10_000] {
+        let target = target.min(readable.len());
+        for (i, chunk) in readable[held..target].chunks(100).enumerate() {
+            let reg = json!({"jsonrpc": "2.0", "id": format!("r{held}-{i}"), "method": "reg_canopen_object",
+                "params": {"mplex": chunk, "inhibit": 0, "threshold": 0}});
+            ws.send(Message::Text(reg.to_string().into())).await?;
+            loop {
+                let v = recv(&mut ws).await?;
+                if v["id"] == json!(format!("r{held}-{i}")) {
+                    if v.get("error").is_some() {
+                        bail!("registration failed: {v}");
+                    }
+                    break;
+                }
+            }
+        }
+        held = target;
+        // Each registration pushes its object's value once: let those pass.
+        while let Ok(answer) = tokio::time::timeout(Duration::from_millis(500), recv(&mut ws)).await
+        {
+            answer?;
+        }
+        let times = sequential_gets(&mut ws, "naked", args.requests).await?;
+        let (a, b) = (percentile(&times, 50.0), percentile(&times, 99.0));
+        println!("gateway, {held:>5} subscriptions held: naked get p50 {a:.0} µs, p99 {b:.0} µs");
+        p50.push((held as f64, a));
+        p99.push((held as f64, b));
+        if held == readable.len() {
+            break;
+        }
+    }
+    let _ = stop.send(true);
+    let _ = task.await;
+    super::bench_curves::Curve {
+        name: "gateway-subscriptions",
+        title: "Gateway request latency vs subscriptions held",
+        x: "subscriptions held",
+        y: "naked get round trip (µs)",
+        series: vec![
+            super::bench_curves::Series {
+                name: "p50",
+                points: p50,
+            },
+            super::bench_curves::Series {
+                name: "p99",
+                points: p99,
+            },
+        ],
+    }
+    .write(out)
+}
+
 async fn measure(args: &GatewayBench, pki: &DevPki, dir: &Path) -> anyhow::Result<()> {
+    if let Some(out) = &args.curves {
+        return subscriptions_curve(args, pki, dir, out).await;
+    }
     if args.cpu_only {
         let (hub, bus, sim) = hub_with_simulator().await?;
         let measured = cpu_per_request(args, pki, &bus, dir).await;

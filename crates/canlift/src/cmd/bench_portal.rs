@@ -21,18 +21,18 @@ use super::loadgen::{Fleet, LoadgenArgs, Sessions};
 /// Arguments of `canlift bench portal`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct PortalBench {
-    /// Idle gateways held at once.
+    /// Idle gateways held at once (and the largest number of the curves).
     #[arg(long, default_value_t = 18_000)]
-    gateways: usize,
+    pub(super) gateways: usize,
     /// First-contact connections per second while they come (each gets a new token).
     #[arg(long, default_value_t = 2000)]
-    rate: u32,
+    pub(super) rate: u32,
     /// Gateways (with known tokens) reconnecting all at once.
     #[arg(long, default_value_t = 10_000)]
-    storm: usize,
+    pub(super) storm: usize,
     /// Gateways pushing values for the ingest figure.
     #[arg(long, default_value_t = 1000)]
-    pushers: usize,
+    pub(super) pushers: usize,
     /// How often the pushers' values change (ms).
     #[arg(long, default_value_t = 20)]
     change_ms: u64,
@@ -57,6 +57,9 @@ pub struct PortalBench {
         default_value = "idle,storm,ingest,latency"
     )]
     phases: Vec<Phase>,
+    /// Where the `curves` phase writes its CSV and SVG files.
+    #[arg(long, default_value = "docs/bench")]
+    curves: PathBuf,
 }
 
 /// A phase of `bench portal`.
@@ -70,6 +73,9 @@ enum Phase {
     Ingest,
     /// Operator reads through the portal.
     Latency,
+    /// Growth curves: memory vs gateways, storm time vs gateways, ingest vs pushers (CSV and
+    /// SVG into `--curves`).
+    Curves,
 }
 
 /// A free TCP port on 127.0.0.1, for a server the benchmark starts as a process.
@@ -173,7 +179,12 @@ impl PortalProcess {
 }
 
 /// `n` gateways of the BENCH account, from `args.sources` source addresses, all at once.
-fn fleet_args(args: &PortalBench, portal: &PortalProcess, dir: &Path, n: usize) -> LoadgenArgs {
+pub(super) fn fleet_args(
+    args: &PortalBench,
+    portal: &PortalProcess,
+    dir: &Path,
+    n: usize,
+) -> LoadgenArgs {
     LoadgenArgs {
         portal: format!("wss://localhost:{}/ws", portal.port),
         ca: portal.ca.clone(),
@@ -189,7 +200,11 @@ fn fleet_args(args: &PortalBench, portal: &PortalProcess, dir: &Path, n: usize) 
 }
 
 /// Wait until the portal counts `n` gateways online.
-async fn portal_online(portal: &PortalProcess, n: usize, limit: Duration) -> anyhow::Result<()> {
+pub(super) async fn portal_online(
+    portal: &PortalProcess,
+    n: usize,
+    limit: Duration,
+) -> anyhow::Result<()> {
     let deadline = Instant::now() + limit;
     while portal.online().await? != n {
         if Instant::now() > deadline {
@@ -280,14 +295,15 @@ async fn handshakes(portal: &PortalProcess) -> anyhow::Result<(f64, f64)> {
 }
 
 /// `args.storm` gateways with known tokens at once (with `sessions`: resuming their TLS
-/// sessions); time until all have CONNACK, the handshakes the portal made, its CPU time.
-async fn storm_once(
+/// sessions); time until all have CONNACK (returned with the sessions), the handshakes the
+/// portal made, its CPU time.
+pub(super) async fn storm_once(
     args: &PortalBench,
     portal: &PortalProcess,
     dir: &Path,
     sessions: Option<Sessions>,
     what: &str,
-) -> anyhow::Result<Sessions> {
+) -> anyhow::Result<(Sessions, Duration)> {
     let fleet_args = fleet_args(args, portal, dir, args.storm);
     let (full0, resumed0) = handshakes(portal).await?;
     let fleet = Fleet::start(&fleet_args, sessions).await?;
@@ -309,7 +325,7 @@ async fn storm_once(
     );
     let sessions = fleet.stop().await;
     portal_online(portal, 0, Duration::from_secs(60)).await?;
-    Ok(sessions)
+    Ok((sessions, took))
 }
 
 /// The reconnect storm three times: new gateway processes (full handshakes), gateways that
@@ -330,8 +346,8 @@ async fn storm(
         fleet.stop().await;
         portal_online(portal, 0, Duration::from_secs(60)).await?;
     }
-    let sessions = storm_once(args, portal, dir, None, "new TLS sessions").await?;
-    let sessions = storm_once(args, portal, dir, Some(sessions), "resuming").await?;
+    let (sessions, _) = storm_once(args, portal, dir, None, "new TLS sessions").await?;
+    let (sessions, _) = storm_once(args, portal, dir, Some(sessions), "resuming").await?;
     portal.restart(dir, database).await?;
     storm_once(
         args,
@@ -344,7 +360,13 @@ async fn storm(
     Ok(())
 }
 
-async fn ingest(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyhow::Result<()> {
+/// `args.pushers` gateways pushing for `args.seconds`: values stored per second (returned),
+/// dropped, the portal's CPU per value.
+pub(super) async fn ingest(
+    args: &PortalBench,
+    portal: &PortalProcess,
+    dir: &Path,
+) -> anyhow::Result<f64> {
     let fleet_args = fleet_args(args, portal, dir, args.pushers);
     let fleet = Fleet::start(&fleet_args, None).await?;
     fleet
@@ -380,7 +402,8 @@ async fn ingest(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyho
         own.as_secs_f64() * 100.0 / seconds,
     );
     fleet.stop().await;
-    portal_online(portal, 0, Duration::from_secs(60)).await
+    portal_online(portal, 0, Duration::from_secs(60)).await?;
+    Ok(stored / seconds)
 }
 
 /// The bench lift's gateway (bus-node mode, the simulator on `bus`) connecting to `url`.
@@ -510,8 +533,13 @@ async fn measure(args: &PortalBench, dir: &Path) -> anyhow::Result<()> {
             match phase {
                 Phase::Idle => idle(args, &portal, dir).await?,
                 Phase::Storm => storm(args, &mut portal, dir, &url).await?,
-                Phase::Ingest => ingest(args, &portal, dir).await?,
+                Phase::Ingest => {
+                    ingest(args, &portal, dir).await?;
+                }
                 Phase::Latency => latency(args, &portal, dir).await?,
+                Phase::Curves => {
+                    super::bench_curves::curves(args, &portal, dir, &args.curves).await?
+                }
             }
         }
         anyhow::Ok(())

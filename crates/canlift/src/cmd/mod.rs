@@ -11,6 +11,8 @@ pub mod bench_alarms;
 #[cfg(feature = "portal")]
 pub mod bench_cluster;
 #[cfg(feature = "portal")]
+pub mod bench_curves;
+#[cfg(feature = "portal")]
 pub mod bench_gateway;
 #[cfg(feature = "portal")]
 pub mod bench_ingest;

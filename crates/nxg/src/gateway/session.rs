@@ -210,6 +210,9 @@ pub struct Session {
     queue: VecDeque<Queued>,
     grant: Option<Grant>,
     subscriptions: BTreeMap<(Target, u16, u8), Subscription>,
+    /// The subscriptions holding a value until their inhibit gap ends: timers look at these
+    /// only, so holding thousands of quiet subscriptions costs a request nothing.
+    owed: BTreeSet<(Target, u16, u8)>,
     events: Option<EventSubscription>,
 }
 
@@ -229,6 +232,7 @@ impl Session {
             queue: VecDeque::new(),
             grant: None,
             subscriptions: BTreeMap::new(),
+            owed: BTreeSet::new(),
             events: None,
         }
     }
@@ -266,9 +270,9 @@ impl Session {
             return None;
         }
         let pushes = self
-            .subscriptions
-            .values()
-            .filter(|s| s.pending.is_some())
+            .owed
+            .iter()
+            .filter_map(|key| self.subscriptions.get(key))
             .filter_map(|s| s.last_push.map(|t| t + s.inhibit));
         pushes.chain([self.silence_deadline()]).min()
     }
@@ -292,14 +296,19 @@ impl Session {
         }
         let mut out = Vec::new();
         let controller = self.controller();
-        for (key, sub) in self.subscriptions.iter_mut() {
-            let due = sub.last_push.is_none_or(|t| now >= t + sub.inhibit);
-            if due {
-                if let Some(value) = sub.pending.take() {
-                    out.push(push(key, sub, value, now, controller));
-                }
+        let subscriptions = &mut self.subscriptions;
+        self.owed.retain(|key| {
+            let Some(sub) = subscriptions.get_mut(key) else {
+                return false;
+            };
+            if sub.last_push.is_some_and(|t| now < t + sub.inhibit) {
+                return true;
             }
-        }
+            if let Some(value) = sub.pending.take() {
+                out.push(push(key, sub, value, now, controller));
+            }
+            false
+        });
         out
     }
 
@@ -891,6 +900,7 @@ impl Session {
         for m in p.mplex {
             let key = (target, m.mplex.index, m.mplex.sub);
             if self.subscriptions.remove(&key).is_some() {
+                self.owed.remove(&key);
                 out.push(Output::Unwatch(target, m.mplex.index, m.mplex.sub));
             }
         }
@@ -1013,14 +1023,17 @@ impl Session {
         if !passes {
             // Back within the threshold of what the portal has: nothing is owed.
             s.pending = None;
+            self.owed.remove(&key);
             return Vec::new();
         }
         let free = s.last_push.is_none_or(|t| now >= t + s.inhibit);
         if free {
             s.pending = None;
+            self.owed.remove(&key);
             vec![push(&key, s, text, now, controller)]
         } else {
             s.pending = Some(text);
+            self.owed.insert(key);
             Vec::new()
         }
     }
