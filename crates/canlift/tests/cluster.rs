@@ -30,6 +30,8 @@ struct Cluster {
     /// The lift's account's API key, and another account's.
     key: String,
     other: String,
+    /// The lift's gateway's configuration (through the balancer), to start it again.
+    gateway: gateway::config::Config,
     dir: tempfile::TempDir,
 }
 
@@ -38,6 +40,11 @@ impl Cluster {
     /// lift's gateway connects through the balancer to `p0`. `None`: no NATS or PostgreSQL
     /// here (the test printed why it is skipped).
     async fn start(name: &str, count: usize) -> Option<Cluster> {
+        Cluster::start_with(name, count, "").await
+    }
+
+    /// The same with `more` appended to every process's configuration.
+    async fn start_with(name: &str, count: usize, more: &str) -> Option<Cluster> {
         let nats = Nats::start()?;
         let database = testkit::postgres(name).await?;
         let dir = testkit::scratch();
@@ -46,7 +53,7 @@ impl Cluster {
             .map(|i| {
                 let extra = format!(
                     "tls_cert = \"{}\"\ntls_key = \"{}\"\n[database]\nurl = \"{database}\"\n\
-                     [cluster]\nnats = \"{}\"\nnode = \"p{i}\"\nholder_ttl_s = 6\n",
+                     [cluster]\nnats = \"{}\"\nnode = \"p{i}\"\nholder_ttl_s = 6\n{more}",
                     pki.cert.display(),
                     pki.key.display(),
                     nats.url()
@@ -71,7 +78,7 @@ impl Cluster {
         let bus = format!("mem://cluster-{name}");
         let ws = format!("wss://localhost:{}/ws", balancer.addr().port());
         let gateway = gateway_config(&ws, &pki.ca, &bus, &dir.path().join("gateway"));
-        let lift = Lift::start(&bus, gateway).await;
+        let lift = Lift::start(&bus, gateway.clone()).await;
         let cluster = Cluster {
             nats,
             portals,
@@ -79,6 +86,7 @@ impl Cluster {
             lift,
             key,
             other,
+            gateway,
             dir,
         };
         cluster.wait_held_by(0).await;
@@ -382,5 +390,50 @@ async fn a_nats_outage_degrades_and_heals() {
         cluster.call(1, "GET", "/healthz", None).await.1,
         json!("ok\n")
     );
+    cluster.stop().await;
+}
+
+/// A lift-offline alarm raised by the process that held the lift is cleared by the process the
+/// gateway comes back to (it reads the lift's active alarms from the database when it takes the
+/// lift).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_alarm_raised_by_one_process_is_cleared_by_another() {
+    let Some(mut cluster) =
+        Cluster::start_with("cluster_alarms", 2, "[alarms]\noffline_after_s = 1\n").await
+    else {
+        return;
+    };
+    let active = |index: usize| {
+        let portal = &cluster.portals[index];
+        let key = cluster.key.clone();
+        async move {
+            let (status, answer) = portal
+                .client(&key)
+                .call("GET", "/api/v1/alarms", None)
+                .await
+                .expect("an answer");
+            assert_eq!(status, 200, "{answer}");
+            answer["alarms"]
+                .as_array()
+                .map(|list| {
+                    list.iter()
+                        .filter_map(|a| a["kind"].as_str().map(str::to_owned))
+                        .collect::<Vec<_>>()
+                })
+                .unwrap_or_default()
+        }
+    };
+    cluster.lift.stop_gateway().await;
+    until(LIMIT, "p0 raises lift-offline", || async {
+        active(1).await == ["lift-offline"]
+    })
+    .await;
+    cluster.balancer.route_to(1);
+    cluster.lift.start_gateway(cluster.gateway.clone()).await;
+    cluster.wait_held_by(1).await;
+    until(LIMIT, "p1 clears the alarm p0 raised", || async {
+        active(0).await.is_empty()
+    })
+    .await;
     cluster.stop().await;
 }

@@ -365,6 +365,14 @@ impl Active {
         }
     }
 
+    /// The lift's active alarms are `active` (as the database has them), whatever was known.
+    pub fn replace_lift(&mut self, lift: &str, active: Vec<(Condition, i64)>) {
+        self.lifts.remove(lift);
+        for (condition, id) in active {
+            self.insert(condition, id);
+        }
+    }
+
     /// How many are active.
     pub fn len(&self) -> usize {
         self.lifts.values().map(BTreeMap::len).sum()

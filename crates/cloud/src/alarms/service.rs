@@ -315,6 +315,7 @@ impl Service {
             }
             Input::Online(lift) => {
                 self.offline.stop(&lift);
+                self.refresh_in_cluster(&lift).await;
                 let verdict = self.rules.lift_online(&lift);
                 self.apply(vec![verdict]);
             }
@@ -344,6 +345,7 @@ impl Service {
             if self.alarms.registry.online(&lift) {
                 continue;
             }
+            self.refresh_in_cluster(&lift).await;
             let verdict = self.rules.lift_offline(&lift, self.offline_after.as_secs());
             self.apply(vec![verdict]);
         }
@@ -364,8 +366,8 @@ impl Service {
             .write_alarm_batch(&self.batch, &self.raised, &self.cleared)
             .await;
         let events = std::mem::take(&mut self.batch).len() as u64;
-        let cleared = match written {
-            Ok(cleared) => cleared,
+        let (new, cleared) = match written {
+            Ok(written) => written,
             Err(e) => {
                 tracing::error!(error = %e, events, "events and alarm changes not stored");
                 counters.events_dropped.fetch_add(events, Ordering::Relaxed);
@@ -375,7 +377,13 @@ impl Service {
         };
         counters.events_stored.fetch_add(events, Ordering::Relaxed);
         self.cleared.clear();
-        for alarm in std::mem::take(&mut self.raised) {
+        let mut raised_elsewhere = Vec::new();
+        for (alarm, new) in std::mem::take(&mut self.raised).into_iter().zip(new) {
+            if !new {
+                // Another process of the cluster raised it first: its alarm is the one.
+                raised_elsewhere.push(alarm.lift);
+                continue;
+            }
             tracing::warn!(lift = %alarm.lift, kind = alarm.kind.name(), code = %alarm.code, severity = %alarm.severity, text = %alarm.text, "alarm raised");
             counters.raised.fetch_add(1, Ordering::Relaxed);
             self.alarms.announce(Change::Raised, alarm).await;
@@ -384,6 +392,28 @@ impl Service {
             tracing::info!(lift = %alarm.lift, kind = alarm.kind.name(), code = %alarm.code, "alarm cleared");
             counters.cleared.fetch_add(1, Ordering::Relaxed);
             self.alarms.announce(Change::Cleared, alarm).await;
+        }
+        for lift in raised_elsewhere {
+            self.refresh(&lift).await;
+        }
+    }
+
+    /// In a cluster, before deciding about `lift`: its active alarms as the database has them
+    /// (another process may have raised or cleared some while it held the lift), with what is
+    /// waiting here written first.
+    async fn refresh_in_cluster(&mut self, lift: &str) {
+        if self.alarms.registry.cluster().is_some() {
+            self.flush().await;
+            self.refresh(lift).await;
+        }
+    }
+
+    async fn refresh(&mut self, lift: &str) {
+        match self.alarms.store.active_alarms_of(lift).await {
+            Ok(active) => self.active.replace_lift(lift, active),
+            Err(e) => {
+                tracing::warn!(%lift, error = %e, "active alarms not read: deciding on what this process knows")
+            }
         }
     }
 

@@ -45,6 +45,25 @@ pub struct OutboxEntry {
     pub created: i64,
 }
 
+/// Each active alarm's condition and id.
+fn conditions(rows: &[AnyRow]) -> Result<Vec<(Condition, i64)>, StoreError> {
+    rows.iter()
+        .map(|r| {
+            let a = alarm_from(r)?;
+            Ok((
+                Condition {
+                    lift: a.lift,
+                    kind: a.kind,
+                    place: a.node,
+                    code: a.code,
+                },
+                a.id,
+            ))
+        })
+        .collect::<Result<_, sqlx::Error>>()
+        .map_err(StoreError)
+}
+
 fn alarm_from(r: &AnyRow) -> Result<Alarm, sqlx::Error> {
     let time = |ms: i64| nxg::msg::format_time(ms);
     let kind: String = r.try_get("kind")?;
@@ -100,7 +119,7 @@ impl Store {
         events: &[EventRow],
         raised: &[Alarm],
         cleared: &[(i64, i64)],
-    ) -> Result<Vec<Alarm>, StoreError> {
+    ) -> Result<(Vec<bool>, Vec<Alarm>), StoreError> {
         let mut tx = self.pool.begin().await?;
         for rows in events.chunks(100) {
             let mut sql = String::from("INSERT INTO events (lift, at, kind, body) VALUES ");
@@ -121,10 +140,12 @@ impl Store {
             }
             query.execute(&mut *tx).await?;
         }
+        let mut new = Vec::with_capacity(raised.len());
         for alarm in raised {
             let place = alarm.node.unwrap_or(Place { id: None, net: 0 });
-            sqlx::query(
-                "INSERT INTO alarms (id, lift, kind, net, node, code, severity, text, raised) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9)",
+            let inserted = sqlx::query(
+                "INSERT INTO alarms (id, lift, kind, net, node, code, severity, text, raised) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9) \
+                 ON CONFLICT (lift, kind, net, node, code) WHERE cleared IS NULL DO NOTHING",
             )
             .bind(alarm.id)
             .bind(&alarm.lift)
@@ -137,6 +158,7 @@ impl Store {
             .bind(nxg::msg::parse_time(&alarm.raised).unwrap_or(0))
             .execute(&mut *tx)
             .await?;
+            new.push(inserted.rows_affected() == 1);
         }
         let mut done = Vec::with_capacity(cleared.len());
         for (id, at) in cleared {
@@ -152,7 +174,7 @@ impl Store {
             }
         }
         tx.commit().await?;
-        Ok(done)
+        Ok((new, done))
     }
 
     /// A lift's events, oldest first: from `since` (ms) on, or the newest `limit` without it.
@@ -281,21 +303,16 @@ impl Store {
         let rows = sqlx::query("SELECT * FROM alarms WHERE cleared IS NULL")
             .fetch_all(&self.pool)
             .await?;
-        rows.iter()
-            .map(|r| {
-                let a = alarm_from(r)?;
-                Ok((
-                    Condition {
-                        lift: a.lift,
-                        kind: a.kind,
-                        place: a.node,
-                        code: a.code,
-                    },
-                    a.id,
-                ))
-            })
-            .collect::<Result<_, sqlx::Error>>()
-            .map_err(StoreError)
+        conditions(&rows)
+    }
+
+    /// The active alarms of one lift, by condition.
+    pub async fn active_alarms_of(&self, lift: &str) -> Result<Vec<(Condition, i64)>, StoreError> {
+        let rows = sqlx::query("SELECT * FROM alarms WHERE lift = $1 AND cleared IS NULL")
+            .bind(lift)
+            .fetch_all(&self.pool)
+            .await?;
+        conditions(&rows)
     }
 
     /// The most severe active alarm of each of `domain`'s lifts that has one.
@@ -411,5 +428,52 @@ impl Store {
         .fetch_one(&self.pool)
         .await?;
         Ok(row.try_get("n")?)
+    }
+}
+
+#[cfg(test)]
+pub(super) mod tests {
+    use super::*;
+
+    /// Run by the store's tests on SQLite and PostgreSQL: a condition has one active alarm,
+    /// whichever process raises it (a second raise is no new alarm), and a new one once it
+    /// cleared.
+    pub(in crate::store) async fn one_active_alarm_per_condition(store: &Store) {
+        let condition = Condition {
+            lift: "1050-4096-ALARM".into(),
+            kind: Kind::LiftOffline,
+            place: None,
+            code: String::new(),
+        };
+        let raise = |id: i64| Alarm::raised(id, &condition, Severity::Major, "offline", 1000);
+        let (new, _) = store
+            .write_alarm_batch(&[], &[raise(11), raise(12)], &[])
+            .await
+            .unwrap();
+        assert_eq!(new, [true, false]);
+        let (new, _) = store
+            .write_alarm_batch(&[], &[raise(13)], &[])
+            .await
+            .unwrap();
+        assert_eq!(new, [false], "raised by another process before");
+        assert_eq!(
+            store.active_alarms_of(&condition.lift).await.unwrap(),
+            [(condition.clone(), 11)]
+        );
+        let (new, cleared) = store
+            .write_alarm_batch(&[], &[], &[(11, 2000)])
+            .await
+            .unwrap();
+        assert!(new.is_empty());
+        assert_eq!(cleared.len(), 1);
+        let (new, _) = store
+            .write_alarm_batch(&[], &[raise(14)], &[])
+            .await
+            .unwrap();
+        assert_eq!(new, [true]);
+        assert_eq!(
+            store.active_alarms_of(&condition.lift).await.unwrap(),
+            [(condition, 14)]
+        );
     }
 }

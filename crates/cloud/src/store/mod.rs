@@ -311,6 +311,17 @@ const MIGRATIONS: &[(i64, &str)] = &[
         "ALTER TABLE gateways ADD COLUMN token_set BIGINT NOT NULL DEFAULT 0",
     ),
     (2, "ALTER TABLE gateways ADD COLUMN token_next TEXT"),
+    // One active alarm per condition, also when several processes of a cluster raise it at
+    // once: duplicates an older portal may have left are cleared first.
+    (
+        3,
+        "UPDATE alarms SET cleared = raised WHERE cleared IS NULL AND id NOT IN \
+         (SELECT MIN(id) FROM alarms WHERE cleared IS NULL GROUP BY lift, kind, net, node, code)",
+    ),
+    (
+        4,
+        "CREATE UNIQUE INDEX IF NOT EXISTS alarms_one_active ON alarms (lift, kind, net, node, code) WHERE cleared IS NULL",
+    ),
 ];
 
 impl Store {
@@ -1032,6 +1043,7 @@ mod tests {
         users::tests::users_keys_and_the_epoch(&store).await;
         subscriptions::tests::held_released_and_per_lift(&store).await;
         ticket_keys::tests::made_once_replaced_over_the_version(&store).await;
+        alarms::tests::one_active_alarm_per_condition(&store).await;
     }
 
     /// Rotation (old and new token both admitted until one is confirmed), reset (first contact
