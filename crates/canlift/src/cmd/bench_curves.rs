@@ -193,7 +193,8 @@ impl Curve {
         root.fill(&WHITE)?;
         let points = || self.series.iter().flat_map(|s| s.points.iter());
         let x_max = points().map(|p| p.0).fold(0.0, f64::max) * 1.05;
-        let y_max = points().map(|p| p.1).fold(0.0, f64::max) * 1.1;
+        // Headroom above the highest point for the legend.
+        let y_max = points().map(|p| p.1).fold(0.0, f64::max) * 1.25;
         let mut chart = ChartBuilder::on(&root)
             .caption(self.title, ("sans-serif", 20))
             .margin(12)
