@@ -505,20 +505,26 @@ pub fn parse_integer(text: &str) -> Option<i128> {
         Some(rest) => (true, rest),
         None => (false, t.strip_prefix('+').unwrap_or(t)),
     };
-    let magnitude = if let Some(hex) = digits
+    // Digits only: `from_str_radix` would take a second sign ("-0-7", "0x+1").
+    let (digits, radix) = if let Some(hex) = digits
         .strip_prefix("0x")
         .or_else(|| digits.strip_prefix("0X"))
     {
-        i128::from_str_radix(hex, 16).ok()?
+        (hex, 16)
     } else if digits.len() > 1 && digits.starts_with('0') {
-        i128::from_str_radix(&digits[1..], 8).ok()?
+        (&digits[1..], 8)
     } else {
-        if digits.is_empty() || !digits.bytes().all(|b| b.is_ascii_digit()) {
-            return None;
-        }
-        digits.parse::<i128>().ok()?
+        (digits, 10)
     };
-    Some(if neg { -magnitude } else { magnitude })
+    if digits.is_empty() || !digits.chars().all(|c| c.is_digit(radix)) {
+        return None;
+    }
+    let magnitude = i128::from_str_radix(digits, radix).ok()?;
+    if neg {
+        magnitude.checked_neg()
+    } else {
+        Some(magnitude)
+    }
 }
 
 /// Parse the text form of a `ty` value: integers in decimal or with a `0x` prefix in hex (a
@@ -821,6 +827,19 @@ mod tests {
         assert_eq!(parse_integer("0"), Some(0));
         assert_eq!(parse_integer("08"), None, "8 is not an octal digit");
         assert_eq!(parse_integer(""), None);
+        // A second sign inside hex or octal digits (found by fuzzing: "-0-2000…" overflowed
+        // when negated).
+        assert_eq!(
+            parse_integer("-0-200000000000000000000000000000000000000000000000"),
+            None
+        );
+        assert_eq!(parse_integer("0x-1"), None);
+        assert_eq!(parse_integer("0+7"), None);
+        assert_eq!(
+            parse_integer("-0x80000000000000000000000000000000"),
+            None,
+            "beyond i128"
+        );
     }
 
     fn arb_value() -> impl Strategy<Value = (DataType, Value)> {
