@@ -182,10 +182,17 @@ async fn board_swapped(policy: BoardhashChange) -> (Rig, bool) {
     offline(&mut rig).await;
     rig.restart_gateway(|c| c.identity.boardhash = "B0ARD-2".into())
         .await;
+    // A refusal for another cause (a database busy on a loaded machine) is no answer here.
     let admitted = tokio::select! {
         lifts = rig.online() => lifts[0]["online"] == true,
-        _ = until(WAIT, "a refusal", || async { !refusals(&rig).await.is_empty() }) => false,
+        _ = until(WAIT, "a boardhash refusal", || async {
+            refusals(&rig).await.iter().any(|r| r.contains("boardhash"))
+        }) => false,
     };
+    until(WAIT, "the board change audited", || async {
+        !audited(&rig, "board changed").await.is_empty()
+    })
+    .await;
     let changes = audited(&rig, "board changed").await;
     assert_eq!(changes.len(), 1, "{changes:?}");
     assert_eq!(changes[0]["new_value"], "B0ARD-2");
@@ -197,7 +204,7 @@ async fn board_swapped(policy: BoardhashChange) -> (Rig, bool) {
 async fn a_board_change_is_refused_alarmed_or_accepted() {
     let (rig, admitted) = board_swapped(BoardhashChange::Refuse).await;
     assert!(!admitted);
-    assert!(refusals(&rig).await[0].contains("boardhash"));
+    assert!(refusals(&rig).await.iter().any(|r| r.contains("boardhash")));
     assert_eq!(audited(&rig, "board changed").await[0]["result"], "refused");
     // The administrator's reset admits the new board as a first contact.
     let path = format!("/api/v1/lifts/{LIFT}/token");
