@@ -145,7 +145,12 @@ async fn ticket_keys(
     let text = shared_ticket_keys(store, rotate).await?;
     let keys =
         Arc::new(TicketKeys::shared(&text, rotate).map_err(|e| ServerError::Other(e.to_string()))?);
-    let follow = tokio::spawn(follow_ticket_keys(store.clone(), keys.clone(), rotate));
+    let follow = tokio::spawn(follow_ticket_keys(
+        store.clone(),
+        keys.clone(),
+        rotate,
+        text,
+    ));
     Ok((Some(keys), Some(follow)))
 }
 
@@ -178,17 +183,27 @@ async fn shared_ticket_keys(store: &Store, rotate: Duration) -> Result<String, S
     ))
 }
 
-/// Keep `keys` the cluster's: rotated by whichever process finds them due first.
-async fn follow_ticket_keys(store: Store, keys: Arc<TicketKeys>, rotate: Duration) {
+/// Keep `keys` (made of `installed`) the cluster's: rotated by whichever process finds them
+/// due first; replaced here only when they changed.
+async fn follow_ticket_keys(
+    store: Store,
+    keys: Arc<TicketKeys>,
+    rotate: Duration,
+    mut installed: String,
+) {
     let mut check = tokio::time::interval(TICKET_KEYS_CHECK.min(rotate / 4));
     check.tick().await;
     loop {
         check.tick().await;
-        let installed = shared_ticket_keys(&store, rotate).await.and_then(|text| {
-            keys.install(&text)
-                .map_err(|e| ServerError::Other(e.to_string()))
-        });
-        if let Err(e) = installed {
+        let followed = match shared_ticket_keys(&store, rotate).await {
+            Ok(text) if text == installed => Ok(()),
+            Ok(text) => keys
+                .install(&text)
+                .map(|()| installed = text)
+                .map_err(|e| ServerError::Other(e.to_string())),
+            Err(e) => Err(e),
+        };
+        if let Err(e) = followed {
             tracing::warn!(error = %e, "TLS ticket keys not followed: sessions resume on this process only");
         }
     }
