@@ -91,7 +91,18 @@ fn main() -> std::process::ExitCode {
         _ => "info",
     };
     logging::init(cli.log_format, level);
-    let runtime = match tokio::runtime::Runtime::new() {
+    // A gateway serves one connection: one worker thread is enough, and on a device each
+    // further thread costs its stack and an allocator arena (docs/BENCHMARKS.md §Elevator
+    // gateway). `TOKIO_WORKER_THREADS` still decides where it is set. Everything else (portal,
+    // hub, simulator, load generator) gets a worker per core.
+    let mut runtime = tokio::runtime::Builder::new_multi_thread();
+    runtime.enable_all();
+    if matches!(cli.command, Command::Gateway(_))
+        && std::env::var_os("TOKIO_WORKER_THREADS").is_none()
+    {
+        runtime.worker_threads(1);
+    }
+    let runtime = match runtime.build() {
         Ok(rt) => rt,
         Err(e) => {
             eprintln!("canlift: cannot start the async runtime: {e}");

@@ -292,6 +292,13 @@ where
         if !outputs.is_empty() {
             continue;
         }
+        // What a burst of subscriptions queued is not kept for the rest of the connection.
+        if jobs.is_empty() && jobs.capacity() > 64 {
+            jobs.shrink_to(64);
+        }
+        if outputs.capacity() > 64 {
+            outputs.shrink_to(64);
+        }
         if !served {
             if let Phase::Connected(api) = session.phase() {
                 served = true;

@@ -2,195 +2,124 @@
 //! metadata `get_canopen_object` reports (NXg SW003 §6.1): object code, data type, form, unit,
 //! access, privilege, names and hints per language, limits, lists and presentation hints.
 //!
-//! The data lives in `catalog/lift.toml`, compiled into the binary; [`Catalog::builtin`] parses
-//! it once. Objects are described for lift 1. The lift-number rule of CiA 417-4 §4.1.1 (lift n at
+//! The data lives in `catalog/lift.toml`. `build.rs` reads it with the same code that reads a
+//! vendor metadata file at run time ([`Catalog::from_toml`]) and compiles it into static tables
+//! of numbers (`tables`): the built-in catalog ([`Catalog::builtin`]) sits in read-only pages
+//! that every canlift process shares, and nothing is parsed at start. Lookups build the
+//! [`Entry`] they answer from the tables.
+//!
+//! Objects are described for lift 1. The lift-number rule of CiA 417-4 §4.1.1 (lift n at
 //! +(n − 1) × 800h, see [`crate::lift`]) and ours for manufacturer objects marked `per_lift`
 //! (lift n at +(n − 1) × [`MANUFACTURER_LIFT_STRIDE`]) are applied here, by code:
 //! [`Catalog::lookup`] answers for any lift, [`Catalog::dictionary`] builds a device's object
 //! dictionary for any number of lifts.
 
 use std::borrow::Cow;
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeMap;
 use std::sync::{Arc, OnceLock};
 
 use canopen::od::{self, Object, ObjectCode, ObjectDictionary, Variable, VariableHook};
 use canopen::sdo::abort::AbortCode;
 use canopen::types::{self, DataType, Value};
 use nxg::gateway::Lookup;
-use nxg::meta::{self, Access, Bound, Description, FormType, Hints, PhysUnit, Privilege, Texts};
+use nxg::meta::{Access, Bound, FormType, Texts};
 use nxg::mplex::Mplex;
 use nxg::names::ObjectNames;
-use serde::Deserialize;
 
 use crate::lift::{self, MAX_LIFTS};
 
-/// The catalog source compiled into canlift.
-pub const BUILTIN_TOML: &str = include_str!("../catalog/lift.toml");
+mod source;
+mod tables;
 
-/// Manufacturer objects marked `per_lift` exist once per lift, lift n at this many indices
-/// above lift 1 (our rule: CiA 417 leaves the manufacturer area to us).
-pub const MANUFACTURER_LIFT_STRIDE: u16 = 0x100;
+use source::object_error;
+pub use source::{CatalogError, Device, Entry, MANUFACTURER_LIFT_STRIDE};
+use tables::{device_bit, EntryRow, ObjectRow, Tables};
 
-/// Why a catalog could not be loaded.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-pub enum CatalogError {
-    /// The TOML is malformed, has an unknown key or a key of the wrong type.
-    #[error("line {line}: {reason}")]
-    Syntax {
-        /// Where (1-based; 0 when unknown).
-        line: usize,
-        /// What is wrong.
-        reason: String,
-    },
-    /// An object or entry is inconsistent.
-    #[error("catalog object {index:04X}h: {reason}")]
-    Object {
-        /// The object (lift 1 index).
-        index: u16,
-        /// What is wrong.
-        reason: String,
-    },
+/// The built-in catalog's tables, written by `build.rs` from `catalog/lift.toml`.
+mod builtin {
+    use super::tables::{EntryRow, ObjectRow, Span};
+    use canopen::od::ObjectCode;
+    use nxg::meta::Privilege;
+    use nxg::meta::{Access, Bound, DataType, FormType, Hints, ObjCode, PhysUnit, PooledText};
+
+    include!(concat!(env!("OUT_DIR"), "/catalog_tables.rs"));
 }
 
-/// The line of a TOML error: where its span starts, or, for an unknown key (whose span is its
-/// table's), the line of that key in the table.
-fn error_line(text: &str, span: std::ops::Range<usize>, message: &str) -> usize {
-    let start = span.start.min(text.len());
-    let first = text[..start].matches('\n').count() + 1;
-    let key = message
-        .strip_prefix("unknown field `")
-        .and_then(|rest| rest.split('`').next());
-    let Some(key) = key else {
-        return first;
-    };
-    text[start..]
-        .lines()
-        .enumerate()
-        .take_while(|(i, l)| *i == 0 || !l.trim_start().starts_with('['))
-        .map(|(_, l)| l)
-        .position(|l| {
-            l.trim_start()
-                .strip_prefix(key)
-                .is_some_and(|rest| rest.trim_start().starts_with('='))
-        })
-        .map_or(first, |i| first + i)
+/// One catalog object (lift 1): a view of the tables that builds its texts and entries when
+/// asked.
+#[derive(Debug, Clone, Copy)]
+pub struct CatalogObject<'a> {
+    tables: &'a Tables,
+    row: &'a ObjectRow,
 }
 
-impl CatalogError {
-    /// The error as `FILE:LINE: reason`, the line found in `text` (the file's content): the
-    /// object's `index = …` line for an inconsistent object.
-    pub fn located(&self, file: &str, text: &str) -> String {
-        match self {
-            CatalogError::Syntax { line, reason } => format!("{file}:{line}: {reason}"),
-            CatalogError::Object { index, reason } => {
-                let wanted = format!("0x{index:04x}");
-                let line = text
-                    .lines()
-                    .position(|l| {
-                        let l = l.trim().to_ascii_lowercase().replace(' ', "");
-                        l.starts_with("index=") && l.contains(&wanted)
-                    })
-                    .map_or(0, |i| i + 1);
-                format!("{file}:{line}: object {index:04X}h: {reason}")
-            }
-        }
-    }
-}
-
-/// The texts with `{n}` (object number) and `{i}` (sub-index) filled in.
-fn expand(texts: &Texts, n: u16, i: u8) -> Texts {
-    texts.fill("{n}", n).fill("{i}", i.into())
-}
-
-/// The simulated devices a catalog object belongs to.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Device {
-    /// The lift controller (call controller, drive and door control in one node).
-    Controller,
-    /// The car/hall I/O node with the call buttons (input panel unit).
-    Io,
-}
-
-/// One sub-object with its NXg metadata, for lift 1.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Entry {
+impl<'a> CatalogObject<'a> {
     /// Index (lift 1).
-    pub index: u16,
-    /// Sub-index.
-    pub sub: u8,
-    /// What `get_canopen_object` reports about it (NXg §6.1.1).
-    pub description: Description,
-    /// Initial value in CiA text form.
-    pub default: Option<String>,
-    /// Mappable into PDOs.
-    pub pdo: bool,
-    /// Kept across restarts (0x1010) although not writable remotely.
-    pub persist: bool,
-}
-
-impl Entry {
-    /// The mplex text of this entry for `index` (`0x` + upper-case hex, docs/PROTOCOL.md
-    /// §Mplex).
-    pub fn mplex(index: u16, sub: u8) -> String {
-        Mplex { index, sub }.to_string()
+    pub fn index(&self) -> u16 {
+        self.row.index
     }
 
-    /// The CiA 301 type of the values.
-    pub fn value_type(&self) -> DataType {
-        self.description.datatype.value_type()
-    }
-}
-
-/// One catalog object (lift 1) with its entries; arrays and records have a generated sub 0.
-#[derive(Debug, Clone, PartialEq)]
-pub struct CatalogObject {
-    /// Index (lift 1).
-    pub index: u16,
     /// Object code.
-    pub code: ObjectCode,
-    /// Name per language.
-    pub name: Texts,
-    /// Hint per language.
-    pub hint: Texts,
-    /// Devices that hold it.
-    pub devices: BTreeSet<Device>,
-    /// A manufacturer object repeated for every lift.
-    pub per_lift: bool,
-    /// An array with one element per floor (the device sizes it by its number of floors).
-    pub per_floor: bool,
-    /// Sub-index 0 and the entries that differ from `element`.
-    listed: BTreeMap<u8, Entry>,
-    /// The uniform elements 1..=`last` of an ARRAY, as one entry whose name still holds `{i}`.
-    element: Option<Entry>,
-    /// The highest sub-index.
-    last: u8,
-}
+    pub fn code(&self) -> ObjectCode {
+        self.row.code
+    }
 
-impl CatalogObject {
-    /// The entry at `sub`.
-    pub fn entry(&self, sub: u8) -> Option<Cow<'_, Entry>> {
-        if let Some(e) = self.listed.get(&sub) {
-            return Some(Cow::Borrowed(e));
+    /// Name per language.
+    pub fn name(&self) -> Texts {
+        self.tables.texts(self.row.name)
+    }
+
+    /// Hint per language.
+    pub fn hint(&self) -> Texts {
+        self.tables.texts(self.row.hint)
+    }
+
+    /// Whether `device` holds the object.
+    pub fn held_by(&self, device: Device) -> bool {
+        self.row.devices & device_bit(device) != 0
+    }
+
+    /// A manufacturer object repeated for every lift.
+    pub fn per_lift(&self) -> bool {
+        self.row.per_lift
+    }
+
+    /// An array with one element per floor (the device sizes it by its number of floors).
+    pub fn per_floor(&self) -> bool {
+        self.row.per_floor
+    }
+
+    /// The row of the entry at `sub` and whether it is the uniform element standing in for it.
+    fn row_of(&self, sub: u8) -> Option<(&'a EntryRow, bool)> {
+        let listed = self.tables.listed(self.row);
+        if let Ok(at) = listed.binary_search_by_key(&sub, |e| e.sub) {
+            return listed.get(at).map(|e| (e, false));
         }
-        let template = self
-            .element
-            .as_ref()
-            .filter(|_| (1..=self.last).contains(&sub))?;
-        let mut e = template.clone();
-        e.sub = sub;
-        e.description.name = e.description.name.fill("{i}", sub.into());
-        Some(Cow::Owned(e))
+        let element = self.tables.element(self.row)?;
+        (1..=self.row.last)
+            .contains(&sub)
+            .then_some((element, true))
+    }
+
+    /// The entry at `sub`.
+    pub fn entry(&self, sub: u8) -> Option<Entry> {
+        let (row, uniform) = self.row_of(sub)?;
+        let mut e = self.tables.entry(row);
+        if uniform {
+            e.sub = sub;
+            e.description.name = e.description.name.fill("{i}", sub.into());
+        }
+        Some(e)
     }
 
     /// Every entry, by sub-index.
-    pub fn entries(&self) -> impl Iterator<Item = Cow<'_, Entry>> + '_ {
-        (0..=self.last).filter_map(|sub| self.entry(sub))
+    pub fn entries(self) -> impl Iterator<Item = Entry> + 'a {
+        (0..=self.row.last).filter_map(move |sub| self.entry(sub))
     }
 
     /// The highest sub-index (0 for a VAR).
     pub fn last_sub(&self) -> u8 {
-        self.last
+        self.row.last
     }
 }
 
@@ -198,9 +127,9 @@ impl CatalogObject {
 #[derive(Debug, Clone)]
 pub struct Located<'a> {
     /// The metadata (indices are lift 1's).
-    pub entry: Cow<'a, Entry>,
+    pub entry: Entry,
     /// The object.
-    pub object: &'a CatalogObject,
+    pub object: CatalogObject<'a>,
     /// The lift (1 for objects that are not per lift).
     pub lift: u8,
     /// The index asked for.
@@ -212,357 +141,40 @@ pub struct Located<'a> {
 pub struct Catalog {
     languages: Vec<String>,
     fallback: BTreeMap<String, String>,
-    objects: BTreeMap<u16, CatalogObject>,
-}
-
-// ------------------------------------------------------------------------- the TOML form
-
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct RawCatalog {
-    #[serde(default = "english")]
-    languages: Vec<String>,
-    #[serde(default)]
-    fallback: BTreeMap<String, String>,
-    #[serde(default = "count_name")]
-    count_name: Texts,
-    #[serde(default = "count_hint")]
-    count_hint: Texts,
-    #[serde(default)]
-    object: Vec<RawObject>,
-}
-
-/// A file that names no languages is in English.
-fn english() -> Vec<String> {
-    vec!["en".to_owned()]
-}
-
-/// The name of sub-index 0 where a file gives none.
-fn count_name() -> Texts {
-    Texts::en_de("Number of entries", "Anzahl der Einträge")
-}
-
-/// The hint of sub-index 0 where a file gives none.
-fn count_hint() -> Texts {
-    Texts::en_de(
-        "The highest sub-index of this object.",
-        "Der höchste Subindex dieses Objekts.",
-    )
-}
-
-/// Attributes an object passes down to its entries and an entry may override.
-#[derive(Debug, Clone, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct RawAttrs {
-    #[serde(rename = "type")]
-    datatype: Option<u32>,
-    form: Option<u32>,
-    unit: Option<u32>,
-    access: Option<String>,
-    privilege: Option<u32>,
-    min: Option<Bound>,
-    max: Option<Bound>,
-    zero: Option<bool>,
-    list: Option<Vec<Texts>>,
-    off_at_zero: Option<bool>,
-    unlimited_at_max: Option<bool>,
-    undefined_at_max: Option<bool>,
-    default: Option<String>,
-    pdo: Option<bool>,
-    persist: Option<bool>,
-}
-
-impl RawAttrs {
-    fn or(&self, parent: &RawAttrs) -> RawAttrs {
-        RawAttrs {
-            datatype: self.datatype.or(parent.datatype),
-            form: self.form.or(parent.form),
-            unit: self.unit.or(parent.unit),
-            access: self.access.clone().or_else(|| parent.access.clone()),
-            privilege: self.privilege.or(parent.privilege),
-            min: self.min.or(parent.min),
-            max: self.max.or(parent.max),
-            zero: self.zero.or(parent.zero),
-            list: self.list.clone().or_else(|| parent.list.clone()),
-            off_at_zero: self.off_at_zero.or(parent.off_at_zero),
-            unlimited_at_max: self.unlimited_at_max.or(parent.unlimited_at_max),
-            undefined_at_max: self.undefined_at_max.or(parent.undefined_at_max),
-            default: self.default.clone().or_else(|| parent.default.clone()),
-            pdo: self.pdo.or(parent.pdo),
-            persist: self.persist.or(parent.persist),
-        }
-    }
-}
-
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct RawSub {
-    sub: u8,
-    name: Option<Texts>,
-    hint: Option<Texts>,
-    #[serde(flatten)]
-    attrs: RawAttrs,
-}
-
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct RawObject {
-    index: u16,
-    code: String,
-    name: Option<Texts>,
-    #[serde(default)]
-    hint: Texts,
-    repeat: Option<u16>,
-    first: Option<u16>,
-    #[serde(default)]
-    devices: Option<BTreeSet<Device>>,
-    #[serde(default)]
-    per_lift: bool,
-    #[serde(default)]
-    per_floor: bool,
-    len: Option<u8>,
-    item: Option<Texts>,
-    #[serde(default)]
-    sub: Vec<RawSub>,
-    #[serde(flatten)]
-    attrs: RawAttrs,
-}
-
-fn object_error(index: u16, reason: impl Into<String>) -> CatalogError {
-    CatalogError::Object {
-        index,
-        reason: reason.into(),
-    }
-}
-
-fn entry_from(
-    index: u16,
-    sub: u8,
-    objcode: ObjectCode,
-    name: Texts,
-    hint: Texts,
-    a: &RawAttrs,
-) -> Result<Entry, CatalogError> {
-    let err = |e: meta::UnknownCode| object_error(index, format!("sub {sub}: {e}"));
-    let code = a
-        .datatype
-        .ok_or_else(|| object_error(index, format!("sub {sub}: no type")))?;
-    let datatype = meta::DataType::from_code(code).map_err(err)?;
-    let access = Access::parse(a.access.as_deref().unwrap_or("ro")).map_err(err)?;
-    let description = Description {
-        objcode: objcode.into(),
-        datatype,
-        formtype: FormType::from_code(a.form.unwrap_or(0)).map_err(err)?,
-        physunit: PhysUnit::from_code(a.unit.unwrap_or(0)).map_err(err)?,
-        access,
-        privilege: Privilege::from_code(a.privilege.unwrap_or(0)).map_err(err)?,
-        name,
-        hint,
-        min: a.min.or_else(|| type_min(datatype.value_type())),
-        max: a.max.or_else(|| type_max(datatype.value_type())),
-        zero: a.zero.unwrap_or(false),
-        list: a.list.clone().unwrap_or_default(),
-        hints: Hints {
-            show_off_at_zero: a.off_at_zero.unwrap_or(false),
-            show_unlimited_at_max: a.unlimited_at_max.unwrap_or(false),
-            show_undefined_at_max: a.undefined_at_max.unwrap_or(false),
-        },
-    };
-    Ok(Entry {
-        index,
-        sub,
-        description,
-        default: a.default.clone(),
-        pdo: a.pdo.unwrap_or(false),
-        persist: a.persist.unwrap_or(false),
-    })
-}
-
-fn type_min(t: DataType) -> Option<Bound> {
-    match t {
-        DataType::Real32 => Some(Bound::Real(f64::from(f32::MIN))),
-        DataType::Real64 => Some(Bound::Real(f64::MIN)),
-        _ => t.integer_range().map(|(lo, _)| Bound::Int(lo)),
-    }
-}
-
-fn type_max(t: DataType) -> Option<Bound> {
-    match t {
-        DataType::Real32 => Some(Bound::Real(f64::from(f32::MAX))),
-        DataType::Real64 => Some(Bound::Real(f64::MAX)),
-        _ => t.integer_range().map(|(_, hi)| Bound::Int(hi)),
-    }
-}
-
-impl RawObject {
-    fn expand(
-        &self,
-        count_name: &Texts,
-        count_hint: &Texts,
-    ) -> Result<Vec<CatalogObject>, CatalogError> {
-        let code = match self.code.as_str() {
-            "var" => ObjectCode::Var,
-            "array" => ObjectCode::Array,
-            "record" => ObjectCode::Record,
-            other => return Err(object_error(self.index, format!("unknown code {other:?}"))),
-        };
-        let repeat = self.repeat.unwrap_or(1);
-        let first = self.first.unwrap_or(1);
-        let devices = self
-            .devices
-            .clone()
-            .unwrap_or_else(|| BTreeSet::from([Device::Controller]));
-        let mut out = Vec::with_capacity(usize::from(repeat));
-        for k in 0..repeat {
-            let index = self
-                .index
-                .checked_add(k)
-                .ok_or_else(|| object_error(self.index, "repeat runs past FFFFh"))?;
-            let n = first + k;
-            let name = expand(
-                self.name
-                    .as_ref()
-                    .ok_or_else(|| object_error(self.index, "no name"))?,
-                n,
-                0,
-            );
-            let hint = expand(&self.hint, n, 0);
-            let mut entries = BTreeMap::new();
-            let mut element = None;
-            let mut highest = 0;
-            let overrides: BTreeMap<u8, &RawSub> = self.sub.iter().map(|s| (s.sub, s)).collect();
-            if overrides.len() != self.sub.len() {
-                return Err(object_error(index, "a sub-index is listed twice"));
-            }
-            match code {
-                ObjectCode::Var => {
-                    if !self.sub.is_empty() || self.len.is_some() {
-                        return Err(object_error(index, "a VAR has no sub list and no len"));
-                    }
-                    let e = entry_from(index, 0, code, name.clone(), hint.clone(), &self.attrs)?;
-                    entries.insert(0, e);
-                }
-                ObjectCode::Array | ObjectCode::Record => {
-                    let subs: Vec<u8> = match (code, self.len) {
-                        (ObjectCode::Array, Some(len)) if len > 0 => (1..=len).collect(),
-                        (ObjectCode::Array, _) => {
-                            return Err(object_error(index, "an ARRAY needs len ≥ 1"))
-                        }
-                        _ => overrides.keys().copied().collect(),
-                    };
-                    if let Some(bad) = overrides.keys().find(|s| !subs.contains(s)) {
-                        return Err(object_error(index, format!("sub {bad} is outside len")));
-                    }
-                    let last = *subs
-                        .last()
-                        .ok_or_else(|| object_error(index, "no entries"))?;
-                    // Elements without an override share one template entry.
-                    let uniform =
-                        |sub: &u8| code == ObjectCode::Array && !overrides.contains_key(sub);
-                    if subs.iter().any(uniform) {
-                        let template_name = self
-                            .item
-                            .clone()
-                            .ok_or_else(|| object_error(index, "an ARRAY needs item names"))?
-                            .fill("{n}", n);
-                        element = Some(entry_from(
-                            index,
-                            1,
-                            code,
-                            template_name,
-                            hint.clone(),
-                            &self.attrs,
-                        )?);
-                    }
-                    for &sub in subs.iter().filter(|s| !uniform(s)) {
-                        let over = overrides.get(&sub);
-                        let attrs = over.map_or(self.attrs.clone(), |o| o.attrs.or(&self.attrs));
-                        let sub_name = over
-                            .and_then(|o| o.name.clone())
-                            .or_else(|| self.item.clone())
-                            .ok_or_else(|| object_error(index, format!("sub {sub} has no name")))
-                            .map(|t| expand(&t, n, sub))?;
-                        let sub_hint = over
-                            .and_then(|o| o.hint.clone())
-                            .map_or_else(|| hint.clone(), |h| expand(&h, n, sub));
-                        let e = entry_from(index, sub, code, sub_name, sub_hint, &attrs)?;
-                        entries.insert(sub, e);
-                    }
-                    let count = RawAttrs {
-                        datatype: Some(u32::from(DataType::Unsigned8.code())),
-                        form: Some(u32::from(FormType::Number.code())),
-                        access: Some("ro".into()),
-                        min: Some(Bound::Int(0)),
-                        max: Some(Bound::Int(last.into())),
-                        default: Some(last.to_string()),
-                        ..RawAttrs::default()
-                    };
-                    let e = entry_from(
-                        index,
-                        0,
-                        code,
-                        count_name.clone(),
-                        count_hint.clone(),
-                        &count,
-                    )?;
-                    entries.insert(0, e);
-                    highest = last;
-                }
-                _ => return Err(object_error(index, "only var, array and record")),
-            }
-            out.push(CatalogObject {
-                index,
-                code,
-                name,
-                hint,
-                devices: devices.clone(),
-                per_lift: self.per_lift,
-                per_floor: self.per_floor,
-                listed: entries,
-                element,
-                last: highest,
-            });
-        }
-        Ok(out)
-    }
+    tables: Tables,
 }
 
 // ------------------------------------------------------------------------- the catalog
 
 impl Catalog {
-    /// Parse a catalog from its TOML text; objects must not overlap for any lift.
+    /// Read a catalog from its TOML text; objects must not overlap for any lift.
     pub fn from_toml(text: &str) -> Result<Catalog, CatalogError> {
-        let raw: RawCatalog = toml::from_str(text).map_err(|e| CatalogError::Syntax {
-            line: e
-                .span()
-                .map_or(0, |span| error_line(text, span, e.message())),
-            reason: e.message().to_owned(),
-        })?;
-        let mut objects = BTreeMap::new();
-        for o in &raw.object {
-            for object in o.expand(&raw.count_name, &raw.count_hint)? {
-                let index = object.index;
-                if objects.insert(index, object).is_some() {
-                    return Err(object_error(index, "defined twice"));
-                }
-            }
-        }
-        let catalog = Catalog {
-            languages: raw.languages,
-            fallback: raw.fallback,
-            objects,
-        };
-        catalog.check_lift_collisions()?;
-        Ok(catalog)
+        let source = source::Source::parse(text)?;
+        Ok(Catalog {
+            tables: tables::Builder::build(&source),
+            languages: source.languages,
+            fallback: source.fallback,
+        })
     }
 
-    /// The catalog compiled into canlift (parsed on first use; `tests` prove it parses and
-    /// validates, so a failure here is a build defect, not an input error).
+    /// The catalog compiled into canlift: static tables, not parsed (`build.rs` refuses to
+    /// build with a catalog that does not read; `tests` prove the tables equal what
+    /// [`Catalog::from_toml`] makes of the same text, and that the catalog validates).
     pub fn builtin() -> &'static Catalog {
         static BUILTIN: OnceLock<Catalog> = OnceLock::new();
-        BUILTIN.get_or_init(|| match Catalog::from_toml(BUILTIN_TOML) {
-            Ok(c) => c,
-            Err(e) => panic!("the built-in catalog is broken: {e}"),
+        BUILTIN.get_or_init(|| Catalog {
+            languages: builtin::LANGUAGES.iter().map(|&l| l.to_owned()).collect(),
+            fallback: builtin::FALLBACK
+                .iter()
+                .map(|&(from, to)| (from.to_owned(), to.to_owned()))
+                .collect(),
+            tables: Tables {
+                pool: Cow::Borrowed(builtin::POOL),
+                pairs: Cow::Borrowed(&builtin::PAIRS),
+                lists: Cow::Borrowed(&builtin::LISTS),
+                entries: Cow::Borrowed(&builtin::ENTRIES),
+                objects: Cow::Borrowed(&builtin::OBJECTS),
+            },
         })
     }
 
@@ -571,30 +183,26 @@ impl Catalog {
         &self.languages
     }
 
-    /// The objects (lift 1).
-    pub fn objects(&self) -> impl Iterator<Item = &CatalogObject> {
-        self.objects.values()
+    fn view<'a>(&'a self, row: &'a ObjectRow) -> CatalogObject<'a> {
+        CatalogObject {
+            tables: &self.tables,
+            row,
+        }
+    }
+
+    /// The objects (lift 1), by index.
+    pub fn objects(&self) -> impl Iterator<Item = CatalogObject<'_>> {
+        self.tables.objects.iter().map(|row| self.view(row))
     }
 
     /// The object at lift-1 index `index`.
-    pub fn object(&self, index: u16) -> Option<&CatalogObject> {
-        self.objects.get(&index)
+    pub fn object(&self, index: u16) -> Option<CatalogObject<'_>> {
+        self.tables.object(index).map(|row| self.view(row))
     }
 
     /// Where object `o` lives for `lift`, if it exists for that lift.
     pub fn index_for_lift(o: &CatalogObject, lift: u8) -> Option<u16> {
-        if lift == 1 {
-            return Some(o.index);
-        }
-        if lift::lift_of(o.index).is_some() {
-            return lift::for_lift(o.index, lift);
-        }
-        if o.per_lift && (1..=MAX_LIFTS).contains(&lift) {
-            return o
-                .index
-                .checked_add(u16::from(lift - 1) * MANUFACTURER_LIFT_STRIDE);
-        }
-        None
+        source::index_for_lift(o.index(), o.per_lift(), lift)
     }
 
     /// The metadata of (`index`, `sub`) for any lift.
@@ -610,16 +218,16 @@ impl Catalog {
     }
 
     /// The object behind a concrete index, with its lift.
-    pub fn object_for(&self, index: u16) -> Option<(u8, &CatalogObject)> {
+    pub fn object_for(&self, index: u16) -> Option<(u8, CatalogObject<'_>)> {
         if let Some((lift, base)) = lift::lift_of(index) {
-            return self.objects.get(&base).map(|o| (lift, o));
+            return self.object(base).map(|o| (lift, o));
         }
-        if let Some(o) = self.objects.get(&index) {
+        if let Some(o) = self.object(index) {
             return Some((1, o));
         }
         (1..MAX_LIFTS).find_map(|k| {
             let base = index.checked_sub(u16::from(k) * MANUFACTURER_LIFT_STRIDE)?;
-            let o = self.objects.get(&base).filter(|o| o.per_lift)?;
+            let o = self.object(base).filter(|o| o.per_lift())?;
             Some((k + 1, o))
         })
     }
@@ -648,20 +256,20 @@ impl Catalog {
     }
 
     /// The object behind `index` on `device` (any device: `None`).
-    fn object_on(&self, device: Option<Device>, index: u16) -> Option<&CatalogObject> {
+    fn object_on(&self, device: Option<Device>, index: u16) -> Option<CatalogObject<'_>> {
         self.object_for(index)
             .map(|(_, o)| o)
-            .filter(|o| device.is_none_or(|d| o.devices.contains(&d)))
+            .filter(|o| device.is_none_or(|d| o.held_by(d)))
     }
 
     /// What a gateway reports about (`index`, `sub`) of `device` built on this catalog (any
     /// device: `None`), for any lift (NXg §6.1.1).
     pub fn describe(&self, device: Option<Device>, index: u16, sub: u8) -> Lookup {
-        if self.object_on(device, index).is_none() {
+        let Some(object) = self.object_on(device, index) else {
             return Lookup::NoObject;
-        }
-        match self.lookup(index, sub) {
-            Some(found) => Lookup::Found(Box::new(found.entry.into_owned().description)),
+        };
+        match object.entry(sub) {
+            Some(entry) => Lookup::Found(Box::new(entry.description)),
             None => Lookup::NoSub,
         }
     }
@@ -670,7 +278,7 @@ impl Catalog {
     /// a `compact` read (NXg §6.2).
     pub fn object_texts(&self, device: Option<Device>, index: u16) -> Option<(Texts, Texts)> {
         let object = self.object_on(device, index)?;
-        Some((object.name.clone(), object.hint.clone()))
+        Some((object.name(), object.hint()))
     }
 
     /// Every entry's name in every language (English first), for lift 1: what operators may
@@ -687,7 +295,7 @@ impl Catalog {
         for object in self.objects() {
             for entry in object.entries() {
                 let mplex = Mplex {
-                    index: object.index,
+                    index: object.index(),
                     sub: entry.sub,
                 };
                 for lang in &languages {
@@ -700,27 +308,6 @@ impl Catalog {
         names
     }
 
-    fn check_lift_collisions(&self) -> Result<(), CatalogError> {
-        let mut taken: BTreeMap<u16, (u16, u8)> = BTreeMap::new();
-        for o in self.objects.values() {
-            for lift in 1..=MAX_LIFTS {
-                let Some(index) = Catalog::index_for_lift(o, lift) else {
-                    continue;
-                };
-                if let Some((other, other_lift)) = taken.insert(index, (o.index, lift)) {
-                    return Err(object_error(
-                        o.index,
-                        format!(
-                            "lift {lift} lands on {index:04X}h, already taken by \
-                             {other:04X}h of lift {other_lift}"
-                        ),
-                    ));
-                }
-            }
-        }
-        Ok(())
-    }
-
     /// Everything wrong with the catalog's content: limits that do not fit the data type,
     /// lists that do not fit the range, texts missing a language without a declared fallback,
     /// forms that do not suit the type. Empty when the catalog is sound.
@@ -731,17 +318,17 @@ impl Catalog {
                 problems.push(format!("fallback {lang} → {to}: {to} is not complete"));
             }
         }
-        for o in self.objects.values() {
+        for o in self.objects() {
             let at = |sub: Option<u8>| match sub {
-                Some(s) => Entry::mplex(o.index, s),
-                None => format!("{:04X}h", o.index),
+                Some(s) => Entry::mplex(o.index(), s),
+                None => format!("{:04X}h", o.index()),
             };
-            self.check_texts(&o.name, &at(None), "name", &mut problems);
-            self.check_texts(&o.hint, &at(None), "hint", &mut problems);
-            if o.per_lift && lift::lift_of(o.index).is_some() {
+            self.check_texts(&o.name(), &at(None), "name", &mut problems);
+            self.check_texts(&o.hint(), &at(None), "hint", &mut problems);
+            if o.per_lift() && lift::lift_of(o.index()).is_some() {
                 problems.push(format!("{}: per_lift on a CiA 417 object", at(None)));
             }
-            if o.per_floor && o.code != ObjectCode::Array {
+            if o.per_floor() && o.code() != ObjectCode::Array {
                 problems.push(format!("{}: per_floor needs an ARRAY", at(None)));
             }
             for e in o.entries() {
@@ -752,7 +339,7 @@ impl Catalog {
                 for t in &d.list {
                     self.check_texts(t, &here, "list", &mut problems);
                 }
-                check_entry(&e, o.code, &here, &mut problems);
+                check_entry(&e, o.code(), &here, &mut problems);
             }
         }
         problems
@@ -784,27 +371,23 @@ impl Catalog {
         floors: u8,
     ) -> Result<ObjectDictionary, CatalogError> {
         if !(1..=MAX_LIFTS).contains(&lifts) {
-            return Err(object_error(
-                0,
-                format!("{lifts} lifts: 1 to 8 are possible"),
-            ));
+            return Err(CatalogError::Object {
+                index: 0,
+                reason: format!("{lifts} lifts: 1 to 8 are possible"),
+            });
         }
         let mut od = ObjectDictionary::new();
-        for o in self
-            .objects
-            .values()
-            .filter(|o| o.devices.contains(&device))
-        {
-            let lift_count = if o.per_lift || lift::lift_of(o.index).is_some() {
+        for o in self.objects().filter(|o| o.held_by(device)) {
+            let lift_count = if o.per_lift() || lift::lift_of(o.index()).is_some() {
                 lifts
             } else {
                 1
             };
             for lift in 1..=lift_count {
-                let Some(index) = Catalog::index_for_lift(o, lift) else {
+                let Some(index) = Catalog::index_for_lift(&o, lift) else {
                     continue;
                 };
-                od.insert(build_object(o, index, lift, floors)?);
+                od.insert(build_object(&o, index, lift, floors)?);
             }
         }
         Ok(od)
@@ -965,23 +548,27 @@ fn build_object(
         String::new()
     };
     let english = |t: &Texts| format!("{}{suffix}", t.get("en").unwrap_or_default());
-    let last = if o.per_floor { floors.max(1) } else { o.last };
+    let last = if o.per_floor() {
+        floors.max(1)
+    } else {
+        o.last_sub()
+    };
     let mut entries = Vec::new();
-    for e in o.entries().filter(|e| e.sub <= last) {
+    for e in (0..=last).filter_map(|sub| o.entry(sub)) {
         let mut var = build_variable(&e, english(&e.description.name))?;
-        if e.sub == 0 && o.code != ObjectCode::Var {
+        if e.sub == 0 && o.code() != ObjectCode::Var {
             var = var.with_value(Value::Uint(last.into()));
         }
         entries.push((e.sub, var));
     }
-    Ok(match o.code {
+    Ok(match o.code() {
         ObjectCode::Var => {
             let (_, var) = entries
                 .pop()
-                .ok_or_else(|| object_error(o.index, "a VAR without entry"))?;
+                .ok_or_else(|| object_error(o.index(), "a VAR without entry"))?;
             Object::var(index, var)
         }
-        code => Object::composite(index, english(&o.name), code, entries),
+        code => Object::composite(index, english(&o.name()), code, entries),
     })
 }
 

@@ -1,6 +1,9 @@
 //! The simulator on a bus, driven as a portal or a service tool would: SDO writes to 0x5022 and
 //! 0x5030, buttons on the I/O node, TPDOs and EMCY observed by a master.
 
+// The simulator is the `sim` feature.
+#![cfg(feature = "sim")]
+
 use std::time::Duration;
 
 use canbus::Bus;

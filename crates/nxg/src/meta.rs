@@ -299,25 +299,21 @@ impl DataType {
     /// Identity record.
     pub const IDENTITY: DataType = DataType(0x23);
 
-    /// The codes NXg SW003 §8.3 lists.
-    const LISTED: [std::ops::RangeInclusive<u16>; 4] =
-        [0x01..=0x0D, 0x0F..=0x16, 0x18..=0x1B, 0x20..=0x23];
-
     /// The number on the wire.
     pub fn code(self) -> u16 {
         self.0
     }
 
-    /// The data type with number `code`, if §8.3 lists it.
-    pub fn from_code(code: u32) -> Result<Self, UnknownCode> {
-        u16::try_from(code)
-            .ok()
-            .filter(|c| Self::LISTED.iter().any(|r| r.contains(c)))
-            .map(DataType)
-            .ok_or(UnknownCode {
+    /// The data type with number `code`, if §8.3 lists it (`const`: the catalog's static
+    /// tables are checked by the compiler).
+    pub const fn from_code(code: u32) -> Result<Self, UnknownCode> {
+        match code {
+            0x01..=0x0D | 0x0F..=0x16 | 0x18..=0x1B | 0x20..=0x23 => Ok(DataType(code as u16)),
+            _ => Err(UnknownCode {
                 what: "data type",
                 code,
-            })
+            }),
+        }
     }
 
     /// One of the structure codes 20h–23h (values are UNSIGNED32).
@@ -342,18 +338,95 @@ impl From<DataType> for u16 {
 
 /// Texts by language tag (`en`, `de`, …): the names, hints and list entries of NXg §6.1.1.
 /// Shared, not copied, between the entries that use the same texts (an object's hint serves all
-/// its sub-indices), which keeps a catalog small.
-#[derive(Debug, Clone, Default, PartialEq, Eq, Deserialize)]
+/// its sub-indices), which keeps a catalog small; texts of static tables (the built-in CiA 417
+/// catalog) are borrowed from them, so describing an object allocates nothing for its texts.
+#[derive(Clone, Deserialize)]
 #[serde(from = "BTreeMap<String, String>")]
-pub struct Texts(Arc<BTreeMap<String, String>>);
+pub struct Texts(Repr);
+
+#[derive(Clone)]
+enum Repr {
+    /// Texts read at run time (a vendor file, an EDS), by language.
+    Shared(Arc<BTreeMap<String, String>>),
+    /// Texts of static tables: (language, text) pairs of `pool`, in language order.
+    Pooled {
+        pool: &'static str,
+        pairs: &'static [PooledText],
+    },
+}
+
+/// Where one (language, text) pair of [`Texts::pooled`] lies in its pool: byte offsets and
+/// lengths. Plain numbers, so that tables of them need no relocation when a program starts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct PooledText {
+    /// Start of the language tag.
+    pub lang_start: u32,
+    /// Length of the language tag.
+    pub lang_len: u32,
+    /// Start of the text.
+    pub text_start: u32,
+    /// Length of the text.
+    pub text_len: u32,
+}
+
+impl Default for Texts {
+    fn default() -> Texts {
+        Texts(Repr::Pooled {
+            pool: "",
+            pairs: &[],
+        })
+    }
+}
+
+impl PartialEq for Texts {
+    fn eq(&self, other: &Texts) -> bool {
+        self.pairs().eq(other.pairs())
+    }
+}
+
+impl Eq for Texts {}
+
+impl fmt::Debug for Texts {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_map().entries(self.pairs()).finish()
+    }
+}
 
 impl From<BTreeMap<String, String>> for Texts {
     fn from(map: BTreeMap<String, String>) -> Texts {
-        Texts(Arc::new(map))
+        Texts(Repr::Shared(Arc::new(map)))
     }
 }
 
 impl Texts {
+    /// The texts `pairs` of `pool` locate (in language order, as a `BTreeMap` keeps them): a
+    /// view of static tables, nothing copied. A pair outside the pool is left out.
+    pub fn pooled(pool: &'static str, pairs: &'static [PooledText]) -> Texts {
+        Texts(Repr::Pooled { pool, pairs })
+    }
+
+    /// Every (language, text), in language order.
+    pub fn pairs(&self) -> impl Iterator<Item = (&str, &str)> {
+        let (shared, pooled) = match &self.0 {
+            Repr::Shared(map) => (Some(map.iter()), None),
+            Repr::Pooled { pool, pairs } => (None, Some((*pool, pairs.iter()))),
+        };
+        let shared = shared
+            .into_iter()
+            .flatten()
+            .map(|(l, t)| (l.as_str(), t.as_str()));
+        let pooled = pooled.into_iter().flat_map(|(pool, pairs)| {
+            pairs.filter_map(move |p| {
+                let at = |start: u32, len: u32| {
+                    let start = start as usize;
+                    pool.get(start..start.checked_add(len as usize)?)
+                };
+                Some((at(p.lang_start, p.lang_len)?, at(p.text_start, p.text_len)?))
+            })
+        });
+        shared.chain(pooled)
+    }
+
     /// The text in `lang` (case-insensitive), if there is one.
     pub fn get(&self, lang: &str) -> Option<&str> {
         self.entry(lang).map(|(_, t)| t)
@@ -361,28 +434,26 @@ impl Texts {
 
     /// The same text in every language (names taken from an EDS).
     pub fn english(text: &str) -> Texts {
-        Texts(Arc::new(BTreeMap::from([(
-            "en".to_owned(),
-            text.to_owned(),
-        )])))
+        BTreeMap::from([("en".to_owned(), text.to_owned())]).into()
     }
 
     /// A text in English and German (canlift's own vocabulary: profile tables, EMCY texts).
     pub fn en_de(en: &str, de: &str) -> Texts {
-        Texts(Arc::new(BTreeMap::from([
+        BTreeMap::from([
             ("en".to_owned(), en.to_owned()),
             ("de".to_owned(), de.to_owned()),
-        ])))
+        ])
+        .into()
     }
 
     /// The languages present.
     pub fn languages(&self) -> impl Iterator<Item = &str> {
-        self.0.keys().map(String::as_str)
+        self.pairs().map(|(l, _)| l)
     }
 
     /// Whether no language has a text.
     pub fn is_empty(&self) -> bool {
-        self.0.is_empty()
+        self.pairs().next().is_none()
     }
 
     /// (language, text) of the first of `langs` present (case-insensitive).
@@ -394,10 +465,7 @@ impl Texts {
     }
 
     fn entry(&self, lang: &str) -> Option<(&str, &str)> {
-        self.0
-            .iter()
-            .find(|(l, _)| l.eq_ignore_ascii_case(lang))
-            .map(|(l, t)| (l.as_str(), t.as_str()))
+        self.pairs().find(|(l, _)| l.eq_ignore_ascii_case(lang))
     }
 
     /// These texts with `other`'s on top: a language both have takes `other`'s text.
@@ -405,22 +473,22 @@ impl Texts {
         if other.is_empty() {
             return self.clone();
         }
-        let mut map = (*self.0).clone();
-        map.extend(other.0.iter().map(|(l, t)| (l.clone(), t.clone())));
-        Texts(Arc::new(map))
+        self.pairs()
+            .chain(other.pairs())
+            .map(|(l, t)| (l.to_owned(), t.to_owned()))
+            .collect::<BTreeMap<_, _>>()
+            .into()
     }
 
     /// The texts with every `key` replaced by `value`; shared when none contains it.
     pub fn fill(&self, key: &str, value: u16) -> Texts {
-        if !self.0.values().any(|t| t.contains(key)) {
+        if !self.pairs().any(|(_, t)| t.contains(key)) {
             return self.clone();
         }
-        Texts(Arc::new(
-            self.0
-                .iter()
-                .map(|(l, t)| (l.clone(), t.replace(key, &value.to_string())))
-                .collect(),
-        ))
+        self.pairs()
+            .map(|(l, t)| (l.to_owned(), t.replace(key, &value.to_string())))
+            .collect::<BTreeMap<_, _>>()
+            .into()
     }
 }
 
@@ -589,6 +657,45 @@ mod cia301 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn pooled_texts_read_as_shared_ones() {
+        static POOL: &str = "deFahrtenenTrips {i}";
+        static PAIRS: [PooledText; 3] = [
+            PooledText {
+                lang_start: 0,
+                lang_len: 2,
+                text_start: 2,
+                text_len: 7,
+            },
+            PooledText {
+                lang_start: 9,
+                lang_len: 2,
+                text_start: 11,
+                text_len: 9,
+            },
+            // Outside the pool: left out, not a panic.
+            PooledText {
+                lang_start: 40,
+                lang_len: 2,
+                text_start: 0,
+                text_len: 2,
+            },
+        ];
+        let pooled = Texts::pooled(POOL, &PAIRS);
+        let shared = Texts::en_de("Trips {i}", "Fahrten");
+        assert_eq!(pooled, shared);
+        assert_eq!(format!("{pooled:?}"), format!("{shared:?}"));
+        assert_eq!(pooled.get("EN"), Some("Trips {i}"));
+        assert_eq!(pooled.first_of(["fr", "de"]), Some(("de", "Fahrten")));
+        assert_eq!(pooled.languages().collect::<Vec<_>>(), ["de", "en"]);
+        assert_eq!(pooled.fill("{i}", 3).get("en"), Some("Trips 3"));
+        let french = BTreeMap::from([("fr".to_owned(), "Courses".to_owned())]).into();
+        let more = pooled.overlay(&french);
+        assert_eq!(more.languages().collect::<Vec<_>>(), ["de", "en", "fr"]);
+        assert!(Texts::default().is_empty() && !pooled.is_empty());
+        assert_eq!(Texts::default(), BTreeMap::new().into());
+    }
 
     #[test]
     fn codes_round_trip_and_match_the_specification() {

@@ -35,9 +35,9 @@ impl Names {
         let types = catalog
             .objects()
             .flat_map(|object| {
-                object.entries().map(|entry| {
+                object.entries().map(move |entry| {
                     let mplex = Mplex {
-                        index: object.index,
+                        index: object.index(),
                         sub: entry.sub,
                     };
                     (mplex, entry.value_type())

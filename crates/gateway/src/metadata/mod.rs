@@ -304,10 +304,13 @@ fn load_vendor(path: &Path, eds: Option<&ObjectDictionary>) -> Result<Catalog, G
     };
     for object in catalog.objects() {
         for entry in object.entries() {
-            let Some(var) = od.object(object.index).and_then(|o| o.subs.get(&entry.sub)) else {
+            let Some(var) = od
+                .object(object.index())
+                .and_then(|o| o.subs.get(&entry.sub))
+            else {
                 tracing::warn!(
                     file,
-                    index = object.index,
+                    index = object.index(),
                     sub = entry.sub,
                     "described by the vendor file, absent from the EDS: answers 06020000h"
                 );
@@ -315,7 +318,7 @@ fn load_vendor(path: &Path, eds: Option<&ObjectDictionary>) -> Result<Catalog, G
             };
             if entry.description.datatype != var.data_type.into() {
                 let located = lift417::catalog::CatalogError::Object {
-                    index: object.index,
+                    index: object.index(),
                     reason: format!(
                         "sub {}: data type {:#04X} in the vendor file, {} in the EDS",
                         entry.sub,

@@ -1,4 +1,5 @@
 use super::*;
+use nxg::meta::{Hints, Privilege};
 
 fn catalog() -> &'static Catalog {
     Catalog::builtin()
@@ -23,17 +24,82 @@ fn the_builtin_catalog_is_sound() {
         assert!(catalog().object(index).is_some(), "{index:04X}h missing");
     }
     assert_eq!(
-        en(&catalog().object(0x611F).unwrap().name),
+        en(&catalog().object(0x611F).unwrap().name()),
         "Input group 32"
     );
     assert_eq!(
-        en(&catalog().object(0x6307).unwrap().name),
+        en(&catalog().object(0x6307).unwrap().name()),
         "Door 4 configuration"
     );
     assert_eq!(
-        en(&catalog().object(0x6521).unwrap().name),
+        en(&catalog().object(0x6521).unwrap().name()),
         "Sensor parameter 1 group 2"
     );
+}
+
+/// The built-in catalog's text, as `build.rs` reads it.
+const BUILTIN_TOML: &str = include_str!("../../catalog/lift.toml");
+
+#[test]
+fn the_static_tables_hold_what_the_catalog_text_reads_into() {
+    let read = Catalog::from_toml(BUILTIN_TOML).unwrap();
+    assert_eq!(&read, catalog());
+    assert!(matches!(catalog().tables.objects, Cow::Borrowed(_)));
+    assert!(matches!(read.tables.objects, Cow::Owned(_)));
+    // Texts borrowed from the static tables read as those copied from the owned ones.
+    for (ours, theirs) in catalog().objects().zip(read.objects()) {
+        assert_eq!((ours.name(), ours.hint()), (theirs.name(), theirs.hint()));
+        assert!(ours.entries().eq(theirs.entries()), "{:04X}h", ours.index());
+    }
+}
+
+#[test]
+fn every_span_of_the_tables_lands_inside_its_table() {
+    let t = &catalog().tables;
+    let string = |s: tables::Span| {
+        let end = (s.start + s.len) as usize;
+        assert!(t.pool.get(s.start as usize..end).is_some(), "{s:?}");
+    };
+    let texts = |s: tables::Span| {
+        let end = (s.start + s.len) as usize;
+        for p in t.pairs.get(s.start as usize..end).unwrap() {
+            string(tables::Span {
+                start: p.lang_start,
+                len: p.lang_len,
+            });
+            string(tables::Span {
+                start: p.text_start,
+                len: p.text_len,
+            });
+        }
+    };
+    for e in t.entries.iter() {
+        texts(e.name);
+        texts(e.hint);
+        let end = (e.list.start + e.list.len) as usize;
+        t.lists
+            .get(e.list.start as usize..end)
+            .unwrap()
+            .iter()
+            .for_each(|&l| texts(l));
+        e.default.map(string);
+    }
+    let mut previous = None;
+    for o in t.objects.iter() {
+        assert!(previous < Some(o.index), "objects by index");
+        previous = Some(o.index);
+        texts(o.name);
+        texts(o.hint);
+        let listed = t.listed(o);
+        assert_eq!(listed.len(), o.listed.len as usize);
+        assert!(
+            listed.windows(2).all(|w| w[0].sub < w[1].sub),
+            "{:04X}h",
+            o.index
+        );
+        assert!(listed.iter().all(|e| e.index == o.index));
+        assert_eq!(t.element(o).is_some(), o.element.is_some());
+    }
 }
 
 #[test]
@@ -112,7 +178,7 @@ fn the_nxg_sample_objects_carry_the_sample_metadata() {
     );
     assert_eq!(floors.description.max, Some(Bound::Int(2_147_483_647)));
     assert_eq!(
-        en(&catalog().object(0x4010).unwrap().name),
+        en(&catalog().object(0x4010).unwrap().name()),
         "Floor level positions"
     );
     // §6.3.1: the passenger call takes UNSIGNED32, physunit 0, from any user.

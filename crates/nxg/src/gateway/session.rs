@@ -149,7 +149,6 @@ enum Waiting {
         id: Option<Id>,
         token: String,
     },
-    Baseline(Target, u16, u8),
 }
 
 /// A request waiting for a free slot.
@@ -206,6 +205,9 @@ pub struct Session {
     last_rx: Instant,
     next_job: JobId,
     waiting: HashMap<JobId, Waiting>,
+    /// The first reads of new subscriptions, by job: apart from `waiting`, whose entries are
+    /// the size of a request's, because a registration starts hundreds at once.
+    baselines: HashMap<JobId, (Target, u16, u8)>,
     in_flight: usize,
     queue: VecDeque<Queued>,
     grant: Option<Grant>,
@@ -228,6 +230,7 @@ impl Session {
             last_rx: now,
             next_job: 1,
             waiting: HashMap::new(),
+            baselines: HashMap::new(),
             in_flight: 0,
             queue: VecDeque::new(),
             grant: None,
@@ -887,8 +890,7 @@ impl Session {
             };
             let id = self.next_job;
             self.next_job += 1;
-            self.waiting
-                .insert(id, Waiting::Baseline(target, m.index, m.sub));
+            self.baselines.insert(id, (target, m.index, m.sub));
             out.push(Output::Start(id, job));
         }
         Ok(out)
@@ -909,6 +911,19 @@ impl Session {
 
     /// A job finished.
     pub fn complete(&mut self, job: JobId, result: JobResult, now: Instant) -> Vec<Output> {
+        if let Some((target, index, sub)) = self.baselines.remove(&job) {
+            // A burst of registrations does not keep its table for the rest of the connection.
+            if self.baselines.is_empty() && self.baselines.capacity() > 64 {
+                self.baselines.shrink_to(64);
+            }
+            return match result {
+                JobResult::Read(values) => values
+                    .first()
+                    .map(|bytes| self.bytes(target, index, sub, bytes, now))
+                    .unwrap_or_default(),
+                _ => Vec::new(),
+            };
+        }
         let Some(waiting) = self.waiting.remove(&job) else {
             return Vec::new();
         };
@@ -917,14 +932,6 @@ impl Session {
             Output::Send(msg::error_response(id.as_ref(), &refusal.to_error(lang)))
         };
         match waiting {
-            Waiting::Baseline(target, index, sub) => {
-                if let JobResult::Read(values) = result {
-                    if let Some(bytes) = values.first() {
-                        out.extend(self.bytes(target, index, sub, bytes, now));
-                    }
-                }
-                return out;
-            }
             Waiting::Get {
                 id,
                 lang,
