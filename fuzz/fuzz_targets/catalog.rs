@@ -14,7 +14,7 @@ fuzz_target!(|data: &[u8]| {
     };
     let _ = catalog.validate();
     let _ = catalog.names();
-    let indices: Vec<u16> = catalog.objects().map(|o| o.index).collect();
+    let indices: Vec<u16> = catalog.objects().map(|o| o.index()).collect();
     for index in indices.into_iter().take(64) {
         for sub in [0, 1, 2, 255] {
             let _ = catalog.describe(None, index, sub);

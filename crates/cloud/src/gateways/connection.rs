@@ -84,7 +84,7 @@ impl Connection {
                 Err(cause) => break cause,
             };
         };
-        self.finish(cause).await;
+        Box::pin(self.finish(cause)).await;
     }
 
     /// Do what the session asks; handling an output may produce more (Identify → CONNACK,
@@ -102,8 +102,13 @@ impl Connection {
                         let _ = self.socket.send(Message::Close(None)).await;
                         return Err(reason.to_string());
                     }
-                    Output::Identify(connect) => outputs.extend(self.identify(connect).await),
-                    Output::TokenConfirmed(token) => self.token_confirmed(&token).await,
+                    // Database work happens once per connection or rarely: boxed, its futures
+                    // live only while it runs instead of sizing the connection's task for good
+                    // (an idle connection's memory is mostly that task).
+                    Output::Identify(connect) => {
+                        outputs.extend(Box::pin(self.identify(connect)).await);
+                    }
+                    Output::TokenConfirmed(token) => Box::pin(self.token_confirmed(&token)).await,
                     Output::Answer(request, answer) => self.answer(request, answer),
                     Output::Notification(n) => self.notification(n),
                     Output::Event(event) => {
