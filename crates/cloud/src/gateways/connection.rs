@@ -46,7 +46,12 @@ pub struct Connection {
 
 /// Serve one gateway connection until it ends.
 pub async fn serve(socket: WebSocket, shared: Shared, peer: String) {
-    Connection::new(socket, shared, peer).run().await;
+    // The connection's task lives as long as the gateway stays: its future is what an idle
+    // connection costs. The connection is boxed (an `async fn` holds its arguments twice), and
+    // the database work of the end is boxed like that of the start (`carry_out`).
+    let mut connection = Box::new(Connection::new(socket, shared, peer));
+    let cause = connection.run().await;
+    Box::pin(connection.finish(cause)).await;
 }
 
 impl Connection {
@@ -73,18 +78,18 @@ impl Connection {
         }
     }
 
-    async fn run(mut self) {
+    /// Serve until the connection is over; the cause.
+    async fn run(&mut self) -> String {
         let mut outputs = Vec::new();
-        let cause = loop {
+        loop {
             if let Err(cause) = self.carry_out(outputs).await {
-                break cause;
+                return cause;
             }
             outputs = match self.next().await {
                 Ok(out) => out,
-                Err(cause) => break cause,
+                Err(cause) => return cause,
             };
-        };
-        Box::pin(self.finish(cause)).await;
+        }
     }
 
     /// Do what the session asks; handling an output may produce more (Identify → CONNACK,
@@ -280,7 +285,7 @@ impl Connection {
 
     /// The connection is over: open requests fail, the lift goes offline (unless a newer
     /// connection already serves it).
-    async fn finish(mut self, cause: String) {
+    async fn finish(&mut self, cause: String) {
         for output in self.session.ended() {
             if let Output::Answer(request, answer) = output {
                 self.answer(request, answer);
