@@ -508,6 +508,48 @@ async fn a_trickling_link_works_and_a_reset_one_reconnects() {
     rig.stop().await;
 }
 
+/// A portal whose database takes values more slowly than its gateways push them (a queue of one
+/// value in front of the writer, every change pushed): each connection waits for room instead of
+/// dropping what it received, reading nothing more from its gateway meanwhile, so TCP slows the
+/// gateways down. Nothing is dropped, the gateways stay connected and operators' reads are
+/// answered throughout.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_overloaded_portal_pushes_back_instead_of_dropping() {
+    const GATEWAYS: usize = 20;
+    let dir = testkit::scratch();
+    let extra = "[database]\ntelemetry_queue = 1\n[dashboard]\ninhibit_ms = 0\n";
+    let (portal, key) = PortalProcess::start(dir.path(), extra).await;
+    let mut fleet = loadgen(&portal, GATEWAYS, &dir.path().join("gateways"));
+    portal
+        .wait_online(&key, GATEWAYS, Duration::from_secs(60))
+        .await;
+    let stored_before = portal.stored().await;
+    let path = "/api/v1/lifts/1050-4097-LOAD-000001/objects/0x652001";
+    let begin = tokio::time::Instant::now();
+    let mut reads = 0;
+    while begin.elapsed() < Duration::from_secs(5) {
+        let answer = portal.client(&key).call("GET", path, None).await;
+        assert_eq!(answer.expect("an answer").0, 200, "a read under push-back");
+        reads += 1;
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let stored = portal.stored().await - stored_before;
+    let waits = portal.metric("canlift_telemetry_waits_total").await;
+    let dropped = portal.metric("canlift_telemetry_dropped_total").await;
+    eprintln!("push-back: {stored} stored, {waits} waits, {dropped} dropped, {reads} reads");
+    assert!(waits > 0, "the queue was full at times: connections waited");
+    assert_eq!(dropped, 0, "nothing is dropped while the database keeps up");
+    assert!(stored > 0, "values are stored");
+    assert_eq!(
+        portal.metric("canlift_gateways_online").await,
+        GATEWAYS as u64,
+        "the gateways stay connected"
+    );
+    kill(&mut fleet).await;
+    let mut portal = portal;
+    portal.kill().await;
+}
+
 /// PostgreSQL stopped for 20 s under a portal whose gateways push telemetry: the gateways stay
 /// connected, operators keep reading lifts (an API key seen before the outage still counts),
 /// the values wait in the portal up to `[database] telemetry_queue` and the rest are dropped and

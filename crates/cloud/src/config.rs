@@ -75,8 +75,10 @@ pub struct DatabaseSection {
     pub telemetry_days: u32,
     /// Days bus events are kept (the same way); 0 keeps them forever.
     pub events_days: u32,
-    /// Pushed values that may wait for the database (while it is slow or down) before further
-    /// ones are dropped and counted (`canlift_telemetry_dropped_total`).
+    /// Pushed values that may wait for the database. When they fill it, a connection waits for
+    /// room (at most 2 s; meanwhile it reads nothing from its gateway, which TCP slows down);
+    /// while the database is unreachable further values are dropped and counted
+    /// (`canlift_telemetry_dropped_total`).
     pub telemetry_queue: usize,
 }
 

@@ -232,8 +232,8 @@ impl Portal {
         if let Some(cluster) = registry.cluster() {
             cluster.serve_subscriptions(&subscriptions);
         }
-        let (telemetry, telemetry_rx) = mpsc::channel(config.database.telemetry_queue.max(1));
-        let counters = Arc::new(gateways::TelemetryCounters::default());
+        let (telemetry, telemetry_rx) =
+            telemetry::Queue::new(config.database.telemetry_queue, Arc::default());
         tasks.extend([
             tokio::spawn(telemetry::retention(
                 telemetry::Kept::Telemetry,
@@ -243,7 +243,7 @@ impl Portal {
             tokio::spawn(telemetry::writer(
                 store.clone(),
                 telemetry_rx,
-                counters.clone(),
+                telemetry.counters().clone(),
             )),
             tokio::spawn(telemetry::retention(
                 telemetry::Kept::Events,
@@ -265,8 +265,7 @@ impl Portal {
                 store: store.clone(),
                 registry: registry.clone(),
                 settings: config.gateways.settings(),
-                telemetry,
-                counters: counters.clone(),
+                telemetry: telemetry.clone(),
                 dashboard: dashboard.clone(),
                 subscriptions: subscriptions.clone(),
                 alarms: alarms.clone(),
@@ -280,18 +279,15 @@ impl Portal {
         });
         let m = metrics.clone();
         let r = registry.clone();
-        let t = counters;
         let a = alarms.counters.clone();
-        let queue = ws_state.shared.telemetry.clone();
         let router = Router::new()
             .route("/ws", get(ws).with_state(ws_state))
             .route("/healthz", get(health).with_state(registry.clone()))
             .route(
                 "/metrics",
                 get(move || {
-                    let (m, r, t, a) = (m.clone(), r.clone(), t.clone(), a.clone());
-                    let queued = queue.max_capacity() - queue.capacity();
-                    async move { metrics_text(&m, &r, (&t, queued), &a) }
+                    let (m, r, t, a) = (m.clone(), r.clone(), telemetry.clone(), a.clone());
+                    async move { metrics_text(&m, &r, &t, &a) }
                 }),
             )
             .merge({
@@ -500,9 +496,10 @@ fn start_alarms(
 fn metrics_text(
     m: &Metrics,
     r: &Registry,
-    (t, queued): (&gateways::TelemetryCounters, usize),
+    telemetry: &telemetry::Queue,
     a: &service::Counters,
 ) -> String {
+    let t = telemetry.counters();
     let load = |c: &AtomicU64| c.load(Ordering::Relaxed);
     let counters = [
         ("canlift_gateway_connections_total", load(&m.connections)),
@@ -520,6 +517,7 @@ fn metrics_text(
         ),
         ("canlift_telemetry_stored_total", load(&t.stored)),
         ("canlift_telemetry_dropped_total", load(&t.dropped)),
+        ("canlift_telemetry_waits_total", load(&t.waits)),
         ("canlift_events_stored_total", load(&a.events_stored)),
         ("canlift_events_dropped_total", load(&a.events_dropped)),
         ("canlift_alarms_raised_total", load(&a.raised)),
@@ -539,7 +537,7 @@ fn metrics_text(
     ];
     let gauges = [
         ("canlift_gateways_online", r.online_count() as u64),
-        ("canlift_telemetry_queued", queued as u64),
+        ("canlift_telemetry_queued", telemetry.queued() as u64),
         (
             "canlift_webhooks_pending",
             a.webhooks_pending.load(Ordering::Relaxed),

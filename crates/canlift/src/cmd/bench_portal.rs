@@ -375,6 +375,7 @@ pub(super) async fn ingest(
     tokio::time::sleep(Duration::from_secs(3)).await;
     let stored0 = portal.metric("canlift_telemetry_stored_total").await?;
     let dropped0 = portal.metric("canlift_telemetry_dropped_total").await?;
+    let waits0 = portal.metric("canlift_telemetry_waits_total").await?;
     let meter = CpuMeter::start(portal);
     let begin = Instant::now();
     let mut tick = tokio::time::interval(Duration::from_millis(args.change_ms.max(1)));
@@ -389,12 +390,14 @@ pub(super) async fn ingest(
     let seconds = begin.elapsed().as_secs_f64();
     let stored = portal.metric("canlift_telemetry_stored_total").await? - stored0;
     let dropped = portal.metric("canlift_telemetry_dropped_total").await? - dropped0;
+    let waits = portal.metric("canlift_telemetry_waits_total").await? - waits0;
     let (cpu, own) = meter.read();
     println!(
-        "ingest                {} gateways pushing: {:.0} values/s stored, {:.0} /s dropped ({} changes every {} ms); portal CPU {:.1} µs per value received ({:.0} % of a core), load generator {:.0} % of a core",
+        "ingest                {} gateways pushing: {:.0} values/s stored, {:.0} /s dropped, {:.0} /s waited for room ({} changes every {} ms); portal CPU {:.1} µs per value received ({:.0} % of a core), load generator {:.0} % of a core",
         args.pushers,
         stored / seconds,
         dropped / seconds,
+        waits / seconds,
         4,
         args.change_ms,
         cpu.as_secs_f64() * 1e6 / (stored + dropped).max(1.0),

@@ -4,7 +4,6 @@
 //! what it pushes, and clean up when it goes.
 
 use std::collections::HashMap;
-use std::sync::atomic::Ordering;
 use std::time::Instant;
 
 use axum::extract::ws::{close_code, CloseFrame, Message, WebSocket};
@@ -115,7 +114,13 @@ impl Connection {
                     }
                     Output::TokenConfirmed(token) => Box::pin(self.token_confirmed(&token)).await,
                     Output::Answer(request, answer) => self.answer(request, answer),
-                    Output::Notification(n) => self.notification(n),
+                    // A full queue: wait for room, reading nothing more from this gateway
+                    // meanwhile (push-back); boxed, as the wait is the exception.
+                    Output::Notification(n) => {
+                        if let Err(row) = self.notification(n) {
+                            Box::pin(self.shared.telemetry.wait(row)).await;
+                        }
+                    }
                     Output::Event(event) => {
                         if let Some(input) = self.event(event) {
                             self.shared.alarms.report(input).await;
@@ -250,11 +255,11 @@ impl Connection {
         }
     }
 
-    /// A pushed value: queued for the store (dropped and counted when the store lags) and
-    /// handed to live viewers.
-    fn notification(&self, n: Notification) {
+    /// A pushed value: handed to live viewers and queued for the store; `Err` with the value
+    /// when the queue has no room now (see [`super::telemetry::Queue`]).
+    fn notification(&self, n: Notification) -> Result<(), TelemetryRow> {
         let Some(a) = &self.admitted else {
-            return;
+            return Ok(());
         };
         let at = store::now_ms();
         self.shared.registry.observe(&a.lift, &n, at);
@@ -265,10 +270,8 @@ impl Connection {
             value: n.value.clone(),
             at,
         };
-        if self.shared.telemetry.try_send(row).is_err() {
-            self.shared.counters.dropped.fetch_add(1, Ordering::Relaxed);
-        }
         self.shared.registry.publish(&a.lift, LiftEvent::Value(n));
+        self.shared.telemetry.offer(row)
     }
 
     /// A bus event: to live viewers, and (returned) for the alarm service, which stores it.

@@ -24,7 +24,7 @@ use crate::cluster::msgs::Holding;
 use crate::cluster::Cluster;
 use crate::config::Dashboard;
 use crate::rest::{BusEventEvent, OnlineEvent, ValueEvent};
-use crate::store::{Store, TelemetryRow};
+use crate::store::Store;
 
 pub use connection::serve;
 pub use telemetry::TelemetryCounters;
@@ -430,10 +430,8 @@ pub struct Shared {
     pub registry: Arc<Registry>,
     /// Session settings.
     pub settings: Settings,
-    /// Where notifications go to be stored in batches.
-    pub telemetry: mpsc::Sender<TelemetryRow>,
-    /// Values stored and dropped, for `/metrics`.
-    pub counters: Arc<TelemetryCounters>,
+    /// Where notifications go to be stored in batches (with its counters, for `/metrics`).
+    pub telemetry: telemetry::Queue,
     /// What every gateway is asked to push (`live`, `inhibit_ms`, `events`), normalized.
     pub dashboard: Arc<Dashboard>,
     /// Who holds which subscriptions, registered again on every connection.

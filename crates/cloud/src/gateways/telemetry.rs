@@ -1,21 +1,96 @@
 //! Telemetry: the values gateways push, written to the store in batches, and deleted again
 //! after the retention time (as bus events are).
 
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
+use std::time::Duration;
 
 use tokio::sync::mpsc;
 
 use crate::store::{self, Store, TelemetryRow};
 
 /// Pushed values stored, and dropped because the database could not keep up (the queue in
-/// front of it was full) or failed.
+/// front of it stayed full) or failed.
 #[derive(Debug, Default)]
 pub struct TelemetryCounters {
     /// Values written.
     pub stored: AtomicU64,
     /// Values lost.
     pub dropped: AtomicU64,
+    /// Values a connection had to wait for room for (push-back: meanwhile it does not read
+    /// its gateway's socket).
+    pub waits: AtomicU64,
+    /// Set while the writer cannot reach the database: connections then drop what does not
+    /// fit at once instead of waiting for room that will not come soon.
+    pub unreachable: AtomicBool,
+}
+
+/// How long a connection waits for room in a full queue before it drops the value.
+///
+/// A database that is slow but working frees room within one batch (a full SQLite batch takes
+/// well under a second); waiting longer would only hold the gateway's operator requests up.
+pub const PUSH_BACK_LIMIT: Duration = Duration::from_secs(2);
+
+/// The way into the telemetry writer: a bounded queue of pushed values.
+///
+/// When it is full the value's connection waits for room (at most [`PUSH_BACK_LIMIT`]) and
+/// meanwhile reads nothing more from its gateway, so TCP slows the gateway down: an overloaded
+/// portal spends its CPU on values it stores, not on reading and parsing values it would drop
+/// (the gateway coalesces what changes meanwhile, the latest value wins). While the database is
+/// unreachable values are dropped at once and counted.
+#[derive(Clone)]
+pub struct Queue {
+    tx: mpsc::Sender<TelemetryRow>,
+    counters: Arc<TelemetryCounters>,
+}
+
+impl Queue {
+    /// A queue of `capacity` values and the writer's end of it.
+    pub fn new(
+        capacity: usize,
+        counters: Arc<TelemetryCounters>,
+    ) -> (Queue, mpsc::Receiver<TelemetryRow>) {
+        let (tx, rx) = mpsc::channel(capacity.max(1));
+        (Queue { tx, counters }, rx)
+    }
+
+    /// Values stored, dropped and waited for.
+    pub fn counters(&self) -> &Arc<TelemetryCounters> {
+        &self.counters
+    }
+
+    /// Values waiting for the writer.
+    pub fn queued(&self) -> usize {
+        self.tx.max_capacity() - self.tx.capacity()
+    }
+
+    /// Queue `row` if there is room now (or drop it, counted, when the database is
+    /// unreachable or the writer gone); `Err(row)` when the caller should [`Queue::wait`].
+    pub fn offer(&self, row: TelemetryRow) -> Result<(), TelemetryRow> {
+        match self.tx.try_send(row) {
+            Ok(()) => Ok(()),
+            Err(mpsc::error::TrySendError::Full(row))
+                if !self.counters.unreachable.load(Ordering::Relaxed) =>
+            {
+                Err(row)
+            }
+            Err(_) => {
+                self.counters.dropped.fetch_add(1, Ordering::Relaxed);
+                Ok(())
+            }
+        }
+    }
+
+    /// Wait for room for `row`, at most [`PUSH_BACK_LIMIT`]; dropped and counted after that.
+    pub async fn wait(&self, row: TelemetryRow) {
+        self.counters.waits.fetch_add(1, Ordering::Relaxed);
+        if !matches!(
+            tokio::time::timeout(PUSH_BACK_LIMIT, self.tx.send(row)).await,
+            Ok(Ok(()))
+        ) {
+            self.counters.dropped.fetch_add(1, Ordering::Relaxed);
+        }
+    }
 }
 
 /// Write telemetry in batches: what came within 200 ms of the first value, at most 16,384
@@ -23,9 +98,10 @@ pub struct TelemetryCounters {
 /// COPY, index pages touched once for many values); a quiet portal still stores within 200 ms.
 ///
 /// While the database cannot be reached the batch in hand is tried again (every 250 ms at
-/// first, then at most every 5 s) and new values wait in the channel in front of the writer;
+/// first, then at most every 5 s) and new values wait in the [`Queue`] in front of the writer;
 /// once that is full the connections drop what they receive and count it
-/// (`canlift_telemetry_dropped_total`). A batch the database refuses is dropped and counted.
+/// (`canlift_telemetry_dropped_total`): a database that is only slow makes them wait for room
+/// instead. A batch the database refuses is dropped and counted.
 pub async fn writer(
     store: Store,
     mut rx: mpsc::Receiver<TelemetryRow>,
@@ -34,15 +110,18 @@ pub async fn writer(
     const BATCH: usize = 16_384;
     let mut batch = Vec::with_capacity(BATCH);
     loop {
-        let first = rx.recv().await;
-        let Some(first) = first else {
+        // What waits is taken many at a time: their room is given back at once, so the
+        // connections waiting for it are served together and then find room without waiting
+        // (one at a time, room freed went value by value to the next waiter and every value
+        // of a saturated portal waited).
+        if rx.recv_many(&mut batch, BATCH).await == 0 {
             return;
-        };
-        batch.push(first);
+        }
         let deadline = tokio::time::Instant::now() + std::time::Duration::from_millis(200);
         while batch.len() < BATCH {
-            match tokio::time::timeout_at(deadline, rx.recv()).await {
-                Ok(Some(v)) => batch.push(v),
+            let room = BATCH - batch.len();
+            match tokio::time::timeout_at(deadline, rx.recv_many(&mut batch, room)).await {
+                Ok(n) if n > 0 => {}
                 _ => break,
             }
         }
@@ -51,12 +130,14 @@ pub async fn writer(
             match store.telemetry(&batch).await {
                 Ok(()) => {
                     if retry > RETRY_FIRST {
+                        counters.unreachable.store(false, Ordering::Relaxed);
                         tracing::info!(values = batch.len(), "telemetry stored again");
                     }
                     break &counters.stored;
                 }
                 Err(e) if e.is_unavailable() => {
                     if retry == RETRY_FIRST {
+                        counters.unreachable.store(true, Ordering::Relaxed);
                         tracing::error!(error = %e, values = batch.len(), "database unreachable: telemetry waits");
                     }
                     tokio::time::sleep(retry).await;
@@ -103,5 +184,69 @@ pub async fn retention(kept: Kept, store: Store, days: u32) {
             Ok(n) => tracing::info!(rows = n, days, ?kept, "old rows deleted"),
             Err(e) => tracing::error!(error = %e, ?kept, "old rows not deleted"),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(value: u32) -> TelemetryRow {
+        TelemetryRow {
+            lift: "1050-4097-TEST-000001".into(),
+            mplex: "0x652001".into(),
+            node: 0,
+            value: value.to_string(),
+            at: 0,
+        }
+    }
+
+    fn count(c: &AtomicU64) -> u64 {
+        c.load(Ordering::Relaxed)
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_full_queue_makes_the_connection_wait_not_drop() {
+        let (queue, mut rx) = Queue::new(1, Arc::default());
+        assert!(queue.offer(row(1)).is_ok());
+        let second = queue.offer(row(2)).expect_err("no room: wait");
+        let waiting = tokio::spawn({
+            let queue = queue.clone();
+            async move { queue.wait(second).await }
+        });
+        tokio::time::sleep(PUSH_BACK_LIMIT / 2).await;
+        assert!(!waiting.is_finished(), "waits while the queue is full");
+        assert_eq!(rx.recv().await.map(|r| r.value), Some("1".into()));
+        waiting.await.expect("the wait ends");
+        assert_eq!(rx.recv().await.map(|r| r.value), Some("2".into()));
+        let c = queue.counters();
+        assert_eq!((count(&c.waits), count(&c.dropped)), (1, 0));
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_wait_ends_after_the_limit_with_the_value_dropped() {
+        let (queue, mut rx) = Queue::new(1, Arc::default());
+        assert!(queue.offer(row(1)).is_ok());
+        let second = queue.offer(row(2)).expect_err("no room: wait");
+        let started = tokio::time::Instant::now();
+        queue.wait(second).await;
+        assert_eq!(started.elapsed(), PUSH_BACK_LIMIT);
+        assert_eq!(count(&queue.counters().dropped), 1);
+        assert_eq!(rx.recv().await.map(|r| r.value), Some("1".into()));
+        assert!(rx.try_recv().is_err(), "the late value is not queued");
+    }
+
+    #[tokio::test]
+    async fn an_unreachable_database_or_a_gone_writer_drops_at_once() {
+        let (queue, rx) = Queue::new(1, Arc::default());
+        assert!(queue.offer(row(1)).is_ok());
+        queue.counters().unreachable.store(true, Ordering::Relaxed);
+        assert!(queue.offer(row(2)).is_ok(), "dropped, not handed back");
+        assert_eq!(count(&queue.counters().dropped), 1);
+        queue.counters().unreachable.store(false, Ordering::Relaxed);
+        assert!(queue.offer(row(3)).is_err(), "reachable again: wait");
+        drop(rx);
+        assert!(queue.offer(row(4)).is_ok(), "no writer: dropped");
+        assert_eq!(count(&queue.counters().dropped), 2);
     }
 }

@@ -480,25 +480,29 @@ impl Store {
     /// serial number; the domain token names the account.
     pub async fn admit(&self, connect: &Connect) -> Result<Admission, StoreError> {
         let identity = &connect.identity;
-        if !self.domain_exists(&connect.domaintoken).await? {
+        let lift = lift_id(identity);
+        // One statement, as every reconnecting gateway of a storm makes it: the account's
+        // domain and the gateway's row (NULLs when there is none).
+        let row = sqlx::query(
+            "SELECT (SELECT COUNT(*) FROM accounts WHERE domain = $1) AS accounts, \
+             g.token_hash, g.token_next, g.token_set, g.domain, g.boardhash \
+             FROM (SELECT 1 AS one) AS x LEFT JOIN gateways AS g ON g.id = $2",
+        )
+        .bind(&connect.domaintoken)
+        .bind(&lift)
+        .fetch_one(&self.pool)
+        .await?;
+        if row.try_get::<i64, _>("accounts")? == 0 {
             return Ok(Admission::Refused(format!(
                 "no account for domain token {:?}",
                 connect.domaintoken
             )));
         }
-        let lift = lift_id(identity);
-        let row = sqlx::query(
-            "SELECT token_hash, token_next, token_set, domain, boardhash FROM gateways WHERE id = $1",
-        )
-        .bind(&lift)
-        .fetch_optional(&self.pool)
-        .await?;
-        let Some(row) = row else {
+        let Some(domain) = row.try_get::<Option<String>, _>("domain")? else {
             return Ok(Admission::FirstContact);
         };
         let hash: Option<String> = row.try_get("token_hash")?;
         let next: Option<String> = row.try_get("token_next")?;
-        let domain: String = row.try_get("domain")?;
         let board: String = row.try_get("boardhash")?;
         if domain != connect.domaintoken {
             return Ok(Admission::Refused(
@@ -1001,6 +1005,11 @@ mod tests {
         assert!(
             matches!(store.admit(&gw(Some("T0K3M"))).await.unwrap(), Admission::Refused(c) if c.contains("wrong"))
         );
+        // A registered gateway naming a domain no account has (the same statement reads both).
+        assert!(matches!(
+            store.admit(&connect("180917010200000102", "XYZ", Some("T0K3N"))).await.unwrap(),
+            Admission::Refused(c) if c.contains("no account")
+        ));
         assert!(matches!(
             store.admit(&gw(None)).await.unwrap(),
             Admission::Refused(_)
