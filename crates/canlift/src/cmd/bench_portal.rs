@@ -239,7 +239,7 @@ async fn idle(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyhow:
         took.as_secs_f64()
     );
     println!(
-        "portal memory         RSS {:.1} MiB idle → {:.1} MiB with {} gateways: {:.1} KiB per connection (goal ≤ 16 KiB)",
+        "portal memory         RSS {:.1} MiB idle → {:.1} MiB with {} gateways: {:.1} KiB per connection (goal ≤ 10 KiB)",
         mib(base),
         mib(held),
         args.gateways,

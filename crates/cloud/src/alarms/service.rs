@@ -108,17 +108,23 @@ impl From<StoreError> for AckError {
 
 impl Alarms {
     /// Hand `input` to the service; an event the service cannot take now is dropped and
-    /// counted (the queue is bounded), a change of a lift's connection always waits.
+    /// counted (the queue is bounded, see [`Alarms::event`]), a change of a lift's connection
+    /// always waits.
     pub async fn report(&self, input: Input) {
         match input {
-            Input::Event { .. } => {
-                if self.inputs.try_send(input).is_err() {
-                    self.counters.events_dropped.fetch_add(1, Ordering::Relaxed);
-                }
-            }
+            Input::Event { lift, event } => self.event(lift, event),
             other => {
                 let _ = self.inputs.send(other).await;
             }
+        }
+    }
+
+    /// Hand a bus event of `lift` to the service, or drop and count it when the queue is full.
+    /// Not `async`: a gateway connection's task calls it for every event it receives, and an
+    /// awaited call would size that long-lived task by its future.
+    pub fn event(&self, lift: String, event: Event) {
+        if self.inputs.try_send(Input::Event { lift, event }).is_err() {
+            self.counters.events_dropped.fetch_add(1, Ordering::Relaxed);
         }
     }
 

@@ -121,11 +121,7 @@ impl Connection {
                             Box::pin(self.shared.telemetry.wait(row)).await;
                         }
                     }
-                    Output::Event(event) => {
-                        if let Some(input) = self.event(event) {
-                            self.shared.alarms.report(input).await;
-                        }
-                    }
+                    Output::Event(event) => self.event(event),
                 }
             }
         }
@@ -274,16 +270,15 @@ impl Connection {
         self.shared.telemetry.offer(row)
     }
 
-    /// A bus event: to live viewers, and (returned) for the alarm service, which stores it.
-    fn event(&self, event: Event) -> Option<Input> {
-        let a = self.admitted.as_ref()?;
+    /// A bus event: to live viewers, and to the alarm service, which stores it.
+    fn event(&self, event: Event) {
+        let Some(a) = &self.admitted else {
+            return;
+        };
         self.shared
             .registry
             .publish(&a.lift, LiftEvent::Bus(event.clone()));
-        Some(Input::Event {
-            lift: a.lift.clone(),
-            event,
-        })
+        self.shared.alarms.event(a.lift.clone(), event);
     }
 
     /// The connection is over: open requests fail, the lift goes offline (unless a newer
