@@ -225,6 +225,12 @@ async fn every_lift_is_served_by_every_process() {
         let (status, answer) = cluster.call(index, "PUT", &path, Some(lantern)).await;
         assert_eq!(status, 200, "a privileged write through p{index}: {answer}");
     }
+    // Nobody elsewhere watched the lift yet: its holder published none of its pushed values
+    // to NATS (they are counted instead).
+    let unwatched = cluster.portals[0]
+        .metric("canlift_cluster_events_unwatched_total")
+        .await;
+    assert!(unwatched > 0, "the holder published unwatched events");
     // A watcher on p0 holds the hall lantern options: its terms follow the lift to every
     // process that holds it later.
     let mut lantern_watch = cluster.portals[0]

@@ -564,6 +564,10 @@ fn metrics_text(
                 "canlift_cluster_events_dropped_total",
                 load(&n.events_dropped),
             ),
+            (
+                "canlift_cluster_events_unwatched_total",
+                load(&n.events_unwatched),
+            ),
         ]);
     }
     for (kind, list) in [("gauge", &gauges[..]), ("counter", &counters[..])] {

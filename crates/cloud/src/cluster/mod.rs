@@ -31,8 +31,17 @@ const DONE: &str = "true";
 /// Live events waiting to be published; beyond this they are dropped and counted.
 const EVENT_QUEUE: usize = 65_536;
 
-/// How a process learns that nobody on it watches a forwarded lift any more.
+/// How a process learns that nobody on it watches a forwarded lift any more, and how often it
+/// renews its watch with the lift's holder.
 const FORWARD_CHECK: Duration = Duration::from_secs(10);
+
+/// How long a holder publishes a lift's live events after another process asked for them
+/// ([`Relayed::Watch`]): three renewals, so one lost renewal costs nothing.
+const WATCH_LEASE: Duration = Duration::from_secs(30);
+
+/// How long a watching process waits for the holder to take its watch before it listens
+/// anyway (no holder, or no NATS, answers at once).
+const WATCH_ASK: Duration = Duration::from_secs(2);
 
 /// What `/metrics` shows of the cluster.
 #[derive(Debug, Default)]
@@ -47,6 +56,8 @@ pub struct ClusterCounters {
     pub replaced: AtomicU64,
     /// Live events not published because the queue was full.
     pub events_dropped: AtomicU64,
+    /// Live events of lifts held here not published because no other process watches them.
+    pub events_unwatched: AtomicU64,
 }
 
 /// A lift another process holds, as its KV entry says, and since when (the entry's age).
@@ -68,6 +79,8 @@ pub struct Cluster {
     held: Mutex<HashMap<String, watch::Sender<Holding>>>,
     /// The event forwarders running, by lift.
     forwarded: Mutex<HashMap<String, broadcast::Sender<LiftEvent>>>,
+    /// Lifts held here that another process watches, and until when ([`WATCH_LEASE`]).
+    watched: Mutex<HashMap<String, Instant>>,
     /// Poked on every connection event of the NATS client.
     nats_changed: Arc<Notify>,
     /// Raised each time the bucket is ready after connecting: holders write their entries
@@ -137,6 +150,7 @@ impl Cluster {
             known: Mutex::default(),
             held: Mutex::default(),
             forwarded: Mutex::default(),
+            watched: Mutex::default(),
             nats_changed,
             generation: watch::channel(0).0,
             events,
@@ -282,7 +296,7 @@ impl Cluster {
 
     /// An entry changed: remember another process's holding; if it is of a newer connection
     /// than one held here, close that one (the gateway moved).
-    fn learn(&self, entry: kv::Entry, registry: &Weak<Registry>) {
+    fn learn(self: &Arc<Self>, entry: kv::Entry, registry: &Weak<Registry>) {
         let Some(lift) = msgs::lift_of(&entry.key) else {
             return;
         };
@@ -312,10 +326,14 @@ impl Cluster {
             .unwrap_or_else(Instant::now);
         let connection = (holding.node.clone(), holding.epoch);
         let before = lock(&self.known).insert(lift.clone(), Known { holding, written });
-        // A new connection (not a refresh): the watchers here ask its holder for their objects.
+        // A new connection (not a refresh): the watchers here ask its holder for their objects
+        // and its live events.
         if before.is_none_or(|k| (k.holding.node, k.holding.epoch) != connection) {
             if let Some(subscriptions) = self.subscriptions() {
                 subscriptions.moved(&lift);
+            }
+            if lock(&self.forwarded).contains_key(&lift) {
+                tokio::spawn(self.clone().ask_to_publish(lift));
             }
         }
     }
@@ -334,6 +352,7 @@ impl Cluster {
         let mut held = lock(&self.held);
         if held.get(lift).is_some_and(|h| h.borrow().epoch == epoch) {
             held.remove(lift);
+            lock(&self.watched).remove(lift);
         }
     }
 
@@ -476,14 +495,47 @@ impl Cluster {
             .outcome()
     }
 
-    /// Hand a held lift's live event to the other processes (dropped and counted when NATS
-    /// lags far behind).
+    /// Hand a held lift's live event to the other processes that watch it (dropped and
+    /// counted when NATS lags far behind); an event nobody elsewhere watches is not published.
     pub(crate) fn publish(&self, lift: &str, event: &LiftEvent) {
+        if !self.watched_elsewhere(lift) {
+            self.counters
+                .events_unwatched
+                .fetch_add(1, Ordering::Relaxed);
+            return;
+        }
         let Ok(body) = serde_json::to_vec(event) else {
             return;
         };
         if self.events.try_send((lift.to_owned(), body)).is_err() {
             self.counters.events_dropped.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    /// Whether another process's watch of `lift` holds (an expired one is forgotten).
+    fn watched_elsewhere(&self, lift: &str) -> bool {
+        let mut watched = lock(&self.watched);
+        match watched.get(lift) {
+            Some(until) if *until > Instant::now() => true,
+            Some(_) => {
+                watched.remove(lift);
+                false
+            }
+            None => false,
+        }
+    }
+
+    /// Another process watches `lift`, held here: publish its live events for a lease.
+    fn watch_granted(&self, lift: &str) {
+        lock(&self.watched).insert(lift.to_owned(), Instant::now() + WATCH_LEASE);
+    }
+
+    /// Ask the holder of `lift` to publish its live events (for a lease), waiting at most
+    /// [`WATCH_ASK`]; no holder or no NATS is no matter (then there is nothing to publish).
+    async fn ask_to_publish(self: Arc<Self>, lift: String) {
+        let asked = tokio::time::timeout(WATCH_ASK, self.relay(&lift, &Relayed::Watch)).await;
+        if let Ok(Err(e)) = asked {
+            tracing::debug!(%lift, error = ?e, "NATS: watch not taken");
         }
     }
 
@@ -534,9 +586,15 @@ impl Cluster {
     ) {
         if let Ok(mut events) = self.client.subscribe(msgs::events_subject(&lift)).await {
             if self.client.flush().await.is_ok() {
+                // The holder publishes only what someone watches: ask before saying ready.
+                self.clone().ask_to_publish(lift.clone()).await;
                 let _ = ready.send(());
             }
-            let mut check = tokio::time::interval(FORWARD_CHECK);
+            let mut generation = self.generation.subscribe();
+            let mut check = tokio::time::interval_at(
+                tokio::time::Instant::now() + FORWARD_CHECK,
+                FORWARD_CHECK,
+            );
             loop {
                 tokio::select! {
                     message = events.next() => {
@@ -552,7 +610,16 @@ impl Cluster {
                             break;
                         }
                     }
-                    _ = check.tick() => if tx.receiver_count() == 0 { break },
+                    _ = check.tick() => {
+                        if tx.receiver_count() == 0 {
+                            break;
+                        }
+                        tokio::spawn(self.clone().ask_to_publish(lift.clone()));
+                    }
+                    // NATS is back (perhaps restarted): the holder's lease may have lapsed.
+                    Ok(()) = generation.changed() => {
+                        tokio::spawn(self.clone().ask_to_publish(lift.clone()));
+                    }
                 }
             }
             let _ = events.unsubscribe().await;
@@ -633,6 +700,10 @@ async fn answer(
             }
             None => Err(Failure::Gone),
         },
+        Ok(Relayed::Watch) => {
+            cluster.watch_granted(&lift);
+            Ok(DONE.to_owned())
+        }
         Err(e) => Err(Failure::Invalid(e.to_string())),
     };
     let Ok(body) = serde_json::to_vec(&RelayedAnswer::of(outcome)) else {

@@ -57,6 +57,10 @@ pub enum Relayed {
     Hold(RelayedHold),
     /// A holder there lets go of subscriptions.
     Release(RelayedRelease),
+    /// Someone there watches the lift's live events: the holder publishes them on
+    /// [`events_subject`] for a lease of 30 s, which the watching process renews every 10 s
+    /// (and at once when the lift moves or NATS comes back). Unwatched, nothing is published.
+    Watch,
 }
 
 /// An operator request for a lift, relayed to its holder.
@@ -267,6 +271,9 @@ mod tests {
         };
         assert_eq!(back.holder, Holder::User("masora".into()));
         assert!(back.mplex.is_none());
+        let watch = serde_json::to_string(&Relayed::Watch).unwrap();
+        assert_eq!(watch, "\"watch\"");
+        assert!(matches!(serde_json::from_str(&watch), Ok(Relayed::Watch)));
     }
 
     #[test]

@@ -245,7 +245,8 @@ impl Registry {
     }
 
     /// Live events of a lift (in a cluster, also those its holder publishes from another
-    /// process, from the moment NATS has this process's subscription: at most a second).
+    /// process, from the moment NATS has this process's subscription and the holder its watch:
+    /// at most a second).
     pub async fn subscribe(&self, lift: &str) -> broadcast::Receiver<LiftEvent> {
         let (rx, forwarding) = {
             let mut events = self.events.lock().unwrap_or_else(PoisonError::into_inner);
