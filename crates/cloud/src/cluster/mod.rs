@@ -532,7 +532,11 @@ impl Cluster {
 
     /// Ask the holder of `lift` to publish its live events (for a lease), waiting at most
     /// [`WATCH_ASK`]; no holder or no NATS is no matter (then there is nothing to publish).
+    /// A lift that moved here needs no asking: its events reach the watchers here directly.
     async fn ask_to_publish(self: Arc<Self>, lift: String) {
+        if lock(&self.held).contains_key(&lift) {
+            return;
+        }
         let asked = tokio::time::timeout(WATCH_ASK, self.relay(&lift, &Relayed::Watch)).await;
         if let Ok(Err(e)) = asked {
             tracing::debug!(%lift, error = ?e, "NATS: watch not taken");
