@@ -306,6 +306,14 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
         args.portals,
         nats_rss as f64 / args.gateways as f64
     );
+    let mut unwatched = 0.0;
+    for p in &portals.processes {
+        unwatched += p.metric("canlift_cluster_events_unwatched_total").await?;
+    }
+    println!(
+        "live events kept off NATS (no other process watched their lift): {unwatched:.0}, {:.1} per gateway",
+        unwatched / args.gateways as f64
+    );
     let others = args.portals;
     let local = reads(&args, layout, &portals, &key, |h| h).await?;
     let remote = reads(&args, layout, &portals, &key, |h| (h + 1) % others).await?;
