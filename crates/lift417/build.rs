@@ -64,40 +64,27 @@ fn emit(out: &mut String, source: &source::Source, t: &Tables) -> std::fmt::Resu
         "pub(super) const FALLBACK: &[(&str, &str)] = &{fallback:?};"
     )?;
     writeln!(out, "pub(super) static POOL: &str = {:?};", t.pool)?;
-    writeln!(
-        out,
-        "pub(super) static PAIRS: [PooledText; {}] = [",
-        t.pairs.len()
-    )?;
-    for p in t.pairs.iter() {
-        writeln!(out, "    {p:?},")?;
-    }
-    writeln!(out, "];")?;
-    writeln!(
-        out,
-        "pub(super) static LISTS: [Span; {}] = [",
-        t.lists.len()
-    )?;
-    for s in t.lists.iter() {
-        writeln!(out, "    {s:?},")?;
-    }
-    writeln!(out, "];")?;
-    writeln!(
-        out,
-        "pub(super) static ENTRIES: [EntryRow; {}] = [",
-        t.entries.len()
-    )?;
-    for e in t.entries.iter() {
-        entry(out, e)?;
-    }
-    writeln!(out, "];")?;
-    writeln!(
-        out,
-        "pub(super) static OBJECTS: [ObjectRow; {}] = [",
-        t.objects.len()
-    )?;
-    for o in t.objects.iter() {
-        object(out, o)?;
+    array(out, "PAIRS", "PooledText", &t.pairs, |out, p| {
+        writeln!(out, "    {p:?},")
+    })?;
+    array(out, "LISTS", "Span", &t.lists, |out, s| {
+        writeln!(out, "    {s:?},")
+    })?;
+    array(out, "ENTRIES", "EntryRow", &t.entries, entry)?;
+    array(out, "OBJECTS", "ObjectRow", &t.objects, object)
+}
+
+/// `pub(super) static NAME: [TYPE; N] = [ … ];`, a row per item.
+fn array<T>(
+    out: &mut String,
+    name: &str,
+    ty: &str,
+    items: &[T],
+    row: impl Fn(&mut String, &T) -> std::fmt::Result,
+) -> std::fmt::Result {
+    writeln!(out, "pub(super) static {name}: [{ty}; {}] = [", items.len())?;
+    for item in items {
+        row(out, item)?;
     }
     writeln!(out, "];")
 }
