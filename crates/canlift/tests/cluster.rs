@@ -40,11 +40,12 @@ impl Cluster {
     /// lift's gateway connects through the balancer to `p0`. `None`: no NATS or PostgreSQL
     /// here (the test printed why it is skipped).
     async fn start(name: &str, count: usize) -> Option<Cluster> {
-        Cluster::start_with(name, count, "").await
+        Cluster::start_with(name, count, 6, "").await
     }
 
-    /// The same with `more` appended to every process's configuration.
-    async fn start_with(name: &str, count: usize, more: &str) -> Option<Cluster> {
+    /// The same with holder entries living `ttl` seconds (watches twice that) and `more`
+    /// appended to every process's configuration.
+    async fn start_with(name: &str, count: usize, ttl: u64, more: &str) -> Option<Cluster> {
         let nats = Nats::start()?;
         let database = testkit::postgres(name).await?;
         let dir = testkit::scratch();
@@ -53,7 +54,7 @@ impl Cluster {
             .map(|i| {
                 let extra = format!(
                     "tls_cert = \"{}\"\ntls_key = \"{}\"\n[database]\nurl = \"{database}\"\n\
-                     [cluster]\nnats = \"{}\"\nnode = \"p{i}\"\nholder_ttl_s = 6\n{more}",
+                     [cluster]\nnats = \"{}\"\nnode = \"p{i}\"\nholder_ttl_s = {ttl}\n{more}",
                     pki.cert.display(),
                     pki.key.display(),
                     nats.url()
@@ -131,6 +132,62 @@ impl Cluster {
     async fn read(&self, index: usize) -> (u16, Value) {
         let path = format!("/api/v1/lifts/{LIFT}/objects/0x652001?form=naked");
         self.call(index, "GET", &path, None).await
+    }
+
+    /// The account subscribes to `mplex` through process `index`.
+    async fn subscribe(&self, index: usize, mplex: &str) {
+        let path = format!("/api/v1/lifts/{LIFT}/subscriptions");
+        let body = json!({ "mplex": [mplex] });
+        let (status, subscribed) = self.call(index, "POST", &path, Some(body)).await;
+        assert_eq!(status, 200, "{subscribed}");
+    }
+
+    /// A live watcher on process `index` that holds the hall lantern options.
+    async fn watch_lantern(&self, index: usize) -> cloud::client::EventStream {
+        self.portals[index]
+            .client(&self.key)
+            .events(&format!(
+                "/api/v1/lifts/{LIFT}/events?mplex=hall%20lantern%20options"
+            ))
+            .await
+            .expect("connected")
+            .expect("an event stream")
+    }
+
+    /// Object 0x502200 (an unsigned 8) written through process `index`.
+    async fn write_0x502200(&self, index: usize, value: u8) {
+        let put = json!({"value": value.to_string(), "datatype": 7, "physunit": 0});
+        let path = format!("/api/v1/lifts/{LIFT}/objects/0x502200");
+        let (status, answer) = self.call(index, "PUT", &path, Some(put)).await;
+        assert_eq!(status, 200, "{answer}");
+    }
+
+    /// The hall lantern options written through p0, the holder (elevated there first, which
+    /// the write needs).
+    async fn write_lantern(&self, value: u8) {
+        let elevate = json!({"privilege": 1, "password": SERVICE_PASSWORD});
+        let privilege = format!("/api/v1/lifts/{LIFT}/privilege");
+        let (status, granted) = self.call(0, "POST", &privilege, Some(elevate)).await;
+        assert_eq!(status, 200, "{granted}");
+        let lantern = json!({"value": value.to_string(), "datatype": 5, "physunit": 0});
+        let path = format!("/api/v1/lifts/{LIFT}/objects?name=hall%20lantern%20options");
+        let (status, answer) = self.call(0, "PUT", &path, Some(lantern)).await;
+        assert_eq!(status, 200, "{answer}");
+    }
+
+    /// The values of `mplex` stored by the portal (read through p0).
+    async fn history(&self, mplex: &str) -> Vec<String> {
+        let path = format!("/api/v1/lifts/{LIFT}/objects/{mplex}/history");
+        let (status, history) = self.call(0, "GET", &path, None).await;
+        assert_eq!(status, 200, "{history}");
+        history["values"]
+            .as_array()
+            .map(|list| {
+                list.iter()
+                    .filter_map(|v| v["value"].as_str().map(str::to_owned))
+                    .collect()
+            })
+            .unwrap_or_default()
     }
 
     async fn stop(self) {
@@ -233,14 +290,7 @@ async fn every_lift_is_served_by_every_process() {
     assert!(unwatched > 0, "the holder published unwatched events");
     // A watcher on p0 holds the hall lantern options: its terms follow the lift to every
     // process that holds it later.
-    let mut lantern_watch = cluster.portals[0]
-        .client(&cluster.key)
-        .events(&format!(
-            "/api/v1/lifts/{LIFT}/events?mplex=hall%20lantern%20options"
-        ))
-        .await
-        .expect("connected")
-        .expect("an event stream");
+    let mut lantern_watch = cluster.watch_lantern(0).await;
     // Watched through p1, subscribed through p2: the value the gateway pushes arrives.
     let client = cluster.portals[1].client(&cluster.key);
     let mut stream = client
@@ -248,15 +298,7 @@ async fn every_lift_is_served_by_every_process() {
         .await
         .expect("connected")
         .expect("an event stream");
-    let (status, subscribed) = cluster
-        .call(
-            2,
-            "POST",
-            &format!("/api/v1/lifts/{LIFT}/subscriptions"),
-            Some(json!({"mplex": ["0x502200"]})),
-        )
-        .await;
-    assert_eq!(status, 200, "{subscribed}");
+    cluster.subscribe(2, "0x502200").await;
     let value = tokio::time::timeout(LIMIT, async {
         while let Some(Ok((name, data))) = stream.next().await {
             // The dashboard's objects come too; a new subscription pushes its value first.
@@ -324,17 +366,8 @@ async fn every_lift_is_served_by_every_process() {
     // Two moves later, p2 registered the subscription made through p2 while p0 held the
     // lift (from the database), and p0's watcher handed its objects to p1, then to p2: both
     // objects' new values reach p0's stream.
-    let put = json!({"value": "5", "datatype": 7, "physunit": 0});
-    let path = format!("/api/v1/lifts/{LIFT}/objects/0x502200");
-    let (status, answer) = cluster.call(0, "PUT", &path, Some(put)).await;
-    assert_eq!(status, 200, "{answer}");
-    let elevate = json!({"privilege": 1, "password": SERVICE_PASSWORD});
-    let (status, granted) = cluster.call(0, "POST", &privilege, Some(elevate)).await;
-    assert_eq!(status, 200, "{granted}");
-    let lantern = json!({"value": "2", "datatype": 5, "physunit": 0});
-    let path = format!("/api/v1/lifts/{LIFT}/objects?name=hall%20lantern%20options");
-    let (status, answer) = cluster.call(0, "PUT", &path, Some(lantern)).await;
-    assert_eq!(status, 200, "{answer}");
+    cluster.write_0x502200(0, 5).await;
+    cluster.write_lantern(2).await;
     let (mut subscribed, mut watched) = (false, false);
     tokio::time::timeout(LIMIT, async {
         while !(subscribed && watched) {
@@ -354,6 +387,101 @@ async fn every_lift_is_served_by_every_process() {
             "pushed after two moves: the user's subscription {subscribed}, the watcher's {watched}"
         )
     });
+    cluster.stop().await;
+}
+
+/// The hall lantern options' mplex, when `watch` brings its new `value` within 3 s.
+async fn pushed(watch: &mut cloud::client::EventStream, value: u8) -> Option<String> {
+    let wanted = format!("\"value\":\"{value}\"");
+    tokio::time::timeout(Duration::from_secs(3), async {
+        while let Some(Ok((name, data))) = watch.next().await {
+            if name == "value" && data.contains("0x4112") && data.contains(&wanted) {
+                let event: cloud::rest::ValueEvent =
+                    serde_json::from_str(&data).expect("a value event");
+                return Some(event.object.mplex);
+            }
+        }
+        None
+    })
+    .await
+    .ok()
+    .flatten()
+}
+
+/// A watcher on p1 of the lift p0 holds asks for the hall lantern options. NATS away for
+/// longer than p1's watch lease: p0 lets go of the watcher's object, and p1 hands it over again
+/// when NATS is back. p1 killed: its lease lapses and p0 lets go for good — the lantern's
+/// changes are no longer pushed, while an account's subscription stays.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_watching_process_that_goes_away_lets_go() {
+    let Some(mut cluster) = Cluster::start_with("cluster_lapse", 2, 3, "").await else {
+        return;
+    };
+    cluster.subscribe(0, "0x502200").await;
+    let mut watch = cluster.watch_lantern(1).await;
+    cluster.write_lantern(1).await;
+    let lantern = pushed(&mut watch, 1)
+        .await
+        .expect("the watcher's object is pushed to p1's stream");
+
+    // NATS away for longer than the lease (6 s here).
+    cluster.nats.stop();
+    until(LIMIT, "p0 lets go of p1's watcher", || async {
+        cluster.portals[0]
+            .metric("canlift_cluster_watch_lapsed_total")
+            .await
+            == 1
+    })
+    .await;
+    cluster.nats.start_again();
+    let back = tokio::time::Instant::now();
+    let mut last = 1;
+    for value in [2, 3].into_iter().cycle() {
+        cluster.write_lantern(value).await;
+        last = value;
+        if pushed(&mut watch, value).await.is_some() {
+            break;
+        }
+        assert!(
+            back.elapsed() < LIMIT,
+            "the watcher's object is not pushed again after NATS came back"
+        );
+    }
+    let handed = back.elapsed();
+    eprintln!("p1's watcher was pushed to again {handed:?} after NATS came back");
+
+    // p1 killed: once its lease lapses, p0 lets go of the lantern for good.
+    cluster.portals[1].kill().await;
+    until(
+        LIMIT,
+        "p0 lets go of the killed process's watcher",
+        || async {
+            cluster.portals[0]
+                .metric("canlift_cluster_watch_lapsed_total")
+                .await
+                == 2
+        },
+    )
+    .await;
+    let stored = cluster.history(&lantern).await;
+    assert!(
+        stored.contains(&"1".to_owned()),
+        "a pushed lantern value is stored: {stored:?}"
+    );
+    // The lantern changed first, the account's object after it: the gateway pushes in order
+    // and the portal stores in order, so once the second is stored, a push of the first
+    // would be too.
+    cluster.write_lantern(5 - last).await;
+    cluster.write_0x502200(0, 4).await;
+    until(LIMIT, "the account's object is still pushed", || async {
+        cluster.history("0x502200").await.contains(&"4".to_owned())
+    })
+    .await;
+    assert_eq!(
+        cluster.history(&lantern).await,
+        stored,
+        "the lantern was pushed after its last watcher's process died"
+    );
     cluster.stop().await;
 }
 
@@ -405,7 +533,7 @@ async fn a_nats_outage_degrades_and_heals() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_alarm_raised_by_one_process_is_cleared_by_another() {
     let Some(mut cluster) =
-        Cluster::start_with("cluster_alarms", 2, "[alarms]\noffline_after_s = 1\n").await
+        Cluster::start_with("cluster_alarms", 2, 6, "[alarms]\noffline_after_s = 1\n").await
     else {
         return;
     };

@@ -568,6 +568,7 @@ fn metrics_text(
                 "canlift_cluster_events_unwatched_total",
                 load(&n.events_unwatched),
             ),
+            ("canlift_cluster_watch_lapsed_total", load(&n.watch_lapsed)),
         ]);
     }
     for (kind, list) in [("gauge", &gauges[..]), ("counter", &counters[..])] {

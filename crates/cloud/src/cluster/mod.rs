@@ -22,22 +22,18 @@ use tokio::sync::{broadcast, mpsc, oneshot, watch, Notify};
 
 use crate::gateways::subscriptions::{Subscriptions, Terms};
 use crate::gateways::{LiftEvent, Registry};
-use msgs::{Holding, Relayed, RelayedAnswer};
+use msgs::{Holding, Relayed, RelayedAnswer, RelayedWatch};
 
 /// The result of a relayed hold or release the holder made (a JSON `null` would read back as
 /// no result at all).
 const DONE: &str = "true";
 
+/// A holder's answer to a [`Relayed::Watch`] that found no lease of the watching process: it
+/// holds none of that process's watchers' subscriptions (any more), so they are handed over.
+const NEW_LEASE: &str = "false";
+
 /// Live events waiting to be published; beyond this they are dropped and counted.
 const EVENT_QUEUE: usize = 65_536;
-
-/// How a process learns that nobody on it watches a forwarded lift any more, and how often it
-/// renews its watch with the lift's holder.
-const FORWARD_CHECK: Duration = Duration::from_secs(10);
-
-/// How long a holder publishes a lift's live events after another process asked for them
-/// ([`Relayed::Watch`]): three renewals, so one lost renewal costs nothing.
-const WATCH_LEASE: Duration = Duration::from_secs(30);
 
 /// How long a watching process waits for the holder to take its watch before it listens
 /// anyway (no holder, or no NATS, answers at once).
@@ -58,6 +54,9 @@ pub struct ClusterCounters {
     pub events_dropped: AtomicU64,
     /// Live events of lifts held here not published because no other process watches them.
     pub events_unwatched: AtomicU64,
+    /// Watches of lifts held here that lapsed unrenewed (per watching process and lift): that
+    /// process's watchers' subscriptions were let go of.
+    pub watch_lapsed: AtomicU64,
 }
 
 /// A lift another process holds, as its KV entry says, and since when (the entry's age).
@@ -79,8 +78,9 @@ pub struct Cluster {
     held: Mutex<HashMap<String, watch::Sender<Holding>>>,
     /// The event forwarders running, by lift.
     forwarded: Mutex<HashMap<String, broadcast::Sender<LiftEvent>>>,
-    /// Lifts held here that another process watches, and until when ([`WATCH_LEASE`]).
-    watched: Mutex<HashMap<String, Instant>>,
+    /// Lifts held here that other processes watch: each watching process (its part of its
+    /// watchers' ids) and until when its lease holds ([`Cluster::lease`]).
+    watched: Mutex<Leases>,
     /// Poked on every connection event of the NATS client.
     nats_changed: Arc<Notify>,
     /// Raised each time the bucket is ready after connecting: holders write their entries
@@ -209,6 +209,19 @@ impl Cluster {
 
     fn subscriptions(&self) -> Option<Arc<Subscriptions>> {
         self.subscriptions.get().and_then(Weak::upgrade)
+    }
+
+    /// How long a holder publishes a lift's live events, and keeps the subscriptions of the
+    /// watchers of a process, after that process last asked ([`Relayed::Watch`]): twice the
+    /// holder entries' TTL, six renewals.
+    fn lease(&self) -> Duration {
+        self.ttl * 2
+    }
+
+    /// How often a process renews its watches, and learns that nobody on it watches a
+    /// forwarded lift any more.
+    fn renewal(&self) -> Duration {
+        self.ttl / 3
     }
 
     async fn nats_event(&self) {
@@ -352,7 +365,7 @@ impl Cluster {
         let mut held = lock(&self.held);
         if held.get(lift).is_some_and(|h| h.borrow().epoch == epoch) {
             held.remove(lift);
-            lock(&self.watched).remove(lift);
+            lock(&self.watched).forget(lift);
         }
     }
 
@@ -397,7 +410,10 @@ impl Cluster {
                     Ok(()) => written,
                     Err(_) => break,
                 },
-                _ = refresh.tick() => written,
+                _ = refresh.tick() => {
+                    self.release_lapsed(&lift);
+                    written
+                }
                 _ = generation.changed() => Written::Not,
                 Some(message) = next_message(&mut rpc) => {
                     tokio::spawn(answer(self.clone(), registry.clone(), lift.clone(), message));
@@ -512,22 +528,35 @@ impl Cluster {
         }
     }
 
-    /// Whether another process's watch of `lift` holds (an expired one is forgotten).
+    /// Whether another process's watch of `lift` holds.
     fn watched_elsewhere(&self, lift: &str) -> bool {
-        let mut watched = lock(&self.watched);
-        match watched.get(lift) {
-            Some(until) if *until > Instant::now() => true,
-            Some(_) => {
-                watched.remove(lift);
-                false
-            }
-            None => false,
-        }
+        lock(&self.watched).any(lift, Instant::now())
     }
 
-    /// Another process watches `lift`, held here: publish its live events for a lease.
-    fn watch_granted(&self, lift: &str) {
-        lock(&self.watched).insert(lift.to_owned(), Instant::now() + WATCH_LEASE);
+    /// Another process watches `lift`, held here: publish its live events, and keep its
+    /// watchers' subscriptions, for a lease.
+    /// Whether the process's lease was still running (else this one is new).
+    fn watch_granted(&self, lift: &str, process: u64) -> bool {
+        lock(&self.watched).grant(lift, process, Instant::now(), self.lease())
+    }
+
+    /// The processes whose watch of the held `lift` lapsed let go of their watchers'
+    /// subscriptions (in the background): they died, or lost NATS for longer than the lease.
+    fn release_lapsed(&self, lift: &str) {
+        let lapsed = lock(&self.watched).lapsed(lift, Instant::now());
+        self.counters
+            .watch_lapsed
+            .fetch_add(lapsed.len() as u64, Ordering::Relaxed);
+        let Some(subscriptions) = self.subscriptions().filter(|_| !lapsed.is_empty()) else {
+            return;
+        };
+        let lift = lift.to_owned();
+        tokio::spawn(async move {
+            for process in lapsed {
+                tracing::debug!(%lift, process = process >> 32, "a watching process's lease lapsed");
+                subscriptions.release_process(&lift, process).await;
+            }
+        });
     }
 
     /// Ask the holder of `lift` to publish its live events (for a lease), waiting at most
@@ -537,9 +566,17 @@ impl Cluster {
         if lock(&self.held).contains_key(&lift) {
             return;
         }
-        let asked = tokio::time::timeout(WATCH_ASK, self.relay(&lift, &Relayed::Watch)).await;
-        if let Ok(Err(e)) = asked {
-            tracing::debug!(%lift, error = ?e, "NATS: watch not taken");
+        let Some(subscriptions) = self.subscriptions() else {
+            return;
+        };
+        let watch = Relayed::Watch(RelayedWatch {
+            process: subscriptions.process(),
+        });
+        match tokio::time::timeout(WATCH_ASK, self.relay(&lift, &watch)).await {
+            // The holder has none of this process's watchers' subscriptions: hand them over.
+            Ok(Ok(answer)) if answer == NEW_LEASE => subscriptions.moved(&lift),
+            Ok(Err(e)) => tracing::debug!(%lift, error = ?e, "NATS: watch not taken"),
+            _ => {}
         }
     }
 
@@ -595,10 +632,9 @@ impl Cluster {
                 let _ = ready.send(());
             }
             let mut generation = self.generation.subscribe();
-            let mut check = tokio::time::interval_at(
-                tokio::time::Instant::now() + FORWARD_CHECK,
-                FORWARD_CHECK,
-            );
+            let renewal = self.renewal();
+            let mut check =
+                tokio::time::interval_at(tokio::time::Instant::now() + renewal, renewal);
             loop {
                 tokio::select! {
                     message = events.next() => {
@@ -620,8 +656,14 @@ impl Cluster {
                         }
                         tokio::spawn(self.clone().ask_to_publish(lift.clone()));
                     }
-                    // NATS is back (perhaps restarted): the holder's lease may have lapsed.
+                    // NATS is back (perhaps restarted): the holder's lease may have lapsed, and
+                    // with it the watchers' subscriptions there; holds relayed meanwhile failed.
                     Ok(()) = generation.changed() => {
+                        if !lock(&self.held).contains_key(&lift) {
+                            if let Some(subscriptions) = self.subscriptions() {
+                                subscriptions.moved(&lift);
+                            }
+                        }
                         tokio::spawn(self.clone().ask_to_publish(lift.clone()));
                     }
                 }
@@ -632,6 +674,54 @@ impl Cluster {
         if forwarded.get(&lift).is_some_and(|f| f.same_channel(&tx)) {
             forwarded.remove(&lift);
         }
+    }
+}
+
+/// Which other processes watch which lifts held here, and until when: per lift, per watching
+/// process (its part of its watchers' ids). Only watched lifts have an entry.
+#[derive(Debug, Default)]
+struct Leases(HashMap<String, HashMap<u64, Instant>>);
+
+impl Leases {
+    /// `process` watches `lift` from `now` for `lease`; whether its lease was still running
+    /// (else this one is new).
+    fn grant(&mut self, lift: &str, process: u64, now: Instant, lease: Duration) -> bool {
+        self.0
+            .entry(lift.to_owned())
+            .or_default()
+            .insert(process, now + lease)
+            .is_some_and(|until| until > now)
+    }
+
+    /// Whether any process's lease of `lift` runs at `now`.
+    fn any(&self, lift: &str, now: Instant) -> bool {
+        self.0
+            .get(lift)
+            .is_some_and(|leases| leases.values().any(|until| *until > now))
+    }
+
+    /// The processes whose lease of `lift` ran out by `now`, forgotten.
+    fn lapsed(&mut self, lift: &str, now: Instant) -> Vec<u64> {
+        let Some(leases) = self.0.get_mut(lift) else {
+            return Vec::new();
+        };
+        let mut lapsed = Vec::new();
+        leases.retain(|process, until| {
+            let running = *until > now;
+            if !running {
+                lapsed.push(*process);
+            }
+            running
+        });
+        if leases.is_empty() {
+            self.0.remove(lift);
+        }
+        lapsed
+    }
+
+    /// `lift` is no longer held here: its leases go with it.
+    fn forget(&mut self, lift: &str) {
+        self.0.remove(lift);
     }
 }
 
@@ -685,10 +775,14 @@ async fn answer(
                     inhibit: hold.inhibit,
                     threshold: hold.threshold,
                 };
-                subscriptions
+                let held = subscriptions
                     .hold_here(&lift, &hold.holder, &objects, terms)
-                    .await
-                    .map(|()| DONE.to_owned())
+                    .await;
+                // A watcher's terms last as long as its process's watch of the lift.
+                if let (Ok(()), Some(process)) = (&held, hold.holder.process()) {
+                    let _ = cluster.watch_granted(&lift, process);
+                }
+                held.map(|()| DONE.to_owned())
             }
             None => Err(Failure::Gone),
         },
@@ -704,9 +798,9 @@ async fn answer(
             }
             None => Err(Failure::Gone),
         },
-        Ok(Relayed::Watch) => {
-            cluster.watch_granted(&lift);
-            Ok(DONE.to_owned())
+        Ok(Relayed::Watch(watch)) => {
+            let renewed = cluster.watch_granted(&lift, watch.process);
+            Ok(if renewed { DONE } else { NEW_LEASE }.to_owned())
         }
         Err(e) => Err(Failure::Invalid(e.to_string())),
     };
@@ -720,4 +814,47 @@ async fn answer(
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const LEASE: Duration = Duration::from_secs(30);
+
+    #[test]
+    fn a_lease_runs_until_it_lapses_per_process() {
+        let t0 = Instant::now();
+        let second = |n: u64| t0 + Duration::from_secs(n);
+        let (a, b) = (1 << 32, 2 << 32);
+        let mut leases = Leases::default();
+        assert!(!leases.any("L", t0));
+        assert!(!leases.grant("L", a, t0, LEASE), "a first lease is new");
+        assert!(leases.grant("L", a, second(10), LEASE), "renewed in time");
+        assert!(!leases.grant("L", b, second(20), LEASE));
+        assert!(leases.any("L", second(39)));
+        assert!(leases.lapsed("L", second(39)).is_empty());
+        // a's lease (renewed at 10 s) ends at 40 s, b's at 50 s.
+        assert_eq!(leases.lapsed("L", second(40)), vec![a]);
+        assert!(leases.any("L", second(45)));
+        assert!(
+            !leases.grant("L", a, second(45), LEASE),
+            "lapsed: new again"
+        );
+        assert_eq!(leases.lapsed("L", second(50)), vec![b]);
+        assert_eq!(leases.lapsed("L", second(80)), vec![a]);
+        assert!(leases.0.is_empty(), "an unwatched lift takes no entry");
+        assert!(!leases.any("L", second(80)));
+    }
+
+    #[test]
+    fn a_lease_not_swept_in_time_is_new_when_asked_again() {
+        let t0 = Instant::now();
+        let mut leases = Leases::default();
+        leases.grant("L", 1 << 32, t0, LEASE);
+        assert!(!leases.grant("L", 1 << 32, t0 + LEASE, LEASE));
+        leases.forget("L");
+        assert!(!leases.any("L", t0));
+        assert!(leases.lapsed("L", t0 + LEASE * 3).is_empty());
+    }
 }

@@ -58,9 +58,21 @@ pub enum Relayed {
     /// A holder there lets go of subscriptions.
     Release(RelayedRelease),
     /// Someone there watches the lift's live events: the holder publishes them on
-    /// [`events_subject`] for a lease of 30 s, which the watching process renews every 10 s
-    /// (and at once when the lift moves or NATS comes back). Unwatched, nothing is published.
-    Watch,
+    /// [`events_subject`] for a lease (twice the holder entries' TTL), which the watching
+    /// process renews three times per TTL (and at once when the lift moves or NATS comes
+    /// back). Unwatched, nothing is published; when the lease of a process lapses (it died, or
+    /// lost NATS for longer), the holder also lets go of its watchers' subscriptions. The holder
+    /// answers `true` for a lease it renewed, `false` for a new one: then it holds none of the
+    /// process's watchers' subscriptions and the process hands them over again.
+    Watch(RelayedWatch),
+}
+
+/// [`Relayed::Watch`]: which process watches.
+#[derive(Debug, Serialize, Deserialize)]
+pub struct RelayedWatch {
+    /// The watching process's part of its watchers' ids (their upper 32 bits, see
+    /// [`Holder::Watcher`]).
+    pub process: u64,
 }
 
 /// An operator request for a lift, relayed to its holder.
@@ -271,9 +283,15 @@ mod tests {
         };
         assert_eq!(back.holder, Holder::User("masora".into()));
         assert!(back.mplex.is_none());
-        let watch = serde_json::to_string(&Relayed::Watch).unwrap();
-        assert_eq!(watch, "\"watch\"");
-        assert!(matches!(serde_json::from_str(&watch), Ok(Relayed::Watch)));
+        let watch = Relayed::Watch(RelayedWatch { process: 7 << 32 });
+        let watch = serde_json::to_string(&watch).unwrap();
+        assert_eq!(watch, "{\"watch\":{\"process\":30064771072}}");
+        assert!(matches!(
+            serde_json::from_str(&watch),
+            Ok(Relayed::Watch(RelayedWatch {
+                process: 30064771072
+            }))
+        ));
     }
 
     #[test]

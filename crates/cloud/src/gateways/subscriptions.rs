@@ -44,6 +44,16 @@ pub enum Holder {
     Watcher(u64),
 }
 
+impl Holder {
+    /// The process of a live watcher (the upper 32 bits of its id); `None` for a user.
+    pub fn process(&self) -> Option<u64> {
+        match self {
+            Holder::Watcher(id) => Some(id & !u64::from(u32::MAX)),
+            Holder::User(_) => None,
+        }
+    }
+}
+
 /// What is asked of the pushes of one object.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Terms {
@@ -126,6 +136,19 @@ impl Holders {
                 }
             }
         }
+        self.changes(base, before)
+    }
+
+    /// Every holder `which` says yes to lets go of all it holds.
+    pub fn remove_where(&mut self, base: &Base, which: impl Fn(&Holder) -> bool) -> Vec<Change> {
+        let objects: Vec<Mplex> = self
+            .objects
+            .iter()
+            .filter(|(_, holders)| holders.keys().any(&which))
+            .map(|(mplex, _)| *mplex)
+            .collect();
+        let before = self.unions(base, &objects);
+        self.retain(|holder| !which(holder));
         self.changes(base, before)
     }
 
@@ -260,7 +283,12 @@ impl Subscriptions {
     /// Whether `holder` is a watcher of this process (its terms stay here when the lift's
     /// connection ends or moves; users' are in the database, other processes' with them).
     fn own(&self, holder: &Holder) -> bool {
-        matches!(holder, Holder::Watcher(id) if id & !u64::from(u32::MAX) == self.process)
+        holder.process() == Some(self.process)
+    }
+
+    /// This process's part of its watchers' ids (see [`Holder::process`]).
+    pub(crate) fn process(&self) -> u64 {
+        self.process
     }
 
     /// The cluster, when `lift` is not connected here (its holder, if any, is elsewhere).
@@ -403,6 +431,24 @@ impl Subscriptions {
         }
     }
 
+    /// The watch lease of another process on `lift`, held here, lapsed (docs/CLUSTER.md
+    /// §Subscriptions): that process died or lost NATS for longer than the lease, so its
+    /// watchers let go of everything they hold (they ask again if they are still there).
+    pub(crate) async fn release_process(&self, lift: &str, process: u64) {
+        if process == self.process {
+            return;
+        }
+        let Some(cell) = self.existing(lift) else {
+            return;
+        };
+        let mut holders = cell.lock().await;
+        let changes = holders.remove_where(&self.base, |h| h.process() == Some(process));
+        self.forget_if_empty(lift, &cell, &holders);
+        if let Err(e) = self.send(lift, changes).await {
+            tracing::debug!(%lift, failure = ?e, "a lapsed process's subscriptions not unregistered");
+        }
+    }
+
     /// A gateway has just connected: register everything held on its lift — the users'
     /// subscriptions as the database has them, this process's watchers', and those other
     /// processes' watchers asked for since. A group the gateway refuses as a whole
@@ -463,8 +509,10 @@ impl Subscriptions {
         self.forget_if_empty(lift, &cell, &holders);
     }
 
-    /// Another process of the cluster now holds `lift`: this process's watchers of it ask
-    /// the new holder for their objects (in the background).
+    /// Another process of the cluster now holds `lift`, or its holder may have lost what this
+    /// process's watchers asked for (NATS was away; the holder's answer to a watch says its
+    /// lease was new): they ask the holder for their objects again (in the background; the
+    /// same terms again change nothing at the gateway).
     pub(crate) fn moved(self: Arc<Self>, lift: &str) {
         let Some(cell) = self.existing(lift) else {
             return;
@@ -634,6 +682,43 @@ mod tests {
         h.retain(|_| false);
         assert!(h.is_empty());
         assert_eq!(h.requests(), []);
+    }
+
+    /// A process whose watch lapsed: all its watchers let go at once, each object falling
+    /// back to what the others hold (the user, the dashboard) or leaving the gateway.
+    #[test]
+    fn a_process_lets_go_of_all_its_watchers_at_once() {
+        let base = dashboard();
+        let mut h = Holders::default();
+        let user = Holder::User("masora".into());
+        let (first, second, other) = (
+            Holder::Watcher(2 << 32 | 1),
+            Holder::Watcher(2 << 32 | 2),
+            Holder::Watcher(3 << 32 | 1),
+        );
+        assert_eq!(first.process(), Some(2 << 32));
+        assert_eq!(user.process(), None);
+        let (trips, speed, door, load) = (m(0x6520, 1), m(0x6383, 1), m(0x6300, 1), m(0x6600, 1));
+        h.add(&base, &user, &[speed], terms(1000, 0.0));
+        h.add(&base, &first, &[trips, speed], terms(100, 0.0));
+        h.add(&base, &second, &[door], terms(0, 0.0));
+        h.add(&base, &other, &[load], terms(50, 0.0));
+        let changes = h.remove_where(&base, |holder| holder.process() == Some(2 << 32));
+        assert_eq!(
+            changes,
+            [
+                Change::Register(vec![speed], terms(1000, 0.0)),
+                Change::Register(vec![trips], terms(500, 0.0)),
+                Change::Unregister(vec![door]),
+            ]
+        );
+        assert_eq!(
+            h.requests(),
+            [
+                (user.clone(), terms(1000, 0.0), vec![speed]),
+                (other.clone(), terms(50, 0.0), vec![load]),
+            ]
+        );
     }
 
     proptest! {
