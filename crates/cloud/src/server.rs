@@ -234,6 +234,7 @@ impl Portal {
         }
         let (telemetry, telemetry_rx) =
             telemetry::Queue::new(config.database.telemetry_queue, Arc::default());
+        let (records, records_rx) = gateways::records::Records::new(store.clone());
         tasks.extend([
             tokio::spawn(telemetry::retention(
                 telemetry::Kept::Telemetry,
@@ -250,6 +251,7 @@ impl Portal {
                 store.clone(),
                 config.database.events_days,
             )),
+            tokio::spawn(gateways::records::writer(store.clone(), records_rx)),
         ]);
         let alarms = start_alarms(config, &store, &registry, &mut tasks)?;
         // Rights taken away anywhere reach this process within a second.
@@ -266,6 +268,7 @@ impl Portal {
                 registry: registry.clone(),
                 settings: config.gateways.settings(),
                 telemetry: telemetry.clone(),
+                records,
                 dashboard: dashboard.clone(),
                 subscriptions: subscriptions.clone(),
                 alarms: alarms.clone(),

@@ -14,7 +14,7 @@ use tokio::sync::{mpsc, oneshot};
 use super::{dashboard, LiftEvent, OperatorCall, Reply, Shared};
 use crate::alarms::Input;
 use crate::config::BoardhashChange;
-use crate::store::{self, Admission, AuditEntry, TelemetryRow};
+use crate::store::{self, Admission, AuditEntry, GatewayRecord, TelemetryRow};
 use crate::throttle::TokenBucket;
 
 /// The lift a connection serves, once it is admitted.
@@ -180,7 +180,11 @@ impl Connection {
     async fn identify(&mut self, connect: Connect) -> Vec<Output> {
         let lift = store::lift_id(&connect.identity);
         let peer = self.peer.clone();
-        let admission = match self.shared.store.admit(&connect).await {
+        let admitted = self.shared.store.admit(&connect).await;
+        // A known gateway on its known board changes nothing the next admission decides on:
+        // its row is refreshed behind the connection, with others.
+        let unchanged = matches!(&admitted, Ok(Admission::Known(k)) if k.board_was.is_none());
+        let admission = match admitted {
             Ok(Admission::Known(known)) => match known.board_was {
                 Some(was) => {
                     board_changed(&self.shared, &peer, &connect, was, known.token_set).await
@@ -203,7 +207,10 @@ impl Connection {
                 let token = token_to_issue(&self.shared, &lift, &admission).await;
                 let out = self.session.accept(&connect, token, Instant::now());
                 let api = self.session.api();
-                if let Err(e) = self.shared.store.upsert_gateway(&connect, api).await {
+                let record = GatewayRecord::connected(&connect, api);
+                if unchanged {
+                    self.shared.records.write(record).await;
+                } else if let Err(e) = self.shared.store.record(&[record]).await {
                     tracing::error!(error = %e, "gateway not recorded");
                 }
                 self.register(&lift, &connect, api);
@@ -295,8 +302,9 @@ impl Connection {
             return;
         };
         // In the background: a database that is down must not hold up the lift going offline.
-        let (store, lift) = (self.shared.store.clone(), a.lift.clone());
-        tokio::spawn(async move { store.seen(&lift).await });
+        self.shared
+            .records
+            .write_later(GatewayRecord::seen(&a.lift));
         if self.shared.registry.unregister(&a.lift, a.serial) {
             self.shared.subscriptions.offline(&a.lift).await;
             self.shared

@@ -6,6 +6,7 @@
 
 pub mod connection;
 mod dashboard;
+pub mod records;
 pub mod subscriptions;
 pub mod telemetry;
 
@@ -433,6 +434,8 @@ pub struct Shared {
     pub settings: Settings,
     /// Where notifications go to be stored in batches (with its counters, for `/metrics`).
     pub telemetry: telemetry::Queue,
+    /// Where the gateways' rows go to be written in batches.
+    pub records: records::Records,
     /// What every gateway is asked to push (`live`, `inhibit_ms`, `events`), normalized.
     pub dashboard: Arc<Dashboard>,
     /// Who holds which subscriptions, registered again on every connection.

@@ -209,6 +209,50 @@ pub struct LiftRecord {
     pub last_seen: i64,
 }
 
+/// What the registry keeps of a gateway's connections ([`Store::record`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum GatewayRecord {
+    /// A gateway was admitted (CONNACK) at `at` (ms since the epoch), saying it is `identity`
+    /// (NXg §5.2.1) of `domain` and speaking `api`: its row is made or its identity refreshed.
+    Connected {
+        /// As CONNECT said.
+        identity: Identity,
+        /// The domain token it gave.
+        domain: String,
+        /// The api version agreed.
+        api: u32,
+        /// When.
+        at: i64,
+    },
+    /// A gateway was last heard at `at`: its connection ended.
+    Seen {
+        /// Lift id.
+        lift: String,
+        /// When.
+        at: i64,
+    },
+}
+
+impl GatewayRecord {
+    /// A gateway admitted now after `connect`, speaking `api`.
+    pub fn connected(connect: &Connect, api: u32) -> GatewayRecord {
+        GatewayRecord::Connected {
+            identity: connect.identity.clone(),
+            domain: connect.domaintoken.clone(),
+            api,
+            at: now_ms(),
+        }
+    }
+
+    /// `lift`'s connection ended now.
+    pub fn seen(lift: &str) -> GatewayRecord {
+        GatewayRecord::Seen {
+            lift: lift.to_owned(),
+            at: now_ms(),
+        }
+    }
+}
+
 /// What the registry says about a CONNECT.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Admission {
@@ -350,6 +394,10 @@ impl Store {
             // A request that needs the database while it is down fails in seconds, not after
             // sqlx's default of 30 s.
             .acquire_timeout(std::time::Duration::from_secs(5))
+            // Waiting for a pooled connection is what a reconnect storm does (thousands of
+            // admissions, a few connections): sqlx's warning after 2 s would write a line per
+            // gateway. A wait that fails is logged by whoever waited.
+            .acquire_slow_threshold(std::time::Duration::from_secs(5))
             .after_connect(move |conn, _| {
                 Box::pin(async move {
                     if sqlite {
@@ -530,27 +578,51 @@ impl Store {
         })
     }
 
-    /// Record (or refresh) a gateway's identity after CONNACK.
-    pub async fn upsert_gateway(&self, connect: &Connect, api: u32) -> Result<(), StoreError> {
-        let identity = &connect.identity;
-        sqlx::query(
-            "INSERT INTO gateways (id, vendorid, productcode, sernum, liftnum, hardware, software, boardhash, domain, api, token_hash, last_seen) \
-             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, NULL, $11) \
-             ON CONFLICT (id) DO UPDATE SET liftnum = $5, hardware = $6, software = $7, boardhash = $8, api = $10, last_seen = $11",
-        )
-        .bind(lift_id(identity))
-        .bind(i64::from(identity.vendorid))
-        .bind(i64::from(identity.productcode))
-        .bind(&identity.sernum)
-        .bind(&identity.liftnum)
-        .bind(&identity.hardware)
-        .bind(&identity.software)
-        .bind(&identity.boardhash)
-        .bind(&connect.domaintoken)
-        .bind(i64::from(api))
-        .bind(now_ms())
-        .execute(&self.pool)
-        .await?;
+    /// Write `records` in order, in one transaction (a storm of reconnects costs one commit
+    /// per batch, not one per gateway). `last_seen` only moves forward, so a record written
+    /// late never takes it back.
+    pub async fn record(&self, records: &[GatewayRecord]) -> Result<(), StoreError> {
+        let mut tx = self.pool.begin().await?;
+        for record in records {
+            match record {
+                GatewayRecord::Connected {
+                    identity,
+                    domain,
+                    api,
+                    at,
+                } => {
+                    sqlx::query(
+                        "INSERT INTO gateways (id, vendorid, productcode, sernum, liftnum, hardware, software, boardhash, domain, api, token_hash, last_seen) \
+                         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, NULL, $11) \
+                         ON CONFLICT (id) DO UPDATE SET liftnum = $5, hardware = $6, software = $7, boardhash = $8, api = $10, \
+                         last_seen = CASE WHEN gateways.last_seen > $11 THEN gateways.last_seen ELSE $11 END",
+                    )
+                    .bind(lift_id(identity))
+                    .bind(i64::from(identity.vendorid))
+                    .bind(i64::from(identity.productcode))
+                    .bind(&identity.sernum)
+                    .bind(&identity.liftnum)
+                    .bind(&identity.hardware)
+                    .bind(&identity.software)
+                    .bind(&identity.boardhash)
+                    .bind(domain)
+                    .bind(i64::from(*api))
+                    .bind(*at)
+                    .execute(&mut *tx)
+                    .await?;
+                }
+                GatewayRecord::Seen { lift, at } => {
+                    sqlx::query(
+                        "UPDATE gateways SET last_seen = $1 WHERE id = $2 AND last_seen < $1",
+                    )
+                    .bind(*at)
+                    .bind(lift)
+                    .execute(&mut *tx)
+                    .await?;
+                }
+            }
+        }
+        tx.commit().await?;
         Ok(())
     }
 
@@ -620,16 +692,6 @@ impl Store {
             .fetch_optional(&self.pool)
             .await?;
         Ok(row.map(|r| r.try_get("domain")).transpose()?)
-    }
-
-    /// The gateway was heard now.
-    pub async fn seen(&self, lift: &str) -> Result<(), StoreError> {
-        sqlx::query("UPDATE gateways SET last_seen = $1 WHERE id = $2")
-            .bind(now_ms())
-            .bind(lift)
-            .execute(&self.pool)
-            .await?;
-        Ok(())
     }
 
     /// Record a refused connection attempt.
@@ -873,10 +935,11 @@ fn copy_binary(batch: &[TelemetryRow]) -> Vec<u8> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    fn connect(sernum: &str, domain: &str, token: Option<&str>) -> Connect {
+    /// A CONNECT of gateway `sernum` (vendor 1050, product 4096) to `domain`.
+    pub(crate) fn connect(sernum: &str, domain: &str, token: Option<&str>) -> Connect {
         Connect {
             identity: Identity {
                 sernum: sernum.into(),
@@ -907,6 +970,7 @@ mod tests {
     async fn sqlite() {
         let store = Store::open("sqlite::memory:").await.unwrap();
         a_large_batch_is_stored_exactly(&store).await;
+        records_refresh_rows_and_last_seen_only_moves_forward(&store).await;
         accounts_tokens_and_isolation(store).await;
     }
 
@@ -917,6 +981,7 @@ mod tests {
         };
         let store = Store::open(&url).await.unwrap();
         a_large_batch_is_stored_exactly(&store).await;
+        records_refresh_rows_and_last_seen_only_moves_forward(&store).await;
         accounts_tokens_and_isolation(store).await;
     }
 
@@ -961,6 +1026,45 @@ mod tests {
         assert_eq!(store.forget_telemetry(6_000_000_000).await.unwrap(), 2_345);
     }
 
+    /// A gateway's rows as [`Store::record`] writes them, one batch with repeats of a gateway:
+    /// its last identity wins, and `last_seen` never moves back (a record written late).
+    async fn records_refresh_rows_and_last_seen_only_moves_forward(store: &Store) {
+        store.add_account("records", "REC").await.unwrap();
+        let connected = |software: &str, at: i64| {
+            let mut connect = connect("REC-1", "REC", None);
+            connect.identity.software = software.into();
+            let mut record = GatewayRecord::connected(&connect, 2);
+            if let GatewayRecord::Connected { at: when, .. } = &mut record {
+                *when = at;
+            }
+            record
+        };
+        let lift = lift_id(&connect("REC-1", "REC", None).identity);
+        let seen = |at| GatewayRecord::Seen {
+            lift: lift.clone(),
+            at,
+        };
+        let row = || async { store.lift("REC", &lift).await.unwrap().unwrap() };
+        store
+            .record(&[connected("v1", 1_000), seen(2_000), connected("v2", 3_000)])
+            .await
+            .unwrap();
+        assert_eq!(
+            (row().await.software, row().await.last_seen),
+            ("v2".into(), 3_000)
+        );
+        store
+            .record(&[seen(2_500), connected("v3", 2_600)])
+            .await
+            .unwrap();
+        assert_eq!(
+            (row().await.software, row().await.last_seen),
+            ("v3".into(), 3_000)
+        );
+        store.record(&[seen(4_000)]).await.unwrap();
+        assert_eq!(row().await.last_seen, 4_000);
+    }
+
     async fn accounts_tokens_and_isolation(store: Store) {
         let key = store.add_account("masora", "MAS").await.unwrap();
         assert!(key.starts_with("clk_") && key.len() == 36);
@@ -988,7 +1092,10 @@ mod tests {
             store.admit(&connect("1", "XYZ", None)).await.unwrap(),
             Admission::Refused(_)
         ));
-        store.upsert_gateway(&gw(None), 1).await.unwrap();
+        store
+            .record(&[GatewayRecord::connected(&gw(None), 1)])
+            .await
+            .unwrap();
         // Not confirmed yet: still first contact.
         assert_eq!(
             store.admit(&gw(Some("x"))).await.unwrap(),
@@ -1015,7 +1122,7 @@ mod tests {
             Admission::Refused(_)
         ));
         // Only digests are stored.
-        let row = sqlx::query("SELECT token_hash FROM gateways")
+        let row = sqlx::query("SELECT token_hash FROM gateways WHERE domain = 'MAS'")
             .fetch_one(&store.pool)
             .await
             .unwrap();
