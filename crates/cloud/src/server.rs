@@ -88,8 +88,12 @@ pub struct Portal {
     tls: tokio_rustls::TlsAcceptor,
     router: Router,
     registry: Arc<Registry>,
-    /// Background work (telemetry, events, alarms, webhooks), ended with the portal.
+    /// Background work (retention, events, alarms, webhooks), ended with the portal.
     tasks: Vec<tokio::task::JoinHandle<()>>,
+    /// The batch writers (telemetry, the gateways' records): when the portal stops they write
+    /// what the ended connections queued, then end.
+    writers: Vec<tokio::task::JoinHandle<()>>,
+    stop_writers: watch::Sender<bool>,
     /// Closes the gateways' connections when the portal stops.
     closing: watch::Sender<bool>,
     metrics: Arc<Metrics>,
@@ -235,23 +239,31 @@ impl Portal {
         let (telemetry, telemetry_rx) =
             telemetry::Queue::new(config.database.telemetry_queue, Arc::default());
         let (records, records_rx) = gateways::records::Records::new(store.clone());
+        let (stop_writers, stopping) = watch::channel(false);
+        let writers = vec![
+            tokio::spawn(telemetry::writer(
+                store.clone(),
+                telemetry_rx,
+                telemetry.counters().clone(),
+                stopping.clone(),
+            )),
+            tokio::spawn(gateways::records::writer(
+                store.clone(),
+                records_rx,
+                stopping,
+            )),
+        ];
         tasks.extend([
             tokio::spawn(telemetry::retention(
                 telemetry::Kept::Telemetry,
                 store.clone(),
                 config.database.telemetry_days,
             )),
-            tokio::spawn(telemetry::writer(
-                store.clone(),
-                telemetry_rx,
-                telemetry.counters().clone(),
-            )),
             tokio::spawn(telemetry::retention(
                 telemetry::Kept::Events,
                 store.clone(),
                 config.database.events_days,
             )),
-            tokio::spawn(gateways::records::writer(store.clone(), records_rx)),
         ]);
         let alarms = start_alarms(config, &store, &registry, &mut tasks)?;
         // Rights taken away anywhere reach this process within a second.
@@ -323,6 +335,8 @@ impl Portal {
             router,
             registry,
             tasks,
+            writers,
+            stop_writers,
             closing,
             metrics,
         })
@@ -346,10 +360,12 @@ impl Portal {
             listener,
             tls,
             router,
+            registry,
             tasks,
+            writers,
+            stop_writers,
             closing,
             metrics,
-            ..
         } = self;
         loop {
             let (tcp, peer) = tokio::select! {
@@ -405,13 +421,36 @@ impl Portal {
                 }
             });
         }
+        // Refused from now on (a gateway reconnecting at once tries again later, with its TLS
+        // session ticket unspent), not left in the listen queue.
+        drop(listener);
         let _ = closing.send(true);
+        // The gateways' connections close their sockets (queuing when each was last seen);
+        // then what is queued is written — all within a bound, whatever the database does.
+        let deadline = tokio::time::Instant::now() + STOP_WITHIN;
+        while registry.online_count() > 0 && tokio::time::Instant::now() < deadline {
+            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        }
+        let _ = stop_writers.send(true);
+        for mut writer in writers {
+            if tokio::time::timeout_at(deadline, &mut writer)
+                .await
+                .is_err()
+            {
+                tracing::warn!("stopping: queued telemetry or gateway records not all written");
+                writer.abort();
+            }
+        }
         for task in tasks {
             task.abort();
         }
         tracing::info!("portal stopped");
     }
 }
+
+/// How long a stopping portal waits for its gateways' connections to end and for what they
+/// queued to be written.
+const STOP_WITHIN: std::time::Duration = std::time::Duration::from_secs(5);
 
 /// Join the cluster of `[cluster] nats`: one PostgreSQL database for all processes, the
 /// registry following the holder entries, live events published.

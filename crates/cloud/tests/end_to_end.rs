@@ -278,6 +278,38 @@ async fn operator_reads_writes_and_watches_a_simulated_lift(database: Option<Str
     rig.stop().await;
 }
 
+/// docs/PORTAL.md §Stores: a stopping portal closes its gateways' connections and writes what
+/// they queued before it returns — here, when the lift was last seen (its connection's end).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stopping_portal_records_when_its_gateways_were_last_seen() {
+    let mut rig = Rig::builder().start().await;
+    rig.online().await;
+    let store = rig.store().await;
+    let seen = || async {
+        let lift = store.lift(testkit::constants::DOMAIN, LIFT).await;
+        lift.expect("the store answers")
+            .expect("the lift")
+            .last_seen
+    };
+    let connected = seen().await;
+    // Apart by more than the clock's resolution.
+    tokio::time::sleep(Duration::from_millis(10)).await;
+    let stopping = cloud::store::now_ms();
+    assert!(connected < stopping);
+    rig.stop_portal().await;
+    assert_eq!(
+        rig.registry().online_count(),
+        0,
+        "the portal returned before its gateways' connections ended"
+    );
+    let last = seen().await;
+    assert!(
+        last >= stopping,
+        "last seen {last}: before the portal stopped at {stopping}"
+    );
+    rig.stop().await;
+}
+
 /// docs/PORTAL.md §TLS: the session-ticket keys live in the state directory, so a gateway
 /// resumes its TLS session with a restarted portal (no certificate, no signature) instead of
 /// making a full handshake.

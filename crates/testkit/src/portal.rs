@@ -226,10 +226,7 @@ impl Rig {
     /// Stop the portal and start it again on the same address, state and database (its
     /// gateways reconnect as after any restart).
     pub async fn restart_portal(&mut self) {
-        if let Some((stop, task)) = self.portal.take() {
-            let _ = stop.send(true);
-            let _ = task.await;
-        }
+        self.stop_portal().await;
         let mut config = self.config.clone();
         config.server.listen = self.addr;
         let portal = Portal::bind(&config, lift417::catalog::Catalog::builtin().names())
@@ -238,6 +235,15 @@ impl Rig {
         self.registry = portal.registry();
         let (stop, stopped) = watch::channel(false);
         self.portal = Some((stop, tokio::spawn(portal.run(stopped))));
+    }
+
+    /// Stop the portal (as on SIGTERM): it returns once its gateways' connections ended and
+    /// what they queued is written.
+    pub async fn stop_portal(&mut self) {
+        if let Some((stop, task)) = self.portal.take() {
+            let _ = stop.send(true);
+            let _ = task.await;
+        }
     }
 
     /// Stop the gateway (the lift goes offline).
@@ -267,9 +273,6 @@ impl Rig {
         if let Some((lift, _)) = self.lift.take() {
             lift.stop().await;
         }
-        if let Some((stop, task)) = self.portal.take() {
-            let _ = stop.send(true);
-            let _ = task.await;
-        }
+        self.stop_portal().await;
     }
 }

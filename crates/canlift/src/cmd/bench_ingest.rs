@@ -60,7 +60,13 @@ pub async fn run(args: IngestBench) -> anyhow::Result<()> {
         // is stored and the rate is the writer's.
         let (tx, rx) = tokio::sync::mpsc::channel(65_536);
         let counters = Arc::new(TelemetryCounters::default());
-        let writer = tokio::spawn(telemetry::writer(store.clone(), rx, counters.clone()));
+        let (_stop, stopping) = tokio::sync::watch::channel(false);
+        let writer = tokio::spawn(telemetry::writer(
+            store.clone(),
+            rx,
+            counters.clone(),
+            stopping,
+        ));
         let cpu0 = cpu_time(std::process::id()).unwrap_or_default();
         let started = Instant::now();
         for row in rows {

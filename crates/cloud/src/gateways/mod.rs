@@ -30,6 +30,25 @@ use crate::store::Store;
 pub use connection::serve;
 pub use telemetry::TelemetryCounters;
 
+/// Up to `limit` queued items for a batch writer, into `batch`; 0 when there are no more.
+/// Once `stop` turns true (the portal stops, its connections have ended) the queue takes
+/// nothing new and what it holds is still handed out: the writer writes it and ends.
+pub(crate) async fn next_batch<T>(
+    rx: &mut mpsc::Receiver<T>,
+    batch: &mut Vec<T>,
+    limit: usize,
+    stop: &mut tokio::sync::watch::Receiver<bool>,
+) -> usize {
+    if !*stop.borrow() {
+        tokio::select! {
+            n = rx.recv_many(batch, limit) => return n,
+            Ok(_) = stop.wait_for(|stop| *stop) => {}
+        }
+    }
+    rx.close();
+    rx.recv_many(batch, limit).await
+}
+
 /// An event for live viewers of a lift (in a cluster, published by the lift's holder for
 /// the other processes: docs/CLUSTER.md §Subjects).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]

@@ -8,8 +8,8 @@
 //! time, in order, one transaction per batch. What an admission decides on (a first contact's
 //! row, a changed board) is still written before CONNACK.
 
-use tokio::sync::mpsc;
 use tokio::sync::mpsc::error::TrySendError;
+use tokio::sync::{mpsc, watch};
 
 use crate::store::{GatewayRecord, Store};
 
@@ -55,11 +55,16 @@ impl Records {
     }
 }
 
-/// Write what is queued, in order, a batch per transaction, until every [`Records`] is gone.
-/// A batch the database refuses is logged and lost, as a single write's failure was.
-pub async fn writer(store: Store, mut rx: mpsc::Receiver<GatewayRecord>) {
+/// Write what is queued, in order, a batch per transaction, until every [`Records`] is gone
+/// or `stop` turns true (then what is queued still is). A batch the database refuses is logged
+/// and lost, as a single write's failure was.
+pub async fn writer(
+    store: Store,
+    mut rx: mpsc::Receiver<GatewayRecord>,
+    mut stop: watch::Receiver<bool>,
+) {
     let mut batch = Vec::with_capacity(BATCH);
-    while rx.recv_many(&mut batch, BATCH).await > 0 {
+    while super::next_batch(&mut rx, &mut batch, BATCH, &mut stop).await > 0 {
         if let Err(e) = store.record(&batch).await {
             tracing::error!(error = %e, records = batch.len(), "gateways not recorded");
         }
@@ -86,7 +91,8 @@ mod tests {
         let store = Store::open(&url).await.unwrap();
         store.add_account("masora", "MAS").await.unwrap();
         let (records, rx) = Records::new(store.clone());
-        let task = tokio::spawn(writer(store.clone(), rx));
+        let (stop, stopping) = watch::channel(false);
+        let task = tokio::spawn(writer(store.clone(), rx, stopping));
         for n in 0..3000 {
             let connect = connect(&format!("GW{}", n % 100), &format!("v{n}"));
             records.write(GatewayRecord::connected(&connect, 2)).await;
@@ -103,8 +109,11 @@ mod tests {
             lift: lift.clone(),
             at: later - 60_000,
         });
-        drop(records);
+        // The portal stops with the records still queued: they are written, then the writer
+        // ends although a sender is left.
+        stop.send_replace(true);
         task.await.unwrap();
+        drop(records);
         let lifts = store.lifts("MAS").await.unwrap();
         assert_eq!(lifts.len(), 100);
         let gw7 = lifts.iter().find(|l| l.id == lift).unwrap();

@@ -5,7 +5,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, watch};
 
 use crate::store::{self, Store, TelemetryRow};
 
@@ -102,10 +102,14 @@ impl Queue {
 /// once that is full the connections drop what they receive and count it
 /// (`canlift_telemetry_dropped_total`): a database that is only slow makes them wait for room
 /// instead. A batch the database refuses is dropped and counted.
+///
+/// When `stop` turns true (the portal stops, its connections have ended) what is queued is
+/// still written, then the writer ends.
 pub async fn writer(
     store: Store,
     mut rx: mpsc::Receiver<TelemetryRow>,
     counters: Arc<TelemetryCounters>,
+    mut stop: watch::Receiver<bool>,
 ) {
     const BATCH: usize = 16_384;
     let mut batch = Vec::with_capacity(BATCH);
@@ -114,7 +118,7 @@ pub async fn writer(
         // connections waiting for it are served together and then find room without waiting
         // (one at a time, room freed went value by value to the next waiter and every value
         // of a saturated portal waited).
-        if rx.recv_many(&mut batch, BATCH).await == 0 {
+        if super::next_batch(&mut rx, &mut batch, BATCH, &mut stop).await == 0 {
             return;
         }
         let deadline = tokio::time::Instant::now() + std::time::Duration::from_millis(200);
@@ -234,6 +238,28 @@ mod tests {
         assert_eq!(count(&queue.counters().dropped), 1);
         assert_eq!(rx.recv().await.map(|r| r.value), Some("1".into()));
         assert!(rx.try_recv().is_err(), "the late value is not queued");
+    }
+
+    /// A stopping portal: what is queued is written, then the writer ends although the
+    /// queue still has senders; a value offered after that is dropped, not queued.
+    #[tokio::test]
+    async fn a_stopped_writer_writes_what_is_queued_and_ends() {
+        let store = Store::open("sqlite::memory:").await.unwrap();
+        let (queue, rx) = Queue::new(100, Arc::default());
+        for value in 0..50 {
+            assert!(queue.offer(row(value)).is_ok());
+        }
+        let (stop, stopping) = watch::channel(false);
+        stop.send_replace(true);
+        writer(store.clone(), rx, queue.counters().clone(), stopping).await;
+        assert_eq!(count(&queue.counters().stored), 50);
+        let stored = store
+            .history("1050-4097-TEST-000001", "0x652001", 0, i64::MAX)
+            .await
+            .unwrap();
+        assert_eq!(stored.len(), 50);
+        assert!(queue.offer(row(50)).is_ok(), "no writer any more: dropped");
+        assert_eq!(count(&queue.counters().dropped), 1);
     }
 
     #[tokio::test]
