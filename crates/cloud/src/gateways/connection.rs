@@ -185,10 +185,8 @@ impl Connection {
         // its row is refreshed behind the connection, with others.
         let unchanged = matches!(&admitted, Ok(Admission::Known(k)) if k.board_was.is_none());
         let admission = match admitted {
-            Ok(Admission::Known(known)) => match known.board_was {
-                Some(was) => {
-                    board_changed(&self.shared, &peer, &connect, was, known.token_set).await
-                }
+            Ok(Admission::Known(mut known)) => match known.board_was.take() {
+                Some(was) => board_changed(&self.shared, &peer, &connect, was, known).await,
                 None => Ok(Admission::Known(known)),
             },
             other => other,
@@ -213,7 +211,13 @@ impl Connection {
                 } else if let Err(e) = self.shared.store.record(&[record]).await {
                     tracing::error!(error = %e, "gateway not recorded");
                 }
-                self.register(&lift, &connect, api);
+                // Users' subscriptions are read at CONNACK only where the admission saw some
+                // (a first contact's, after a token reset, may have some from before).
+                let subscribed = match &admission {
+                    Admission::Known(known) => known.subscribed,
+                    _ => true,
+                };
+                self.register(&lift, &connect, api, subscribed);
                 let first = admission == Admission::FirstContact;
                 tracing::info!(%lift, %peer, api, first, "gateway online");
                 self.shared.registry.publish(&lift, LiftEvent::Online(true));
@@ -225,7 +229,7 @@ impl Connection {
 
     /// Make the lift reachable for operators and subscribe the dashboard's objects (and, with
     /// api ≥ 2, its bus events).
-    fn register(&mut self, lift: &str, connect: &Connect, api: u32) {
+    fn register(&mut self, lift: &str, connect: &Connect, api: u32, subscribed: bool) {
         let Some(close) = self.close_tx.take() else {
             return;
         };
@@ -241,6 +245,7 @@ impl Connection {
             lift.to_owned(),
             self.shared.dashboard.clone(),
             api,
+            subscribed,
         ));
     }
 
@@ -319,14 +324,14 @@ impl Connection {
     }
 }
 
-/// A valid token came from another board than the one on record: refuse, or accept with
-/// an alarm or without; audited either way.
+/// A valid token came from another board than the one on record (`was`): refuse, or accept
+/// (`known`) with an alarm or without; audited either way.
 async fn board_changed(
     shared: &Shared,
     peer: &str,
     connect: &Connect,
     was: String,
-    token_set: i64,
+    known: store::Known,
 ) -> Result<Admission, store::StoreError> {
     let lift = store::lift_id(&connect.identity);
     let now = connect.identity.boardhash.clone();
@@ -359,10 +364,7 @@ async fn board_changed(
         let input = Input::BoardChanged { lift, was, now };
         shared.alarms.report(input).await;
     }
-    Ok(Admission::Known(store::Known {
-        board_was: None,
-        token_set,
-    }))
+    Ok(Admission::Known(known))
 }
 
 /// The token to send with CONNACK: a first one at first contact, a new one when the one in

@@ -11,13 +11,15 @@ use super::subscriptions::Subscriptions;
 use super::Registry;
 use crate::config::Dashboard;
 
-/// Ask a newly connected gateway for the bus events and the subscriptions held on its lift.
+/// Ask a newly connected gateway for the bus events and the subscriptions held on its lift
+/// (users' among them when `subscribed`: the admission saw some in the database).
 pub(super) async fn subscribe(
     registry: Arc<Registry>,
     subscriptions: Arc<Subscriptions>,
     lift: String,
     dashboard: Arc<Dashboard>,
     api: u32,
+    subscribed: bool,
 ) {
     if api >= 2 && !dashboard.events.is_empty() {
         let events = RegEventParams {
@@ -28,5 +30,5 @@ pub(super) async fn subscribe(
             tracing::warn!(%lift, failure = ?e, "bus events not registered");
         }
     }
-    subscriptions.resubscribe(&lift).await;
+    subscriptions.resubscribe(&lift, subscribed).await;
 }

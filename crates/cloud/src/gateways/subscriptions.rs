@@ -454,18 +454,27 @@ impl Subscriptions {
     /// processes' watchers asked for since. A group the gateway refuses as a whole
     /// (`reg_canopen_object` is all or none, NXg §7.3: one object missing on this lift) is
     /// registered object by object.
-    pub async fn resubscribe(&self, lift: &str) {
-        let users = match self.store.held_objects(lift).await {
-            Ok(users) => users,
-            Err(e) => {
-                tracing::warn!(%lift, error = %e, "users' subscriptions not read: not registered");
-                Vec::new()
-            }
+    ///
+    /// Users' subscriptions are read only when `stored` (the admission saw some): a reconnect
+    /// storm of lifts nobody subscribed makes no query for them. Without, users' holds made
+    /// since the connection was registered stay (the connection before left none).
+    pub async fn resubscribe(&self, lift: &str, stored: bool) {
+        let users = match stored {
+            true => match self.store.held_objects(lift).await {
+                Ok(users) => Some(users),
+                Err(e) => {
+                    tracing::warn!(%lift, error = %e, "users' subscriptions not read: not registered");
+                    Some(Vec::new())
+                }
+            },
+            false => None,
         };
         let cell = self.holders(lift);
         let mut holders = cell.lock().await;
-        holders.retain(|holder| !matches!(holder, Holder::User(_)));
-        for held in users {
+        if users.is_some() {
+            holders.retain(|holder| !matches!(holder, Holder::User(_)));
+        }
+        for held in users.into_iter().flatten() {
             let Ok(mplex) = Mplex::parse(&held.mplex) else {
                 tracing::warn!(%lift, mplex = %held.mplex, "a stored subscription that is no mplex");
                 continue;

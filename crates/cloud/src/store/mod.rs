@@ -272,6 +272,8 @@ pub struct Known {
     pub board_was: Option<String>,
     /// When the token in use was confirmed (ms since the epoch; 0 when not recorded).
     pub token_set: i64,
+    /// Whether users hold subscriptions of the lift (to register when it connects).
+    pub subscribed: bool,
 }
 
 /// The audit's "who" for what the portal does by itself (a board change it saw).
@@ -530,9 +532,11 @@ impl Store {
         let identity = &connect.identity;
         let lift = lift_id(identity);
         // One statement, as every reconnecting gateway of a storm makes it: the account's
-        // domain and the gateway's row (NULLs when there is none).
+        // domain, the gateway's row (NULLs when there is none) and whether users hold
+        // subscriptions of the lift (most hold none: then they are not read at CONNACK).
         let row = sqlx::query(
             "SELECT (SELECT COUNT(*) FROM accounts WHERE domain = $1) AS accounts, \
+             (SELECT COUNT(*) FROM (SELECT 1 FROM subscriptions WHERE lift = $2 LIMIT 1) AS s) AS subscribed, \
              g.token_hash, g.token_next, g.token_set, g.domain, g.boardhash \
              FROM (SELECT 1 AS one) AS x LEFT JOIN gateways AS g ON g.id = $2",
         )
@@ -557,10 +561,12 @@ impl Store {
                 "domain token differs from the registered one".into(),
             ));
         }
+        let subscribed = row.try_get::<i64, _>("subscribed")? > 0;
         let known = |token_set| {
             Admission::Known(Known {
                 board_was: (board != identity.boardhash).then(|| board.clone()),
                 token_set,
+                subscribed,
             })
         };
         Ok(match (hash, identity.cloudtoken.as_deref()) {
@@ -1107,7 +1113,29 @@ pub(crate) mod tests {
             .unwrap();
         assert!(matches!(
             store.admit(&gw(Some("T0K3N"))).await.unwrap(),
-            Admission::Known(Known { board_was: None, token_set }) if token_set > 0
+            Admission::Known(Known { board_was: None, token_set, subscribed: false }) if token_set > 0
+        ));
+        // Once a user holds a subscription of the lift, its admission says so.
+        let lift = lift_id(&gw(None).identity);
+        let held = ["0x652001".to_owned()];
+        store
+            .hold_objects(&lift, "masora", &held, 0, 0.0)
+            .await
+            .unwrap();
+        assert!(matches!(
+            store.admit(&gw(Some("T0K3N"))).await.unwrap(),
+            Admission::Known(Known {
+                subscribed: true,
+                ..
+            })
+        ));
+        store.release_objects(&lift, "masora", &held).await.unwrap();
+        assert!(matches!(
+            store.admit(&gw(Some("T0K3N"))).await.unwrap(),
+            Admission::Known(Known {
+                subscribed: false,
+                ..
+            })
         ));
         assert!(
             matches!(store.admit(&gw(Some("T0K3M"))).await.unwrap(), Admission::Refused(c) if c.contains("wrong"))
