@@ -18,7 +18,7 @@ mod tables;
 use std::fmt::Write as _;
 
 use nxg::meta::Bound;
-use tables::{EntryRow, ObjectRow, Tables};
+use tables::{EntryRow, ObjectRow, Tables, TextTables};
 
 const CATALOG: &str = "catalog/lift.toml";
 
@@ -63,8 +63,12 @@ fn emit(out: &mut String, source: &source::Source, t: &Tables) -> std::fmt::Resu
         out,
         "pub(super) const FALLBACK: &[(&str, &str)] = &{fallback:?};"
     )?;
-    writeln!(out, "pub(super) static POOL: &str = {:?};", t.pool)?;
-    array(out, "PAIRS", "PooledText", &t.pairs, |out, p| {
+    let (pool, pairs) = match &t.text {
+        TextTables::Shared(pool) => (&*pool.strings, &*pool.pairs),
+        TextTables::Static { pool, pairs } => (*pool, *pairs),
+    };
+    writeln!(out, "pub(super) static POOL: &str = {pool:?};")?;
+    array(out, "PAIRS", "PooledText", pairs, |out, p| {
         writeln!(out, "    {p:?},")
     })?;
     array(out, "LISTS", "Span", &t.lists, |out, s| {

@@ -169,8 +169,10 @@ impl Catalog {
                 .map(|&(from, to)| (from.to_owned(), to.to_owned()))
                 .collect(),
             tables: Tables {
-                pool: Cow::Borrowed(builtin::POOL),
-                pairs: Cow::Borrowed(&builtin::PAIRS),
+                text: tables::TextTables::Static {
+                    pool: builtin::POOL,
+                    pairs: &builtin::PAIRS,
+                },
                 lists: Cow::Borrowed(&builtin::LISTS),
                 entries: Cow::Borrowed(&builtin::ENTRIES),
                 objects: Cow::Borrowed(&builtin::OBJECTS),

@@ -353,6 +353,23 @@ enum Repr {
         pool: &'static str,
         pairs: &'static [PooledText],
     },
+    /// Texts of tables read at run time (a vendor's metadata file): the pairs `start..start +
+    /// len` of the pool's, shared, not copied.
+    SharedPool {
+        pool: Arc<TextPool>,
+        start: u32,
+        len: u32,
+    },
+}
+
+/// Texts read at run time, each string once, and the (language, text) pairs that locate the
+/// texts of each [`Texts`] in them: what [`Texts::shared_pool`] points into.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TextPool {
+    /// Every string.
+    pub strings: Box<str>,
+    /// Pairs of `strings`, a run of them per [`Texts`].
+    pub pairs: Box<[PooledText]>,
 }
 
 /// Where one (language, text) pair of [`Texts::pooled`] lies in its pool: byte offsets and
@@ -405,11 +422,28 @@ impl Texts {
         Texts(Repr::Pooled { pool, pairs })
     }
 
+    /// The texts the pool's pairs `start..start + len` locate (in language order): a view of
+    /// tables read at run time, shared by every description that uses them. A pair outside the
+    /// strings, or a range outside the pairs, is left out.
+    pub fn shared_pool(pool: &Arc<TextPool>, start: u32, len: u32) -> Texts {
+        Texts(Repr::SharedPool {
+            pool: pool.clone(),
+            start,
+            len,
+        })
+    }
+
     /// Every (language, text), in language order.
     pub fn pairs(&self) -> impl Iterator<Item = (&str, &str)> {
         let (shared, pooled) = match &self.0 {
             Repr::Shared(map) => (Some(map.iter()), None),
             Repr::Pooled { pool, pairs } => (None, Some((*pool, pairs.iter()))),
+            Repr::SharedPool { pool, start, len } => {
+                let start = *start as usize;
+                let range = start..start.saturating_add(*len as usize);
+                let pairs = pool.pairs.get(range).unwrap_or_default();
+                (None, Some((&*pool.strings, pairs.iter())))
+            }
         };
         let shared = shared
             .into_iter()
@@ -685,6 +719,14 @@ mod tests {
         let pooled = Texts::pooled(POOL, &PAIRS);
         let shared = Texts::en_de("Trips {i}", "Fahrten");
         assert_eq!(pooled, shared);
+        // The same over shared tables read at run time; a range beyond them reads as none.
+        let pool = Arc::new(TextPool {
+            strings: POOL.into(),
+            pairs: PAIRS[..].into(),
+        });
+        assert_eq!(Texts::shared_pool(&pool, 0, 3), shared);
+        assert_eq!(Texts::shared_pool(&pool, 1, 1), Texts::english("Trips {i}"));
+        assert!(Texts::shared_pool(&pool, 2, 5).is_empty());
         assert_eq!(format!("{pooled:?}"), format!("{shared:?}"));
         assert_eq!(pooled.get("EN"), Some("Trips {i}"));
         assert_eq!(pooled.first_of(["fr", "de"]), Some(("de", "Fahrten")));

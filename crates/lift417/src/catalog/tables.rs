@@ -5,11 +5,12 @@
 //! becomes the same tables, owned.
 
 use std::borrow::Cow;
-use std::collections::{BTreeMap, HashMap};
+use std::collections::HashMap;
+use std::sync::Arc;
 
 use canopen::od::ObjectCode;
 use nxg::meta::{Access, Bound, DataType, Description, FormType, Hints, ObjCode, PhysUnit};
-use nxg::meta::{PooledText, Privilege, Texts};
+use nxg::meta::{PooledText, Privilege, TextPool, Texts};
 
 use super::source::{Device, Entry, ObjectDef, Source};
 
@@ -76,14 +77,47 @@ pub(crate) fn device_bit(device: Device) -> u8 {
     }
 }
 
+/// A catalog's strings (`pool`, each once) and the (language, text) pairs of its [`Texts`] (a
+/// span per `Texts`): `static`s for the built-in catalog, shared for one read at run time — a
+/// description's texts point into them either way, nothing is copied.
+#[derive(Debug, Clone)]
+pub(crate) enum TextTables {
+    /// The built-in catalog's.
+    Static {
+        pool: &'static str,
+        pairs: &'static [PooledText],
+    },
+    /// Read at run time (a vendor's metadata file).
+    Shared(Arc<TextPool>),
+}
+
+impl TextTables {
+    /// Every string, each once.
+    pub fn pool(&self) -> &str {
+        self.parts().0
+    }
+
+    fn parts(&self) -> (&str, &[PooledText]) {
+        match self {
+            TextTables::Static { pool, pairs } => (pool, pairs),
+            TextTables::Shared(pool) => (&pool.strings, &pool.pairs),
+        }
+    }
+}
+
+/// The same tables, static or shared.
+impl PartialEq for TextTables {
+    fn eq(&self, other: &TextTables) -> bool {
+        self.parts() == other.parts()
+    }
+}
+
 /// A catalog's tables: borrowed from `static`s for the built-in catalog, owned for one read
 /// at run time.
 #[derive(Debug, Clone, PartialEq)]
 pub(crate) struct Tables {
-    /// Every string, each once.
-    pub pool: Cow<'static, str>,
-    /// The (language, text) pairs of every [`Texts`], a span per `Texts`.
-    pub pairs: Cow<'static, [PooledText]>,
+    /// The strings and the texts' pairs.
+    pub text: TextTables,
     /// The items of every list, each a span of `pairs`.
     pub lists: Cow<'static, [Span]>,
     /// The entries, object after object.
@@ -95,26 +129,17 @@ pub(crate) struct Tables {
 impl Tables {
     /// The string at `s` (empty if the tables were inconsistent, which [`Builder`] rules out).
     pub fn str(&self, s: Span) -> &str {
-        self.pool.get(s.range()).unwrap_or_default()
+        self.text.pool().get(s.range()).unwrap_or_default()
     }
 
-    /// The texts at `t`: borrowed from static tables, copied from owned ones.
+    /// The texts at `t`: a view of the tables, static or shared.
     pub fn texts(&self, t: Span) -> Texts {
-        if let (Cow::Borrowed(pool), Cow::Borrowed(pairs)) = (&self.pool, &self.pairs) {
-            return Texts::pooled(pool, pairs.get(t.range()).unwrap_or_default());
+        match &self.text {
+            TextTables::Static { pool, pairs } => {
+                Texts::pooled(pool, pairs.get(t.range()).unwrap_or_default())
+            }
+            TextTables::Shared(pool) => Texts::shared_pool(pool, t.start, t.len),
         }
-        let pairs = self.pairs.get(t.range()).unwrap_or_default();
-        let text = |start: u32, len: u32| self.str(Span { start, len }).to_owned();
-        pairs
-            .iter()
-            .map(|p| {
-                (
-                    text(p.lang_start, p.lang_len),
-                    text(p.text_start, p.text_len),
-                )
-            })
-            .collect::<BTreeMap<_, _>>()
-            .into()
     }
 
     /// The object at lift-1 index `index`.
@@ -193,8 +218,10 @@ impl Builder {
             b.object(o);
         }
         Tables {
-            pool: Cow::Owned(b.pool),
-            pairs: Cow::Owned(b.pairs),
+            text: TextTables::Shared(Arc::new(TextPool {
+                strings: b.pool.into(),
+                pairs: b.pairs.into(),
+            })),
             lists: Cow::Owned(b.lists),
             entries: Cow::Owned(b.entries),
             objects: Cow::Owned(b.objects),
