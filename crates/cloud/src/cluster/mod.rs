@@ -534,8 +534,8 @@ impl Cluster {
     }
 
     /// Another process watches `lift`, held here: publish its live events, and keep its
-    /// watchers' subscriptions, for a lease.
-    /// Whether the process's lease was still running (else this one is new).
+    /// watchers' subscriptions, for a lease. Whether its lease was still running (else this
+    /// one is new).
     fn watch_granted(&self, lift: &str, process: u64) -> bool {
         lock(&self.watched).grant(lift, process, Instant::now(), self.lease())
     }
