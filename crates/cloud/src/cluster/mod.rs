@@ -339,14 +339,14 @@ impl Cluster {
             .unwrap_or_else(Instant::now);
         let connection = (holding.node.clone(), holding.epoch);
         let before = lock(&self.known).insert(lift.clone(), Known { holding, written });
-        // A new connection (not a refresh): the watchers here ask its holder for their objects
-        // and its live events.
+        // A new connection (not a refresh): the watchers here ask its holder for their live
+        // events and their objects — the objects when the holder answers that the watch is new
+        // to it, which a new holder always does (one hand-over per move, not two).
         if before.is_none_or(|k| (k.holding.node, k.holding.epoch) != connection) {
-            if let Some(subscriptions) = self.subscriptions() {
-                subscriptions.moved(&lift);
-            }
             if lock(&self.forwarded).contains_key(&lift) {
                 tokio::spawn(self.clone().ask_to_publish(lift));
+            } else if let Some(subscriptions) = self.subscriptions() {
+                subscriptions.moved(&lift);
             }
         }
     }

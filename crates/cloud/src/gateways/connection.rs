@@ -180,16 +180,17 @@ impl Connection {
     async fn identify(&mut self, connect: Connect) -> Vec<Output> {
         let lift = store::lift_id(&connect.identity);
         let peer = self.peer.clone();
-        let admitted = self.shared.store.admit(&connect).await;
-        // A known gateway on its known board changes nothing the next admission decides on:
-        // its row is refreshed behind the connection, with others.
-        let unchanged = matches!(&admitted, Ok(Admission::Known(k)) if k.board_was.is_none());
-        let admission = match admitted {
+        // A known gateway on its known board changes nothing the next admission decides on
+        // (`unchanged`): its row is refreshed behind the connection, with others.
+        let (admission, unchanged) = match self.shared.store.admit(&connect).await {
             Ok(Admission::Known(mut known)) => match known.board_was.take() {
-                Some(was) => board_changed(&self.shared, &peer, &connect, was, known).await,
-                None => Ok(Admission::Known(known)),
+                Some(was) => (
+                    board_changed(&self.shared, &peer, &connect, was, known).await,
+                    false,
+                ),
+                None => (Ok(Admission::Known(known)), true),
             },
-            other => other,
+            other => (other, false),
         };
         match admission {
             Ok(Admission::Refused(cause)) => {
