@@ -3,10 +3,15 @@
 //! An endpoint is a [`BusReceiver`] (one per endpoint, with its own acceptance filters) and any
 //! number of cheap [`BusSender`] clones. Backends are chosen by URL (docs/ARCHITECTURE.md §Conventions):
 //! `mem://NAME`, `socketcand://HOST:PORT/CHANNEL`, `socketcan://IFACE`.
+//!
+//! [`Bus::open`] opens an endpoint with a link of its own (one TCP connection to socketcand);
+//! [`Interface::open`] opens the link once and [`Interface::endpoint`] any number of endpoints on
+//! it, as several SocketCAN sockets share one interface: each sees what the others send and
+//! everything on the bus, and a frame its filters refuse never wakes it.
 
 use std::fmt;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, PoisonError, RwLock};
 
 use tokio::sync::mpsc;
 
@@ -252,17 +257,34 @@ impl fmt::Debug for BusSender {
     }
 }
 
+/// An endpoint's acceptance filters, shared by its receiver (which sets them) and its feed
+/// (which applies them before queueing, as SocketCAN filters in the kernel: a refused frame
+/// takes no room in the queue and wakes nobody).
+type SharedFilters = Arc<RwLock<Vec<Filter>>>;
+
+fn accepted(filters: &[Filter], frame: &Frame) -> bool {
+    filters.is_empty() || filters.iter().any(|f| f.matches(frame))
+}
+
 /// The backend side of an endpoint's receive queue.
 #[derive(Debug, Clone)]
 pub(crate) struct RxFeed {
     tx: mpsc::Sender<BusEvent>,
     overruns: Arc<AtomicU64>,
+    filters: SharedFilters,
 }
 
 impl RxFeed {
-    /// Queue an event without waiting; a full queue counts an overrun. Returns `false` once the
-    /// receiver is gone, so the backend can stop feeding it.
+    /// Queue an event without waiting unless the endpoint's filters refuse it; a full queue
+    /// counts an overrun. Returns `false` once the receiver is gone, so the backend can stop
+    /// feeding it.
     pub(crate) fn push(&self, event: BusEvent) -> bool {
+        if let BusEvent::Frame(frame) = &event {
+            let filters = self.filters.read().unwrap_or_else(PoisonError::into_inner);
+            if !accepted(&filters, frame) {
+                return !self.tx.is_closed();
+            }
+        }
         match self.tx.try_send(event) {
             Ok(()) => true,
             Err(mpsc::error::TrySendError::Full(_)) => {
@@ -288,38 +310,130 @@ impl RxFeed {
     }
 }
 
+/// The endpoints a backend delivers to: those of one `mem://` bus, or of one link.
+#[derive(Default)]
+pub(crate) struct Endpoints {
+    list: RwLock<Vec<Endpoint>>,
+    next_id: AtomicU64,
+}
+
+struct Endpoint {
+    id: u64,
+    feed: RxFeed,
+    receive_own: bool,
+}
+
+impl Endpoints {
+    /// Add an endpoint; its id, for [`Endpoints::deliver`].
+    pub(crate) fn add(&self, feed: RxFeed, receive_own: bool) -> u64 {
+        let id = self.next_id.fetch_add(1, Ordering::Relaxed);
+        self.list
+            .write()
+            .unwrap_or_else(PoisonError::into_inner)
+            .push(Endpoint {
+                id,
+                feed,
+                receive_own,
+            });
+        id
+    }
+
+    /// Hand `frame` to every endpoint but the one it came `from` (unless that one asked for its
+    /// own frames); endpoints whose receiver is gone are dropped.
+    pub(crate) fn deliver(&self, from: Option<u64>, frame: Frame) {
+        let mut any_closed = false;
+        {
+            let list = self.list.read().unwrap_or_else(PoisonError::into_inner);
+            for ep in list.iter() {
+                if Some(ep.id) != from || ep.receive_own {
+                    any_closed |= !ep.feed.push(BusEvent::Frame(frame));
+                }
+            }
+        }
+        if any_closed {
+            self.prune();
+        }
+    }
+
+    /// Drop the endpoints whose receiver is gone; whether none is left.
+    pub(crate) fn prune(&self) -> bool {
+        let mut list = self.list.write().unwrap_or_else(PoisonError::into_inner);
+        list.retain(|ep| !ep.feed.is_closed());
+        list.is_empty()
+    }
+
+    #[cfg(test)]
+    pub(crate) fn len(&self) -> usize {
+        self.list
+            .read()
+            .unwrap_or_else(PoisonError::into_inner)
+            .len()
+    }
+
+    fn feeds(&self) -> Vec<RxFeed> {
+        let list = self.list.read().unwrap_or_else(PoisonError::into_inner);
+        list.iter().map(|ep| ep.feed.clone()).collect()
+    }
+
+    /// Tell every endpoint about the link (waiting for room: link events are never lost).
+    pub(crate) async fn announce(&self, event: BusEvent) {
+        for feed in self.feeds() {
+            feed.push_link(event.clone()).await;
+        }
+    }
+
+    /// Resolves once every endpoint's receiver is gone.
+    pub(crate) async fn closed(&self) {
+        loop {
+            for feed in self.feeds() {
+                feed.closed().await;
+            }
+            if self.prune() {
+                return;
+            }
+        }
+    }
+}
+
 /// The receiving half of an endpoint.
 #[derive(Debug)]
 pub struct BusReceiver {
     rx: mpsc::Receiver<BusEvent>,
     overruns: Arc<AtomicU64>,
-    filters: Vec<Filter>,
+    filters: SharedFilters,
 }
 
 impl BusReceiver {
     pub(crate) fn channel(capacity: usize) -> (RxFeed, BusReceiver) {
         let (tx, rx) = mpsc::channel(capacity.max(1));
         let overruns = Arc::new(AtomicU64::new(0));
+        let filters = SharedFilters::default();
         (
             RxFeed {
                 tx,
                 overruns: overruns.clone(),
+                filters: filters.clone(),
             },
             BusReceiver {
                 rx,
                 overruns,
-                filters: Vec::new(),
+                filters,
             },
         )
     }
 
-    /// Accept only frames matching at least one of `filters`; an empty list accepts all.
+    /// Accept only frames matching at least one of `filters`; an empty list accepts all. Frames
+    /// refused are not queued at all; frames queued before the change are filtered as they are
+    /// received.
     pub fn set_filters(&mut self, filters: &[Filter]) {
-        self.filters = filters.to_vec();
+        *self.filters.write().unwrap_or_else(PoisonError::into_inner) = filters.to_vec();
     }
 
     fn accepts(&self, frame: &Frame) -> bool {
-        self.filters.is_empty() || self.filters.iter().any(|f| f.matches(frame))
+        accepted(
+            &self.filters.read().unwrap_or_else(PoisonError::into_inner),
+            frame,
+        )
     }
 
     fn take_overrun(&self) -> Option<BusEvent> {
@@ -379,24 +493,10 @@ impl Bus {
         Self::open_with(url, BusOptions::default()).await
     }
 
-    /// Open an endpoint on the bus named by `url`.
+    /// Open an endpoint on the bus named by `url`, with a link of its own (see [`Interface`]
+    /// for several endpoints on one link).
     pub async fn open_with(url: &str, options: BusOptions) -> Result<Bus, BusError> {
-        let parsed: BusUrl = url.parse()?;
-        let (feed, receiver) = BusReceiver::channel(options.rx_queue);
-        let sender = match &parsed {
-            BusUrl::Mem(name) => mem::open(name, feed, &options),
-            BusUrl::Socketcand {
-                host,
-                port,
-                channel,
-            } => socketcand::client::open(host, *port, channel, feed, &options).await?,
-            BusUrl::Socketcan(iface) => crate::socketcan::open(iface, feed, &options)?,
-        };
-        Ok(Bus {
-            sender,
-            receiver,
-            url: parsed,
-        })
+        Interface::open(url).await?.endpoint_with(options)
     }
 
     /// The URL this endpoint was opened with.
@@ -417,6 +517,78 @@ impl Bus {
     /// Split into the sender and the receiver.
     pub fn split(self) -> (BusSender, BusReceiver) {
         (self.sender, self.receiver)
+    }
+}
+
+/// A bus as a process reaches it — the link behind a URL — on which endpoints are opened, as
+/// sockets are opened on a SocketCAN interface. Every endpoint of one `Interface` receives what
+/// the others send (unless they filter it out) and everything else on the bus, through one link:
+/// for `socketcand://` one TCP connection however many endpoints (a gateway's SDO client, its
+/// own node, its supervision and its PDO feed would otherwise each hold one, and each frame on
+/// the bus would cost each of them a read and a wake-up). The link lives while an endpoint or
+/// a clone of the `Interface` does; it reconnects by itself, and every endpoint is told
+/// ([`BusEvent::LinkDown`], [`BusEvent::LinkUp`]).
+#[derive(Clone)]
+pub struct Interface {
+    url: BusUrl,
+    link: Link,
+}
+
+#[derive(Clone)]
+enum Link {
+    Mem(String),
+    Socketcand(socketcand::client::SharedLink),
+    Socketcan(String),
+}
+
+impl Interface {
+    /// Open the bus named by `url`: for `socketcand://` connect and complete the handshake now,
+    /// so that a wrong address fails here.
+    pub async fn open(url: &str) -> Result<Interface, BusError> {
+        let parsed: BusUrl = url.parse()?;
+        let link = match &parsed {
+            BusUrl::Mem(name) => Link::Mem(name.clone()),
+            BusUrl::Socketcand {
+                host,
+                port,
+                channel,
+            } => {
+                Link::Socketcand(socketcand::client::SharedLink::open(host, *port, channel).await?)
+            }
+            BusUrl::Socketcan(iface) => Link::Socketcan(iface.clone()),
+        };
+        Ok(Interface { url: parsed, link })
+    }
+
+    /// A new endpoint with default options.
+    pub fn endpoint(&self) -> Result<Bus, BusError> {
+        self.endpoint_with(BusOptions::default())
+    }
+
+    /// A new endpoint on this interface.
+    pub fn endpoint_with(&self, options: BusOptions) -> Result<Bus, BusError> {
+        let (feed, receiver) = BusReceiver::channel(options.rx_queue);
+        let sender = match &self.link {
+            Link::Mem(name) => mem::open(name, feed, &options),
+            Link::Socketcand(link) => link.endpoint(feed, &options),
+            Link::Socketcan(iface) => crate::socketcan::open(iface, feed, &options)?,
+        };
+        Ok(Bus {
+            sender,
+            receiver,
+            url: self.url.clone(),
+        })
+    }
+
+    /// The URL this interface was opened with.
+    pub fn url(&self) -> &BusUrl {
+        &self.url
+    }
+}
+
+impl fmt::Debug for Interface {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "Interface({})", self.url)
     }
 }
 

@@ -277,6 +277,14 @@ impl Filter {
         }
     }
 
+    /// Frames of exactly the identifier `id` (data or remote).
+    pub fn exact(id: CanId) -> Self {
+        match id {
+            CanId::Standard(id) => Filter::standard(id, STANDARD_ID_MAX),
+            CanId::Extended(id) => Filter::extended(id, EXTENDED_ID_MAX),
+        }
+    }
+
     /// Whether `frame` passes this filter.
     pub fn matches(&self, frame: &Frame) -> bool {
         frame.raw_id() & self.mask == self.id & self.mask
@@ -286,6 +294,18 @@ impl Filter {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn exact_filters_take_one_identifier_of_its_kind() {
+        let standard = Filter::exact(CanId::Standard(0x181));
+        assert!(standard.matches(&Frame::standard(0x181, &[1]).unwrap()));
+        assert!(standard.matches(&Frame::remote(CanId::Standard(0x181), 1).unwrap()));
+        assert!(!standard.matches(&Frame::standard(0x182, &[1]).unwrap()));
+        assert!(!standard.matches(&Frame::new(CanId::Extended(0x181), &[1]).unwrap()));
+        let extended = Filter::exact(CanId::Extended(0x1234_5678));
+        assert!(extended.matches(&Frame::new(CanId::Extended(0x1234_5678), &[]).unwrap()));
+        assert!(!extended.matches(&Frame::new(CanId::Extended(0x1234_5679), &[]).unwrap()));
+    }
 
     #[test]
     fn ids_are_range_checked() {

@@ -30,8 +30,8 @@ pub mod wire;
 
 #[cfg(feature = "tokio")]
 pub use bus::{
-    Bus, BusError, BusEvent, BusOptions, BusReceiver, BusSender, BusUrl, DEFAULT_RX_QUEUE,
-    SOCKETCAND_DEFAULT_PORT,
+    Bus, BusError, BusEvent, BusOptions, BusReceiver, BusSender, BusUrl, Interface,
+    DEFAULT_RX_QUEUE, SOCKETCAND_DEFAULT_PORT,
 };
 pub use frame::{
     CanId, Filter, Frame, FrameError, FrameKind, CLASSIC_MAX_LEN, EFF_FLAG, ERR_FLAG,

@@ -7,47 +7,15 @@
 //! slows down the bus.
 
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, OnceLock, PoisonError, RwLock, Weak};
+use std::sync::{Arc, Mutex, OnceLock, PoisonError, Weak};
 use std::time::SystemTime;
 
-use crate::bus::{BusError, BusEvent, BusOptions, BusSender, RxFeed, SenderInner};
+use crate::bus::{BusError, BusOptions, BusSender, Endpoints, RxFeed, SenderInner};
 use crate::frame::Frame;
-
-struct Endpoint {
-    id: u64,
-    feed: RxFeed,
-    receive_own: bool,
-}
 
 #[derive(Default)]
 struct MemBus {
-    endpoints: RwLock<Vec<Endpoint>>,
-    next_id: AtomicU64,
-}
-
-impl MemBus {
-    fn deliver(&self, from: u64, frame: Frame) {
-        let frame = frame.with_timestamp(SystemTime::now());
-        let mut any_closed = false;
-        {
-            let endpoints = self
-                .endpoints
-                .read()
-                .unwrap_or_else(PoisonError::into_inner);
-            for ep in endpoints.iter() {
-                if ep.id != from || ep.receive_own {
-                    any_closed |= !ep.feed.push(BusEvent::Frame(frame));
-                }
-            }
-        }
-        if any_closed {
-            self.endpoints
-                .write()
-                .unwrap_or_else(PoisonError::into_inner)
-                .retain(|ep| !ep.feed.is_closed());
-        }
-    }
+    endpoints: Endpoints,
 }
 
 fn registry() -> &'static Mutex<HashMap<String, Weak<MemBus>>> {
@@ -64,7 +32,8 @@ pub(crate) struct MemSender {
 
 impl MemSender {
     pub(crate) fn send(&self, frame: Frame) -> Result<(), BusError> {
-        self.bus.deliver(self.endpoint, frame);
+        let frame = frame.with_timestamp(SystemTime::now());
+        self.bus.endpoints.deliver(Some(self.endpoint), frame);
         Ok(())
     }
 }
@@ -82,15 +51,7 @@ pub(crate) fn open(name: &str, feed: RxFeed, options: &BusOptions) -> BusSender 
             }
         }
     };
-    let endpoint = bus.next_id.fetch_add(1, Ordering::Relaxed);
-    bus.endpoints
-        .write()
-        .unwrap_or_else(PoisonError::into_inner)
-        .push(Endpoint {
-            id: endpoint,
-            feed,
-            receive_own: options.receive_own,
-        });
+    let endpoint = bus.endpoints.add(feed, options.receive_own);
     BusSender::new(SenderInner::Mem(MemSender { bus, endpoint }))
 }
 
@@ -141,14 +102,15 @@ mod tests {
         for id in [0x181, 0x701, 0x702, 0x703, 0x704, 0x705, 0x706] {
             a.send(Frame::standard(id, &[]).unwrap()).await.unwrap();
         }
-        // The queue holds 4 frames (filtering happens on receive, as documented) so 3 are lost.
-        assert_eq!(b.recv().await, Some(BusEvent::Overrun { dropped: 3 }));
+        // Filtered before queueing (as SocketCAN's kernel filters): 0x181 takes no room, the
+        // queue holds 4 of the six that pass and 2 are lost.
+        assert_eq!(b.recv().await, Some(BusEvent::Overrun { dropped: 2 }));
         let ids: Vec<u32> = std::iter::from_fn(|| match b.receiver.try_recv() {
             Some(BusEvent::Frame(f)) => Some(f.id().as_raw()),
             _ => None,
         })
         .collect();
-        assert_eq!(ids, vec![0x701, 0x702, 0x703]);
+        assert_eq!(ids, vec![0x701, 0x702, 0x703, 0x704]);
     }
 
     #[tokio::test]
@@ -159,6 +121,6 @@ mod tests {
         a.send(Frame::standard(1, &[]).unwrap()).await.unwrap();
         let registry = super::registry().lock().unwrap();
         let bus = registry.get("t-prune").and_then(|w| w.upgrade()).unwrap();
-        assert_eq!(bus.endpoints.read().unwrap().len(), 1);
+        assert_eq!(bus.endpoints.len(), 1);
     }
 }

@@ -6,11 +6,23 @@ use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use canbus::hub::HubConfig;
-use canbus::{Bus, BusError, BusEvent, BusOptions, CanId, Frame};
+use canbus::{Bus, BusError, BusEvent, BusOptions, CanId, Filter, Frame, Interface};
 use common::{hub, pattern, same, url, RawClient};
 use tokio::time::timeout;
 
 const FRAMES: u32 = 10_000;
+
+/// A hub on `addr` (one that was there before comes back).
+async fn hub_at(addr: std::net::SocketAddr) -> canbus::hub::HubHandle {
+    canbus::hub::Hub::bind(HubConfig {
+        listen: addr,
+        ..HubConfig::default()
+    })
+    .await
+    .unwrap()
+    .spawn()
+    .unwrap()
+}
 
 async fn recv_frame(bus: &mut Bus) -> Frame {
     timeout(Duration::from_secs(10), bus.receiver.recv_frame())
@@ -306,14 +318,7 @@ async fn link_loss_is_reported_and_the_client_reconnects() {
     assert!(matches!(err, BusError::Offline { .. }), "{err}");
     assert!(err.to_string().contains("is down"), "{err}");
     // The hub comes back on the same address.
-    let second = canbus::hub::Hub::bind(HubConfig {
-        listen: addr,
-        ..HubConfig::default()
-    })
-    .await
-    .unwrap()
-    .spawn()
-    .unwrap();
+    let second = hub_at(addr).await;
     let event = timeout(Duration::from_secs(15), bus.recv())
         .await
         .unwrap()
@@ -322,6 +327,64 @@ async fn link_loss_is_reported_and_the_client_reconnects() {
     let mut peer = Bus::open(&url(&second, "can0")).await.unwrap();
     bus.send(Frame::standard(0x42, &[]).unwrap()).await.unwrap();
     assert_eq!(recv_frame(&mut peer).await.id(), CanId::Standard(0x42));
+    second.shutdown().await;
+}
+
+/// Endpoints of one [`Interface`] share one connection to the server and see each other's
+/// frames as separate connections would; a frame an endpoint's filters refuse is not queued for
+/// it; link loss and return reach every endpoint.
+#[tokio::test]
+async fn endpoints_of_an_interface_share_one_connection() {
+    let first = hub(HubConfig::default()).await;
+    let addr = first.local_addr();
+    let interface = Interface::open(&url(&first, "can0")).await.unwrap();
+    let mut a = interface.endpoint().unwrap();
+    let mut b = interface.endpoint().unwrap();
+    let mut c = interface.endpoint().unwrap();
+    c.receiver.set_filters(&[Filter::standard(0x700, 0x780)]);
+    let mut outside = Bus::open(&url(&first, "can0")).await.unwrap();
+    // Give the hub a moment to count both connections.
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    assert_eq!(first.stats().clients.load(Ordering::Relaxed), 2);
+
+    a.send(Frame::standard(0x601, &[0x40, 0x00, 0x10, 0x00]).unwrap())
+        .await
+        .unwrap();
+    let looped = recv_frame(&mut b).await;
+    assert_eq!(looped.id(), CanId::Standard(0x601));
+    assert!(looped.timestamp().is_some());
+    assert_eq!(recv_frame(&mut outside).await.id(), CanId::Standard(0x601));
+    outside
+        .send(Frame::standard(0x701, &[5]).unwrap())
+        .await
+        .unwrap();
+    for endpoint in [&mut a, &mut b, &mut c] {
+        assert_eq!(recv_frame(endpoint).await.id(), CanId::Standard(0x701));
+    }
+    assert!(a.receiver.try_recv().is_none(), "a got its own frame");
+    assert!(c.receiver.try_recv().is_none(), "c's filters let 0x601 in");
+
+    first.shutdown().await;
+    for endpoint in [&mut a, &mut b, &mut c] {
+        let event = timeout(Duration::from_secs(5), endpoint.recv())
+            .await
+            .unwrap();
+        assert!(
+            matches!(event, Some(BusEvent::LinkDown { .. })),
+            "{event:?}"
+        );
+    }
+    let second = hub_at(addr).await;
+    for endpoint in [&mut a, &mut b, &mut c] {
+        let event = timeout(Duration::from_secs(15), endpoint.recv())
+            .await
+            .unwrap();
+        assert_eq!(event, Some(BusEvent::LinkUp));
+    }
+    let mut peer = Bus::open(&url(&second, "can0")).await.unwrap();
+    b.send(Frame::standard(0x42, &[]).unwrap()).await.unwrap();
+    assert_eq!(recv_frame(&mut peer).await.id(), CanId::Standard(0x42));
+    assert_eq!(recv_frame(&mut a).await.id(), CanId::Standard(0x42));
     second.shutdown().await;
 }
 

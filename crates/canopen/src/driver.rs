@@ -202,12 +202,11 @@ impl SdoClients {
     pub fn with_channels(bus: Bus, config: ClientConfig, channels: &[(u8, CanId, CanId)]) -> Self {
         let (sender, mut receiver) = bus.split();
         let mut filters = vec![Filter::standard(0x580, 0x780)];
-        for (_, _, response) in channels {
-            filters.push(match response {
-                CanId::Standard(id) => Filter::standard(*id, 0x7FF),
-                CanId::Extended(id) => Filter::extended(*id, 0x1FFF_FFFF),
-            });
-        }
+        filters.extend(
+            channels
+                .iter()
+                .map(|&(_, _, response)| Filter::exact(response)),
+        );
         receiver.set_filters(&filters);
         let inner = Arc::new(ClientInner {
             sender,

@@ -7,7 +7,7 @@ use std::collections::{BTreeSet, HashMap};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
-use canbus::{Bus, CanId};
+use canbus::{BusReceiver, CanId, Filter, Interface};
 use canopen::driver::{SdoClients, SharedDictionary};
 use nxg::gateway::Target;
 use tokio::sync::mpsc;
@@ -113,11 +113,12 @@ impl Feed {
         }
     }
 
-    /// TPDOs of the lift controller on `bus_url` and SDO polling (bus-node mode).
+    /// TPDOs of the lift controller on `bus` (an endpoint of its own) and SDO polling
+    /// (bus-node mode).
     pub async fn bus(
         backend: Backend,
         sdo: Option<SdoClients>,
-        bus_url: Option<String>,
+        bus: Option<Interface>,
         controller: Target,
         poll: Duration,
         tx: mpsc::Sender<Update>,
@@ -125,10 +126,10 @@ impl Feed {
         let watched: Watched = Arc::default();
         let covered: Arc<Mutex<BTreeSet<(u16, u8)>>> = Arc::default();
         let mut tasks = Vec::new();
-        if let (Some(sdo), Some(url)) = (sdo, bus_url) {
+        if let (Some(sdo), Some(bus)) = (sdo, bus) {
             let (w, c, tx) = (watched.clone(), covered.clone(), tx.clone());
             tasks.push(tokio::spawn(async move {
-                pdo_listener(sdo, url, controller, w, c, tx).await;
+                pdo_listener(sdo, bus, controller, w, c, tx).await;
             }));
         }
         let (w, c) = (watched.clone(), covered.clone());
@@ -203,18 +204,24 @@ impl Feed {
 
 async fn pdo_listener(
     sdo: SdoClients,
-    url: String,
+    bus: Interface,
     controller: Target,
     watched: Watched,
     covered: Arc<Mutex<BTreeSet<(u16, u8)>>>,
     tx: mpsc::Sender<Update>,
 ) {
-    let Ok(bus) = Bus::open(&url).await else {
-        tracing::warn!(%url, "no PDO feed: the bus cannot be opened; subscriptions are polled");
-        return;
+    let bus = match bus.endpoint() {
+        Ok(bus) => bus,
+        Err(e) => {
+            tracing::warn!(bus = %bus.url(), error = %e, "no PDO feed; subscriptions are polled");
+            return;
+        }
     };
     let (_, mut rx) = bus.split();
-    let learn = |layouts: &HashMap<CanId, Layout>| {
+    let boot_up = CanId::Standard(0x700 + u16::from(controller.node));
+    // What the controller's TPDOs cover; only their frames and its boot-up reach this endpoint
+    // (SDO traffic and other nodes' frames are filtered out before they are queued).
+    let learn = |layouts: &HashMap<CanId, Layout>, rx: &mut BusReceiver| {
         let mut c = covered.lock().unwrap_or_else(PoisonError::into_inner);
         c.clear();
         c.extend(
@@ -222,15 +229,19 @@ async fn pdo_listener(
                 .values()
                 .flat_map(|l| l.entries.iter().map(|e| (e.0, e.1))),
         );
+        let filters: Vec<Filter> = std::iter::once(boot_up)
+            .chain(layouts.keys().copied())
+            .map(Filter::exact)
+            .collect();
+        rx.set_filters(&filters);
     };
     let mut layouts = read_layouts(&sdo, controller.node).await;
-    learn(&layouts);
-    let boot_up = 0x700 + u32::from(controller.node);
+    learn(&layouts, &mut rx);
     while let Some(frame) = rx.recv_frame().await {
-        if frame.raw_id() == boot_up && frame.data() == [0] {
+        if frame.id() == boot_up && frame.data() == [0] {
             // The controller restarted: its PDO configuration may have changed.
             layouts = read_layouts(&sdo, controller.node).await;
-            learn(&layouts);
+            learn(&layouts, &mut rx);
             continue;
         }
         let Some(layout) = layouts.get(&frame.id()) else {

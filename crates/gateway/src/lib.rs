@@ -26,7 +26,7 @@ use std::sync::{Arc, PoisonError};
 use std::time::{Duration, Instant};
 
 use canbus::backoff::Backoff;
-use canbus::Bus;
+use canbus::{Bus, Interface};
 use canopen::driver::{SdoClients, SharedDictionary};
 use canopen::node::{LocalNode, NodeConfig};
 use canopen::od::ObjectDictionary;
@@ -69,7 +69,7 @@ pub enum GatewayError {
 enum Mode {
     Bus {
         sdo: SdoClients,
-        url: String,
+        bus: Interface,
     },
     Local {
         od: SharedDictionary,
@@ -102,11 +102,11 @@ impl Shared {
 
     async fn feed(&self, tx: mpsc::Sender<Update>) -> Feed {
         match &self.mode {
-            Mode::Bus { sdo, url } => {
+            Mode::Bus { sdo, bus } => {
                 Feed::bus(
                     self.backend.clone(),
                     Some(sdo.clone()),
-                    Some(url.clone()),
+                    Some(bus.clone()),
                     self.controller(),
                     Duration::from_millis(self.config.bus.poll_ms.max(50)),
                     tx,
@@ -126,11 +126,24 @@ pub struct Gateway {
     supervisors: Vec<tokio::task::JoinHandle<()>>,
 }
 
-async fn open(url: &str) -> Result<Bus, GatewayError> {
-    Bus::open(url).await.map_err(|error| GatewayError::Bus {
+/// Open the bus behind `url` once: the gateway's endpoints on it (SDO client, its own node,
+/// supervision, a PDO feed per portal connection) share one link.
+async fn open(url: &str) -> Result<Interface, GatewayError> {
+    Interface::open(url)
+        .await
+        .map_err(|error| bus_error(url, error))
+}
+
+fn endpoint(bus: &Interface) -> Result<Bus, GatewayError> {
+    bus.endpoint()
+        .map_err(|error| bus_error(&bus.url().to_string(), error))
+}
+
+fn bus_error(url: &str, error: canbus::BusError) -> GatewayError {
+    GatewayError::Bus {
         url: url.to_owned(),
         error,
-    })
+    }
 }
 
 impl Gateway {
@@ -145,11 +158,17 @@ impl Gateway {
             timeout: Duration::from_millis(config.bus.sdo_timeout_ms.max(10)),
             ..ClientConfig::default()
         };
-        let mut nets = HashMap::new();
-        let sdo = SdoClients::new(open(&config.bus.url).await?, client.clone());
-        nets.insert(1, sdo.clone());
+        let bus = open(&config.bus.url).await?;
+        let sdo = SdoClients::new(endpoint(&bus)?, client.clone());
+        let mut interfaces = HashMap::from([(1u8, bus.clone())]);
+        let mut nets = HashMap::from([(1u8, sdo.clone())]);
         for n in &config.networks {
-            nets.insert(n.net, SdoClients::new(open(&n.url).await?, client.clone()));
+            let interface = open(&n.url).await?;
+            nets.insert(
+                n.net,
+                SdoClients::new(endpoint(&interface)?, client.clone()),
+            );
+            interfaces.insert(n.net, interface);
         }
         let node_config = NodeConfig {
             device_type: 417,
@@ -161,23 +180,19 @@ impl Gateway {
             pdos: (0, 0),
             ..NodeConfig::new(config.bus.node_id)
         };
-        let node = LocalNode::start(
-            open(&config.bus.url).await?,
-            ObjectDictionary::new(),
-            node_config,
-        );
+        let node = LocalNode::start(endpoint(&bus)?, ObjectDictionary::new(), node_config);
         node.nmt(canopen::nmt::NmtCommand::Start);
         let mut networks = Vec::new();
-        let sections =
-            std::iter::once((1u8, &config.bus.url, &config.bus.nodes, config.bus.node_id))
-                .chain(config.networks.iter().map(|n| (n.net, &n.url, &n.nodes, 0)));
-        for (net, url, nodes, own) in sections {
-            let Some(sdo) = nets.get(&net).cloned() else {
+        let sections = std::iter::once((1u8, &config.bus.nodes, config.bus.node_id))
+            .chain(config.networks.iter().map(|n| (n.net, &n.nodes, 0)));
+        for (net, nodes, own) in sections {
+            let (Some(sdo), Some(interface)) = (nets.get(&net).cloned(), interfaces.get(&net))
+            else {
                 continue;
             };
             networks.push(supervision::Network {
                 net,
-                bus: open(url).await?,
+                bus: endpoint(interface)?,
                 sdo,
                 own,
                 configured: nodes
@@ -186,10 +201,7 @@ impl Gateway {
                     .collect(),
             });
         }
-        let mode = Mode::Bus {
-            sdo,
-            url: config.bus.url.clone(),
-        };
+        let mode = Mode::Bus { sdo, bus };
         let mut gateway =
             Gateway::assemble(config, tls, metadata, Backend::Bus(nets), mode, Some(node));
         let sink = supervision::Sink {

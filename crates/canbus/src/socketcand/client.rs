@@ -1,11 +1,14 @@
 //! `socketcand://HOST:PORT/CHANNEL`: a raw-mode socketcand client that survives outages.
 //!
-//! `open` connects and completes the handshake (`< hi >`, `< open CHANNEL >`, `< rawmode >`)
-//! before it returns, so a wrong address fails at once. Afterwards one task owns the connection:
-//! it writes queued frames (batched into as few TCP segments as the queue allows) and reads
-//! frames into the receive queue concurrently. When the link breaks the receiver gets
+//! [`SharedLink::open`] connects and completes the handshake (`< hi >`, `< open CHANNEL >`,
+//! `< rawmode >`) before it returns, so a wrong address fails at once. Afterwards one task owns
+//! the connection: it writes queued frames (batched into as few TCP segments as the queue allows)
+//! and reads frames into the receive queues of the link's endpoints concurrently. A frame one
+//! endpoint sends reaches the link's other endpoints at once, as the server would have delivered
+//! it to them over connections of their own. When the link breaks every receiver gets
 //! [`BusEvent::LinkDown`], sends fail with [`BusError::Offline`], and the task reconnects with
-//! capped full-jitter backoff until it succeeds ([`BusEvent::LinkUp`]) or the endpoint is dropped.
+//! capped full-jitter backoff until it succeeds ([`BusEvent::LinkUp`]) or every endpoint and
+//! handle is dropped.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -18,7 +21,7 @@ use tokio::sync::{mpsc, oneshot};
 
 use super::codec::{self, DecodeError, Decoder, Message};
 use crate::backoff::Backoff;
-use crate::bus::{BusError, BusEvent, BusOptions, BusSender, RxFeed, SenderInner};
+use crate::bus::{BusError, BusEvent, BusOptions, BusSender, Endpoints, RxFeed, SenderInner};
 use crate::frame::{Frame, FrameKind};
 
 /// How long connecting plus the handshake may take.
@@ -33,6 +36,7 @@ const STABLE_LINK: Duration = Duration::from_secs(60);
 struct Link {
     name: String,
     online: AtomicBool,
+    endpoints: Endpoints,
 }
 
 /// What the writer task takes: frames, and requests to confirm everything before is written.
@@ -46,7 +50,7 @@ enum Tx {
 pub(crate) struct ClientSender {
     tx: mpsc::Sender<Tx>,
     link: Arc<Link>,
-    loopback: Option<RxFeed>,
+    endpoint: u64,
 }
 
 impl ClientSender {
@@ -65,9 +69,9 @@ impl ClientSender {
             .send(Tx::Frame(frame))
             .await
             .map_err(|_| BusError::Closed)?;
-        if let Some(feed) = &self.loopback {
-            feed.push(BusEvent::Frame(frame.with_timestamp(SystemTime::now())));
-        }
+        self.link
+            .endpoints
+            .deliver(Some(self.endpoint), frame.with_timestamp(SystemTime::now()));
         Ok(())
     }
 
@@ -201,26 +205,37 @@ async fn connect(host: &str, port: u16, channel: &str) -> Result<Connection, Bus
         })?
 }
 
-pub(crate) async fn open(
-    host: &str,
-    port: u16,
-    channel: &str,
-    feed: RxFeed,
-    options: &BusOptions,
-) -> Result<BusSender, BusError> {
-    let conn = connect(host, port, channel).await?;
-    let link = Arc::new(Link {
-        name: format!("socketcand://{host}:{port}/{channel}"),
-        online: AtomicBool::new(true),
-    });
-    let (tx, rx) = mpsc::channel(TX_QUEUE);
-    let target = (host.to_owned(), port, channel.to_owned());
-    tokio::spawn(supervise(conn, target, link.clone(), rx, feed.clone()));
-    Ok(BusSender::new(SenderInner::Socketcand(ClientSender {
-        tx,
-        link,
-        loopback: options.receive_own.then_some(feed),
-    })))
+/// One connection to a socketcand server, shared by the endpoints of an
+/// [`Interface`](crate::Interface).
+#[derive(Clone)]
+pub(crate) struct SharedLink {
+    tx: mpsc::Sender<Tx>,
+    link: Arc<Link>,
+}
+
+impl SharedLink {
+    pub(crate) async fn open(host: &str, port: u16, channel: &str) -> Result<SharedLink, BusError> {
+        let conn = connect(host, port, channel).await?;
+        let link = Arc::new(Link {
+            name: format!("socketcand://{host}:{port}/{channel}"),
+            online: AtomicBool::new(true),
+            endpoints: Endpoints::default(),
+        });
+        let (tx, rx) = mpsc::channel(TX_QUEUE);
+        let target = (host.to_owned(), port, channel.to_owned());
+        tokio::spawn(supervise(conn, target, link.clone(), rx));
+        Ok(SharedLink { tx, link })
+    }
+
+    /// A new endpoint on this link, fed by `feed`.
+    pub(crate) fn endpoint(&self, feed: RxFeed, options: &BusOptions) -> BusSender {
+        let endpoint = self.link.endpoints.add(feed, options.receive_own);
+        BusSender::new(SenderInner::Socketcand(ClientSender {
+            tx: self.tx.clone(),
+            link: self.link.clone(),
+            endpoint,
+        }))
+    }
 }
 
 /// Why a connection ended.
@@ -234,22 +249,22 @@ async fn supervise(
     (host, port, channel): (String, u16, String),
     link: Arc<Link>,
     mut frames: mpsc::Receiver<Tx>,
-    feed: RxFeed,
 ) {
     let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(10));
     loop {
         let since = Instant::now();
-        let reason = match run(conn, &mut frames, &feed).await {
+        let reason = match run(conn, &mut frames, &link.endpoints).await {
             End::Shutdown => return,
             End::Lost(reason) => reason,
         };
         link.online.store(false, Ordering::Release);
         let dropped = std::iter::from_fn(|| frames.try_recv().ok()).count();
         tracing::warn!(link = %link.name, %reason, dropped, "bus link down; reconnecting");
-        feed.push_link(BusEvent::LinkDown {
-            reason: format!("{reason} ({dropped} queued frame(s) not sent)"),
-        })
-        .await;
+        link.endpoints
+            .announce(BusEvent::LinkDown {
+                reason: format!("{reason} ({dropped} queued frame(s) not sent)"),
+            })
+            .await;
         if since.elapsed() >= STABLE_LINK {
             backoff.reset();
         }
@@ -257,9 +272,9 @@ async fn supervise(
             let delay = backoff.next_delay();
             tokio::select! {
                 _ = tokio::time::sleep(delay) => {}
-                _ = feed.closed(), if frames.sender_strong_count() == 0 => return,
+                _ = link.endpoints.closed(), if frames.sender_strong_count() == 0 => return,
             }
-            if feed.is_closed() && frames.sender_strong_count() == 0 {
+            if frames.sender_strong_count() == 0 && link.endpoints.prune() {
                 return;
             }
             match connect(&host, port, &channel).await {
@@ -269,31 +284,33 @@ async fn supervise(
         };
         link.online.store(true, Ordering::Release);
         tracing::info!(link = %link.name, "bus link up again");
-        feed.push_link(BusEvent::LinkUp).await;
+        link.endpoints.announce(BusEvent::LinkUp).await;
     }
 }
 
-async fn run(conn: Connection, frames: &mut mpsc::Receiver<Tx>, feed: &RxFeed) -> End {
+async fn run(conn: Connection, frames: &mut mpsc::Receiver<Tx>, endpoints: &Endpoints) -> End {
     let Connection {
         mut reader,
         writer,
         mut decoder,
     } = conn;
     tokio::select! {
-        end = read_loop(&mut reader, &mut decoder, feed) => end,
-        end = write_loop(writer, frames, feed) => end,
+        end = read_loop(&mut reader, &mut decoder, endpoints) => end,
+        end = write_loop(writer, frames, endpoints) => end,
     }
 }
 
-async fn read_loop(reader: &mut OwnedReadHalf, decoder: &mut Decoder, feed: &RxFeed) -> End {
+async fn read_loop(
+    reader: &mut OwnedReadHalf,
+    decoder: &mut Decoder,
+    endpoints: &Endpoints,
+) -> End {
     let mut buf = vec![0u8; 16 * 1024];
     let mut reported = 0u32;
     loop {
         while let Some(message) = decoder.next_message() {
             match message {
-                Ok(Message::Frame(frame)) => {
-                    feed.push(BusEvent::Frame(frame));
-                }
+                Ok(Message::Frame(frame)) => endpoints.deliver(None, frame),
                 Ok(Message::Echo) | Ok(Message::Ok) => {}
                 Ok(other) => tracing::warn!(?other, "unexpected socketcand message in raw mode"),
                 Err(DecodeError::Oversized) => {
@@ -317,14 +334,14 @@ async fn read_loop(reader: &mut OwnedReadHalf, decoder: &mut Decoder, feed: &RxF
 async fn write_loop(
     mut writer: OwnedWriteHalf,
     frames: &mut mpsc::Receiver<Tx>,
-    feed: &RxFeed,
+    endpoints: &Endpoints,
 ) -> End {
     let mut text = String::with_capacity(TX_BATCH * 48);
     let mut flushed = Vec::new();
     loop {
         let Some(first) = frames.recv().await else {
-            // Every sender is gone: keep receiving until the receiver is gone too.
-            feed.closed().await;
+            // Every sender is gone: keep receiving until the receivers are gone too.
+            endpoints.closed().await;
             return End::Shutdown;
         };
         text.clear();

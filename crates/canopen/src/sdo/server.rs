@@ -658,10 +658,7 @@ impl ServerChannels {
     pub fn filters(&self) -> Vec<Filter> {
         self.channels
             .iter()
-            .map(|(rx, _, _)| match rx {
-                CanId::Standard(id) => Filter::standard(*id, 0x7FF),
-                CanId::Extended(id) => Filter::extended(*id, 0x1FFF_FFFF),
-            })
+            .map(|&(rx, _, _)| Filter::exact(rx))
             .collect()
     }
 
