@@ -85,7 +85,7 @@ async fn ws(
 /// A portal bound to its port.
 pub struct Portal {
     listener: TcpListener,
-    tls: tokio_rustls::TlsAcceptor,
+    tls: tls::stream::Acceptor,
     router: Router,
     registry: Arc<Registry>,
     /// Background work (retention, events, alarms, webhooks), ended with the portal.
@@ -331,7 +331,7 @@ impl Portal {
         })?;
         Ok(Portal {
             listener,
-            tls: tokio_rustls::TlsAcceptor::from(tls),
+            tls: tls::stream::Acceptor::new(tls),
             router,
             registry,
             tasks,
@@ -385,7 +385,7 @@ impl Portal {
                 let handshake = tokio::time::timeout(HANDSHAKE_TIMEOUT, tls.accept(tcp)).await;
                 let stream = match handshake {
                     Ok(Ok(s)) => {
-                        let counter = match s.get_ref().1.handshake_kind() {
+                        let counter = match s.handshake_kind() {
                             Some(rustls::HandshakeKind::Resumed) => &metrics.handshakes_resumed,
                             _ => &metrics.handshakes_full,
                         };

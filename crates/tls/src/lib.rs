@@ -6,6 +6,7 @@
 
 #![warn(missing_docs)]
 
+pub mod stream;
 pub mod tickets;
 
 use std::path::Path;

@@ -1,0 +1,302 @@
+//! `tls::stream::ServerStream` against rustls's buffered client (`tokio-rustls`, what the
+//! gateway uses): data both ways in every size and split, close_notify, resumption, key
+//! updates in order, push-back, no buffer held while idle, and the failures.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use proptest::prelude::*;
+use rustls::pki_types::{CertificateDer, PrivateKeyDer, PrivatePkcs8KeyDer, ServerName};
+use rustls::{ClientConfig, HandshakeKind, RootCertStore, ServerConfig};
+use tls::stream::{Acceptor, ServerStream, WRITE_BACKLOG};
+use tokio::io::{AsyncReadExt, AsyncWriteExt, DuplexStream};
+use tokio_rustls::client::TlsStream;
+use tokio_rustls::TlsConnector;
+
+struct Pki {
+    server: Arc<ServerConfig>,
+    client: Arc<ClientConfig>,
+}
+
+/// A server (with session tickets) and a client that trusts it, TLS 1.3 only.
+fn pki() -> Pki {
+    let key = rcgen::KeyPair::generate().unwrap();
+    let cert = rcgen::CertificateParams::new(vec!["localhost".to_owned()])
+        .unwrap()
+        .self_signed(&key)
+        .unwrap();
+    let der = CertificateDer::from(cert.der().to_vec());
+    let provider = Arc::new(rustls::crypto::ring::default_provider());
+    let mut server = ServerConfig::builder_with_provider(provider.clone())
+        .with_protocol_versions(&[&rustls::version::TLS13])
+        .unwrap()
+        .with_no_client_auth()
+        .with_single_cert(
+            vec![der.clone()],
+            PrivateKeyDer::Pkcs8(PrivatePkcs8KeyDer::from(key.serialize_der())),
+        )
+        .unwrap();
+    server.ticketer = rustls::crypto::ring::Ticketer::new().unwrap();
+    server.send_tls13_tickets = 1;
+    let mut roots = RootCertStore::empty();
+    roots.add(der).unwrap();
+    let client = ClientConfig::builder_with_provider(provider)
+        .with_protocol_versions(&[&rustls::version::TLS13])
+        .unwrap()
+        .with_root_certificates(roots)
+        .with_no_client_auth();
+    Pki {
+        server: Arc::new(server),
+        client: Arc::new(client),
+    }
+}
+
+/// A connected pair over an in-memory pipe of `capacity` bytes each way.
+async fn pair(pki: &Pki, capacity: usize) -> (ServerStream<DuplexStream>, TlsStream<DuplexStream>) {
+    let (near, far) = tokio::io::duplex(capacity);
+    let acceptor = Acceptor::new(pki.server.clone());
+    let connector = TlsConnector::from(pki.client.clone());
+    let name = ServerName::try_from("localhost").unwrap();
+    let (server, client) = tokio::join!(acceptor.accept(near), connector.connect(name, far));
+    (server.unwrap(), client.unwrap())
+}
+
+fn message(len: usize, seed: u8) -> Vec<u8> {
+    (0..len)
+        .map(|i| (i as u8).wrapping_mul(31).wrapping_add(seed))
+        .collect()
+}
+
+#[tokio::test]
+async fn data_goes_both_ways_and_close_notify_ends_it() {
+    let pki = pki();
+    let (mut server, mut client) = pair(&pki, 64 * 1024).await;
+    assert_eq!(server.handshake_kind(), Some(HandshakeKind::Full));
+    for (i, len) in [1usize, 150, 4096, 16_384, 16_385, 100_000]
+        .into_iter()
+        .enumerate()
+    {
+        let up = message(len, i as u8);
+        let down = message(len, 100 + i as u8);
+        let (from_client, from_server) = tokio::join!(
+            async {
+                client.write_all(&up).await.unwrap();
+                client.flush().await.unwrap();
+                let mut got = vec![0; len];
+                client.read_exact(&mut got).await.unwrap();
+                got
+            },
+            async {
+                let mut got = vec![0; len];
+                server.read_exact(&mut got).await.unwrap();
+                server.write_all(&down).await.unwrap();
+                server.flush().await.unwrap();
+                got
+            }
+        );
+        assert!(from_server == up, "{len} bytes up");
+        assert!(from_client == down, "{len} bytes down");
+        assert_eq!(server.buffered(), 0, "idle after {len} bytes: nothing kept");
+    }
+    server.shutdown().await.unwrap();
+    let mut rest = Vec::new();
+    client.read_to_end(&mut rest).await.unwrap();
+    assert!(rest.is_empty());
+    client.shutdown().await.unwrap();
+    let mut rest = Vec::new();
+    assert_eq!(server.read_to_end(&mut rest).await.unwrap(), 0);
+}
+
+#[tokio::test]
+async fn a_second_connection_resumes_the_session() {
+    let pki = pki();
+    let (mut server, mut client) = pair(&pki, 8192).await;
+    // The ticket comes after the handshake; the client takes it with the first answer.
+    client.write_all(b"ping").await.unwrap();
+    let mut got = [0; 4];
+    server.read_exact(&mut got).await.unwrap();
+    server.write_all(b"pong").await.unwrap();
+    client.read_exact(&mut got).await.unwrap();
+    let (server, _client) = pair(&pki, 8192).await;
+    assert_eq!(server.handshake_kind(), Some(HandshakeKind::Resumed));
+}
+
+/// The client asks for new keys every few messages (RFC 8446 §4.6.3, `update_requested`): the
+/// server answers with a KeyUpdate of its own, sealed and sent before its next records, which
+/// the client then opens with the server's new keys.
+#[tokio::test]
+async fn keys_are_updated_when_the_client_asks() {
+    let pki = pki();
+    let (mut server, mut client) = pair(&pki, 4096).await;
+    for i in 0..60u8 {
+        if i % 7 == 3 {
+            client.get_mut().1.refresh_traffic_keys().unwrap();
+        }
+        let up = message(200, i);
+        let down = message(300, i);
+        client.write_all(&up).await.unwrap();
+        client.flush().await.unwrap();
+        let mut got = vec![0; up.len()];
+        server.read_exact(&mut got).await.unwrap();
+        assert_eq!(got, up, "message {i} up");
+        server.write_all(&down).await.unwrap();
+        server.flush().await.unwrap();
+        let mut got = vec![0; down.len()];
+        client.read_exact(&mut got).await.unwrap();
+        assert_eq!(got, down, "message {i} down");
+    }
+}
+
+#[tokio::test]
+async fn a_peer_that_stops_reading_makes_the_writer_wait() {
+    let pki = pki();
+    let (mut server, mut client) = pair(&pki, 4096).await;
+    let big = message(1 << 20, 7);
+    // Write until the stream stops taking data: the pipe (4 KiB) and the stream's backlog fill.
+    let mut accepted = 0;
+    while let Ok(n) =
+        tokio::time::timeout(Duration::from_millis(100), server.write(&big[accepted..])).await
+    {
+        accepted += n.unwrap();
+        assert!(accepted < big.len(), "1 MiB went into a pipe nobody reads");
+    }
+    // At most the backlog and one more record are queued (the allocation at most twice that).
+    assert!(
+        accepted <= WRITE_BACKLOG + 16_384 + 4096,
+        "took {accepted} bytes"
+    );
+    assert!(
+        server.buffered() <= 2 * (WRITE_BACKLOG + 16_384 + 256),
+        "holds {} bytes",
+        server.buffered()
+    );
+    let ((), read) = tokio::join!(
+        async {
+            server.write_all(&big[accepted..]).await.unwrap();
+            server.flush().await.unwrap();
+        },
+        async {
+            let mut got = vec![0; big.len()];
+            client.read_exact(&mut got).await.unwrap();
+            got
+        }
+    );
+    assert!(read == big);
+    assert_eq!(server.buffered(), 0);
+}
+
+#[tokio::test]
+async fn an_end_without_close_notify_is_an_error() {
+    let pki = pki();
+    let (mut server, client) = pair(&pki, 4096).await;
+    drop(client);
+    let e = server.read(&mut [0; 16]).await.unwrap_err();
+    assert_eq!(e.kind(), std::io::ErrorKind::UnexpectedEof, "{e}");
+}
+
+#[tokio::test]
+async fn a_peer_that_speaks_no_tls_is_refused() {
+    let pki = pki();
+    let (near, mut far) = tokio::io::duplex(4096);
+    far.write_all(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n")
+        .await
+        .unwrap();
+    let e = Acceptor::new(pki.server.clone())
+        .accept(near)
+        .await
+        .err()
+        .expect("no TLS, no connection");
+    assert_eq!(e.kind(), std::io::ErrorKind::InvalidData, "{e}");
+    // The peer is told why (a TLS alert record: content type 21).
+    let mut alert = [0u8; 7];
+    far.read_exact(&mut alert).await.unwrap();
+    assert_eq!(alert[0], 21, "{alert:?}");
+}
+
+#[tokio::test]
+async fn tcp_and_small_reads() {
+    let pki = pki();
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let acceptor = Acceptor::new(pki.server.clone());
+    let server = tokio::spawn(async move {
+        let (tcp, _) = listener.accept().await.unwrap();
+        let mut stream = acceptor.accept(tcp).await.unwrap();
+        // Read in the 512-byte pieces the portal's WebSocket reads with.
+        let mut all = Vec::new();
+        let mut piece = [0u8; 512];
+        loop {
+            let n = stream.read(&mut piece).await.unwrap();
+            if n == 0 {
+                break;
+            }
+            all.extend_from_slice(&piece[..n]);
+        }
+        (all, stream.buffered())
+    });
+    let tcp = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let name = ServerName::try_from("localhost").unwrap();
+    let mut client = TlsConnector::from(pki.client.clone())
+        .connect(name, tcp)
+        .await
+        .unwrap();
+    let sent = message(50_000, 3);
+    for chunk in sent.chunks(777) {
+        client.write_all(chunk).await.unwrap();
+    }
+    client.shutdown().await.unwrap();
+    let (received, buffered) = server.await.unwrap();
+    assert!(received == sent);
+    assert_eq!(buffered, 0);
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(24))]
+
+    /// Any sizes through any pipe: everything arrives, in order, both ways.
+    #[test]
+    fn any_sizes_through_any_pipe(
+        sizes in proptest::collection::vec(1usize..40_000, 1..6),
+        capacity in 1usize..9000,
+        piece in 1usize..3000,
+    ) {
+        let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+        runtime.block_on(async {
+            let pki = pki();
+            let (mut server, mut client) = pair(&pki, capacity).await;
+            for (i, &len) in sizes.iter().enumerate() {
+                let up = message(len, i as u8);
+                let (_, got) = tokio::join!(
+                    async {
+                        client.write_all(&up).await.unwrap();
+                        client.flush().await.unwrap();
+                    },
+                    async {
+                        let mut got = Vec::new();
+                        let mut buf = vec![0u8; piece];
+                        while got.len() < len {
+                            let n = server.read(&mut buf).await.unwrap();
+                            got.extend_from_slice(&buf[..n]);
+                        }
+                        got
+                    }
+                );
+                prop_assert!(got == up);
+                let (_, back) = tokio::join!(
+                    async {
+                        server.write_all(&got).await.unwrap();
+                        server.flush().await.unwrap();
+                    },
+                    async {
+                        let mut back = vec![0u8; len];
+                        client.read_exact(&mut back).await.unwrap();
+                        back
+                    }
+                );
+                prop_assert!(back == up);
+            }
+            prop_assert_eq!(server.buffered(), 0);
+            Ok(())
+        })?;
+    }
+}
