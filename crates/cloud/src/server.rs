@@ -49,7 +49,8 @@ struct Metrics {
 }
 
 struct WsState {
-    shared: Shared,
+    /// One for all connections: each holds a pointer, not a copy (an idle connection's memory).
+    shared: Arc<Shared>,
     max_message: usize,
     metrics: Arc<Metrics>,
 }
@@ -275,7 +276,7 @@ impl Portal {
         let (closing, closing_rx) = watch::channel(false);
         let metrics = Arc::new(Metrics::default());
         let ws_state = Arc::new(WsState {
-            shared: Shared {
+            shared: Arc::new(Shared {
                 store: store.clone(),
                 registry: registry.clone(),
                 settings: config.gateways.settings(),
@@ -288,7 +289,7 @@ impl Portal {
                 max_messages_per_s: config.gateways.max_messages_per_s,
                 boardhash_change: config.gateways.boardhash_change,
                 token_lifetime: config.gateways.token_lifetime(),
-            },
+            }),
             max_message: config.gateways.max_message_bytes,
             metrics: metrics.clone(),
         });

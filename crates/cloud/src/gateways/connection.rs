@@ -9,9 +9,9 @@ use std::time::Instant;
 use axum::extract::ws::{close_code, CloseFrame, Message, WebSocket};
 use nxg::msg::{Connect, Event, Notification};
 use nxg::portal::{Failure, Output, RequestId, Session};
-use tokio::sync::{mpsc, oneshot};
 
-use super::{dashboard, LiftEvent, OperatorCall, Reply, Shared};
+use super::mailbox::{Letter, Mailbox};
+use super::{dashboard, Calls, LiftEvent, Reply, Shared};
 use crate::alarms::Input;
 use crate::config::BoardhashChange;
 use crate::store::{self, Admission, AuditEntry, GatewayRecord, TelemetryRow};
@@ -27,14 +27,12 @@ struct Admitted {
 /// One gateway connection.
 pub struct Connection {
     socket: WebSocket,
-    shared: Shared,
+    shared: std::sync::Arc<Shared>,
     peer: String,
     session: Session,
-    calls_tx: mpsc::Sender<Box<OperatorCall>>,
-    calls_rx: mpsc::Receiver<Box<OperatorCall>>,
-    /// Handed to the registry on admission: a newer connection of the lift closes this one.
-    close_tx: Option<oneshot::Sender<()>>,
-    close_rx: oneshot::Receiver<()>,
+    /// Operator requests, and the order to close (a newer connection of the lift); handed
+    /// to the registry on admission.
+    calls: Calls,
     waiting: HashMap<RequestId, Reply>,
     admitted: Option<Admitted>,
     closing: tokio::sync::watch::Receiver<bool>,
@@ -44,7 +42,7 @@ pub struct Connection {
 }
 
 /// Serve one gateway connection until it ends.
-pub async fn serve(socket: WebSocket, shared: Shared, peer: String) {
+pub async fn serve(socket: WebSocket, shared: std::sync::Arc<Shared>, peer: String) {
     // The connection's task lives as long as the gateway stays: its future is what an idle
     // connection costs. The connection is boxed (an `async fn` holds its arguments twice), and
     // the database work of the end is boxed like that of the start (`carry_out`).
@@ -53,12 +51,20 @@ pub async fn serve(socket: WebSocket, shared: Shared, peer: String) {
     Box::pin(connection.finish(cause)).await;
 }
 
+impl Drop for Connection {
+    /// Requests still waiting learn at once that the gateway is gone, also when the task is
+    /// cut short (the portal stopping).
+    fn drop(&mut self) {
+        self.calls.end();
+    }
+}
+
 impl Connection {
-    fn new(socket: WebSocket, shared: Shared, peer: String) -> Connection {
+    fn new(socket: WebSocket, shared: std::sync::Arc<Shared>, peer: String) -> Connection {
         let session = Session::new(shared.settings.clone(), Instant::now());
-        let (calls_tx, calls_rx) =
-            mpsc::channel(shared.settings.max_queued.max(1) + shared.settings.max_in_flight);
-        let (close_tx, close_rx) = oneshot::channel();
+        let calls = Calls::new(Mailbox::new(
+            shared.settings.max_queued.max(1) + shared.settings.max_in_flight,
+        ));
         let closing = shared.closing.clone();
         let rate = TokenBucket::new(shared.max_messages_per_s, Instant::now());
         Connection {
@@ -66,10 +72,7 @@ impl Connection {
             shared,
             peer,
             session,
-            calls_tx,
-            calls_rx,
-            close_tx: Some(close_tx),
-            close_rx,
+            calls,
             waiting: HashMap::new(),
             admitted: None,
             closing,
@@ -157,15 +160,18 @@ impl Connection {
                     Some(Err(e)) => Err(format!("connection failed: {e}")),
                 }
             }
-            Some(call) = self.calls_rx.recv() => {
-                let (request, out) = self.session.request(call.method, call.params, Instant::now());
-                self.waiting.insert(request, call.reply);
-                Ok(out)
-            }
-            _ = &mut self.close_rx => {
-                let _ = self.socket.send(Message::Close(None)).await;
-                Err("replaced by a newer connection".into())
-            }
+            letter = self.calls.next() => match letter {
+                Letter::Item(call) => {
+                    let (request, out) =
+                        self.session.request(call.method, call.params, Instant::now());
+                    self.waiting.insert(request, call.reply);
+                    Ok(out)
+                }
+                Letter::Close => {
+                    let _ = self.socket.send(Message::Close(None)).await;
+                    Err("replaced by a newer connection".into())
+                }
+            },
             _ = self.closing.changed() => {
                 let _ = self.socket.send(Message::Close(None)).await;
                 Err("the portal is shutting down".into())
@@ -231,11 +237,11 @@ impl Connection {
     /// Make the lift reachable for operators and subscribe the dashboard's objects (and, with
     /// api ≥ 2, its bus events).
     fn register(&mut self, lift: &str, connect: &Connect, api: u32, subscribed: bool) {
-        let Some(close) = self.close_tx.take() else {
+        if self.admitted.is_some() {
             return;
-        };
+        }
         let registry = &self.shared.registry;
-        let serial = registry.register(lift, connect, self.calls_tx.clone(), close);
+        let serial = registry.register(lift, connect, self.calls.clone());
         self.admitted = Some(Admitted {
             lift: lift.to_owned(),
             serial,

@@ -6,6 +6,7 @@
 
 pub mod connection;
 mod dashboard;
+mod mailbox;
 pub mod records;
 pub mod subscriptions;
 pub mod telemetry;
@@ -110,9 +111,11 @@ pub(crate) struct OperatorCall {
     reply: Reply,
 }
 
+/// Operator requests to a connection, and the order to close it.
+pub(crate) type Calls = std::sync::Arc<mailbox::Mailbox<Box<OperatorCall>>>;
+
 struct Live {
-    calls: mpsc::Sender<Box<OperatorCall>>,
-    close: oneshot::Sender<()>,
+    calls: Calls,
     serial: u64,
     sernum: String,
     /// The domain token of its CONNECT: the account whose lift it is.
@@ -338,16 +341,14 @@ impl Registry {
     ) -> Result<String, Failure> {
         let calls = self.here(lift, |l| l.calls.clone()).ok_or(Failure::Gone)?;
         let (reply, answer) = oneshot::channel();
-        // Boxed: the channel's first block of slots is allocated with it, for every idle
-        // gateway, and a pointer is a fraction of a call.
         let call = Box::new(OperatorCall {
             method,
             params,
             reply,
         });
-        calls.try_send(call).map_err(|e| match e {
-            mpsc::error::TrySendError::Full(_) => Failure::Busy,
-            mpsc::error::TrySendError::Closed(_) => Failure::Gone,
+        calls.post(call).map_err(|e| match e {
+            mailbox::Refused::Full(_) => Failure::Busy,
+            mailbox::Refused::Ended(_) => Failure::Gone,
         })?;
         answer.await.map_err(|_| Failure::Gone)?
     }
@@ -369,13 +370,7 @@ impl Registry {
 
     /// A connection is in service for `lift`: it replaces an earlier one (here, or in a
     /// cluster on any process). Returns the serial that [`Registry::unregister`] needs.
-    fn register(
-        self: &Arc<Self>,
-        lift: &str,
-        connect: &nxg::msg::Connect,
-        calls: mpsc::Sender<Box<OperatorCall>>,
-        close: oneshot::Sender<()>,
-    ) -> u64 {
+    fn register(self: &Arc<Self>, lift: &str, connect: &nxg::msg::Connect, calls: Calls) -> u64 {
         let serial = self.next_epoch();
         if let Some(cluster) = self.cluster.get() {
             let holding = Holding {
@@ -396,7 +391,6 @@ impl Registry {
                 lift.to_owned(),
                 Live {
                     calls,
-                    close,
                     serial,
                     sernum: connect.identity.sernum.clone(),
                     domain: connect.domaintoken.clone(),
@@ -405,7 +399,7 @@ impl Registry {
             );
         if let Some(old) = old {
             tracing::info!(lift, "a new connection replaces the old one");
-            let _ = old.close.send(());
+            old.calls.close();
         }
         serial
     }
@@ -436,7 +430,7 @@ impl Registry {
             if let Some(cluster) = self.cluster.get() {
                 cluster.release(lift, old.serial);
             }
-            let _ = old.close.send(());
+            old.calls.close();
         }
         true
     }
