@@ -785,12 +785,14 @@ impl Store {
             copy.finish().await?;
             return Ok(());
         }
-        // SQLite: one prepared multi-row INSERT for each full chunk (sqlx keeps it prepared per
-        // connection), the rest in a shorter one. Anonymous parameters, because sqlx looks
-        // every numbered one up by name, a linear search in SQLite: quadratic per statement.
-        const ROWS: usize = 500; // 2,500 parameters: far within SQLite's 32,766
+        // SQLite: multi-row INSERTs of 512 rows (2,560 parameters: far within SQLite's 32,766)
+        // and the rest in chunks of 256, 128, … 1 by its binary digits: sqlx keeps each
+        // statement prepared per connection, and ten sizes are at most ten statements (a
+        // remainder of any length had been one more, each a VM of tens of KiB, up to sqlx's
+        // 100 per connection). Anonymous parameters, because sqlx looks every numbered one up
+        // by name, a linear search in SQLite: quadratic per statement.
         let mut tx = self.pool.begin().await?;
-        for rows in batch.chunks(ROWS) {
+        for rows in chunks_by_binary_digits(batch, 512) {
             let mut sql =
                 String::from("INSERT INTO telemetry (lift, mplex, node, value, at) VALUES ");
             sql.push_str(&vec!["(?, ?, ?, ?, ?)"; rows.len()].join(", "));
@@ -940,9 +942,43 @@ fn copy_binary(batch: &[TelemetryRow]) -> Vec<u8> {
     out
 }
 
+/// `items` in chunks of `largest` (a power of two), then the rest in chunks of the powers of two
+/// of its binary digits, largest first: every chunk has one of log2(`largest`) + 1 lengths.
+fn chunks_by_binary_digits<T>(items: &[T], largest: usize) -> impl Iterator<Item = &[T]> {
+    let mut rest = items;
+    std::iter::from_fn(move || {
+        if rest.is_empty() {
+            return None;
+        }
+        let len = largest.min(1 << rest.len().ilog2());
+        let (chunk, tail) = rest.split_at(len);
+        rest = tail;
+        Some(chunk)
+    })
+}
+
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
+
+    #[test]
+    fn batches_are_cut_into_few_lengths() {
+        let items: Vec<u32> = (0..16_384 + 1_000 + 7).collect();
+        let chunks: Vec<&[u32]> = chunks_by_binary_digits(&items, 512).collect();
+        let lengths: std::collections::BTreeSet<usize> = chunks.iter().map(|c| c.len()).collect();
+        assert!(
+            lengths.iter().all(|l| l.is_power_of_two() && *l <= 512),
+            "{lengths:?}"
+        );
+        assert_eq!(chunks.iter().filter(|c| c.len() == 512).count(), 33);
+        // 17,391 = 33 × 512 + 495, and 495 = 256 + 128 + 64 + 32 + 8 + 4 + 2 + 1.
+        assert_eq!(
+            chunks.iter().map(|c| c.len()).skip(33).collect::<Vec<_>>(),
+            vec![256, 128, 64, 32, 8, 4, 2, 1]
+        );
+        assert_eq!(chunks.concat(), items);
+        assert_eq!(chunks_by_binary_digits::<u32>(&[], 512).count(), 0);
+    }
 
     /// A CONNECT of gateway `sernum` (vendor 1050, product 4096) to `domain`.
     pub(crate) fn connect(sernum: &str, domain: &str, token: Option<&str>) -> Connect {
