@@ -147,6 +147,9 @@ where
                 len.min(MAX_RECORD).saturating_sub(self.incoming.len())
             })
             .max(READ_SIZE);
+        if self.incoming.capacity() == 0 {
+            self.incoming = spare::take();
+        }
         self.incoming.reserve(want);
         let filled = self.incoming.len();
         let spare = self.incoming.spare_capacity_mut();
@@ -156,7 +159,7 @@ where
         // SAFETY: `poll_read` initialised the first `n` bytes of the spare capacity.
         unsafe { self.incoming.set_len(filled + n) };
         if self.incoming.is_empty() {
-            self.incoming = Vec::new();
+            spare::give_back(std::mem::take(&mut self.incoming));
         }
         ready!(polled)?;
         Poll::Ready(Ok(n))
@@ -171,7 +174,7 @@ where
             }
             self.written += n;
         }
-        self.outgoing = Vec::new();
+        spare::give_back(std::mem::take(&mut self.outgoing));
         self.written = 0;
         Poll::Ready(Ok(()))
     }
@@ -182,7 +185,7 @@ where
     fn process(&mut self, mut dest: Option<&mut ReadBuf<'_>>) -> io::Result<()> {
         while let Step::More = self.step(&mut dest, Outgoing::Nothing)? {}
         if self.incoming.is_empty() {
-            self.incoming = Vec::new();
+            spare::give_back(std::mem::take(&mut self.incoming));
         }
         Ok(())
     }
@@ -349,7 +352,7 @@ where
                 buf.put_slice(&this.plaintext[this.read..this.read + n]);
                 this.read += n;
                 if this.read == this.plaintext.len() {
-                    this.plaintext = Vec::new();
+                    spare::give_back(std::mem::take(&mut this.plaintext));
                     this.read = 0;
                 }
                 return Poll::Ready(Ok(()));
@@ -431,7 +434,47 @@ fn deliver(payload: &[u8], dest: &mut Option<&mut ReadBuf<'_>>, rest: &mut Vec<u
         }
         _ => 0,
     };
-    rest.extend_from_slice(&payload[n..]);
+    if n < payload.len() {
+        if rest.capacity() == 0 {
+            *rest = spare::take();
+        }
+        rest.extend_from_slice(&payload[n..]);
+    }
+}
+
+/// A few buffers per thread for the connections that need one next: a connection gives its
+/// buffers back as soon as they are empty, and without this every message would allocate and
+/// free them again (and so would every read attempt that finds nothing).
+mod spare {
+    use std::cell::RefCell;
+
+    /// Buffers kept per thread.
+    const KEEP: usize = 4;
+    /// Buffers larger than this are freed, not kept (one record and its header fit).
+    const LARGEST: usize = 2 * super::MAX_RECORD;
+
+    thread_local! {
+        static SPARE: RefCell<Vec<Vec<u8>>> = const { RefCell::new(Vec::new()) };
+    }
+
+    /// An empty buffer, with room if the thread kept one.
+    pub(super) fn take() -> Vec<u8> {
+        SPARE.with(|spare| spare.borrow_mut().pop().unwrap_or_default())
+    }
+
+    /// Keep `buffer` (emptied) for the next `take` on this thread, if there is room.
+    pub(super) fn give_back(mut buffer: Vec<u8>) {
+        if buffer.capacity() == 0 || buffer.capacity() > LARGEST {
+            return;
+        }
+        buffer.clear();
+        SPARE.with(|spare| {
+            let mut spare = spare.borrow_mut();
+            if spare.len() < KEEP {
+                spare.push(buffer);
+            }
+        });
+    }
 }
 
 /// Append what `write` puts into a slice to `out`; `write` answers `Err(Some(size))` when it
