@@ -12,7 +12,7 @@ use super::{to_json, ErrorObject, Method};
 use crate::errors::rpc_codes;
 
 /// A JSON-RPC id: any string or number, echoed unchanged (docs/PROTOCOL.md §Messages).
-#[derive(Debug, Clone, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Hash, Serialize)]
 #[serde(untagged)]
 pub enum Id {
     /// A string id, as the specification's samples use.
@@ -34,6 +34,38 @@ impl Id {
             Id::Text(t) => t.parse().ok(),
             Id::Number(n) => n.as_u64(),
         }
+    }
+}
+
+/// Read by what the JSON holds (an untagged enum would try a string first and build an error
+/// for every numeric id: once per request).
+impl<'de> Deserialize<'de> for Id {
+    fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Id, D::Error> {
+        struct Visitor;
+        impl serde::de::Visitor<'_> for Visitor {
+            type Value = Id;
+            fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.write_str("a string or a number")
+            }
+            fn visit_str<E>(self, v: &str) -> Result<Id, E> {
+                Ok(Id::Text(v.to_owned()))
+            }
+            fn visit_string<E>(self, v: String) -> Result<Id, E> {
+                Ok(Id::Text(v))
+            }
+            fn visit_u64<E>(self, v: u64) -> Result<Id, E> {
+                Ok(Id::Number(v.into()))
+            }
+            fn visit_i64<E>(self, v: i64) -> Result<Id, E> {
+                Ok(Id::Number(v.into()))
+            }
+            fn visit_f64<E: serde::de::Error>(self, v: f64) -> Result<Id, E> {
+                serde_json::Number::from_f64(v)
+                    .map(Id::Number)
+                    .ok_or_else(|| E::custom("an id must be a finite number"))
+            }
+        }
+        deserializer.deserialize_any(Visitor)
     }
 }
 
@@ -325,6 +357,39 @@ mod tests {
             panic!()
         };
         assert_eq!(error.code, 0x0800_0021);
+    }
+
+    #[test]
+    fn ids_are_read_as_what_they_are_and_echoed_unchanged() {
+        for id in [
+            r#""7""#,
+            r#""a\"b""#,
+            "7",
+            "-3",
+            "7.5",
+            "18446744073709551615",
+        ] {
+            let text = format!(r#"{{"jsonrpc":"2.0","id":{id},"method":"get_heartbeat"}}"#);
+            let Ok(Incoming::Request { id: Some(read), .. }) = parse(&text) else {
+                panic!("{text}")
+            };
+            assert_eq!(serde_json::to_string(&read).unwrap(), id);
+        }
+        assert!(matches!(
+            parse(r#"{"jsonrpc":"2.0","id":"12","method":"x"}"#),
+            Ok(Incoming::Request {
+                id: Some(Id::Text(_)),
+                ..
+            })
+        ));
+        for bad in ["true", "[1]", "{}"] {
+            let text = format!(r#"{{"jsonrpc":"2.0","id":{bad},"method":"x"}}"#);
+            assert_eq!(
+                parse(&text).unwrap_err().code,
+                rpc_codes::INVALID_REQUEST,
+                "{bad}"
+            );
+        }
     }
 
     #[test]
