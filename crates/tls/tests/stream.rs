@@ -6,9 +6,10 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use proptest::prelude::*;
-use rustls::pki_types::{CertificateDer, PrivateKeyDer, PrivatePkcs8KeyDer, ServerName};
-use rustls::{ClientConfig, HandshakeKind, RootCertStore, ServerConfig};
+use rustls::pki_types::ServerName;
+use rustls::{ClientConfig, HandshakeKind, ServerConfig};
 use tls::stream::{Acceptor, ServerStream, WRITE_BACKLOG};
+use tls::tickets::TicketKeys;
 use tokio::io::{AsyncReadExt, AsyncWriteExt, DuplexStream};
 use tokio_rustls::client::TlsStream;
 use tokio_rustls::TlsConnector;
@@ -18,36 +19,18 @@ struct Pki {
     client: Arc<ClientConfig>,
 }
 
-/// A server (with session tickets) and a client that trusts it, TLS 1.3 only.
+/// The server and client configurations the crate makes (as the portal and the gateway use
+/// them) for the test PKI, with session tickets under the crate's own ticket keys.
 fn pki() -> Pki {
-    let key = rcgen::KeyPair::generate().unwrap();
-    let cert = rcgen::CertificateParams::new(vec!["localhost".to_owned()])
-        .unwrap()
-        .self_signed(&key)
-        .unwrap();
-    let der = CertificateDer::from(cert.der().to_vec());
-    let provider = Arc::new(rustls::crypto::ring::default_provider());
-    let mut server = ServerConfig::builder_with_provider(provider.clone())
-        .with_protocol_versions(&[&rustls::version::TLS13])
-        .unwrap()
-        .with_no_client_auth()
-        .with_single_cert(
-            vec![der.clone()],
-            PrivateKeyDer::Pkcs8(PrivatePkcs8KeyDer::from(key.serialize_der())),
-        )
-        .unwrap();
-    server.ticketer = rustls::crypto::ring::Ticketer::new().unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let files = testkit::pki::pki(dir.path());
+    let mut server = tls::server_config(&files.cert, &files.key, None).unwrap();
+    let keys = TicketKeys::open(&dir.path().join("tickets"), Duration::from_secs(3600)).unwrap();
+    server.ticketer = Arc::new(keys);
     server.send_tls13_tickets = 1;
-    let mut roots = RootCertStore::empty();
-    roots.add(der).unwrap();
-    let client = ClientConfig::builder_with_provider(provider)
-        .with_protocol_versions(&[&rustls::version::TLS13])
-        .unwrap()
-        .with_root_certificates(roots)
-        .with_no_client_auth();
     Pki {
         server: Arc::new(server),
-        client: Arc::new(client),
+        client: tls::client_config(Some(&files.ca), None).unwrap(),
     }
 }
 
