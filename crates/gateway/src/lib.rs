@@ -159,17 +159,18 @@ impl Gateway {
             ..ClientConfig::default()
         };
         let bus = open(&config.bus.url).await?;
-        let sdo = SdoClients::new(endpoint(&bus)?, client.clone());
         let mut interfaces = HashMap::from([(1u8, bus.clone())]);
-        let mut nets = HashMap::from([(1u8, sdo.clone())]);
         for n in &config.networks {
-            let interface = open(&n.url).await?;
-            nets.insert(
-                n.net,
-                SdoClients::new(endpoint(&interface)?, client.clone()),
-            );
-            interfaces.insert(n.net, interface);
+            interfaces.insert(n.net, open(&n.url).await?);
         }
+        let nets = interfaces
+            .iter()
+            .map(|(&net, interface)| {
+                Ok((net, SdoClients::new(endpoint(interface)?, client.clone())))
+            })
+            .collect::<Result<HashMap<_, _>, GatewayError>>()?;
+        // [bus] is net 1 (the configuration refuses it for [[networks]]).
+        let sdo = nets[&1].clone();
         let node_config = NodeConfig {
             device_type: 417,
             identity: [config.identity.vendorid, config.identity.productcode, 1, 0],

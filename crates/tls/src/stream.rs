@@ -101,11 +101,6 @@ impl<IO> ServerStream<IO> {
         self.conn.handshake_kind()
     }
 
-    /// The underlying byte stream.
-    pub fn get_ref(&self) -> &IO {
-        &self.io
-    }
-
     /// Bytes this stream holds allocated for TLS records and plaintext in transit (0 while the
     /// connection is idle).
     pub fn buffered(&self) -> usize {

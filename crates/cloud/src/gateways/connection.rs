@@ -4,6 +4,7 @@
 //! what it pushes, and clean up when it goes.
 
 use std::collections::HashMap;
+use std::sync::Arc;
 use std::time::Instant;
 
 use axum::extract::ws::{close_code, CloseFrame, Message, WebSocket};
@@ -27,7 +28,7 @@ struct Admitted {
 /// One gateway connection.
 pub struct Connection {
     socket: WebSocket,
-    shared: std::sync::Arc<Shared>,
+    shared: Arc<Shared>,
     peer: String,
     session: Session,
     /// Operator requests, and the order to close (a newer connection of the lift); handed
@@ -42,7 +43,7 @@ pub struct Connection {
 }
 
 /// Serve one gateway connection until it ends.
-pub async fn serve(socket: WebSocket, shared: std::sync::Arc<Shared>, peer: String) {
+pub async fn serve(socket: WebSocket, shared: Arc<Shared>, peer: String) {
     // The connection's task lives as long as the gateway stays: its future is what an idle
     // connection costs. The connection is boxed (an `async fn` holds its arguments twice), and
     // the database work of the end is boxed like that of the start (`carry_out`).
@@ -60,7 +61,7 @@ impl Drop for Connection {
 }
 
 impl Connection {
-    fn new(socket: WebSocket, shared: std::sync::Arc<Shared>, peer: String) -> Connection {
+    fn new(socket: WebSocket, shared: Arc<Shared>, peer: String) -> Connection {
         let session = Session::new(shared.settings.clone(), Instant::now());
         let calls = Calls::new(Mailbox::new(
             shared.settings.max_queued.max(1) + shared.settings.max_in_flight,
