@@ -485,6 +485,57 @@ async fn a_watching_process_that_goes_away_lets_go() {
     cluster.stop().await;
 }
 
+/// A process killed while its lift's gateway cannot reach another: within the holder TTL
+/// (3 s here) no process shows the lift online or relays to the dead one, and the dead
+/// process's entry is gone; started again, the process holds the lift again and every
+/// process sees it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_dead_holder_leaves_no_lift_online() {
+    let Some(mut cluster) = Cluster::start_with("cluster_dead", 2, 3, "").await else {
+        return;
+    };
+    assert_eq!(
+        cluster.portals[1].metric("canlift_cluster_processes").await,
+        2
+    );
+    cluster.balancer.route_only_to(0);
+    cluster.portals[0].kill().await;
+    let offline = until(LIMIT, "p1 shows the lift offline", || async {
+        cluster.portals[1].online(&cluster.key).await == 0
+    })
+    .await;
+    eprintln!("the dead holder's lift was offline on p1 after {offline:?}");
+    assert_eq!(
+        cluster.portals[1].metric("canlift_cluster_processes").await,
+        1
+    );
+    let (status, answer) = cluster.read(1).await;
+    assert_eq!(status, 503, "nobody holds the lift: {answer}");
+    assert_eq!(
+        cluster.portals[1]
+            .metric("canlift_cluster_lifts_elsewhere")
+            .await,
+        0
+    );
+    // p1, the only process alive, deleted the dead one's entry.
+    until(LIMIT, "p1 deletes the dead holder's entry", || async {
+        cluster.portals[1]
+            .metric("canlift_cluster_entries_swept_total")
+            .await
+            == 1
+    })
+    .await;
+    cluster.portals[0].restart().await;
+    let back = cluster.wait_held_by(0).await;
+    eprintln!("held again {back:?} after p0 started again");
+    assert_eq!(cluster.read(1).await.0, 200, "relayed to the new p0");
+    assert_eq!(
+        cluster.portals[1].metric("canlift_cluster_processes").await,
+        2
+    );
+    cluster.stop().await;
+}
+
 /// NATS stopped: the holder still serves its lift, the other process answers 503 and reports
 /// itself degraded; NATS started again: full service without restarting a portal.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -304,8 +304,8 @@ pub struct ClusterSection {
     pub nats: Option<String>,
     /// This process's name in the cluster; absent: the host name and the listening port.
     pub node: Option<String>,
-    /// Seconds a lift's holder entry lives unless its holder refreshes it (every third of
-    /// this): how long a lift of a process that died may still look online.
+    /// Seconds a process's lease stands unrenewed (it renews it every third of this): how
+    /// long the lifts of a process that died may still look online.
     pub holder_ttl_s: u64,
 }
 

@@ -593,6 +593,7 @@ fn metrics_text(
             ("canlift_cluster_nats_connected", u64::from(c.connected())),
             ("canlift_cluster_lifts_held", c.held_count() as u64),
             ("canlift_cluster_lifts_elsewhere", c.known_count() as u64),
+            ("canlift_cluster_processes", c.processes() as u64),
         ]);
         let n = &c.counters;
         counters.extend([
@@ -612,6 +613,7 @@ fn metrics_text(
                 load(&n.events_unwatched),
             ),
             ("canlift_cluster_watch_lapsed_total", load(&n.watch_lapsed)),
+            ("canlift_cluster_entries_swept_total", load(&n.swept)),
         ]);
     }
     for (kind, list) in [("gauge", &gauges[..]), ("counter", &counters[..])] {

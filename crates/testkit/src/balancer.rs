@@ -3,7 +3,7 @@
 //! next one that accepts when that one does not. Stopped when dropped.
 
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
 
 use tokio::net::{TcpListener, TcpStream};
@@ -13,6 +13,8 @@ use tokio::task::JoinHandle;
 pub struct Balancer {
     addr: SocketAddr,
     target: Arc<AtomicUsize>,
+    /// Whether a connection the target refuses goes to the next backend.
+    fallback: Arc<AtomicBool>,
     task: JoinHandle<()>,
 }
 
@@ -24,13 +26,18 @@ impl Balancer {
             .expect("a loopback port");
         let addr = listener.local_addr().expect("its address");
         let target = Arc::new(AtomicUsize::new(0));
+        let fallback = Arc::new(AtomicBool::new(true));
         let backends = Arc::new(backends);
-        let t = target.clone();
+        let (t, f) = (target.clone(), fallback.clone());
         let task = tokio::spawn(async move {
             while let Ok((client, _)) = listener.accept().await {
                 let (backends, first) = (backends.clone(), t.load(Ordering::Relaxed));
+                let tried = match f.load(Ordering::Relaxed) {
+                    true => backends.len(),
+                    false => 1,
+                };
                 tokio::spawn(async move {
-                    for i in 0..backends.len() {
+                    for i in 0..tried {
                         let backend = backends[(first + i) % backends.len()];
                         if let Ok(server) = TcpStream::connect(backend).await {
                             let (mut client, mut server) = (client, server);
@@ -41,7 +48,12 @@ impl Balancer {
                 });
             }
         });
-        Balancer { addr, target, task }
+        Balancer {
+            addr,
+            target,
+            fallback,
+            task,
+        }
     }
 
     /// Where gateways connect.
@@ -52,6 +64,14 @@ impl Balancer {
     /// Send new connections to backend `index` (or the next that accepts).
     pub fn route_to(&self, index: usize) {
         self.target.store(index, Ordering::Relaxed);
+        self.fallback.store(true, Ordering::Relaxed);
+    }
+
+    /// Send new connections to backend `index` and nowhere else: while it is down, gateways
+    /// find the portal unreachable.
+    pub fn route_only_to(&self, index: usize) {
+        self.target.store(index, Ordering::Relaxed);
+        self.fallback.store(false, Ordering::Relaxed);
     }
 }
 

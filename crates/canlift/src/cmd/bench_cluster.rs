@@ -5,7 +5,7 @@
 //! gateways, each load generator to one portal process in turn (as a load balancer would).
 //!
 //! Figures: time until all N are online (held by some process, known to every other), the
-//! portals' memory per connection, operator reads of a lift held by the process asked vs by
+//! portals' memory per connection, the CPU the portals and NATS spend holding them idle, operator reads of a lift held by the process asked vs by
 //! another (what NATS adds), and the time until every lift of a process killed with SIGKILL
 //! (and started again, as systemd's `Restart=always` does) is online again.
 
@@ -14,6 +14,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 
+use super::bench::cpu_time;
 use super::bench_gateway::{memory_kib, percentile, Daemon};
 use super::bench_portal::{bench_config, free_port, PortalProcess};
 
@@ -52,6 +53,10 @@ pub struct ClusterBench {
     nats_server: PathBuf,
 }
 
+/// How long the cluster's own cost is measured with every gateway online and no operator
+/// asking: what holding the lifts costs (entries kept fresh, keep-alives).
+const IDLE_WINDOW: Duration = Duration::from_secs(20);
+
 /// The NATS server of the benchmark.
 struct Nats {
     child: tokio::process::Child,
@@ -87,6 +92,10 @@ impl Nats {
 
     fn rss_kib(&self) -> u64 {
         self.child.id().and_then(memory_kib).map_or(0, |m| m[0])
+    }
+
+    fn cpu(&self) -> Duration {
+        self.child.id().and_then(cpu_time).unwrap_or_default()
     }
 }
 
@@ -142,6 +151,14 @@ impl Portals {
 
     fn rss_kib(&self) -> u64 {
         self.processes.iter().map(PortalProcess::rss_kib).sum()
+    }
+
+    /// The processes' CPU time so far, together.
+    fn cpu(&self) -> Duration {
+        self.processes
+            .iter()
+            .filter_map(|p| cpu_time(p.daemon.pid))
+            .sum()
     }
 }
 
@@ -313,6 +330,20 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
     println!(
         "live events kept off NATS (no other process watched their lift): {unwatched:.0}, {:.1} per gateway",
         unwatched / args.gateways as f64
+    );
+    let idle = IDLE_WINDOW.as_secs_f64();
+    let before = (portals.cpu(), nats.cpu());
+    tokio::time::sleep(IDLE_WINDOW).await;
+    let (portal_cpu, nats_cpu) = (
+        portals.cpu().saturating_sub(before.0).as_secs_f64() / idle,
+        nats.cpu().saturating_sub(before.1).as_secs_f64() / idle,
+    );
+    println!(
+        "all online, nobody asking ({idle:.0} s): portals {:.1} % of a core, NATS {:.1} %; \
+         {:.2} µs of CPU per lift per second",
+        portal_cpu * 100.0,
+        nats_cpu * 100.0,
+        (portal_cpu + nats_cpu) * 1e6 / args.gateways as f64
     );
     let others = args.portals;
     let local = reads(&args, layout, &portals, &key, |h| h).await?;

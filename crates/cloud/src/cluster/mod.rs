@@ -1,12 +1,14 @@
 //! The portal as a cluster (docs/CLUSTER.md): several `canlift cloud` processes share one
 //! PostgreSQL database and one NATS server. Which process holds which lift's gateway is a
-//! JetStream KV entry per lift, written by its holder, refreshed before it expires and
-//! watched by every process; an operator request for a lift held elsewhere travels as NATS
+//! JetStream KV entry per lift, written by its holder when it admits the connection and
+//! standing while the holder's one lease in the same bucket is renewed; every process watches
+//! the bucket ([`fleet::Fleet`]). An operator request for a lift held elsewhere travels as NATS
 //! request/reply on the lift's own subject, which only its holder subscribes to; live events
 //! go out on the lift's events subject to whoever watches it on any process. Without NATS a
 //! process goes on serving the gateways it holds, answers 503 for the others, and writes its
 //! entries again when NATS is back.
 
+mod fleet;
 pub mod msgs;
 
 use std::collections::HashMap;
@@ -22,7 +24,8 @@ use tokio::sync::{broadcast, mpsc, oneshot, watch, Notify};
 
 use crate::gateways::subscriptions::{Subscriptions, Terms};
 use crate::gateways::{LiftEvent, Registry};
-use msgs::{Holding, Relayed, RelayedAnswer, RelayedWatch};
+use fleet::Fleet;
+use msgs::{Alive, Holding, Key, Relayed, RelayedAnswer, RelayedWatch};
 
 /// The result of a relayed hold or release the holder made (a JSON `null` would read back as
 /// no result at all).
@@ -54,26 +57,25 @@ pub struct ClusterCounters {
     pub events_dropped: AtomicU64,
     /// Live events of lifts held here not published because no other process watches them.
     pub events_unwatched: AtomicU64,
+    /// Holder entries of processes that died, deleted by this one.
+    pub swept: AtomicU64,
     /// Watches of lifts held here that lapsed unrenewed (per watching process and lift): that
     /// process's watchers' subscriptions were let go of.
     pub watch_lapsed: AtomicU64,
 }
 
-/// A lift another process holds, as its KV entry says, and since when (the entry's age).
-struct Known {
-    holding: Holding,
-    written: Instant,
-}
-
 /// This process's membership of the cluster.
 pub struct Cluster {
     node: String,
+    /// This life of the process ([`Alive`]).
+    incarnation: u64,
     client: async_nats::Client,
     /// The bucket, once created on the NATS server (again after NATS restarts).
     kv: RwLock<Option<kv::Store>>,
     ttl: Duration,
     request_timeout: Duration,
-    known: Mutex<HashMap<String, Known>>,
+    /// The other processes and the lifts they hold.
+    fleet: Mutex<Fleet>,
     /// The lifts held here: dropping a sender ends its holder task.
     held: Mutex<HashMap<String, watch::Sender<Holding>>>,
     /// The event forwarders running, by lift.
@@ -141,13 +143,15 @@ impl Cluster {
                 why: e.to_string(),
             })?;
         let (events, events_rx) = mpsc::channel(EVENT_QUEUE);
+        let ttl = ttl.max(Duration::from_secs(3));
         let cluster = Arc::new(Cluster {
+            fleet: Mutex::new(Fleet::new(&node, ttl, Instant::now())),
             node,
+            incarnation: rand::random(),
             client,
             kv: RwLock::new(None),
-            ttl: ttl.max(Duration::from_secs(3)),
+            ttl,
             request_timeout,
-            known: Mutex::default(),
             held: Mutex::default(),
             forwarded: Mutex::default(),
             watched: Mutex::default(),
@@ -177,20 +181,18 @@ impl Cluster {
 
     /// How many lifts other processes hold, as far as this one knows.
     pub fn known_count(&self) -> usize {
-        let ttl = self.ttl;
-        lock(&self.known)
-            .values()
-            .filter(|k| k.written.elapsed() < ttl)
-            .count()
+        lock(&self.fleet).held_elsewhere(Instant::now())
+    }
+
+    /// How many processes of the cluster live, this one included (as far as it knows).
+    pub fn processes(&self) -> usize {
+        1 + lock(&self.fleet).others_alive(Instant::now())
     }
 
     /// The holder entry of a lift another process holds (`None`: not held elsewhere, or its
-    /// entry expired unrefreshed: the holder died).
+    /// holder's lease lapsed: the holder died).
     pub fn holding(&self, lift: &str) -> Option<Holding> {
-        lock(&self.known)
-            .get(lift)
-            .filter(|k| k.written.elapsed() < self.ttl)
-            .map(|k| k.holding.clone())
+        lock(&self.fleet).holding(lift, Instant::now()).cloned()
     }
 
     fn kv(&self) -> Option<kv::Store> {
@@ -213,7 +215,7 @@ impl Cluster {
 
     /// How long a holder publishes a lift's live events, and keeps the subscriptions of the
     /// watchers of a process, after that process last asked ([`Relayed::Watch`]): twice the
-    /// holder entries' TTL, six renewals.
+    /// holder TTL (`[cluster] holder_ttl_s`), six renewals.
     fn lease(&self) -> Duration {
         self.ttl * 2
     }
@@ -230,17 +232,20 @@ impl Cluster {
     }
 
     /// Keep the bucket and this process's view of it: create the bucket whenever NATS is
-    /// (again) reachable, then follow every entry until the connection is lost.
+    /// (again) reachable, renew this process's lease, then follow every entry until the
+    /// connection is lost.
     pub async fn run(self: Arc<Self>, registry: Weak<Registry>) {
+        tokio::spawn(self.clone().keep_alive());
+        tokio::spawn(self.clone().sweep_watches());
         let js = jetstream::new(self.client.clone());
         // The bucket's stream as the KV convention (NATS ADR-8) lays it out, created directly:
         // `create_key_value` first reads the account's information, which it cannot parse
-        // from the NATS 2.9 of Debian 12.
+        // from the NATS 2.9 of Debian 12. No age limit: an entry stands while its holder's
+        // lease does, and the entries of a process that died are deleted by a living one.
         let config = jetstream::stream::Config {
             name: format!("KV_{}", msgs::BUCKET),
             subjects: vec![format!("$KV.{}.>", msgs::BUCKET)],
             max_messages_per_subject: 1,
-            max_age: self.ttl,
             storage: jetstream::stream::StorageType::Memory,
             discard: jetstream::stream::DiscardPolicy::New,
             allow_rollup: true,
@@ -275,16 +280,30 @@ impl Cluster {
                 }
             };
             *self.kv.write().unwrap_or_else(PoisonError::into_inner) = Some(store.clone());
+            // The lease before the entries: other processes take them for held once it is there.
+            self.renew(&store).await;
             if std::mem::take(&mut reconnected) {
                 self.generation.send_modify(|g| *g += 1);
             }
-            let mut prune = tokio::time::interval(self.ttl);
-            match store.watch_all().await {
+            lock(&self.fleet).rewatch(Instant::now());
+            let mut sweep = tokio::time::interval(self.renewal());
+            let mut catching_up = true;
+            // Every key's last entry first (`watch_all` would deliver only what is written
+            // from now on), then each change.
+            match store.watch_with_history(">").await {
                 Ok(mut entries) => loop {
                     tokio::select! {
-                        _ = prune.tick() => self.forget_expired(),
+                        _ = sweep.tick() => self.sweep(&store),
                         entry = entries.next() => match entry {
-                            Some(Ok(entry)) => self.learn(entry, &registry),
+                            Some(Ok(entry)) => {
+                                // The first entry past the bucket's contents when the watch
+                                // began (there is one: this process's lease).
+                                let current = entry.seen_current;
+                                self.learn(entry, &registry);
+                                if current && std::mem::take(&mut catching_up) {
+                                    lock(&self.fleet).caught_up();
+                                }
+                            }
                             Some(Err(e)) => {
                                 tracing::warn!(error = %e, "NATS: holder entries interrupted");
                                 break;
@@ -296,25 +315,94 @@ impl Cluster {
                 },
                 Err(e) => tracing::warn!(error = %e, "NATS: cannot follow holder entries"),
             }
-            self.forget_expired();
             tokio::time::sleep(Duration::from_millis(200)).await;
         }
     }
 
-    /// Entries that expired unrefreshed go (the KV drops them without telling watchers).
-    fn forget_expired(&self) {
-        let ttl = self.ttl;
-        lock(&self.known).retain(|_, k| k.written.elapsed() < ttl);
+    /// Renew this process's lease every third of the TTL while NATS is reachable.
+    async fn keep_alive(self: Arc<Self>) {
+        let mut renew = tokio::time::interval(self.renewal());
+        loop {
+            renew.tick().await;
+            if let Some(kv) = self.kv().filter(|_| self.connected()) {
+                self.renew(&kv).await;
+            }
+        }
     }
 
-    /// An entry changed: remember another process's holding; if it is of a newer connection
-    /// than one held here, close that one (the gateway moved).
-    fn learn(self: &Arc<Self>, entry: kv::Entry, registry: &Weak<Registry>) {
-        let Some(lift) = msgs::lift_of(&entry.key) else {
+    async fn renew(&self, kv: &kv::Store) {
+        let alive = Alive {
+            incarnation: self.incarnation,
+        };
+        let Ok(value) = serde_json::to_vec(&alive) else {
             return;
         };
+        let key = Key::Process(self.node.clone()).encode();
+        if let Err(e) = kv.put(key, value.into()).await {
+            tracing::warn!(error = %e, "NATS: lease not renewed");
+        }
+    }
+
+    /// Delete the entries left of processes that died, when this process is the one that
+    /// sweeps ([`Fleet::sweep`]), each at the revision it saw (a lift that connected again
+    /// meanwhile keeps its new entry).
+    fn sweep(self: &Arc<Self>, kv: &kv::Store) {
+        let dead = lock(&self.fleet).sweep(Instant::now());
+        if dead.is_empty() {
+            return;
+        }
+        tracing::info!(
+            entries = dead.len(),
+            "NATS: deleting the holder entries of processes that died"
+        );
+        let (kv, cluster) = (kv.clone(), self.clone());
+        tokio::spawn(async move {
+            for (lift, revision) in dead {
+                let key = Key::Lift(lift).encode();
+                if kv.delete_expect_revision(key, Some(revision)).await.is_ok() {
+                    cluster.counters.swept.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+        });
+    }
+
+    /// The processes whose watch of a lift held here lapsed let go of their watchers'
+    /// subscriptions, swept every third of the TTL (also while NATS is unreachable: then no
+    /// process can renew its watch).
+    async fn sweep_watches(self: Arc<Self>) {
+        let mut sweep = tokio::time::interval(self.renewal());
+        loop {
+            sweep.tick().await;
+            let lapsed = lock(&self.watched).lapsed_all(Instant::now());
+            for (lift, processes) in lapsed {
+                self.release_lapsed(lift, processes);
+            }
+        }
+    }
+
+    /// An entry changed. Another process's lease: noted. Another process's holding of a lift:
+    /// remembered; if it is of a newer connection than one held here, that one is closed (the
+    /// gateway moved), if of an older one, the holder here writes its entry again. This
+    /// process's own entry that is not of a connection it holds (left from before NATS was
+    /// lost, or from an earlier life): deleted.
+    fn learn(self: &Arc<Self>, entry: kv::Entry, registry: &Weak<Registry>) {
+        let lift = match Key::decode(&entry.key) {
+            Some(Key::Lift(lift)) => lift,
+            Some(Key::Process(node)) => {
+                if entry.operation == kv::Operation::Put {
+                    if let Ok(alive) = serde_json::from_slice::<Alive>(&entry.value) {
+                        let written = self.written(&entry);
+                        lock(&self.fleet).lease(&node, alive.incarnation, written);
+                    }
+                }
+                return;
+            }
+            None => return,
+        };
         if entry.operation != kv::Operation::Put {
-            lock(&self.known).remove(&lift);
+            lock(&self.fleet).remove(&lift);
+            // Deleted while held here (by a sweep that took this process for dead): again.
+            self.rewrite(&lift);
             return;
         }
         let Ok(holding) = serde_json::from_slice::<Holding>(&entry.value) else {
@@ -322,32 +410,79 @@ impl Cluster {
             return;
         };
         if holding.node == self.node {
-            lock(&self.known).remove(&lift);
+            lock(&self.fleet).remove(&lift);
+            let ours = lock(&self.held).get(&lift).map(|h| h.borrow().epoch);
+            match ours {
+                Some(epoch)
+                    if epoch == holding.epoch && holding.incarnation == self.incarnation => {}
+                Some(_) => self.rewrite(&lift),
+                None => self.delete_stale(&entry),
+            }
             return;
         }
         if let Some(registry) = registry.upgrade() {
             if registry.taken_over(&lift, &holding) {
                 self.counters.replaced.fetch_add(1, Ordering::Relaxed);
+            } else {
+                // An older connection's late entry over the one of a lift held here.
+                self.rewrite(&lift);
             }
         }
-        let age = (time::OffsetDateTime::now_utc() - entry.created).clamp(
-            time::Duration::ZERO,
-            time::Duration::try_from(self.ttl).unwrap_or(time::Duration::ZERO),
-        );
-        let written = Instant::now()
-            .checked_sub(Duration::try_from(age).unwrap_or_default())
-            .unwrap_or_else(Instant::now);
         let connection = (holding.node.clone(), holding.epoch);
-        let before = lock(&self.known).insert(lift.clone(), Known { holding, written });
-        // A new connection (not a refresh): the watchers here ask its holder for their live
-        // events and their objects — the objects when the holder answers that the watch is new
-        // to it, which a new holder always does (one hand-over per move, not two).
-        if before.is_none_or(|k| (k.holding.node, k.holding.epoch) != connection) {
+        let before = lock(&self.fleet).put(&lift, holding, entry.revision);
+        // A new connection (not a status change): the watchers here ask its holder for their
+        // live events and their objects — the objects when the holder answers that the watch
+        // is new to it, which a new holder always does (one hand-over per move, not two).
+        if before.is_none_or(|b| (b.node, b.epoch) != connection) {
             if lock(&self.forwarded).contains_key(&lift) {
                 tokio::spawn(self.clone().ask_to_publish(lift));
             } else if let Some(subscriptions) = self.subscriptions() {
                 subscriptions.moved(&lift);
             }
+        }
+    }
+
+    /// When an entry was written, by its age as the NATS server tells it (clamped to the TTL:
+    /// older is as good as expired).
+    fn written(&self, entry: &kv::Entry) -> Instant {
+        let age = (time::OffsetDateTime::now_utc() - entry.created).clamp(
+            time::Duration::ZERO,
+            time::Duration::try_from(self.ttl).unwrap_or(time::Duration::ZERO),
+        );
+        Instant::now()
+            .checked_sub(Duration::try_from(age).unwrap_or_default())
+            .unwrap_or_else(Instant::now)
+    }
+
+    /// The holder of `lift` here, if any, writes its entry again (over what it finds).
+    fn rewrite(&self, lift: &str) {
+        if let Some(holding) = lock(&self.held).get(lift) {
+            holding.send_modify(|_| {});
+        }
+    }
+
+    /// Delete an entry of this process that is of no connection it holds.
+    fn delete_stale(&self, entry: &kv::Entry) {
+        let Some(kv) = self.kv() else {
+            return;
+        };
+        let (key, revision) = (entry.key.clone(), entry.revision);
+        tokio::spawn(async move {
+            let _ = kv.delete_expect_revision(key, Some(revision)).await;
+        });
+    }
+
+    /// The entry of a connection admitted here at `epoch`, of a lift of account `domain`
+    /// whose gateway has serial number `sernum`.
+    pub(crate) fn entry(&self, epoch: u64, domain: String, sernum: String) -> Holding {
+        Holding {
+            node: self.node.clone(),
+            incarnation: self.incarnation,
+            epoch,
+            domain,
+            sernum,
+            error_register: None,
+            lift_state: None,
         }
     }
 
@@ -381,14 +516,16 @@ impl Cluster {
         }
     }
 
-    /// A held lift's task: its entry written and refreshed, its requests answered.
+    /// A held lift's task: its entry written (again when its status changes, when NATS is
+    /// back, when another write got over it, and after a write that failed), its requests
+    /// answered.
     async fn holder(
         self: Arc<Self>,
         registry: Arc<Registry>,
         lift: String,
         mut holding: watch::Receiver<Holding>,
     ) {
-        let key = msgs::token(&lift);
+        let key = Key::Lift(lift.clone()).encode();
         let mut generation = self.generation.subscribe();
         let mut rpc = match self.client.subscribe(msgs::rpc_subject(&lift)).await {
             Ok(rpc) => Some(rpc),
@@ -399,21 +536,17 @@ impl Cluster {
         };
         let current = holding.borrow_and_update().clone();
         let mut written = self.write(&key, &current, None).await;
-        // Spread over the period, so that a process holding thousands does not write them
-        // all at once.
-        let period = self.ttl / 3;
-        let first = period.mul_f64(rand::random::<f64>());
-        let mut refresh = tokio::time::interval_at(tokio::time::Instant::now() + first, period);
         loop {
+            // A write that failed on a live connection is tried again (after NATS was lost,
+            // the generation's change writes it): within a second or two, spread.
+            let retry = matches!(written, Written::Not) && self.connected();
+            let pause = Duration::from_millis(1_000 + rand::random::<u64>() % 1_000);
             let write_from = tokio::select! {
                 changed = holding.changed() => match changed {
                     Ok(()) => written,
                     Err(_) => break,
                 },
-                _ = refresh.tick() => {
-                    self.release_lapsed(&lift);
-                    written
-                }
+                _ = tokio::time::sleep(pause), if retry => Written::Not,
                 _ = generation.changed() => Written::Not,
                 Some(message) = next_message(&mut rpc) => {
                     tokio::spawn(answer(self.clone(), registry.clone(), lift.clone(), message));
@@ -473,7 +606,7 @@ impl Cluster {
                 }
             }
             Err(e) => {
-                tracing::debug!(key, error = %e, "NATS: holder entry not refreshed");
+                tracing::debug!(key, error = %e, "NATS: holder entry not written");
                 Written::At(revision)
             }
         }
@@ -542,15 +675,13 @@ impl Cluster {
 
     /// The processes whose watch of the held `lift` lapsed let go of their watchers'
     /// subscriptions (in the background): they died, or lost NATS for longer than the lease.
-    fn release_lapsed(&self, lift: &str) {
-        let lapsed = lock(&self.watched).lapsed(lift, Instant::now());
+    fn release_lapsed(&self, lift: String, lapsed: Vec<u64>) {
         self.counters
             .watch_lapsed
             .fetch_add(lapsed.len() as u64, Ordering::Relaxed);
-        let Some(subscriptions) = self.subscriptions().filter(|_| !lapsed.is_empty()) else {
+        let Some(subscriptions) = self.subscriptions() else {
             return;
         };
-        let lift = lift.to_owned();
         tokio::spawn(async move {
             for process in lapsed {
                 tracing::debug!(%lift, process = process >> 32, "a watching process's lease lapsed");
@@ -700,23 +831,24 @@ impl Leases {
             .is_some_and(|leases| leases.values().any(|until| *until > now))
     }
 
-    /// The processes whose lease of `lift` ran out by `now`, forgotten.
-    fn lapsed(&mut self, lift: &str, now: Instant) -> Vec<u64> {
-        let Some(leases) = self.0.get_mut(lift) else {
-            return Vec::new();
-        };
-        let mut lapsed = Vec::new();
-        leases.retain(|process, until| {
-            let running = *until > now;
-            if !running {
-                lapsed.push(*process);
+    /// Per lift, the processes whose lease ran out by `now`, forgotten.
+    fn lapsed_all(&mut self, now: Instant) -> Vec<(String, Vec<u64>)> {
+        let mut lapsed_all = Vec::new();
+        self.0.retain(|lift, leases| {
+            let mut lapsed = Vec::new();
+            leases.retain(|process, until| {
+                let running = *until > now;
+                if !running {
+                    lapsed.push(*process);
+                }
+                running
+            });
+            if !lapsed.is_empty() {
+                lapsed_all.push((lift.clone(), lapsed));
             }
-            running
+            !leases.is_empty()
         });
-        if leases.is_empty() {
-            self.0.remove(lift);
-        }
-        lapsed
+        lapsed_all
     }
 
     /// `lift` is no longer held here: its leases go with it.
@@ -822,6 +954,15 @@ mod tests {
 
     const LEASE: Duration = Duration::from_secs(30);
 
+    /// The processes whose lease of lift `L` lapsed by `now`.
+    fn lapsed(leases: &mut Leases, now: Instant) -> Vec<u64> {
+        let mut all = leases.lapsed_all(now);
+        assert!(all.iter().all(|(lift, _)| lift == "L"));
+        all.pop()
+            .map(|(_, processes)| processes)
+            .unwrap_or_default()
+    }
+
     #[test]
     fn a_lease_runs_until_it_lapses_per_process() {
         let t0 = Instant::now();
@@ -833,16 +974,16 @@ mod tests {
         assert!(leases.grant("L", a, second(10), LEASE), "renewed in time");
         assert!(!leases.grant("L", b, second(20), LEASE));
         assert!(leases.any("L", second(39)));
-        assert!(leases.lapsed("L", second(39)).is_empty());
+        assert!(lapsed(&mut leases, second(39)).is_empty());
         // a's lease (renewed at 10 s) ends at 40 s, b's at 50 s.
-        assert_eq!(leases.lapsed("L", second(40)), vec![a]);
+        assert_eq!(lapsed(&mut leases, second(40)), vec![a]);
         assert!(leases.any("L", second(45)));
         assert!(
             !leases.grant("L", a, second(45), LEASE),
             "lapsed: new again"
         );
-        assert_eq!(leases.lapsed("L", second(50)), vec![b]);
-        assert_eq!(leases.lapsed("L", second(80)), vec![a]);
+        assert_eq!(lapsed(&mut leases, second(50)), vec![b]);
+        assert_eq!(lapsed(&mut leases, second(80)), vec![a]);
         assert!(leases.0.is_empty(), "an unwatched lift takes no entry");
         assert!(!leases.any("L", second(80)));
     }
@@ -855,6 +996,6 @@ mod tests {
         assert!(!leases.grant("L", 1 << 32, t0 + LEASE, LEASE));
         leases.forget("L");
         assert!(!leases.any("L", t0));
-        assert!(leases.lapsed("L", t0 + LEASE * 3).is_empty());
+        assert!(lapsed(&mut leases, t0 + LEASE * 3).is_empty());
     }
 }

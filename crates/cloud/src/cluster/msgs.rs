@@ -9,8 +9,9 @@ use serde_json::value::RawValue;
 
 use crate::gateways::subscriptions::Holder;
 
-/// The KV bucket of holder entries.
-pub const BUCKET: &str = "canlift-lifts";
+/// The KV bucket of holder entries (`lift.<token>`, a [`Holding`]) and of the processes'
+/// leases (`process.<token>`, an [`Alive`]).
+pub const BUCKET: &str = "canlift-holders";
 
 /// The NATS header naming the process that published a lift event (a process skips its own).
 pub const ORIGIN: &str = "Canlift-Node";
@@ -21,6 +22,9 @@ pub const ORIGIN: &str = "Canlift-Node";
 pub struct Holding {
     /// The holding process (`[cluster] node`).
     pub node: String,
+    /// Which life of that process: the entry stands while the process's lease ([`Alive`])
+    /// names the same one, and no longer once it lapsed or the process started again.
+    pub incarnation: u64,
     /// The connection's epoch: µs since the Unix epoch when it was admitted, so a newer
     /// connection of the lift has the larger one, whichever process took it.
     pub epoch: u64,
@@ -44,6 +48,45 @@ impl Holding {
     }
 }
 
+/// The value of a process's key in [`BUCKET`], written every third of `[cluster]
+/// holder_ttl_s` while the process lives: the lifts it holds are held while this is fresh
+/// (written less than `holder_ttl_s` ago) and names the incarnation their entries name. One
+/// lease per process instead of a refresh per lift: holding 100,000 lifts costs the cluster a
+/// few writes per second, not tens of thousands.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Alive {
+    /// This life of the process: random, chosen when it starts.
+    pub incarnation: u64,
+}
+
+/// What a key of [`BUCKET`] names.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Key {
+    /// A lift's holder entry.
+    Lift(String),
+    /// A process's lease, by node name.
+    Process(String),
+}
+
+impl Key {
+    /// The key as written in the bucket.
+    pub fn encode(&self) -> String {
+        match self {
+            Key::Lift(lift) => format!("lift.{}", token(lift)),
+            Key::Process(node) => format!("process.{}", token(node)),
+        }
+    }
+
+    /// What `key` names; `None` for a key no portal wrote.
+    pub fn decode(key: &str) -> Option<Key> {
+        match key.split_once('.')? {
+            ("lift", rest) => lift_of(rest).map(Key::Lift),
+            ("process", rest) => lift_of(rest).map(Key::Process),
+            _ => None,
+        }
+    }
+}
+
 /// What another process asks of a lift's holder on [`rpc_subject`]. Externally tagged
 /// (`{"call": …}`): a call's raw parameters pass through untouched, which serde's buffering of
 /// internally tagged enums would not allow.
@@ -58,7 +101,7 @@ pub enum Relayed {
     /// A holder there lets go of subscriptions.
     Release(RelayedRelease),
     /// Someone there watches the lift's live events: the holder publishes them on
-    /// [`events_subject`] for a lease (twice the holder entries' TTL), which the watching
+    /// [`events_subject`] for a lease (twice `[cluster] holder_ttl_s`), which the watching
     /// process renews three times per TTL (and at once when the lift moves or NATS comes
     /// back). Unwatched, nothing is published; when the lease of a process lapses (it died, or
     /// lost NATS for longer), the holder also lets go of its watchers' subscriptions. The holder
@@ -183,7 +226,7 @@ impl RelayedAnswer {
     }
 }
 
-/// A lift id as one KV key and one subject token: letters, digits and `-` as they are, every
+/// A lift id (or a node name) as one KV key token and one subject token: letters, digits and `-` as they are, every
 /// other byte as `_` and two hex digits (a serial number may hold dots, spaces or `*`, which
 /// NATS reserves).
 pub fn token(lift: &str) -> String {
@@ -198,7 +241,7 @@ pub fn token(lift: &str) -> String {
     out
 }
 
-/// The lift id of a [`token`]; `None` for a key no portal wrote.
+/// The lift id (or node name) of a [`token`]; `None` for a token no portal wrote.
 pub fn lift_of(token: &str) -> Option<String> {
     let mut bytes = Vec::with_capacity(token.len());
     let mut rest = token.as_bytes();
@@ -237,6 +280,18 @@ mod tests {
         assert_eq!(lift_of("a_2Eb").as_deref(), Some("a.b"));
         assert_eq!(lift_of("a_2"), None);
         assert_eq!(lift_of("a_ZZ"), None);
+    }
+
+    #[test]
+    fn keys_name_lifts_and_processes() {
+        let lift = Key::Lift("1050-4097-SN 1.2".into());
+        assert_eq!(lift.encode(), "lift.1050-4097-SN_201_2E2");
+        assert_eq!(Key::decode(&lift.encode()), Some(lift));
+        let process = Key::Process("portal.example:8443".into());
+        assert_eq!(process.encode(), "process.portal_2Eexample_3A8443");
+        assert_eq!(Key::decode(&process.encode()), Some(process));
+        assert_eq!(Key::decode("other.x"), None);
+        assert_eq!(Key::decode("lift"), None);
     }
 
     proptest! {
@@ -315,6 +370,7 @@ mod tests {
     fn the_newer_holding_wins_everywhere_alike() {
         let a = Holding {
             node: "a".into(),
+            incarnation: 1,
             epoch: 5,
             domain: "d".into(),
             sernum: "s".into(),

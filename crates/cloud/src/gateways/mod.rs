@@ -373,14 +373,11 @@ impl Registry {
     fn register(self: &Arc<Self>, lift: &str, connect: &nxg::msg::Connect, calls: Calls) -> u64 {
         let serial = self.next_epoch();
         if let Some(cluster) = self.cluster.get() {
-            let holding = Holding {
-                node: cluster.node().to_owned(),
-                epoch: serial,
-                domain: connect.domaintoken.clone(),
-                sernum: connect.identity.sernum.clone(),
-                error_register: None,
-                lift_state: None,
-            };
+            let holding = cluster.entry(
+                serial,
+                connect.domaintoken.clone(),
+                connect.identity.sernum.clone(),
+            );
             cluster.hold(self.clone(), lift, holding);
         }
         let old = self

@@ -1,0 +1,306 @@
+//! What one portal process knows of the others (docs/CLUSTER.md §Holder entries): the lifts
+//! they hold, as their entries in the bucket say, and which of them live, as their leases say.
+//! Sans-IO: fed the bucket's entries and the time, it answers who holds a lift and which
+//! entries are left of processes that died. An entry is written when a connection is admitted
+//! (and when the lift's status changes), never refreshed: it stands while its process's lease
+//! is fresh and names the entry's incarnation.
+
+use std::collections::HashMap;
+use std::time::{Duration, Instant};
+
+use super::msgs::Holding;
+
+/// A lift another process holds, by its entry.
+#[derive(Debug, Clone)]
+struct Entry {
+    holding: Holding,
+    /// The entry's revision in the bucket (a sweep deletes only that one).
+    revision: u64,
+    /// The watch that last delivered it ([`Fleet::rewatch`]).
+    watch: u64,
+    /// Handed to a sweep already: not again.
+    swept: bool,
+}
+
+/// A process's lease as last written.
+#[derive(Debug, Clone, Copy)]
+struct Lease {
+    incarnation: u64,
+    written: Instant,
+    watch: u64,
+}
+
+/// This process's view of the other processes and the lifts they hold.
+#[derive(Debug)]
+pub(crate) struct Fleet {
+    /// This process's node name: its own entries and lease are not kept here.
+    node: String,
+    /// How long a lease stands unrenewed (`[cluster] holder_ttl_s`).
+    ttl: Duration,
+    lifts: HashMap<String, Entry>,
+    leases: HashMap<String, Lease>,
+    /// The current watch of the bucket (counted from 1), since when it runs, and whether it
+    /// has delivered what the bucket held when it began.
+    watch: u64,
+    watching_since: Instant,
+    caught_up: bool,
+}
+
+impl Fleet {
+    /// An empty view for process `node` whose leases last `ttl`.
+    pub(crate) fn new(node: &str, ttl: Duration, now: Instant) -> Fleet {
+        Fleet {
+            node: node.to_owned(),
+            ttl,
+            lifts: HashMap::new(),
+            leases: HashMap::new(),
+            watch: 0,
+            watching_since: now,
+            caught_up: false,
+        }
+    }
+
+    /// Whether the process that wrote `holding` lives: its lease is fresh and of the same
+    /// incarnation.
+    fn alive(&self, holding: &Holding, now: Instant) -> bool {
+        self.leases.get(&holding.node).is_some_and(|lease| {
+            lease.incarnation == holding.incarnation
+                && now.saturating_duration_since(lease.written) < self.ttl
+        })
+    }
+
+    /// The entry of `lift` when another process holds it and lives.
+    pub(crate) fn holding(&self, lift: &str, now: Instant) -> Option<&Holding> {
+        self.lifts
+            .get(lift)
+            .map(|e| &e.holding)
+            .filter(|h| self.alive(h, now))
+    }
+
+    /// How many lifts living processes other than this one hold.
+    pub(crate) fn held_elsewhere(&self, now: Instant) -> usize {
+        self.lifts
+            .values()
+            .filter(|e| self.alive(&e.holding, now))
+            .count()
+    }
+
+    /// How many other processes live.
+    pub(crate) fn others_alive(&self, now: Instant) -> usize {
+        self.leases
+            .values()
+            .filter(|l| now.saturating_duration_since(l.written) < self.ttl)
+            .count()
+    }
+
+    /// Another process's entry of `lift` at `revision`; returns the one it replaces.
+    pub(crate) fn put(&mut self, lift: &str, holding: Holding, revision: u64) -> Option<Holding> {
+        let entry = Entry {
+            holding,
+            revision,
+            watch: self.watch,
+            swept: false,
+        };
+        self.lifts.insert(lift.to_owned(), entry).map(|e| e.holding)
+    }
+
+    /// The entry of `lift` was deleted (or is this process's own).
+    pub(crate) fn remove(&mut self, lift: &str) {
+        self.lifts.remove(lift);
+    }
+
+    /// `node` renewed its lease for `incarnation`; `written` is when (by the entry's age).
+    pub(crate) fn lease(&mut self, node: &str, incarnation: u64, written: Instant) {
+        if node == self.node {
+            return;
+        }
+        let lease = Lease {
+            incarnation,
+            written,
+            watch: self.watch,
+        };
+        self.leases.insert(node.to_owned(), lease);
+    }
+
+    /// A new watch of the bucket begins (after NATS was lost, or the watch broke): what it
+    /// delivers replaces what the last one did, once it has delivered all ([`Fleet::caught_up`]).
+    pub(crate) fn rewatch(&mut self, now: Instant) {
+        self.watch += 1;
+        self.watching_since = now;
+        self.caught_up = false;
+    }
+
+    /// The new watch delivered every entry the bucket had: forget the ones it did not (deleted,
+    /// or lost with a NATS server that restarted, while this process was not watching).
+    pub(crate) fn caught_up(&mut self) {
+        let watch = self.watch;
+        self.caught_up = true;
+        self.lifts.retain(|_, e| e.watch == watch);
+        self.leases.retain(|_, l| l.watch == watch);
+    }
+
+    /// The entries left of processes that died (lease lapsed, or the process started again
+    /// as another incarnation), each once, to be deleted at their revision — when this process
+    /// is the one that sweeps: the first by name of those alive, so that one process deletes
+    /// them, not all. Nothing until the watch has delivered the bucket's contents and run for
+    /// a lease's time (a lease not yet delivered, or not yet renewed since, is not a lapsed one).
+    pub(crate) fn sweep(&mut self, now: Instant) -> Vec<(String, u64)> {
+        if !self.caught_up || now.saturating_duration_since(self.watching_since) < self.ttl {
+            return Vec::new();
+        }
+        let sweeper = self
+            .leases
+            .iter()
+            .filter(|(_, l)| now.saturating_duration_since(l.written) < self.ttl)
+            .all(|(node, _)| *node > self.node);
+        if !sweeper {
+            return Vec::new();
+        }
+        let (leases, ttl) = (&self.leases, self.ttl);
+        let alive = |h: &Holding| {
+            leases.get(&h.node).is_some_and(|l| {
+                l.incarnation == h.incarnation && now.saturating_duration_since(l.written) < ttl
+            })
+        };
+        let mut dead = Vec::new();
+        for (lift, entry) in &mut self.lifts {
+            if !entry.swept && !alive(&entry.holding) {
+                entry.swept = true;
+                dead.push((lift.clone(), entry.revision));
+            }
+        }
+        dead
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const TTL: Duration = Duration::from_secs(15);
+
+    fn holding(node: &str, incarnation: u64, epoch: u64) -> Holding {
+        Holding {
+            node: node.into(),
+            incarnation,
+            epoch,
+            domain: "D".into(),
+            sernum: "S".into(),
+            error_register: None,
+            lift_state: None,
+        }
+    }
+
+    /// A view of `p1` watching since `t0`, which knows `p2` (incarnation 7) alive at `t0`.
+    fn fleet(t0: Instant) -> Fleet {
+        let mut fleet = Fleet::new("p1", TTL, t0);
+        fleet.rewatch(t0);
+        fleet.lease("p2", 7, t0);
+        fleet.caught_up();
+        fleet
+    }
+
+    #[test]
+    fn a_lift_is_held_while_its_process_renews_its_lease() {
+        let t0 = Instant::now();
+        let at = |s: u64| t0 + Duration::from_secs(s);
+        let mut fleet = fleet(t0);
+        fleet.put("L", holding("p2", 7, 1), 1);
+        assert_eq!(fleet.holding("L", at(14)).map(|h| h.epoch), Some(1));
+        assert_eq!(fleet.held_elsewhere(at(14)), 1);
+        assert!(fleet.holding("L", at(15)).is_none(), "the lease lapsed");
+        assert_eq!(fleet.held_elsewhere(at(15)), 0);
+        assert_eq!(fleet.others_alive(at(15)), 0);
+        fleet.lease("p2", 7, at(16));
+        assert!(
+            fleet.holding("L", at(16)).is_some(),
+            "renewed late: held again"
+        );
+        fleet.remove("L");
+        assert!(fleet.holding("L", at(16)).is_none());
+    }
+
+    #[test]
+    fn a_process_started_again_holds_none_of_its_earlier_lifts() {
+        let t0 = Instant::now();
+        let mut fleet = fleet(t0);
+        fleet.put("old", holding("p2", 7, 1), 1);
+        fleet.lease("p2", 8, t0);
+        assert!(fleet.holding("old", t0).is_none());
+        fleet.put("new", holding("p2", 8, 2), 2);
+        assert!(fleet.holding("new", t0).is_some());
+        assert_eq!(fleet.others_alive(t0), 1);
+    }
+
+    #[test]
+    fn a_lift_without_a_lease_seen_is_not_held() {
+        let t0 = Instant::now();
+        let mut fleet = fleet(t0);
+        fleet.put("L", holding("p3", 1, 1), 1);
+        assert!(fleet.holding("L", t0).is_none());
+        fleet.lease("p1", 1, t0);
+        assert_eq!(fleet.others_alive(t0), 1, "its own lease is not kept");
+    }
+
+    #[test]
+    fn the_first_living_process_by_name_sweeps_the_dead_ones_entries_once() {
+        let t0 = Instant::now();
+        let at = |s: u64| t0 + Duration::from_secs(s);
+        let mut fleet = fleet(t0);
+        fleet.lease("p0", 1, t0);
+        fleet.put("a", holding("p2", 7, 1), 11);
+        fleet.put("b", holding("p3", 1, 1), 12);
+        fleet.put("c", holding("p0", 1, 1), 13);
+        assert!(fleet.sweep(at(10)).is_empty(), "not before a lease's time");
+        // p0 lives and comes first: it sweeps, not p1.
+        fleet.lease("p0", 1, at(14));
+        assert!(fleet.sweep(at(16)).is_empty());
+        // p0's lease lapsed too: p1 is the first alive, and p2 and p3 are dead.
+        let mut dead = fleet.sweep(at(30));
+        dead.sort();
+        assert_eq!(
+            dead,
+            vec![("a".into(), 11), ("b".into(), 12), ("c".into(), 13)]
+        );
+        assert!(fleet.sweep(at(31)).is_empty(), "each once");
+        fleet.put("a", holding("p2", 7, 1), 14);
+        assert_eq!(fleet.sweep(at(32)), vec![("a".into(), 14)], "written again");
+        // A new watch sweeps nothing before it has caught up and run for a lease's time.
+        fleet.rewatch(at(40));
+        fleet.put("d", holding("p2", 7, 1), 15);
+        assert!(fleet.sweep(at(60)).is_empty(), "not caught up");
+        fleet.caught_up();
+        assert!(fleet.sweep(at(50)).is_empty(), "not a lease's time");
+        assert_eq!(fleet.sweep(at(60)), vec![("d".into(), 15)]);
+    }
+
+    #[test]
+    fn a_new_watch_replaces_what_the_last_one_delivered_once_caught_up() {
+        let t0 = Instant::now();
+        let mut fleet = fleet(t0);
+        fleet.put("gone", holding("p2", 7, 1), 1);
+        fleet.put("kept", holding("p2", 7, 2), 2);
+        fleet.rewatch(t0);
+        assert!(
+            fleet.holding("gone", t0).is_some(),
+            "served until caught up"
+        );
+        fleet.lease("p2", 7, t0);
+        fleet.put("kept", holding("p2", 7, 2), 2);
+        fleet.caught_up();
+        assert!(fleet.holding("gone", t0).is_none());
+        assert!(
+            fleet.put("gone", holding("p2", 7, 1), 3).is_none(),
+            "forgotten"
+        );
+        fleet.remove("gone");
+        assert!(fleet.holding("kept", t0).is_some());
+        fleet.rewatch(t0);
+        fleet.put("kept", holding("p2", 7, 2), 2);
+        fleet.caught_up();
+        assert!(
+            fleet.holding("kept", t0).is_none(),
+            "p2's lease was not delivered again"
+        );
+    }
+}
