@@ -80,6 +80,11 @@ pub struct DatabaseSection {
     /// while the database is unreachable further values are dropped and counted
     /// (`canlift_telemetry_dropped_total`).
     pub telemetry_queue: usize,
+    /// Connections to PostgreSQL this process opens at most (two more write telemetry). In a
+    /// cluster every process opens as many: processes × (this + 2) must stay below the
+    /// server's `max_connections` minus `superuser_reserved_connections` (100 − 3 by default),
+    /// or PostgreSQL refuses connections while the pools grow under load. SQLite takes 4.
+    pub connections: u32,
 }
 
 impl Default for DatabaseSection {
@@ -89,6 +94,7 @@ impl Default for DatabaseSection {
             telemetry_days: 30,
             events_days: 90,
             telemetry_queue: 65_536,
+            connections: crate::store::POSTGRES_CONNECTIONS,
         }
     }
 }

@@ -220,12 +220,24 @@ impl Portal {
     pub async fn bind(config: &Config, names: ObjectNames) -> Result<Portal, ServerError> {
         std::fs::create_dir_all(&config.state.dir)
             .map_err(|e| ServerError::Other(format!("{}: {e}", config.state.dir.display())))?;
-        let store = Store::open(&config.database_url()).await?;
+        let store = Store::open_pooled(&config.database_url(), config.database.connections).await?;
         let (tickets, follow_tickets) = ticket_keys(config, &store).await?;
         let tls = server_tls(config, tickets)?;
         let registry = Arc::new(Registry::default());
         let mut tasks: Vec<_> = follow_tickets.into_iter().collect();
         if let Some(url) = &config.cluster.nats {
+            // Told at start: past PostgreSQL's limit the pools fail under load, not now.
+            let wanted = i64::from(config.database.connections) + 2;
+            if let Ok(Some(free)) = store.free_connections().await {
+                if free + 1 < wanted {
+                    tracing::warn!(
+                        free,
+                        wanted,
+                        "PostgreSQL takes fewer connections than this process may open: lower \
+                         [database] connections or raise max_connections (docs/CLUSTER.md)"
+                    );
+                }
+            }
             join_cluster(config, url, &registry, &mut tasks).await?;
         }
         let dashboard = Arc::new(config.dashboard.dashboard().map_err(ServerError::Other)?);

@@ -252,6 +252,18 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
         );
     }
     let key = store.add_account("bench-cluster", &domain).await?;
+    // Every process's pools within what PostgreSQL takes (beyond, it refuses the connections
+    // the pools open under load, each refusal a process start of its own).
+    let free = store.free_connections().await?.unwrap_or(0);
+    let per_process = free / i64::try_from(args.portals)? - 2;
+    let connections = u32::try_from(per_process.clamp(0, 16))?;
+    if connections < 2 {
+        bail!(
+            "PostgreSQL takes {free} more connections: too few for {} portal processes \
+             (raise max_connections)",
+            args.portals
+        );
+    }
     let mut portals = Portals {
         processes: Vec::new(),
         configs: Vec::new(),
@@ -265,6 +277,7 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
         config.cluster.nats = Some(nats.url.clone());
         config.cluster.node = Some(format!("bench-{i}"));
         config.cluster.holder_ttl_s = args.holder_ttl_s;
+        config.database.connections = connections;
         portals
             .processes
             .push(PortalProcess::start_with(&pdir, &config, pki.ca.clone()).await?);
@@ -273,7 +286,8 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
     tokio::time::sleep(Duration::from_secs(1)).await;
     let (base_rss, base_nats) = (portals.rss_kib(), nats.rss_kib());
     println!(
-        "{} portal processes, NATS {}, {} gateways from {} load generators of at most {}",
+        "{} portal processes ({connections} + 2 PostgreSQL connections each of {free} free), \
+         NATS {}, {} gateways from {} load generators of at most {}",
         args.portals, nats.url, args.gateways, layout.loadgens, layout.per
     );
     let exe = std::env::current_exe()?;

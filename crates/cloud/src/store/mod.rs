@@ -370,10 +370,20 @@ const MIGRATIONS: &[(i64, &str)] = &[
     ),
 ];
 
+/// Connections to PostgreSQL a store opens at most by default (`[database] connections`).
+pub const POSTGRES_CONNECTIONS: u32 = 16;
+
 impl Store {
     /// Open (and create) the database at `url`: `sqlite://PATH` (created if missing),
-    /// `sqlite::memory:`, or `postgres://USER:PASSWORD@HOST/DB`.
+    /// `sqlite::memory:`, or `postgres://USER:PASSWORD@HOST/DB` (with
+    /// [`POSTGRES_CONNECTIONS`]).
     pub async fn open(url: &str) -> Result<Store, StoreError> {
+        Store::open_pooled(url, POSTGRES_CONNECTIONS).await
+    }
+
+    /// [`Store::open`] with at most `postgres` connections to PostgreSQL (at least 1; two
+    /// more write telemetry).
+    pub async fn open_pooled(url: &str, postgres: u32) -> Result<Store, StoreError> {
         sqlx::any::install_default_drivers();
         let sqlite = url.starts_with("sqlite:");
         let url = if sqlite && !url.contains(":memory:") && !url.contains('?') {
@@ -385,7 +395,7 @@ impl Store {
         let connections = match (sqlite, url.contains(":memory:")) {
             (_, true) => 1,
             (true, false) => 4,
-            (false, _) => 16,
+            (false, _) => postgres.max(1),
         };
         let pool = AnyPoolOptions::new()
             .max_connections(connections)
@@ -515,6 +525,22 @@ impl Store {
     /// The auth epoch this process has seen.
     pub fn seen_auth_epoch(&self) -> i64 {
         self.epoch.load(std::sync::atomic::Ordering::SeqCst)
+    }
+
+    /// How many more client connections PostgreSQL takes now (`max_connections` less those
+    /// kept for superusers and those open); `None` for SQLite.
+    pub async fn free_connections(&self) -> Result<Option<i64>, StoreError> {
+        if self.copy.is_none() {
+            return Ok(None);
+        }
+        let row = sqlx::query(
+            "SELECT current_setting('max_connections')::bigint \
+             - current_setting('superuser_reserved_connections')::bigint \
+             - (SELECT COUNT(*) FROM pg_stat_activity WHERE backend_type = 'client backend') AS free",
+        )
+        .fetch_one(&self.pool)
+        .await?;
+        Ok(Some(row.try_get::<i64, _>("free")?))
     }
 
     /// Whether an account owns `domain`.
@@ -1011,6 +1037,7 @@ pub(crate) mod tests {
     #[tokio::test]
     async fn sqlite() {
         let store = Store::open("sqlite::memory:").await.unwrap();
+        assert_eq!(store.free_connections().await.unwrap(), None);
         a_large_batch_is_stored_exactly(&store).await;
         records_refresh_rows_and_last_seen_only_moves_forward(&store).await;
         accounts_tokens_and_isolation(store).await;
@@ -1021,7 +1048,10 @@ pub(crate) mod tests {
         let Some(url) = testkit::postgres("store").await else {
             return;
         };
-        let store = Store::open(&url).await.unwrap();
+        let store = Store::open_pooled(&url, 3).await.unwrap();
+        // Other tests share the server, so only a range: this store's own connection counts.
+        let free = store.free_connections().await.unwrap().expect("PostgreSQL");
+        assert!((0..100_000).contains(&free), "{free} free connections");
         a_large_batch_is_stored_exactly(&store).await;
         records_refresh_rows_and_last_seen_only_moves_forward(&store).await;
         accounts_tokens_and_isolation(store).await;
