@@ -536,6 +536,42 @@ async fn a_dead_holder_leaves_no_lift_online() {
     cluster.stop().await;
 }
 
+/// A holder frozen (SIGSTOP) for longer than the holder TTL: the other process takes its lift
+/// for offline and deletes its entry; thawed, the holder renews its lease, sees its entry gone,
+/// writes it again, and every process serves the lift as before.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_holder_frozen_past_its_lease_writes_its_entry_again() {
+    let Some(cluster) = Cluster::start_with("cluster_frozen", 2, 3, "").await else {
+        return;
+    };
+    let pid = cluster.portals[0]
+        .child
+        .as_ref()
+        .and_then(|c| c.id())
+        .expect("p0 runs");
+    let signal = |name: &str| {
+        let status = std::process::Command::new("kill")
+            .args([format!("-{name}"), pid.to_string()])
+            .status()
+            .expect("kill runs");
+        assert!(status.success(), "kill -{name} {pid}");
+    };
+    signal("STOP");
+    until(LIMIT, "p1 deletes the frozen holder's entry", || async {
+        cluster.portals[1]
+            .metric("canlift_cluster_entries_swept_total")
+            .await
+            == 1
+    })
+    .await;
+    assert_eq!(cluster.portals[1].online(&cluster.key).await, 0);
+    signal("CONT");
+    let back = cluster.wait_held_by(0).await;
+    eprintln!("the lift was held again {back:?} after p0 was thawed");
+    assert_eq!(cluster.read(1).await.0, 200, "relayed to the thawed p0");
+    cluster.stop().await;
+}
+
 /// NATS stopped: the holder still serves its lift, the other process answers 503 and reports
 /// itself degraded; NATS started again: full service without restarting a portal.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -2,8 +2,8 @@
 //! PostgreSQL database and one NATS server. Which process holds which lift's gateway is a
 //! JetStream KV entry per lift, written by its holder when it admits the connection and
 //! standing while the holder's one lease in the same bucket is renewed; every process watches
-//! the bucket ([`fleet::Fleet`]). An operator request for a lift held elsewhere travels as NATS
-//! request/reply on the lift's own subject, which only its holder subscribes to; live events
+//! the bucket (its view: `fleet::Fleet`). An operator request for a lift held elsewhere travels
+//! as NATS request/reply on the lift's own subject, which only its holder subscribes to; live events
 //! go out on the lift's events subject to whoever watches it on any process. Without NATS a
 //! process goes on serving the gateways it holds, answers 503 for the others, and writes its
 //! entries again when NATS is back.
