@@ -113,6 +113,13 @@ impl Cluster {
         .await
     }
 
+    /// Wait until `/metrics` of process `index` shows `value` for `name` (naming `what` if
+    /// it does not within the limit); how long it took.
+    async fn until_metric(&self, index: usize, name: &str, value: u64, what: &str) -> Duration {
+        let portal = &self.portals[index];
+        until(LIMIT, what, || async { portal.metric(name).await == value }).await
+    }
+
     /// `METHOD PATH` on process `index` with the lift account's key.
     async fn call(
         &self,
@@ -328,13 +335,14 @@ async fn every_lift_is_served_by_every_process() {
     let sim = testkit::lift::simulator(&bus).await;
     let replacement = gateway::Gateway::bus_node(second).await.expect("a gateway");
     let replacement = testkit::lift::RunningGateway::spawn(replacement);
-    let dropped = until(LIMIT, "p0 drops the old connection", || async {
-        cluster.portals[0]
-            .metric("canlift_cluster_replaced_total")
-            .await
-            == 1
-    })
-    .await;
+    let dropped = cluster
+        .until_metric(
+            0,
+            "canlift_cluster_replaced_total",
+            1,
+            "p0 drops the old connection",
+        )
+        .await;
     eprintln!("p0 dropped its connection {dropped:?} after the gateway connected to p1");
     assert_eq!(
         cluster.portals[0].metric("canlift_gateways_online").await,
@@ -426,13 +434,14 @@ async fn a_watching_process_that_goes_away_lets_go() {
 
     // NATS away for longer than the lease (6 s here).
     cluster.nats.stop();
-    until(LIMIT, "p0 lets go of p1's watcher", || async {
-        cluster.portals[0]
-            .metric("canlift_cluster_watch_lapsed_total")
-            .await
-            == 1
-    })
-    .await;
+    cluster
+        .until_metric(
+            0,
+            "canlift_cluster_watch_lapsed_total",
+            1,
+            "p0 lets go of p1's watcher",
+        )
+        .await;
     cluster.nats.start_again();
     let back = tokio::time::Instant::now();
     let mut last = 1;
@@ -452,17 +461,14 @@ async fn a_watching_process_that_goes_away_lets_go() {
 
     // p1 killed: once its lease lapses, p0 lets go of the lantern for good.
     cluster.portals[1].kill().await;
-    until(
-        LIMIT,
-        "p0 lets go of the killed process's watcher",
-        || async {
-            cluster.portals[0]
-                .metric("canlift_cluster_watch_lapsed_total")
-                .await
-                == 2
-        },
-    )
-    .await;
+    cluster
+        .until_metric(
+            0,
+            "canlift_cluster_watch_lapsed_total",
+            2,
+            "p0 lets go of the killed process's watcher",
+        )
+        .await;
     let stored = cluster.history(&lantern).await;
     assert!(
         stored.contains(&"1".to_owned()),
@@ -518,13 +524,14 @@ async fn a_dead_holder_leaves_no_lift_online() {
         0
     );
     // p1, the only process alive, deleted the dead one's entry.
-    until(LIMIT, "p1 deletes the dead holder's entry", || async {
-        cluster.portals[1]
-            .metric("canlift_cluster_entries_swept_total")
-            .await
-            == 1
-    })
-    .await;
+    cluster
+        .until_metric(
+            1,
+            "canlift_cluster_entries_swept_total",
+            1,
+            "p1 deletes the dead holder's entry",
+        )
+        .await;
     cluster.portals[0].restart().await;
     let back = cluster.wait_held_by(0).await;
     eprintln!("held again {back:?} after p0 started again");
@@ -557,13 +564,14 @@ async fn a_holder_frozen_past_its_lease_writes_its_entry_again() {
         assert!(status.success(), "kill -{name} {pid}");
     };
     signal("STOP");
-    until(LIMIT, "p1 deletes the frozen holder's entry", || async {
-        cluster.portals[1]
-            .metric("canlift_cluster_entries_swept_total")
-            .await
-            == 1
-    })
-    .await;
+    cluster
+        .until_metric(
+            1,
+            "canlift_cluster_entries_swept_total",
+            1,
+            "p1 deletes the frozen holder's entry",
+        )
+        .await;
     assert_eq!(cluster.portals[1].online(&cluster.key).await, 0);
     signal("CONT");
     let back = cluster.wait_held_by(0).await;

@@ -5,9 +5,10 @@
 //! gateways, each load generator to one portal process in turn (as a load balancer would).
 //!
 //! Figures: time until all N are online (held by some process, known to every other), the
-//! portals' memory per connection, the CPU the portals and NATS spend holding them idle, operator reads of a lift held by the process asked vs by
-//! another (what NATS adds), and the time until every lift of a process killed with SIGKILL
-//! (and started again, as systemd's `Restart=always` does) is online again.
+//! portals' memory per connection, the CPU the portals and NATS spend holding them while
+//! nothing happens, operator reads of a lift held by the process asked vs by another (what
+//! NATS adds), and the time until every lift of a process killed with SIGKILL (and started
+//! again, as systemd's `Restart=always` does) is online again.
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -54,7 +55,7 @@ pub struct ClusterBench {
 }
 
 /// How long the cluster's own cost is measured with every gateway online and no operator
-/// asking: what holding the lifts costs (entries kept fresh, keep-alives).
+/// asking: what holding the lifts costs (leases renewed, the gateways' keep-alives).
 const IDLE_WINDOW: Duration = Duration::from_secs(20);
 
 /// The NATS server of the benchmark.

@@ -30,6 +30,21 @@ struct Lease {
     watch: u64,
 }
 
+impl Lease {
+    /// Whether the lease stands at `now`: written less than `ttl` before.
+    fn fresh(&self, now: Instant, ttl: Duration) -> bool {
+        now.saturating_duration_since(self.written) < ttl
+    }
+}
+
+/// Whether the process that wrote `holding` lives, by `leases`: its lease is fresh and of the
+/// same incarnation.
+fn lives(leases: &HashMap<String, Lease>, holding: &Holding, now: Instant, ttl: Duration) -> bool {
+    leases
+        .get(&holding.node)
+        .is_some_and(|l| l.incarnation == holding.incarnation && l.fresh(now, ttl))
+}
+
 /// This process's view of the other processes and the lifts they hold.
 #[derive(Debug)]
 pub(crate) struct Fleet {
@@ -60,13 +75,8 @@ impl Fleet {
         }
     }
 
-    /// Whether the process that wrote `holding` lives: its lease is fresh and of the same
-    /// incarnation.
     fn alive(&self, holding: &Holding, now: Instant) -> bool {
-        self.leases.get(&holding.node).is_some_and(|lease| {
-            lease.incarnation == holding.incarnation
-                && now.saturating_duration_since(lease.written) < self.ttl
-        })
+        lives(&self.leases, holding, now, self.ttl)
     }
 
     /// The entry of `lift` when another process holds it and lives.
@@ -89,7 +99,7 @@ impl Fleet {
     pub(crate) fn others_alive(&self, now: Instant) -> usize {
         self.leases
             .values()
-            .filter(|l| now.saturating_duration_since(l.written) < self.ttl)
+            .filter(|l| l.fresh(now, self.ttl))
             .count()
     }
 
@@ -148,23 +158,23 @@ impl Fleet {
         if !self.caught_up || now.saturating_duration_since(self.watching_since) < self.ttl {
             return Vec::new();
         }
-        let sweeper = self
-            .leases
+        let Fleet {
+            node,
+            ttl,
+            lifts,
+            leases,
+            ..
+        } = self;
+        let sweeper = leases
             .iter()
-            .filter(|(_, l)| now.saturating_duration_since(l.written) < self.ttl)
-            .all(|(node, _)| *node > self.node);
+            .filter(|(_, l)| l.fresh(now, *ttl))
+            .all(|(other, _)| other > node);
         if !sweeper {
             return Vec::new();
         }
-        let (leases, ttl) = (&self.leases, self.ttl);
-        let alive = |h: &Holding| {
-            leases.get(&h.node).is_some_and(|l| {
-                l.incarnation == h.incarnation && now.saturating_duration_since(l.written) < ttl
-            })
-        };
         let mut dead = Vec::new();
-        for (lift, entry) in &mut self.lifts {
-            if !entry.swept && !alive(&entry.holding) {
+        for (lift, entry) in lifts {
+            if !entry.swept && !lives(leases, &entry.holding, now, *ttl) {
                 entry.swept = true;
                 dead.push((lift.clone(), entry.revision));
             }

@@ -235,8 +235,7 @@ impl Cluster {
     /// (again) reachable, renew this process's lease, then follow every entry until the
     /// connection is lost.
     pub async fn run(self: Arc<Self>, registry: Weak<Registry>) {
-        tokio::spawn(self.clone().keep_alive());
-        tokio::spawn(self.clone().sweep_watches());
+        tokio::spawn(self.clone().every_renewal());
         let js = jetstream::new(self.client.clone());
         // The bucket's stream as the KV convention (NATS ADR-8) lays it out, created directly:
         // `create_key_value` first reads the account's information, which it cannot parse
@@ -286,14 +285,12 @@ impl Cluster {
                 self.generation.send_modify(|g| *g += 1);
             }
             lock(&self.fleet).rewatch(Instant::now());
-            let mut sweep = tokio::time::interval(self.renewal());
             let mut catching_up = true;
             // Every key's last entry first (`watch_all` would deliver only what is written
             // from now on), then each change.
             match store.watch_with_history(">").await {
                 Ok(mut entries) => loop {
                     tokio::select! {
-                        _ = sweep.tick() => self.sweep(&store),
                         entry = entries.next() => match entry {
                             Some(Ok(entry)) => {
                                 // The first entry past the bucket's contents when the watch
@@ -319,13 +316,20 @@ impl Cluster {
         }
     }
 
-    /// Renew this process's lease every third of the TTL while NATS is reachable.
-    async fn keep_alive(self: Arc<Self>) {
-        let mut renew = tokio::time::interval(self.renewal());
+    /// Every third of the TTL: while NATS is reachable, renew this process's lease and delete
+    /// what dead processes left; in any case let go of the subscriptions of watching processes
+    /// whose watch lapsed (also while NATS is unreachable: then no process can renew its watch).
+    async fn every_renewal(self: Arc<Self>) {
+        let mut tick = tokio::time::interval(self.renewal());
         loop {
-            renew.tick().await;
+            tick.tick().await;
             if let Some(kv) = self.kv().filter(|_| self.connected()) {
                 self.renew(&kv).await;
+                self.sweep(&kv);
+            }
+            let lapsed = lock(&self.watched).lapsed_all(Instant::now());
+            for (lift, processes) in lapsed {
+                self.release_lapsed(lift, processes);
             }
         }
     }
@@ -364,20 +368,6 @@ impl Cluster {
                 }
             }
         });
-    }
-
-    /// The processes whose watch of a lift held here lapsed let go of their watchers'
-    /// subscriptions, swept every third of the TTL (also while NATS is unreachable: then no
-    /// process can renew its watch).
-    async fn sweep_watches(self: Arc<Self>) {
-        let mut sweep = tokio::time::interval(self.renewal());
-        loop {
-            sweep.tick().await;
-            let lapsed = lock(&self.watched).lapsed_all(Instant::now());
-            for (lift, processes) in lapsed {
-                self.release_lapsed(lift, processes);
-            }
-        }
     }
 
     /// An entry changed. Another process's lease: noted. Another process's holding of a lift:
