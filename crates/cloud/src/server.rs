@@ -252,6 +252,8 @@ impl Portal {
         let (telemetry, telemetry_rx) =
             telemetry::Queue::new(config.database.telemetry_queue, Arc::default());
         let (records, records_rx) = gateways::records::Records::new(store.clone());
+        let (admissions, admitting) = gateways::admissions::Admissions::start(store.clone());
+        tasks.push(admitting);
         let (stop_writers, stopping) = watch::channel(false);
         let writers = vec![
             tokio::spawn(telemetry::writer(
@@ -293,6 +295,7 @@ impl Portal {
                 registry: registry.clone(),
                 settings: config.gateways.settings(),
                 telemetry: telemetry.clone(),
+                admissions,
                 records,
                 dashboard: dashboard.clone(),
                 subscriptions: subscriptions.clone(),

@@ -281,6 +281,7 @@ pub async fn run(
         cleared: Vec::new(),
         flush_at: None,
     };
+    let mut received = Vec::with_capacity(BATCH);
     loop {
         let next = service
             .offline
@@ -290,12 +291,12 @@ pub async fn run(
             .min();
         let timer = crate::timer::sleep_until(next);
         tokio::select! {
-            input = inputs.recv() => match input {
-                Some(input) => service.input(input).await,
-                None => {
+            n = inputs.recv_many(&mut received, BATCH) => {
+                if n == 0 {
                     service.flush().await;
                     return;
                 }
+                service.inputs(&mut received).await;
             },
             _ = timer => service.timers().await,
         }
@@ -303,6 +304,34 @@ pub async fn run(
 }
 
 impl Service {
+    /// `received` in order, a run of lifts coming online at once (a reconnect storm) as one.
+    async fn inputs(&mut self, received: &mut Vec<Input>) {
+        let mut online = Vec::new();
+        for input in received.drain(..) {
+            match input {
+                Input::Online(lift) => online.push(lift),
+                other => {
+                    self.online(std::mem::take(&mut online)).await;
+                    self.input(other).await;
+                }
+            }
+        }
+        self.online(online).await;
+    }
+
+    async fn online(&mut self, lifts: Vec<String>) {
+        if lifts.is_empty() {
+            return;
+        }
+        for lift in &lifts {
+            self.offline.stop(lift);
+        }
+        self.refresh_in_cluster(&lifts).await;
+        let verdicts = lifts.iter().map(|lift| self.rules.lift_online(lift));
+        let verdicts = verdicts.collect();
+        self.apply(verdicts);
+    }
+
     async fn input(&mut self, input: Input) {
         match input {
             Input::Event { lift, event } => {
@@ -319,12 +348,7 @@ impl Service {
                     self.flush().await;
                 }
             }
-            Input::Online(lift) => {
-                self.offline.stop(&lift);
-                self.refresh_in_cluster(&lift).await;
-                let verdict = self.rules.lift_online(&lift);
-                self.apply(vec![verdict]);
-            }
+            Input::Online(lift) => self.online(vec![lift]).await,
             Input::Offline(lift) => {
                 self.offline
                     .start(lift, Instant::now() + self.offline_after);
@@ -351,7 +375,7 @@ impl Service {
             if self.alarms.registry.online(&lift) {
                 continue;
             }
-            self.refresh_in_cluster(&lift).await;
+            self.refresh_in_cluster(std::slice::from_ref(&lift)).await;
             let verdict = self.rules.lift_offline(&lift, self.offline_after.as_secs());
             self.apply(vec![verdict]);
         }
@@ -399,26 +423,39 @@ impl Service {
             counters.cleared.fetch_add(1, Ordering::Relaxed);
             self.alarms.announce(Change::Cleared, alarm).await;
         }
-        for lift in raised_elsewhere {
-            self.refresh(&lift).await;
+        if !raised_elsewhere.is_empty() {
+            self.refresh(&raised_elsewhere).await;
         }
     }
 
-    /// In a cluster, before deciding about `lift`: its active alarms as the database has them
-    /// (another process may have raised or cleared some while it held the lift), with what is
-    /// waiting here written first.
-    async fn refresh_in_cluster(&mut self, lift: &str) {
+    /// In a cluster, before deciding about `lifts`: their active alarms as the database has
+    /// them (another process may have raised or cleared some while it held a lift), with what
+    /// is waiting here written first.
+    async fn refresh_in_cluster(&mut self, lifts: &[String]) {
         if self.alarms.registry.cluster().is_some() {
             self.flush().await;
-            self.refresh(lift).await;
+            self.refresh(lifts).await;
         }
     }
 
-    async fn refresh(&mut self, lift: &str) {
-        match self.alarms.store.active_alarms_of(lift).await {
-            Ok(active) => self.active.replace_lift(lift, active),
+    async fn refresh(&mut self, lifts: &[String]) {
+        match self.alarms.store.active_alarms_of(lifts).await {
+            Ok(active) => {
+                let mut of: HashMap<&str, Vec<_>> = lifts
+                    .iter()
+                    .map(|lift| (lift.as_str(), Vec::new()))
+                    .collect();
+                for (condition, id) in active {
+                    if let Some(list) = of.get_mut(condition.lift.as_str()) {
+                        list.push((condition, id));
+                    }
+                }
+                for (lift, active) in of {
+                    self.active.replace_lift(lift, active);
+                }
+            }
             Err(e) => {
-                tracing::warn!(%lift, error = %e, "active alarms not read: deciding on what this process knows")
+                tracing::warn!(lifts = lifts.len(), error = %e, "active alarms not read: deciding on what this process knows")
             }
         }
     }

@@ -189,7 +189,7 @@ impl Connection {
         let peer = self.peer.clone();
         // A known gateway on its known board changes nothing the next admission decides on
         // (`unchanged`): its row is refreshed behind the connection, with others.
-        let (admission, unchanged) = match self.shared.store.admit(&connect).await {
+        let (admission, unchanged) = match self.shared.admissions.admit(&connect).await {
             Ok(Admission::Known(mut known)) => match known.board_was.take() {
                 Some(was) => (
                     board_changed(&self.shared, &peer, &connect, was, known).await,
@@ -216,17 +216,17 @@ impl Connection {
                 let record = GatewayRecord::connected(&connect, api);
                 if unchanged {
                     self.shared.records.write(record).await;
-                } else if let Err(e) = self.shared.store.record(&[record]).await {
+                } else if let Err(e) = self.shared.records.write_now(record).await {
                     tracing::error!(error = %e, "gateway not recorded");
                 }
                 // Users' subscriptions are read at CONNACK only where the admission saw some
                 // (a first contact's, after a token reset, may have some from before).
-                let subscribed = match &admission {
-                    Admission::Known(known) => known.subscribed,
-                    _ => true,
+                let (subscribed, first) = match &admission {
+                    Admission::Known(known) => (known.subscribed, false),
+                    Admission::FirstContact { subscribed } => (*subscribed, true),
+                    Admission::Refused(_) => (false, false),
                 };
                 self.register(&lift, &connect, api, subscribed);
-                let first = admission == Admission::FirstContact;
                 tracing::info!(%lift, %peer, api, first, "gateway online");
                 self.shared.registry.publish(&lift, LiftEvent::Online(true));
                 self.shared.alarms.report(Input::Online(lift)).await;
@@ -257,11 +257,12 @@ impl Connection {
         ));
     }
 
+    /// Queued behind the gateway's row: a CONNECT before it is written is a first contact
+    /// again and gets another token.
     async fn token_confirmed(&mut self, token: &str) {
         if let Some(a) = &self.admitted {
-            if let Err(e) = self.shared.store.set_token(&a.lift, token).await {
-                tracing::error!(error = %e, lift = %a.lift, "token not recorded");
-            }
+            let record = GatewayRecord::token(&a.lift, token);
+            self.shared.records.write(record).await;
         }
     }
 
@@ -380,7 +381,7 @@ async fn board_changed(
 /// that a lost answer does not lock the gateway out).
 async fn token_to_issue(shared: &Shared, lift: &str, admission: &Admission) -> Option<String> {
     match admission {
-        Admission::FirstContact => Some(store::secret("")),
+        Admission::FirstContact { .. } => Some(store::secret("")),
         Admission::Known(known) => {
             let lifetime = shared.token_lifetime?;
             let age = store::now_ms().saturating_sub(known.token_set);

@@ -4,6 +4,7 @@
 //! connection with a valid token replaces the first; a gateway that misbehaves is closed without
 //! touching the others.
 
+pub mod admissions;
 pub mod connection;
 mod dashboard;
 mod mailbox;
@@ -444,6 +445,8 @@ pub struct Shared {
     pub settings: Settings,
     /// Where notifications go to be stored in batches (with its counters, for `/metrics`).
     pub telemetry: telemetry::Queue,
+    /// Where CONNECTs are decided on, in batches.
+    pub admissions: admissions::Admissions,
     /// Where the gateways' rows go to be written in batches.
     pub records: records::Records,
     /// What every gateway is asked to push (`live`, `inhibit_ms`, `events`), normalized.

@@ -6,12 +6,19 @@
 //! for SQLite's one writer while it held one of the pool's few connections — the admissions
 //! of the gateways behind them waited for a connection too. One writer takes them many at a
 //! time, in order, one transaction per batch. What an admission decides on (a first contact's
-//! row, a changed board) is still written before CONNACK.
+//! row, a changed board) is written before CONNACK all the same: its connection waits for the
+//! batch it is in ([`Records::write_now`]). A confirmed token is queued behind its row.
 
 use tokio::sync::mpsc::error::TrySendError;
-use tokio::sync::{mpsc, watch};
+use tokio::sync::{mpsc, oneshot, watch};
 
-use crate::store::{GatewayRecord, Store};
+use crate::store::{GatewayRecord, Store, StoreError};
+
+/// A record in the queue, and whoever waits until it is written.
+struct Queued {
+    record: GatewayRecord,
+    written: Option<oneshot::Sender<Result<(), StoreError>>>,
+}
 
 /// Records waiting for the writer; beyond this a connection waits for room.
 const QUEUE: usize = 4096;
@@ -22,35 +29,61 @@ const BATCH: usize = 1024;
 /// The way into the writer.
 #[derive(Clone)]
 pub struct Records {
-    tx: mpsc::Sender<GatewayRecord>,
+    tx: mpsc::Sender<Queued>,
     store: Store,
 }
 
+/// What [`writer`] takes from the queue.
+pub struct Queue(mpsc::Receiver<Queued>);
+
 impl Records {
     /// The queue in front of [`writer`], which takes the receiver.
-    pub fn new(store: Store) -> (Records, mpsc::Receiver<GatewayRecord>) {
+    pub fn new(store: Store) -> (Records, Queue) {
         let (tx, rx) = mpsc::channel(QUEUE);
-        (Records { tx, store }, rx)
+        (Records { tx, store }, Queue(rx))
     }
 
     /// Queue `record` behind the ones before it, waiting for room when the writer is behind
     /// (so a storm's connections take turns with it); without a writer (the portal is
     /// stopping) it is written at once.
     pub async fn write(&self, record: GatewayRecord) {
-        if let Err(unsent) = self.tx.send(record).await {
-            if let Err(e) = self.store.record(&[unsent.0]).await {
-                tracing::error!(error = %e, "gateway not recorded");
-            }
+        if let Err(e) = self.queue(record, None).await {
+            tracing::error!(error = %e, "gateway not recorded");
         }
     }
 
-    /// The same without waiting: when there is no room it waits in the background.
+    /// [`Records::write`], returning once the record is written (with the others of its
+    /// batch): for what the next admission decides on.
+    pub async fn write_now(&self, record: GatewayRecord) -> Result<(), StoreError> {
+        let (written, done) = oneshot::channel();
+        self.queue(record, Some(written)).await?;
+        // The writer dropped the batch unanswered only if it ended mid-way: the portal stops.
+        done.await
+            .unwrap_or_else(|_| Err(sqlx::Error::PoolClosed.into()))
+    }
+
+    async fn queue(
+        &self,
+        record: GatewayRecord,
+        written: Option<oneshot::Sender<Result<(), StoreError>>>,
+    ) -> Result<(), StoreError> {
+        match self.tx.send(Queued { record, written }).await {
+            Ok(()) => Ok(()),
+            Err(unsent) => self.store.record(&[unsent.0.record]).await,
+        }
+    }
+
+    /// [`Records::write`] without waiting: when there is no room it waits in the background.
     pub fn write_later(&self, record: GatewayRecord) {
-        if let Err(TrySendError::Full(record) | TrySendError::Closed(record)) =
-            self.tx.try_send(record)
+        let queued = Queued {
+            record,
+            written: None,
+        };
+        if let Err(TrySendError::Full(queued) | TrySendError::Closed(queued)) =
+            self.tx.try_send(queued)
         {
             let records = self.clone();
-            tokio::spawn(async move { records.write(record).await });
+            tokio::spawn(async move { records.write(queued.record).await });
         }
     }
 }
@@ -58,17 +91,23 @@ impl Records {
 /// Write what is queued, in order, a batch per transaction, until every [`Records`] is gone
 /// or `stop` turns true (then what is queued still is). A batch the database refuses is logged
 /// and lost, as a single write's failure was.
-pub async fn writer(
-    store: Store,
-    mut rx: mpsc::Receiver<GatewayRecord>,
-    mut stop: watch::Receiver<bool>,
-) {
+pub async fn writer(store: Store, Queue(mut rx): Queue, mut stop: watch::Receiver<bool>) {
     let mut batch = Vec::with_capacity(BATCH);
+    let mut records = Vec::with_capacity(BATCH);
+    let mut waiting = Vec::new();
     while super::next_batch(&mut rx, &mut batch, BATCH, &mut stop).await > 0 {
-        if let Err(e) = store.record(&batch).await {
-            tracing::error!(error = %e, records = batch.len(), "gateways not recorded");
+        for queued in batch.drain(..) {
+            records.push(queued.record);
+            waiting.extend(queued.written);
         }
-        batch.clear();
+        let written = store.record(&records).await;
+        if let Err(e) = &written {
+            tracing::error!(error = %e, records = records.len(), "gateways not recorded");
+        }
+        for waiter in waiting.drain(..) {
+            let _ = waiter.send(written.clone());
+        }
+        records.clear();
     }
 }
 
@@ -99,7 +138,9 @@ mod tests {
         }
         let lift = crate::store::lift_id(&connect("GW7", "").identity);
         let at = |record: &GatewayRecord| match record {
-            GatewayRecord::Connected { at, .. } | GatewayRecord::Seen { at, .. } => *at,
+            GatewayRecord::Connected { at, .. }
+            | GatewayRecord::Seen { at, .. }
+            | GatewayRecord::Token { at, .. } => *at,
         };
         let seen = GatewayRecord::seen(&lift);
         let later = at(&seen);

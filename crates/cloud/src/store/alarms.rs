@@ -61,7 +61,7 @@ fn conditions(rows: &[AnyRow]) -> Result<Vec<(Condition, i64)>, StoreError> {
             ))
         })
         .collect::<Result<_, sqlx::Error>>()
-        .map_err(StoreError)
+        .map_err(StoreError::from)
 }
 
 fn alarm_from(r: &AnyRow) -> Result<Alarm, sqlx::Error> {
@@ -209,7 +209,7 @@ impl Store {
         rows.iter()
             .map(|r| r.try_get("body"))
             .collect::<Result<_, _>>()
-            .map_err(StoreError)
+            .map_err(StoreError::from)
     }
 
     /// Delete events older than `before` (ms); how many went.
@@ -295,7 +295,7 @@ impl Store {
         rows.iter()
             .map(alarm_from)
             .collect::<Result<_, _>>()
-            .map_err(StoreError)
+            .map_err(StoreError::from)
     }
 
     /// Every active alarm with its condition (to rebuild the index at start).
@@ -306,13 +306,26 @@ impl Store {
         conditions(&rows)
     }
 
-    /// The active alarms of one lift, by condition.
-    pub async fn active_alarms_of(&self, lift: &str) -> Result<Vec<(Condition, i64)>, StoreError> {
-        let rows = sqlx::query("SELECT * FROM alarms WHERE lift = $1 AND cleared IS NULL")
-            .bind(lift)
-            .fetch_all(&self.pool)
-            .await?;
-        conditions(&rows)
+    /// The active alarms of `lifts`, by condition: in statements of a few lengths, however
+    /// many lifts came online at once.
+    pub async fn active_alarms_of(
+        &self,
+        lifts: &[String],
+    ) -> Result<Vec<(Condition, i64)>, StoreError> {
+        let mut active = Vec::new();
+        for lifts in super::chunks_by_binary_digits(lifts, 256) {
+            let list = (1..=lifts.len())
+                .map(|i| format!("${i}"))
+                .collect::<Vec<_>>()
+                .join(", ");
+            let sql = format!("SELECT * FROM alarms WHERE cleared IS NULL AND lift IN ({list})");
+            let mut query = sqlx::query(&sql);
+            for lift in lifts {
+                query = query.bind(lift);
+            }
+            active.extend(conditions(&query.fetch_all(&self.pool).await?)?);
+        }
+        Ok(active)
     }
 
     /// The most severe active alarm of each of `domain`'s lifts that has one.
@@ -376,7 +389,7 @@ impl Store {
                 })
             })
             .collect::<Result<_, sqlx::Error>>()
-            .map_err(StoreError)
+            .map_err(StoreError::from)
     }
 
     /// When the next undelivered notification is due (ms), if any waits.
@@ -457,7 +470,10 @@ pub(super) mod tests {
             .unwrap();
         assert_eq!(new, [false], "raised by another process before");
         assert_eq!(
-            store.active_alarms_of(&condition.lift).await.unwrap(),
+            store
+                .active_alarms_of(std::slice::from_ref(&condition.lift))
+                .await
+                .unwrap(),
             [(condition.clone(), 11)]
         );
         let (new, cleared) = store
@@ -472,8 +488,41 @@ pub(super) mod tests {
             .unwrap();
         assert_eq!(new, [true]);
         assert_eq!(
-            store.active_alarms_of(&condition.lift).await.unwrap(),
-            [(condition, 14)]
+            store
+                .active_alarms_of(std::slice::from_ref(&condition.lift))
+                .await
+                .unwrap(),
+            [(condition.clone(), 14)]
         );
+        // Many lifts at once (a reconnect storm's): each active alarm of those asked for,
+        // whatever the statement lengths they are asked in, and none of others.
+        let others: Vec<Alarm> = (0..300)
+            .map(|n| {
+                let lift = format!("1050-4096-STORM{n}");
+                let condition = Condition {
+                    lift,
+                    ..condition.clone()
+                };
+                Alarm::raised(100 + n, &condition, Severity::Major, "offline", 1000)
+            })
+            .collect();
+        store.write_alarm_batch(&[], &others, &[]).await.unwrap();
+        let asked: Vec<String> = (0..300)
+            .filter(|n| n % 3 != 0)
+            .map(|n| format!("1050-4096-STORM{n}"))
+            .chain([condition.lift.clone(), "1050-4096-NONE".into()])
+            .collect();
+        let mut ids: Vec<i64> = store
+            .active_alarms_of(&asked)
+            .await
+            .unwrap()
+            .into_iter()
+            .map(|(_, id)| id)
+            .collect();
+        ids.sort_unstable();
+        let expected: Vec<i64> = std::iter::once(14)
+            .chain((0..300).filter(|n| n % 3 != 0).map(|n| 100 + n))
+            .collect();
+        assert_eq!(ids, expected);
     }
 }

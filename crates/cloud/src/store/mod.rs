@@ -22,26 +22,36 @@ use nxg::msg::{Connect, Identity};
 use rand::RngCore;
 use sqlx::any::{AnyPoolOptions, AnyRow};
 use sqlx::postgres::PgPoolCopyExt;
-use sqlx::{AnyPool, Executor, Row};
+use sqlx::{AnyPool, Connection, Executor, Row};
 
-/// A database failure.
-#[derive(Debug, thiserror::Error)]
+/// A pooled PostgreSQL connection idle this long is pinged before it is used
+/// ([`Store::open_pooled`]).
+const PING_IDLE: std::time::Duration = std::time::Duration::from_secs(1);
+
+/// A database failure; cloned for everyone whose statement was in a batch that failed.
+#[derive(Debug, Clone, thiserror::Error)]
 #[error("database: {0}")]
-pub struct StoreError(#[from] sqlx::Error);
+pub struct StoreError(std::sync::Arc<sqlx::Error>);
+
+impl From<sqlx::Error> for StoreError {
+    fn from(e: sqlx::Error) -> StoreError {
+        StoreError(std::sync::Arc::new(e))
+    }
+}
 
 impl StoreError {
     /// Whether the database could not be reached (down, restarting, no connection free in
     /// time) rather than refusing the statement: worth trying again later.
     pub fn is_unavailable(&self) -> bool {
         matches!(
-            self.0,
+            *self.0,
             sqlx::Error::Io(_)
                 | sqlx::Error::Tls(_)
                 | sqlx::Error::PoolTimedOut
                 | sqlx::Error::PoolClosed
                 | sqlx::Error::WorkerCrashed
                 | sqlx::Error::Protocol(_)
-        ) || matches!(&self.0, sqlx::Error::Database(e) if e.code().is_some_and(|c| {
+        ) || matches!(&*self.0, sqlx::Error::Database(e) if e.code().is_some_and(|c| {
             // PostgreSQL: admin shutdown, crash shutdown, cannot connect now.
             matches!(c.as_ref(), "57P01" | "57P02" | "57P03")
         }))
@@ -231,6 +241,16 @@ pub enum GatewayRecord {
         /// When.
         at: i64,
     },
+    /// A gateway confirmed a token at `at` (NXg §5.4): only its digest is kept, with the time
+    /// (for `[gateways] token_rotate_days`); a rotation in progress is over.
+    Token {
+        /// Lift id.
+        lift: String,
+        /// The token's digest.
+        digest: String,
+        /// When.
+        at: i64,
+    },
 }
 
 impl GatewayRecord {
@@ -251,13 +271,25 @@ impl GatewayRecord {
             at: now_ms(),
         }
     }
+
+    /// `lift`'s gateway confirmed `token` now.
+    pub fn token(lift: &str, token: &str) -> GatewayRecord {
+        GatewayRecord::Token {
+            lift: lift.to_owned(),
+            digest: digest(token),
+            at: now_ms(),
+        }
+    }
 }
 
 /// What the registry says about a CONNECT.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Admission {
     /// No token on record (never issued, or reset by an administrator): accept and issue one.
-    FirstContact,
+    FirstContact {
+        /// Whether users hold subscriptions of the lift (after a token reset they may).
+        subscribed: bool,
+    },
     /// The token matches the one on record (or the one being rotated to, which now is).
     Known(Known),
     /// Refused, with the cause to record.
@@ -399,10 +431,22 @@ impl Store {
         };
         let pool = AnyPoolOptions::new()
             .max_connections(connections)
-            // sqlx pings a pooled connection before each use: for PostgreSQL that finds one a
-            // restarted server dropped; a SQLite file has nothing to lose, and the ping is a
-            // round trip to the connection's thread (5 % of a gateway's CONNECT in a profile).
-            .test_before_acquire(!sqlite)
+            // sqlx would ping a pooled connection before each use (and pings it again when it
+            // is given back): for PostgreSQL that finds one a restarted server dropped. Only
+            // a connection idle for a while is worth the round trip: one in steady use finds
+            // out at its next statement, and in a reconnect storm the pings were a third of
+            // the round trips each admission waited for while it held a connection. A SQLite
+            // file has nothing to lose (its ping is a round trip to the connection's thread,
+            // 5 % of a gateway's CONNECT in a profile).
+            .test_before_acquire(false)
+            .before_acquire(move |conn, meta| {
+                Box::pin(async move {
+                    if !sqlite && meta.idle_for >= PING_IDLE {
+                        conn.ping().await?;
+                    }
+                    Ok(true)
+                })
+            })
             // A request that needs the database while it is down fails in seconds, not after
             // sqlx's default of 30 s.
             .acquire_timeout(std::time::Duration::from_secs(5))
@@ -555,29 +599,74 @@ impl Store {
     /// Decide on a CONNECT (NXg §5.2, §5.4): the registry is keyed by vendor, product and
     /// serial number; the domain token names the account.
     pub async fn admit(&self, connect: &Connect) -> Result<Admission, StoreError> {
-        let identity = &connect.identity;
-        let lift = lift_id(identity);
-        // One statement, as every reconnecting gateway of a storm makes it: the account's
-        // domain, the gateway's row (NULLs when there is none) and whether users hold
-        // subscriptions of the lift (most hold none: then they are not read at CONNACK).
-        let row = sqlx::query(
-            "SELECT (SELECT COUNT(*) FROM accounts WHERE domain = $1) AS accounts, \
-             (SELECT COUNT(*) FROM (SELECT 1 FROM subscriptions WHERE lift = $2 LIMIT 1) AS s) AS subscribed, \
+        let mut admissions = self.admit_many(&[connect]).await?;
+        admissions
+            .pop()
+            .ok_or_else(|| sqlx::Error::RowNotFound.into())
+    }
+
+    /// [`Store::admit`] for many CONNECTs in one statement, the answers in their order: a
+    /// reconnect storm's admissions take a pooled connection and a round trip per batch
+    /// instead of per gateway (docs/PORTAL.md §Registry).
+    pub async fn admit_many(&self, connects: &[&Connect]) -> Result<Vec<Admission>, StoreError> {
+        let Some(last) = connects.len().checked_sub(1) else {
+            return Ok(Vec::new());
+        };
+        // Batches padded to a power of two (repeating the last CONNECT) make a few distinct
+        // statements, each prepared once per connection, not one per batch size.
+        let rows = connects.len().next_power_of_two();
+        let values = (0..rows)
+            .map(|i| format!("(${}, ${}, ${})", 3 * i + 1, 3 * i + 2, 3 * i + 3))
+            .collect::<Vec<_>>()
+            .join(", ");
+        // Per CONNECT: whether an account has its domain, the gateway's row (NULLs when there
+        // is none) and whether users hold subscriptions of the lift (most hold none: then
+        // they are not read at CONNACK).
+        let sql = format!(
+            "SELECT v.column1 AS i, \
+             (SELECT COUNT(*) FROM accounts WHERE domain = v.column3) AS accounts, \
+             (SELECT COUNT(*) FROM (SELECT 1 FROM subscriptions WHERE lift = v.column2 LIMIT 1) AS s) AS subscribed, \
              g.token_hash, g.token_next, g.token_set, g.domain, g.boardhash \
-             FROM (SELECT 1 AS one) AS x LEFT JOIN gateways AS g ON g.id = $2",
-        )
-        .bind(&connect.domaintoken)
-        .bind(&lift)
-        .fetch_one(&self.pool)
-        .await?;
+             FROM (VALUES {values}) AS v LEFT JOIN gateways AS g ON g.id = v.column2"
+        );
+        let mut query = sqlx::query(&sql);
+        for i in 0..rows {
+            let connect = connects[i.min(last)];
+            query = query
+                .bind(i.min(last) as i64)
+                .bind(lift_id(&connect.identity))
+                .bind(&connect.domaintoken);
+        }
+        let mut found: Vec<Option<AnyRow>> = (0..connects.len()).map(|_| None).collect();
+        for row in query.fetch_all(&self.pool).await? {
+            let i = usize::try_from(row.try_get::<i64, _>("i")?).unwrap_or(usize::MAX);
+            if let Some(slot) = found.get_mut(i) {
+                *slot = Some(row);
+            }
+        }
+        let mut admissions = Vec::with_capacity(connects.len());
+        for (connect, row) in connects.iter().zip(found) {
+            let Some(row) = row else {
+                return Err(sqlx::Error::RowNotFound.into());
+            };
+            admissions.push(self.decide(connect, &row).await?);
+        }
+        Ok(admissions)
+    }
+
+    /// The admission of `connect` given what the registry holds of it (a row of
+    /// [`Store::admit_many`]).
+    async fn decide(&self, connect: &Connect, row: &AnyRow) -> Result<Admission, StoreError> {
+        let identity = &connect.identity;
         if row.try_get::<i64, _>("accounts")? == 0 {
             return Ok(Admission::Refused(format!(
                 "no account for domain token {:?}",
                 connect.domaintoken
             )));
         }
+        let subscribed = row.try_get::<i64, _>("subscribed")? > 0;
         let Some(domain) = row.try_get::<Option<String>, _>("domain")? else {
-            return Ok(Admission::FirstContact);
+            return Ok(Admission::FirstContact { subscribed });
         };
         let hash: Option<String> = row.try_get("token_hash")?;
         let next: Option<String> = row.try_get("token_next")?;
@@ -587,7 +676,6 @@ impl Store {
                 "domain token differs from the registered one".into(),
             ));
         }
-        let subscribed = row.try_get::<i64, _>("subscribed")? > 0;
         let known = |token_set| {
             Admission::Known(Known {
                 board_was: (board != identity.boardhash).then(|| board.clone()),
@@ -596,13 +684,13 @@ impl Store {
             })
         };
         Ok(match (hash, identity.cloudtoken.as_deref()) {
-            (None, _) => Admission::FirstContact,
+            (None, _) => Admission::FirstContact { subscribed },
             (Some(h), Some(t)) if nxg::digest::matches(&h, &digest(t)) => {
                 known(row.try_get("token_set")?)
             }
             // The gateway stored the token of a rotation whose answer the portal did not see.
             (Some(_), Some(t)) if next.is_some_and(|n| nxg::digest::matches(&n, &digest(t))) => {
-                self.set_token(&lift, t).await?;
+                self.set_token(&lift_id(identity), t).await?;
                 known(now_ms())
             }
             (Some(_), Some(_)) => Admission::Refused("wrong cloud token".into()),
@@ -652,24 +740,25 @@ impl Store {
                     .execute(&mut *tx)
                     .await?;
                 }
+                GatewayRecord::Token { lift, digest, at } => {
+                    sqlx::query(
+                        "UPDATE gateways SET token_hash = $1, token_set = $2, token_next = NULL WHERE id = $3",
+                    )
+                    .bind(digest)
+                    .bind(*at)
+                    .bind(lift)
+                    .execute(&mut *tx)
+                    .await?;
+                }
             }
         }
         tx.commit().await?;
         Ok(())
     }
 
-    /// The gateway confirmed `token`: only its digest is kept, with the time (for
-    /// `[gateways] token_rotate_days`); a rotation in progress is over.
+    /// The gateway of `lift` confirmed `token` ([`GatewayRecord::Token`]), written at once.
     pub async fn set_token(&self, lift: &str, token: &str) -> Result<(), StoreError> {
-        sqlx::query(
-            "UPDATE gateways SET token_hash = $1, token_set = $2, token_next = NULL WHERE id = $3",
-        )
-        .bind(digest(token))
-        .bind(now_ms())
-        .bind(lift)
-        .execute(&self.pool)
-        .await?;
-        Ok(())
+        self.record(&[GatewayRecord::token(lift, token)]).await
     }
 
     /// `token` is about to be sent to the gateway in place of its current one (NXg §5.4): until
@@ -773,7 +862,7 @@ impl Store {
         rows.iter()
             .map(|r| r.try_get("id"))
             .collect::<Result<_, _>>()
-            .map_err(StoreError)
+            .map_err(StoreError::from)
     }
 
     /// The lifts of `domain`.
@@ -932,7 +1021,7 @@ impl Store {
                 })
             })
             .collect::<Result<_, sqlx::Error>>()
-            .map_err(StoreError)
+            .map_err(StoreError::from)
     }
 }
 
@@ -1158,7 +1247,7 @@ pub(crate) mod tests {
         let gw = |token| connect("180917010200000102", "MAS", token);
         assert_eq!(
             store.admit(&gw(None)).await.unwrap(),
-            Admission::FirstContact
+            Admission::FirstContact { subscribed: false }
         );
         assert!(matches!(
             store.admit(&connect("1", "XYZ", None)).await.unwrap(),
@@ -1171,7 +1260,7 @@ pub(crate) mod tests {
         // Not confirmed yet: still first contact.
         assert_eq!(
             store.admit(&gw(Some("x"))).await.unwrap(),
-            Admission::FirstContact
+            Admission::FirstContact { subscribed: false }
         );
         store
             .set_token(&lift_id(&gw(None).identity), "T0K3N")
@@ -1292,7 +1381,7 @@ pub(crate) mod tests {
         );
         assert_eq!(
             store.admit(&gw(Some("N3XT"))).await.unwrap(),
-            Admission::FirstContact
+            Admission::FirstContact { subscribed: false }
         );
         assert_eq!(
             store.domain_of(&lift).await.unwrap().as_deref(),
