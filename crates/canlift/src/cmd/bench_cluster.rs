@@ -7,13 +7,14 @@
 //! Figures: time until all N are online (held by some process, known to every other), the
 //! portals' memory per connection, the CPU the portals and NATS spend holding them while
 //! nothing happens, operator reads of a lift held by the process asked vs by another (what
-//! NATS adds), and the time until every lift of a process killed with SIGKILL (and started
+//! NATS adds) beside a bare NATS request and reply (the least it can add here), and the time until every lift of a process killed with SIGKILL (and started
 //! again, as systemd's `Restart=always` does) is online again.
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
+use futures_util::StreamExt;
 
 use super::bench::cpu_time;
 use super::bench_gateway::{memory_kib, percentile, Daemon};
@@ -232,6 +233,33 @@ async fn reads(
     Ok(times)
 }
 
+/// A bare request and reply of 200 bytes between two NATS clients through the benchmark's
+/// server, `n` times: the least NATS adds to a relayed read on this machine (each client's hops
+/// and the server's, no portal).
+async fn nats_round_trips(url: &str, n: usize) -> anyhow::Result<Vec<Duration>> {
+    let replier = async_nats::connect(url).await?;
+    let mut asked = replier.subscribe("bench.echo").await?;
+    replier.flush().await?;
+    let answering = tokio::spawn(async move {
+        while let Some(message) = asked.next().await {
+            if let Some(reply) = message.reply {
+                let _ = replier.publish(reply, message.payload).await;
+            }
+        }
+    });
+    let asker = async_nats::connect(url).await?;
+    let payload = vec![b'x'; 200];
+    let mut times = Vec::with_capacity(n);
+    for _ in 0..n {
+        let begin = Instant::now();
+        asker.request("bench.echo", payload.clone().into()).await?;
+        times.push(begin.elapsed());
+    }
+    answering.abort();
+    times.sort();
+    Ok(times)
+}
+
 /// `canlift bench cluster`.
 pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
     if !args.database.starts_with("postgres") {
@@ -370,6 +398,12 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
          held by another p50 {r50:.0} µs p99 {r99:.0} µs; NATS adds {:.0} µs at p50",
         args.reads,
         r50 - l50
+    );
+    let bare = nats_round_trips(&nats.url, args.reads).await?;
+    println!(
+        "a bare NATS request and reply (two clients, 200 bytes): p50 {:.0} µs p99 {:.0} µs",
+        percentile(&bare, 50.0),
+        percentile(&bare, 99.0)
     );
     if args.portals > 1 {
         let victim = portals.processes.remove(0);

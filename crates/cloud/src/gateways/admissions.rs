@@ -1,4 +1,4 @@
-//! Admissions (NXg §5.2, docs/PORTAL.md §Registry) looked up in batches: each CONNECT waits
+//! Admissions (NXg §5.2, docs/PORTAL.md §Stores) looked up in batches: each CONNECT waits
 //! for the registry's answer about it, and the CONNECTs that came meanwhile are asked about in
 //! one statement ([`Store::admit_many`]).
 //!

@@ -1,4 +1,4 @@
-//! The registry's rows of the gateways (docs/PORTAL.md §Registry), written behind their
+//! The registry's rows of the gateways (docs/PORTAL.md §Stores), written behind their
 //! connections in batches: what each known gateway said it is at CONNECT, and when it was last
 //! heard.
 //!

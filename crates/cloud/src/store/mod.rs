@@ -607,7 +607,7 @@ impl Store {
 
     /// [`Store::admit`] for many CONNECTs in one statement, the answers in their order: a
     /// reconnect storm's admissions take a pooled connection and a round trip per batch
-    /// instead of per gateway (docs/PORTAL.md §Registry).
+    /// instead of per gateway (docs/PORTAL.md §Stores).
     pub async fn admit_many(&self, connects: &[&Connect]) -> Result<Vec<Admission>, StoreError> {
         let Some(last) = connects.len().checked_sub(1) else {
             return Ok(Vec::new());
