@@ -389,8 +389,12 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
         (portal_cpu + nats_cpu) * 1e6 / args.gateways as f64
     );
     let others = args.portals;
+    let cpu = || (portals.cpu(), nats.cpu());
+    let before = cpu();
     let local = reads(&args, layout, &portals, &key, |h| h).await?;
+    let between = cpu();
     let remote = reads(&args, layout, &portals, &key, |h| (h + 1) % others).await?;
+    let after = cpu();
     let (l50, l99) = (percentile(&local, 50.0), percentile(&local, 99.0));
     let (r50, r99) = (percentile(&remote, 50.0), percentile(&remote, 99.0));
     println!(
@@ -398,6 +402,16 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
          held by another p50 {r50:.0} µs p99 {r99:.0} µs; NATS adds {:.0} µs at p50",
         args.reads,
         r50 - l50
+    );
+    let per_read = |from: Duration, to: Duration| {
+        to.saturating_sub(from).as_secs_f64() * 1e6 / args.reads as f64
+    };
+    println!(
+        "CPU per read: held by the process asked: portals {:.0} µs; held by another: portals \
+         {:.0} µs, NATS {:.0} µs",
+        per_read(before.0, between.0),
+        per_read(between.0, after.0),
+        per_read(between.1, after.1)
     );
     let bare = nats_round_trips(&nats.url, args.reads).await?;
     println!(

@@ -7,7 +7,7 @@
 //! three processes on one PostgreSQL, tens of thousands of admissions waited past the pool's
 //! timeout and were refused "registry unavailable", and their gateways' backoff made the
 //! storm's tail. One question at a time is asked at once when nothing else waits; under load a
-//! few batches are in flight, each up to [`BATCH`] CONNECTs.
+//! few batches are in flight, each up to 256 CONNECTs.
 
 use std::sync::Arc;
 
