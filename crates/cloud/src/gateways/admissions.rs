@@ -75,11 +75,17 @@ async fn ask(store: Store, mut rx: mpsc::Receiver<Asked>) {
         tokio::spawn(async move {
             let connects: Vec<&Connect> = batch.iter().map(|asked| &asked.connect).collect();
             let answers = store.admit_many(&connects).await;
-            drop(permit);
             match answers {
                 Ok(admissions) => {
                     for (asked, admission) in batch.into_iter().zip(admissions) {
                         let _ = asked.answer.send(Ok(admission));
+                    }
+                }
+                // A CONNECT the database refuses to look up fails the statement for all: each
+                // is asked about alone, so only that one fails.
+                Err(e) if !e.is_unavailable() && batch.len() > 1 => {
+                    for asked in batch {
+                        let _ = asked.answer.send(store.admit(&asked.connect).await);
                     }
                 }
                 Err(e) => {
@@ -88,6 +94,7 @@ async fn ask(store: Store, mut rx: mpsc::Receiver<Asked>) {
                     }
                 }
             }
+            drop(permit);
         });
     }
 }
@@ -139,13 +146,25 @@ mod tests {
                     _ => None,
                 };
                 let gw = connect(&format!("GW{n}"), domain, token.as_deref());
-                let batched = admissions.admit(&gw).await.unwrap();
+                let batched = admissions.admit(&gw).await;
                 (n, batched, store.admit(&gw).await.unwrap())
             }
         });
-        let answers = futures_util::future::join_all(asked).await;
+        // A CONNECT whose lookup the database refuses (PostgreSQL stores no NUL; the session's
+        // validation keeps such a CONNECT from the registry, this is the second line) fails
+        // alone, not with the others of its batch.
+        let poisoned = {
+            let admissions = admissions.clone();
+            let gw = connect("GW\u{0}", "MAS", None);
+            async move { admissions.admit(&gw).await }
+        };
+        let (answers, poisoned) = tokio::join!(futures_util::future::join_all(asked), poisoned);
+        if store.free_connections().await.unwrap().is_some() {
+            assert!(poisoned.is_err(), "PostgreSQL: {poisoned:?}");
+        }
         let mut kinds = std::collections::BTreeMap::new();
         for (n, batched, alone) in answers {
+            let batched = batched.unwrap();
             assert_eq!(batched, alone, "gateway {n}");
             let kind = match batched {
                 Admission::FirstContact { .. } => "first",

@@ -53,24 +53,38 @@ pub struct Connect {
 }
 
 impl Connect {
-    /// What the portal checks beyond the types: the serial number is there, texts are bounded,
-    /// the API version is at least 1, the token at most 128 characters.
+    /// What the portal checks beyond the types: the serial number is there, texts are bounded
+    /// and free of control characters, the API version is at least 1, the token at most 128
+    /// characters.
+    ///
+    /// Control characters have no place in an identity, and one of them (NUL) is a text
+    /// PostgreSQL refuses to store: the portal asks about many CONNECTs in one statement, so one
+    /// gateway's NUL would fail the admissions of the others asked with it.
     pub fn validate(&self) -> Result<(), String> {
         let id = &self.identity;
         if id.sernum.is_empty() {
             return Err("identity.sernum must not be empty".into());
         }
-        for (name, text) in [
-            ("sernum", &id.sernum),
+        let texts = [
+            ("sernum", id.sernum.as_str()),
             ("liftnum", &id.liftnum),
             ("hardware", &id.hardware),
             ("software", &id.software),
             ("boardhash", &id.boardhash),
             ("domaintoken", &self.domaintoken),
-        ] {
+        ];
+        for (name, text) in texts {
             if text.chars().count() > MAX_FIELD {
                 return Err(format!("{name} is longer than {MAX_FIELD} characters"));
             }
+        }
+        let token = ("cloudtoken", id.cloudtoken.as_deref().unwrap_or_default());
+        if let Some((name, _)) = texts
+            .into_iter()
+            .chain([token])
+            .find(|(_, text)| text.chars().any(char::is_control))
+        {
+            return Err(format!("{name} holds a control character"));
         }
         if id.api == 0 {
             return Err("identity.api must be ≥ 1".into());
@@ -184,8 +198,20 @@ mod tests {
         let mut bad = bare.clone();
         bad.identity.sernum.clear();
         assert!(bad.validate().is_err());
-        let mut bad = bare;
+        let mut bad = bare.clone();
         bad.identity.cloudtoken = Some("x".repeat(129));
+        assert!(bad.validate().unwrap_err().contains("cloudtoken"));
+        let mut bad = bare.clone();
+        bad.identity.sernum = "18091701\u{0}".into();
+        assert_eq!(
+            bad.validate(),
+            Err("sernum holds a control character".into())
+        );
+        let mut bad = bare.clone();
+        bad.domaintoken = "MAS\n".into();
+        assert!(bad.validate().unwrap_err().contains("domaintoken"));
+        let mut bad = bare;
+        bad.identity.cloudtoken = Some("2A98\u{7f}".into());
         assert!(bad.validate().unwrap_err().contains("cloudtoken"));
     }
 }
