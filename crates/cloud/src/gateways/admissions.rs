@@ -67,7 +67,8 @@ async fn ask(store: Store, mut rx: mpsc::Receiver<Asked>) {
         let Ok(permit) = in_flight.clone().acquire_owned().await else {
             return;
         };
-        let mut batch = Vec::with_capacity(BATCH);
+        // Sized by what waits: a CONNECT alone takes no room for 256.
+        let mut batch = Vec::new();
         if rx.recv_many(&mut batch, BATCH).await == 0 {
             return;
         }
