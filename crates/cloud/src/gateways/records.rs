@@ -107,7 +107,8 @@ pub async fn writer(store: Store, Queue(mut rx): Queue, mut stop: watch::Receive
                 for (record, waiter) in records.drain(..).zip(waiting.drain(..)) {
                     let written = store.record(std::slice::from_ref(&record)).await;
                     if let Err(e) = &written {
-                        tracing::error!(error = %e, ?record, "gateway not recorded");
+                        // The lift, not the record: a CONNECT's identity holds its token.
+                        tracing::error!(error = %e, lift = %record.lift(), "gateway not recorded");
                     }
                     if let Some(waiter) = waiter {
                         let _ = waiter.send(written);

@@ -272,6 +272,14 @@ impl GatewayRecord {
         }
     }
 
+    /// The lift the record is of.
+    pub fn lift(&self) -> String {
+        match self {
+            GatewayRecord::Connected { identity, .. } => lift_id(identity),
+            GatewayRecord::Seen { lift, .. } | GatewayRecord::Token { lift, .. } => lift.clone(),
+        }
+    }
+
     /// `lift`'s gateway confirmed `token` now.
     pub fn token(lift: &str, token: &str) -> GatewayRecord {
         GatewayRecord::Token {
