@@ -254,6 +254,7 @@ impl Portal {
         let (records, records_rx) = gateways::records::Records::new(store.clone());
         let (admissions, admitting) = gateways::admissions::Admissions::start(store.clone());
         tasks.push(admitting);
+        let admitted = admissions.counters.clone();
         let (stop_writers, stopping) = watch::channel(false);
         let writers = vec![
             tokio::spawn(telemetry::writer(
@@ -318,7 +319,8 @@ impl Portal {
                 "/metrics",
                 get(move || {
                     let (m, r, t, a) = (m.clone(), r.clone(), telemetry.clone(), a.clone());
-                    async move { metrics_text(&m, &r, &t, &a) }
+                    let admitted = admitted.clone();
+                    async move { metrics_text(&m, &r, &t, &a, &admitted) }
                 }),
             )
             .merge({
@@ -556,6 +558,7 @@ fn metrics_text(
     r: &Registry,
     telemetry: &telemetry::Queue,
     a: &service::Counters,
+    admitted: &gateways::admissions::AdmissionCounters,
 ) -> String {
     let t = telemetry.counters();
     let load = |c: &AtomicU64| c.load(Ordering::Relaxed);
@@ -565,6 +568,13 @@ fn metrics_text(
             "canlift_gateway_upgrades_refused_total",
             load(&m.upgrades_refused),
         ),
+        ("canlift_gateways_admitted_total", load(&admitted.admitted)),
+        ("canlift_gateways_refused_total", load(&admitted.refused)),
+        (
+            "canlift_gateways_registry_unavailable_total",
+            load(&admitted.unavailable),
+        ),
+        ("canlift_admission_lookups_total", load(&admitted.lookups)),
         (
             "canlift_tls_handshakes_full_total",
             load(&m.handshakes_full),

@@ -81,6 +81,14 @@ async fn a_wiped_gateway_is_let_in_again_after_a_token_reset() {
     rig.restart_gateway(|_| {}).await;
     refused_for(&rig, "no cloud token").await;
     assert!(!rig.registry().online(LIFT));
+    assert_eq!(rig.metric("canlift_gateways_admitted_total").await, 1.0);
+    assert!(rig.metric("canlift_gateways_refused_total").await >= 1.0);
+    assert_eq!(
+        rig.metric("canlift_gateways_registry_unavailable_total")
+            .await,
+        0.0
+    );
+    assert!(rig.metric("canlift_admission_lookups_total").await >= 2.0);
 
     // Another account cannot reset it; the lift's own can.
     let path = format!("/api/v1/lifts/{LIFT}/token");
@@ -193,10 +201,16 @@ async fn board_swapped(policy: BoardhashChange) -> (Rig, bool) {
         !audited(&rig, "board changed").await.is_empty()
     })
     .await;
+    // Refused, the gateway tries again after its backoff (0–1 s at first), and each attempt is
+    // audited: on a loaded machine a second one may be in by now.
     let changes = audited(&rig, "board changed").await;
-    assert_eq!(changes.len(), 1, "{changes:?}");
-    assert_eq!(changes[0]["new_value"], "B0ARD-2");
-    assert_eq!(changes[0]["account"], "(portal)");
+    for change in &changes {
+        assert_eq!(change["new_value"], "B0ARD-2", "{changes:?}");
+        assert_eq!(change["account"], "(portal)", "{changes:?}");
+    }
+    if admitted {
+        assert_eq!(changes.len(), 1, "{changes:?}");
+    }
     (rig, admitted)
 }
 

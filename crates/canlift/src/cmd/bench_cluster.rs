@@ -366,6 +366,23 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
         args.portals,
         nats_rss as f64 / args.gateways as f64
     );
+    let mut admissions = [0.0; 4];
+    for p in &portals.processes {
+        for (sum, name) in admissions.iter_mut().zip([
+            "canlift_gateways_admitted_total",
+            "canlift_gateways_refused_total",
+            "canlift_gateways_registry_unavailable_total",
+            "canlift_admission_lookups_total",
+        ]) {
+            *sum += p.metric(name).await?;
+        }
+    }
+    let [admitted, refused, unavailable, lookups] = admissions;
+    println!(
+        "CONNECTs: {admitted:.0} admitted, {refused:.0} refused, {unavailable:.0} refused \
+         \"registry unavailable\"; {lookups:.0} lookups ({:.1} CONNECTs each)",
+        (admitted + refused + unavailable) / lookups.max(1.0)
+    );
     let mut unwatched = 0.0;
     for p in &portals.processes {
         unwatched += p.metric("canlift_cluster_events_unwatched_total").await?;

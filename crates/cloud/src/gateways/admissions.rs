@@ -9,6 +9,7 @@
 //! storm's tail. One question at a time is asked at once when nothing else waits; under load a
 //! few batches are in flight, each up to 256 CONNECTs.
 
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
 use nxg::msg::Connect;
@@ -31,10 +32,32 @@ struct Asked {
     answer: oneshot::Sender<Result<Admission, StoreError>>,
 }
 
+/// What became of CONNECTs, for `/metrics` (docs/PORTAL.md §Metrics).
+#[derive(Debug, Default)]
+pub struct AdmissionCounters {
+    /// Admitted (CONNACK).
+    pub admitted: AtomicU64,
+    /// Refused by the registry: unknown domain, wrong or missing token, another board.
+    pub refused: AtomicU64,
+    /// Refused because the database did not answer (the gateway tries again after its backoff).
+    pub unavailable: AtomicU64,
+    /// Statements that asked about them (CONNECTs per statement: how much batching saves).
+    pub lookups: AtomicU64,
+}
+
+impl AdmissionCounters {
+    /// Count one of the first three.
+    pub fn count(counter: &AtomicU64) {
+        counter.fetch_add(1, Ordering::Relaxed);
+    }
+}
+
 /// The way to the registry's admissions, batched.
 #[derive(Clone)]
 pub struct Admissions {
     tx: mpsc::Sender<Asked>,
+    /// What became of the CONNECTs.
+    pub counters: Arc<AdmissionCounters>,
 }
 
 impl Admissions {
@@ -42,7 +65,9 @@ impl Admissions {
     /// [`Admissions`] is gone).
     pub fn start(store: Store) -> (Admissions, tokio::task::JoinHandle<()>) {
         let (tx, rx) = mpsc::channel(QUEUE);
-        (Admissions { tx }, tokio::spawn(ask(store, rx)))
+        let counters = Arc::new(AdmissionCounters::default());
+        let task = tokio::spawn(ask(store, rx, counters.clone()));
+        (Admissions { tx, counters }, task)
     }
 
     /// What the registry says about `connect` ([`Store::admit`]).
@@ -61,7 +86,7 @@ impl Admissions {
 
 /// Take what waits (at once when one CONNECT does) and ask about it in one statement, up to
 /// [`IN_FLIGHT`] batches at a time.
-async fn ask(store: Store, mut rx: mpsc::Receiver<Asked>) {
+async fn ask(store: Store, mut rx: mpsc::Receiver<Asked>, counters: Arc<AdmissionCounters>) {
     let in_flight = Arc::new(Semaphore::new(IN_FLIGHT));
     loop {
         let Ok(permit) = in_flight.clone().acquire_owned().await else {
@@ -72,9 +97,10 @@ async fn ask(store: Store, mut rx: mpsc::Receiver<Asked>) {
         if rx.recv_many(&mut batch, BATCH).await == 0 {
             return;
         }
-        let store = store.clone();
+        let (store, counters) = (store.clone(), counters.clone());
         tokio::spawn(async move {
             let connects: Vec<&Connect> = batch.iter().map(|asked| &asked.connect).collect();
+            AdmissionCounters::count(&counters.lookups);
             let answers = store.admit_many(&connects).await;
             match answers {
                 Ok(admissions) => {
@@ -86,6 +112,7 @@ async fn ask(store: Store, mut rx: mpsc::Receiver<Asked>) {
                 // is asked about alone, so only that one fails.
                 Err(e) if !e.is_unavailable() && batch.len() > 1 => {
                     for asked in batch {
+                        AdmissionCounters::count(&counters.lookups);
                         let _ = asked.answer.send(store.admit(&asked.connect).await);
                     }
                 }
@@ -160,6 +187,10 @@ mod tests {
             async move { admissions.admit(&gw).await }
         };
         let (answers, poisoned) = tokio::join!(futures_util::future::join_all(asked), poisoned);
+        // 601 CONNECTs in batches of up to 256 (and, on PostgreSQL, the poisoned batch's
+        // CONNECTs again one by one).
+        let lookups = admissions.counters.lookups.load(Ordering::Relaxed);
+        assert!((3..=601 + 256).contains(&lookups), "{lookups} statements");
         if store.free_connections().await.unwrap().is_some() {
             assert!(poisoned.is_err(), "PostgreSQL: {poisoned:?}");
         }

@@ -11,6 +11,7 @@ use axum::extract::ws::{close_code, CloseFrame, Message, WebSocket};
 use nxg::msg::{Connect, Event, Notification};
 use nxg::portal::{Failure, Output, RequestId, Session};
 
+use super::admissions::AdmissionCounters;
 use super::mailbox::{Letter, Mailbox};
 use super::{dashboard, Calls, LiftEvent, Reply, Shared};
 use crate::alarms::Input;
@@ -199,17 +200,21 @@ impl Connection {
             },
             other => (other, false),
         };
+        let counters = &self.shared.admissions.counters;
         match admission {
             Ok(Admission::Refused(cause)) => {
+                AdmissionCounters::count(&counters.refused);
                 tracing::warn!(%lift, %peer, %cause, "gateway refused");
                 let _ = self.shared.store.refused(&lift, &peer, &cause).await;
                 self.session.refuse(cause)
             }
             Err(e) => {
+                AdmissionCounters::count(&counters.unavailable);
                 tracing::error!(error = %e, "registry unavailable");
                 self.session.refuse("registry unavailable".into())
             }
             Ok(admission) => {
+                AdmissionCounters::count(&counters.admitted);
                 let token = token_to_issue(&self.shared, &lift, &admission).await;
                 let out = self.session.accept(&connect, token, Instant::now());
                 let api = self.session.api();
