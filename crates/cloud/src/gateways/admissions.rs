@@ -45,13 +45,6 @@ pub struct AdmissionCounters {
     pub lookups: AtomicU64,
 }
 
-impl AdmissionCounters {
-    /// Count one of the first three.
-    pub fn count(counter: &AtomicU64) {
-        counter.fetch_add(1, Ordering::Relaxed);
-    }
-}
-
 /// The way to the registry's admissions, batched.
 #[derive(Clone)]
 pub struct Admissions {
@@ -100,7 +93,7 @@ async fn ask(store: Store, mut rx: mpsc::Receiver<Asked>, counters: Arc<Admissio
         let (store, counters) = (store.clone(), counters.clone());
         tokio::spawn(async move {
             let connects: Vec<&Connect> = batch.iter().map(|asked| &asked.connect).collect();
-            AdmissionCounters::count(&counters.lookups);
+            counters.lookups.fetch_add(1, Ordering::Relaxed);
             let answers = store.admit_many(&connects).await;
             match answers {
                 Ok(admissions) => {
@@ -112,7 +105,7 @@ async fn ask(store: Store, mut rx: mpsc::Receiver<Asked>, counters: Arc<Admissio
                 // is asked about alone, so only that one fails.
                 Err(e) if !e.is_unavailable() && batch.len() > 1 => {
                     for asked in batch {
-                        AdmissionCounters::count(&counters.lookups);
+                        counters.lookups.fetch_add(1, Ordering::Relaxed);
                         let _ = asked.answer.send(store.admit(&asked.connect).await);
                     }
                 }

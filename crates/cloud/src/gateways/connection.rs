@@ -4,6 +4,7 @@
 //! what it pushes, and clean up when it goes.
 
 use std::collections::HashMap;
+use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -11,7 +12,6 @@ use axum::extract::ws::{close_code, CloseFrame, Message, WebSocket};
 use nxg::msg::{Connect, Event, Notification};
 use nxg::portal::{Failure, Output, RequestId, Session};
 
-use super::admissions::AdmissionCounters;
 use super::mailbox::{Letter, Mailbox};
 use super::{dashboard, Calls, LiftEvent, Reply, Shared};
 use crate::alarms::Input;
@@ -203,18 +203,18 @@ impl Connection {
         let counters = &self.shared.admissions.counters;
         match admission {
             Ok(Admission::Refused(cause)) => {
-                AdmissionCounters::count(&counters.refused);
+                counters.refused.fetch_add(1, Ordering::Relaxed);
                 tracing::warn!(%lift, %peer, %cause, "gateway refused");
                 let _ = self.shared.store.refused(&lift, &peer, &cause).await;
                 self.session.refuse(cause)
             }
             Err(e) => {
-                AdmissionCounters::count(&counters.unavailable);
+                counters.unavailable.fetch_add(1, Ordering::Relaxed);
                 tracing::error!(error = %e, "registry unavailable");
                 self.session.refuse("registry unavailable".into())
             }
             Ok(admission) => {
-                AdmissionCounters::count(&counters.admitted);
+                counters.admitted.fetch_add(1, Ordering::Relaxed);
                 let token = token_to_issue(&self.shared, &lift, &admission).await;
                 let out = self.session.accept(&connect, token, Instant::now());
                 let api = self.session.api();

@@ -122,14 +122,10 @@ impl Store {
     ) -> Result<(Vec<bool>, Vec<Alarm>), StoreError> {
         let mut tx = self.pool.begin().await?;
         for rows in events.chunks(100) {
-            let mut sql = String::from("INSERT INTO events (lift, at, kind, body) VALUES ");
-            for i in 0..rows.len() {
-                let p = i * 4;
-                if i > 0 {
-                    sql.push_str(", ");
-                }
-                sql.push_str(&format!("(${}, ${}, ${}, ${})", p + 1, p + 2, p + 3, p + 4));
-            }
+            let sql = format!(
+                "INSERT INTO events (lift, at, kind, body) VALUES {}",
+                super::parameter_rows(rows.len(), 4)
+            );
             let mut query = sqlx::query(&sql);
             for row in rows {
                 query = query
@@ -314,11 +310,10 @@ impl Store {
     ) -> Result<Vec<(Condition, i64)>, StoreError> {
         let mut active = Vec::new();
         for lifts in super::chunks_by_binary_digits(lifts, 256) {
-            let list = (1..=lifts.len())
-                .map(|i| format!("${i}"))
-                .collect::<Vec<_>>()
-                .join(", ");
-            let sql = format!("SELECT * FROM alarms WHERE cleared IS NULL AND lift IN ({list})");
+            let sql = format!(
+                "SELECT * FROM alarms WHERE cleared IS NULL AND lift IN ({})",
+                super::parameter_rows(lifts.len(), 1)
+            );
             let mut query = sqlx::query(&sql);
             for lift in lifts {
                 query = query.bind(lift);

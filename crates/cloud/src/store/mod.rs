@@ -623,10 +623,7 @@ impl Store {
         // Batches padded to a power of two (repeating the last CONNECT) make a few distinct
         // statements, each prepared once per connection, not one per batch size.
         let rows = connects.len().next_power_of_two();
-        let values = (0..rows)
-            .map(|i| format!("(${}, ${}, ${})", 3 * i + 1, 3 * i + 2, 3 * i + 3))
-            .collect::<Vec<_>>()
-            .join(", ");
+        let values = parameter_rows(rows, 3);
         // Per CONNECT: whether an account has its domain, the gateway's row (NULLs when there
         // is none) and whether users hold subscriptions of the lift (most hold none: then
         // they are not read at CONNACK).
@@ -1065,6 +1062,20 @@ fn copy_binary(batch: &[TelemetryRow]) -> Vec<u8> {
     out
 }
 
+/// `rows` rows of `columns` numbered parameters for a statement's `VALUES` or `IN` list:
+/// `($1, $2), ($3, $4)`.
+fn parameter_rows(rows: usize, columns: usize) -> String {
+    (0..rows)
+        .map(|row| {
+            let row: Vec<String> = (1..=columns)
+                .map(|column| format!("${}", row * columns + column))
+                .collect();
+            format!("({})", row.join(", "))
+        })
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
 /// `items` in chunks of `largest` (a power of two), then the rest in chunks of the powers of two
 /// of its binary digits, largest first: every chunk has one of log2(`largest`) + 1 lengths.
 fn chunks_by_binary_digits<T>(items: &[T], largest: usize) -> impl Iterator<Item = &[T]> {
@@ -1101,6 +1112,12 @@ pub(crate) mod tests {
         );
         assert_eq!(chunks.concat(), items);
         assert_eq!(chunks_by_binary_digits::<u32>(&[], 512).count(), 0);
+    }
+
+    #[test]
+    fn parameter_rows_are_numbered_across_rows() {
+        assert_eq!(parameter_rows(2, 3), "($1, $2, $3), ($4, $5, $6)");
+        assert_eq!(parameter_rows(3, 1), "($1), ($2), ($3)");
     }
 
     /// A CONNECT of gateway `sernum` (vendor 1050, product 4096) to `domain`.
