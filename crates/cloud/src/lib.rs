@@ -15,6 +15,7 @@ pub mod config;
 pub mod devpki;
 pub mod elevation;
 pub mod gateways;
+mod memory;
 pub mod rest;
 pub mod server;
 pub mod store;

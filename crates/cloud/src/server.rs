@@ -46,6 +46,36 @@ struct Metrics {
     /// TLS handshakes with a certificate (full) and by a session ticket (resumed).
     handshakes_full: AtomicU64,
     handshakes_resumed: AtomicU64,
+    /// Memory given back to the system after bursts of connections ([`crate::memory`]).
+    memory_trims: AtomicU64,
+    memory_trimmed_bytes: AtomicU64,
+}
+
+/// Ask the allocator to give back what a burst of connections left free, once it is over.
+async fn trim_after_bursts(metrics: Arc<Metrics>, registry: Arc<Registry>) {
+    let mut bursts = crate::memory::Bursts::default();
+    let mut look = tokio::time::interval(crate::memory::INTERVAL);
+    look.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        look.tick().await;
+        let opened = metrics.handshakes_full.load(Ordering::Relaxed)
+            + metrics.handshakes_resumed.load(Ordering::Relaxed);
+        if !bursts.look(opened, registry.online_count()) {
+            continue;
+        }
+        let started = std::time::Instant::now();
+        if let Ok(Some(bytes)) = tokio::task::spawn_blocking(crate::memory::trim).await {
+            metrics.memory_trims.fetch_add(1, Ordering::Relaxed);
+            metrics
+                .memory_trimmed_bytes
+                .fetch_add(bytes, Ordering::Relaxed);
+            tracing::debug!(
+                bytes,
+                took_us = started.elapsed().as_micros() as u64,
+                "memory given back after a burst of connections"
+            );
+        }
+    }
 }
 
 struct WsState {
@@ -290,6 +320,12 @@ impl Portal {
         ));
         let (closing, closing_rx) = watch::channel(false);
         let metrics = Arc::new(Metrics::default());
+        if crate::memory::SUPPORTED {
+            tasks.push(tokio::spawn(trim_after_bursts(
+                metrics.clone(),
+                registry.clone(),
+            )));
+        }
         let ws_state = Arc::new(WsState {
             shared: Arc::new(Shared {
                 store: store.clone(),
@@ -582,6 +618,11 @@ fn metrics_text(
         (
             "canlift_tls_handshakes_resumed_total",
             load(&m.handshakes_resumed),
+        ),
+        ("canlift_memory_trims_total", load(&m.memory_trims)),
+        (
+            "canlift_memory_trimmed_bytes_total",
+            load(&m.memory_trimmed_bytes),
         ),
         ("canlift_telemetry_stored_total", load(&t.stored)),
         ("canlift_telemetry_dropped_total", load(&t.dropped)),

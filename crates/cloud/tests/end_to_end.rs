@@ -335,3 +335,30 @@ async fn a_restarted_portal_resumes_its_gateways_tls_sessions() {
     assert!(rig.metric("canlift_tls_handshakes_full_total").await >= 2.0);
     rig.stop().await;
 }
+
+/// docs/PORTAL.md §Memory: once a burst of connections is over, the portal asks the allocator to
+/// give its free pages back, and counts it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_portal_gives_memory_back_after_a_burst_of_connections() {
+    if !cfg!(all(target_os = "linux", target_env = "gnu")) {
+        testkit::skip("only glibc's allocator can be asked to give memory back");
+        return;
+    }
+    let rig = Rig::builder().without_lift().start().await;
+    // Each call is a new TLS connection: 300 of them are a burst.
+    for _ in 0..300 {
+        rig.metric("canlift_memory_trims_total").await;
+    }
+    // The portal looks every 5 s: the burst is over at the first look that sees few.
+    testkit::portal::until(
+        Duration::from_secs(20),
+        "a trim after the burst",
+        || async {
+            // Slowly: the polls themselves are connections too.
+            tokio::time::sleep(Duration::from_millis(400)).await;
+            rig.metric("canlift_memory_trims_total").await >= 1.0
+        },
+    )
+    .await;
+    rig.stop().await;
+}

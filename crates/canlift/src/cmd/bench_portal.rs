@@ -228,10 +228,17 @@ async fn idle(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyhow:
         .all_online(fleet.launched(), Duration::from_secs(600))
         .await?;
     portal_online(portal, args.gateways, Duration::from_secs(30)).await?;
-    // Let the first contact's token writes and dashboard subscriptions settle.
+    // Let the first contact's token writes and dashboard subscriptions settle, and the portal
+    // give back what the burst left free (it looks every 5 s: docs/PORTAL.md §Memory).
     tokio::time::sleep(Duration::from_secs(5)).await;
+    let deadline = Instant::now() + Duration::from_secs(15);
+    while portal.metric("canlift_memory_trims_total").await? < 1.0 && Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    }
+    let trimmed = portal.metric("canlift_memory_trimmed_bytes_total").await?;
     let held = portal.rss_kib();
-    let per = (held.saturating_sub(base)) as f64 * 1024.0 / args.gateways as f64;
+    let per_connection = |rss_kib: f64| (rss_kib - base as f64).max(0.0) / args.gateways as f64;
+    let per = per_connection(held as f64);
     println!(
         "idle gateways         {} online over TLS, first contact at {} /s took {:.1} s",
         args.gateways,
@@ -243,7 +250,13 @@ async fn idle(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyhow:
         mib(base),
         mib(held),
         args.gateways,
-        per / 1024.0
+        per
+    );
+    println!(
+        "memory given back     {:.1} MiB after the burst (canlift_memory_trimmed_bytes_total; \
+         {:.1} KiB per connection before)",
+        trimmed / 1_048_576.0,
+        per_connection(held as f64 + trimmed / 1024.0)
     );
     let own = memory_kib(std::process::id()).map_or(0, |m| m[0]);
     println!(
@@ -252,7 +265,18 @@ async fn idle(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyhow:
         args.gateways
     );
     fleet.stop().await;
-    portal_online(portal, 0, Duration::from_secs(60)).await
+    portal_online(portal, 0, Duration::from_secs(60)).await?;
+    let trims = portal.metric("canlift_memory_trims_total").await?;
+    let deadline = Instant::now() + Duration::from_secs(15);
+    while portal.metric("canlift_memory_trims_total").await? <= trims && Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    }
+    println!(
+        "portal memory         RSS {:.1} MiB once they are all gone ({:.1} MiB given back in all)",
+        mib(portal.rss_kib()),
+        portal.metric("canlift_memory_trimmed_bytes_total").await? / 1_048_576.0
+    );
+    Ok(())
 }
 
 /// CPU time the portal process and this one (the load generator) spend from now on.
