@@ -94,7 +94,12 @@ async fn ask(store: Store, mut rx: mpsc::Receiver<Asked>, counters: Arc<Admissio
         tokio::spawn(async move {
             let connects: Vec<&Connect> = batch.iter().map(|asked| &asked.connect).collect();
             counters.lookups.fetch_add(1, Ordering::Relaxed);
-            let answers = store.admit_many(&connects).await;
+            let answers = crate::store::timed(
+                "admission lookup",
+                connects.len(),
+                store.admit_many(&connects),
+            )
+            .await;
             match answers {
                 Ok(admissions) => {
                     for (asked, admission) in batch.into_iter().zip(admissions) {

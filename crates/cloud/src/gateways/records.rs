@@ -100,7 +100,7 @@ pub async fn writer(store: Store, Queue(mut rx): Queue, mut stop: watch::Receive
             records.push(queued.record);
             waiting.push(queued.written);
         }
-        match store.record(&records).await {
+        match crate::store::timed("gateway records", records.len(), store.record(&records)).await {
             // One record the database refuses fails the transaction for all: each is written
             // alone, so only that one is lost.
             Err(e) if !e.is_unavailable() && records.len() > 1 => {

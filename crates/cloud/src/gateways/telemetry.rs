@@ -131,7 +131,7 @@ pub async fn writer(
         }
         let mut retry = RETRY_FIRST;
         let counter = loop {
-            match store.telemetry(&batch).await {
+            match crate::store::timed("telemetry", batch.len(), store.telemetry(&batch)).await {
                 Ok(()) => {
                     if retry > RETRY_FIRST {
                         counters.unreachable.store(false, Ordering::Relaxed);

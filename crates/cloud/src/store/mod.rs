@@ -22,11 +22,37 @@ use nxg::msg::{Connect, Identity};
 use rand::RngCore;
 use sqlx::any::{AnyPoolOptions, AnyRow};
 use sqlx::postgres::PgPoolCopyExt;
-use sqlx::{AnyPool, Connection, Executor, Row};
+use sqlx::{AnyPool, ConnectOptions, Connection, Executor, Row};
 
 /// A pooled PostgreSQL connection idle this long is pinged before it is used
 /// ([`Store::open_pooled`]).
 const PING_IDLE: std::time::Duration = std::time::Duration::from_secs(1);
+
+/// A statement slower than this is worth a warning ([`timed`]).
+const SLOW: std::time::Duration = std::time::Duration::from_secs(1);
+
+/// `statement` (`rows` rows of `what`), with one short warning when it took longer than a second.
+/// sqlx's own warning about slow statements is turned down to debug ([`Store::open_pooled`]): it
+/// carries the statement's whole text, kilobytes for a batch, once per batch while the database
+/// is slow.
+pub(crate) async fn timed<T>(
+    what: &'static str,
+    rows: usize,
+    statement: impl std::future::Future<Output = T>,
+) -> T {
+    let started = std::time::Instant::now();
+    let done = statement.await;
+    let took = started.elapsed();
+    if took >= SLOW {
+        tracing::warn!(
+            what,
+            rows,
+            took_ms = took.as_millis() as u64,
+            "slow database statement"
+        );
+    }
+    done
+}
 
 /// A database failure; cloned for everyone whose statement was in a batch that failed.
 #[derive(Debug, Clone, thiserror::Error)]
@@ -481,7 +507,10 @@ impl Store {
                     Ok(())
                 })
             })
-            .connect(&url)
+            .connect_with(
+                url.parse::<sqlx::any::AnyConnectOptions>()?
+                    .log_slow_statements(log::LevelFilter::Debug, SLOW),
+            )
             .await?;
         if sqlite && !url.contains(":memory:") {
             sqlx::query("PRAGMA journal_mode = WAL")
@@ -498,7 +527,10 @@ impl Store {
                 sqlx::postgres::PgPoolOptions::new()
                     .max_connections(2)
                     .acquire_timeout(std::time::Duration::from_secs(5))
-                    .connect_lazy(&url)?,
+                    .connect_lazy_with(
+                        url.parse::<sqlx::postgres::PgConnectOptions>()?
+                            .log_slow_statements(log::LevelFilter::Debug, SLOW),
+                    ),
             ),
         };
         Ok(Store {
@@ -1094,6 +1126,72 @@ fn chunks_by_binary_digits<T>(items: &[T], largest: usize) -> impl Iterator<Item
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
+
+    /// What a test's subscriber writes.
+    #[derive(Clone, Default)]
+    struct Captured(std::sync::Arc<std::sync::Mutex<Vec<u8>>>);
+
+    impl std::io::Write for Captured {
+        fn write(&mut self, bytes: &[u8]) -> std::io::Result<usize> {
+            self.0.lock().unwrap().extend_from_slice(bytes);
+            Ok(bytes.len())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    impl Captured {
+        /// A subscriber writing here (from info up), this thread's until the guard is dropped.
+        fn install(&self) -> tracing::subscriber::DefaultGuard {
+            let writer = self.clone();
+            let subscriber = tracing_subscriber::fmt()
+                .with_ansi(false)
+                .with_writer(move || writer.clone())
+                .finish();
+            tracing::subscriber::set_default(subscriber)
+        }
+
+        fn text(&self) -> String {
+            String::from_utf8(self.0.lock().unwrap().clone()).unwrap()
+        }
+    }
+
+    #[tokio::test(flavor = "current_thread")]
+    async fn a_slow_statement_is_one_short_warning() {
+        let captured = Captured::default();
+        let _during_this_test = captured.install();
+        assert_eq!(timed("telemetry", 512, async { 7 }).await, 7);
+        let slow = timed("telemetry", 512, async { std::thread::sleep(SLOW) });
+        slow.await;
+        let text = captured.text();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines.len(), 1, "{text}");
+        assert!(lines[0].contains("WARN"), "{text}");
+        assert!(lines[0].contains("slow database statement"), "{text}");
+        assert!(lines[0].contains("rows=512"), "{text}");
+        assert!(lines[0].contains("what=\"telemetry\""), "{text}");
+    }
+
+    /// sqlx's own warning (the statement's whole text) is not written at the portal's levels.
+    /// PostgreSQL: its statements are logged on the task that awaits them (SQLite's on the
+    /// connection's thread, beyond this test's subscriber).
+    #[tokio::test(flavor = "current_thread")]
+    async fn sqlx_does_not_write_slow_statements_out() {
+        let Some(url) = testkit::postgres("slowlog").await else {
+            return;
+        };
+        let store = Store::open_pooled(&url, 2).await.unwrap();
+        let captured = Captured::default();
+        let _during_this_test = captured.install();
+        let started = std::time::Instant::now();
+        sqlx::query("SELECT pg_sleep(1.1)")
+            .execute(&store.pool)
+            .await
+            .unwrap();
+        assert!(started.elapsed() >= SLOW);
+        assert_eq!(captured.text(), "");
+    }
 
     #[test]
     fn batches_are_cut_into_few_lengths() {
