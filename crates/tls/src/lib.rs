@@ -79,9 +79,31 @@ pub fn private_key(path: &Path) -> Result<PrivateKeyDer<'static>, TlsError> {
     PrivateKeyDer::from_pem_file(path).map_err(|e| file_error(path, e))
 }
 
-/// The provider every canlift TLS endpoint uses.
+/// The provider every canlift TLS endpoint uses: ring's, with the AES-128-GCM suites first.
+///
+/// Their key schedule (TLS 1.3) and PRF (TLS 1.2) hash with SHA-256, which ring computes with
+/// the CPU's SHA instructions where it has them (x86 since AMD Zen and Intel Ice Lake, ARMv8),
+/// while SHA-384 — rustls's first choice, AES-256-GCM — runs in plain code on AMD: in a reconnect
+/// storm SHA-384 was 4 % of a gateway's CPU (docs/BENCHMARKS.md §Reconnect storms). AES-128 also
+/// has 10 rounds to AES-256's 14. TLS_AES_128_GCM_SHA256 is the suite every TLS 1.3 endpoint must
+/// offer (RFC 8446 §9.1); browsers and Go's TLS prefer it the same way. A server follows the
+/// client's order, so peers that prefer another suite still get it.
 pub fn provider() -> Arc<rustls::crypto::CryptoProvider> {
-    Arc::new(rustls::crypto::ring::default_provider())
+    use rustls::CipherSuite::{
+        TLS13_AES_128_GCM_SHA256, TLS_ECDHE_ECDSA_WITH_AES_128_GCM_SHA256,
+        TLS_ECDHE_RSA_WITH_AES_128_GCM_SHA256,
+    };
+    let mut provider = rustls::crypto::ring::default_provider();
+    // Stable: the others keep rustls's order.
+    provider.cipher_suites.sort_by_key(|s| {
+        !matches!(
+            s.suite(),
+            TLS13_AES_128_GCM_SHA256
+                | TLS_ECDHE_ECDSA_WITH_AES_128_GCM_SHA256
+                | TLS_ECDHE_RSA_WITH_AES_128_GCM_SHA256
+        )
+    });
+    Arc::new(provider)
 }
 
 /// The CA certificates of `ca_file`, or the system's roots when there is none.

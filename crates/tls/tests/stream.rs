@@ -55,6 +55,15 @@ async fn data_goes_both_ways_and_close_notify_ends_it() {
     let pki = pki();
     let (mut server, mut client) = pair(&pki, 64 * 1024).await;
     assert_eq!(server.handshake_kind(), Some(HandshakeKind::Full));
+    // tls::provider's first choice (SHA-256 in its key schedule).
+    assert_eq!(
+        client
+            .get_ref()
+            .1
+            .negotiated_cipher_suite()
+            .map(|s| s.suite()),
+        Some(rustls::CipherSuite::TLS13_AES_128_GCM_SHA256)
+    );
     for (i, len) in [1usize, 150, 4096, 16_384, 16_385, 100_000]
         .into_iter()
         .enumerate()
