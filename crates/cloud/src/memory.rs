@@ -93,11 +93,24 @@ mod tests {
     }
 
     #[test]
-    fn gateways_that_go_are_a_burst_too() {
-        let mut bursts = Bursts::default();
-        bursts.look(10_000, 10_000);
-        assert!(!bursts.look(10_000, 6_000), "an outage takes 4,000");
-        assert!(bursts.look(10_000, 6_000));
+    fn outages_and_storms_amid_steady_churn_are_trimmed_after() {
+        // (connections opened so far, gateways online) before, during and after the burst.
+        let cases = [
+            (
+                "an outage takes 4,000",
+                [(10_000, 10_000), (10_000, 6_000), (10_000, 6_000)],
+            ),
+            (
+                "10,000 reconnect at once, then 100 a look as before: more than 32, few beside \
+                 10,000",
+                [(0, 10_000), (10_000, 10_000), (10_100, 10_000)],
+            ),
+        ];
+        for (what, looks) in cases {
+            let mut bursts = Bursts::default();
+            let trims = looks.map(|(opened, online)| bursts.look(opened, online));
+            assert_eq!(trims, [false, false, true], "{what}");
+        }
     }
 
     #[test]
@@ -109,15 +122,6 @@ mod tests {
             .collect();
         // 40 reconnects a look are few once 640 have come since the last trim.
         assert_eq!(trims, [16, 32, 48, 64]);
-    }
-
-    #[test]
-    fn a_storm_is_trimmed_after_despite_steady_churn() {
-        let mut bursts = Bursts::default();
-        bursts.look(0, 10_000);
-        assert!(!bursts.look(10_000, 10_000), "10,000 reconnect at once");
-        // Then 100 reconnects a look, as before the storm: more than 32, few beside 10,000.
-        assert!(bursts.look(10_100, 10_000));
     }
 
     #[test]
