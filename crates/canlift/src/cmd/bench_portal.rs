@@ -231,10 +231,7 @@ async fn idle(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyhow:
     // Let the first contact's token writes and dashboard subscriptions settle, and the portal
     // give back what the burst left free (it looks every 5 s: docs/PORTAL.md §Memory).
     tokio::time::sleep(Duration::from_secs(5)).await;
-    let deadline = Instant::now() + Duration::from_secs(15);
-    while portal.metric("canlift_memory_trims_total").await? < 1.0 && Instant::now() < deadline {
-        tokio::time::sleep(Duration::from_millis(250)).await;
-    }
+    trimmed_since(portal, 0.0).await?;
     let trimmed = portal.metric("canlift_memory_trimmed_bytes_total").await?;
     let held = portal.rss_kib();
     let per_connection = |rss_kib: f64| (rss_kib - base as f64).max(0.0) / args.gateways as f64;
@@ -267,15 +264,22 @@ async fn idle(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyhow:
     fleet.stop().await;
     portal_online(portal, 0, Duration::from_secs(60)).await?;
     let trims = portal.metric("canlift_memory_trims_total").await?;
-    let deadline = Instant::now() + Duration::from_secs(15);
-    while portal.metric("canlift_memory_trims_total").await? <= trims && Instant::now() < deadline {
-        tokio::time::sleep(Duration::from_millis(250)).await;
-    }
+    trimmed_since(portal, trims).await?;
     println!(
         "portal memory         RSS {:.1} MiB once they are all gone ({:.1} MiB given back in all)",
         mib(portal.rss_kib()),
         portal.metric("canlift_memory_trimmed_bytes_total").await? / 1_048_576.0
     );
+    Ok(())
+}
+
+/// Wait (at most 15 s) until the portal has given memory back after a burst: more trims than
+/// `trims` (docs/PORTAL.md §Memory).
+async fn trimmed_since(portal: &PortalProcess, trims: f64) -> anyhow::Result<()> {
+    let deadline = Instant::now() + Duration::from_secs(15);
+    while portal.metric("canlift_memory_trims_total").await? <= trims && Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    }
     Ok(())
 }
 

@@ -32,7 +32,7 @@ const PING_IDLE: std::time::Duration = std::time::Duration::from_secs(1);
 const SLOW: std::time::Duration = std::time::Duration::from_secs(1);
 
 /// `statement` (`rows` rows of `what`), with one short warning when it took longer than a second.
-/// sqlx's own warning about slow statements is turned down to debug ([`Store::open_pooled`]): it
+/// sqlx's own warning about slow statements is turned down to debug ([`quiet`]): it
 /// carries the statement's whole text, kilobytes for a batch, once per batch while the database
 /// is slow.
 pub(crate) async fn timed<T>(
@@ -52,6 +52,11 @@ pub(crate) async fn timed<T>(
         );
     }
     done
+}
+
+/// `options` with sqlx's slow-statement warning turned down to debug ([`timed`] says it short).
+fn quiet<O: ConnectOptions>(options: O) -> O {
+    options.log_slow_statements(log::LevelFilter::Debug, SLOW)
 }
 
 /// A database failure; cloned for everyone whose statement was in a batch that failed.
@@ -507,10 +512,7 @@ impl Store {
                     Ok(())
                 })
             })
-            .connect_with(
-                url.parse::<sqlx::any::AnyConnectOptions>()?
-                    .log_slow_statements(log::LevelFilter::Debug, SLOW),
-            )
+            .connect_with(quiet(url.parse::<sqlx::any::AnyConnectOptions>()?))
             .await?;
         if sqlite && !url.contains(":memory:") {
             sqlx::query("PRAGMA journal_mode = WAL")
@@ -527,10 +529,7 @@ impl Store {
                 sqlx::postgres::PgPoolOptions::new()
                     .max_connections(2)
                     .acquire_timeout(std::time::Duration::from_secs(5))
-                    .connect_lazy_with(
-                        url.parse::<sqlx::postgres::PgConnectOptions>()?
-                            .log_slow_statements(log::LevelFilter::Debug, SLOW),
-                    ),
+                    .connect_lazy_with(quiet(url.parse::<sqlx::postgres::PgConnectOptions>()?)),
             ),
         };
         Ok(Store {

@@ -65,38 +65,25 @@ impl Connect {
         if id.sernum.is_empty() {
             return Err("identity.sernum must not be empty".into());
         }
-        let texts = [
-            ("sernum", id.sernum.as_str()),
-            ("liftnum", &id.liftnum),
-            ("hardware", &id.hardware),
-            ("software", &id.software),
-            ("boardhash", &id.boardhash),
-            ("domaintoken", &self.domaintoken),
-        ];
-        for (name, text) in texts {
-            if text.chars().count() > MAX_FIELD {
-                return Err(format!("{name} is longer than {MAX_FIELD} characters"));
+        let token = id.cloudtoken.as_deref().unwrap_or_default();
+        for (name, text, longest) in [
+            ("sernum", id.sernum.as_str(), MAX_FIELD),
+            ("liftnum", &id.liftnum, MAX_FIELD),
+            ("hardware", &id.hardware, MAX_FIELD),
+            ("software", &id.software, MAX_FIELD),
+            ("boardhash", &id.boardhash, MAX_FIELD),
+            ("domaintoken", &self.domaintoken, MAX_FIELD),
+            ("identity.cloudtoken", token, MAX_TOKEN),
+        ] {
+            if text.chars().count() > longest {
+                return Err(format!("{name} is longer than {longest} characters"));
             }
-        }
-        let token = ("cloudtoken", id.cloudtoken.as_deref().unwrap_or_default());
-        if let Some((name, _)) = texts
-            .into_iter()
-            .chain([token])
-            .find(|(_, text)| text.chars().any(char::is_control))
-        {
-            return Err(format!("{name} holds a control character"));
+            if text.chars().any(char::is_control) {
+                return Err(format!("{name} holds a control character"));
+            }
         }
         if id.api == 0 {
             return Err("identity.api must be ≥ 1".into());
-        }
-        if id
-            .cloudtoken
-            .as_ref()
-            .is_some_and(|t| t.chars().count() > MAX_TOKEN)
-        {
-            return Err(format!(
-                "identity.cloudtoken is longer than {MAX_TOKEN} characters"
-            ));
         }
         Ok(())
     }
