@@ -15,6 +15,23 @@ pub fn id_from_parameter(value: u32) -> Option<CanId> {
     }
 }
 
+/// The COB-ID parameter value of a valid identifier: bit 29 set for a 29-bit one (the inverse of
+/// [`id_from_parameter`]).
+pub fn parameter_from_id(id: CanId) -> u32 {
+    match id {
+        CanId::Standard(id) => u32::from(id),
+        CanId::Extended(id) => id | 0x2000_0000,
+    }
+}
+
+/// The 11-bit identifiers CiA 301 §7.3.5 reserves for NMT, SYNC/EMCY, TIME, SDO, LSS and
+/// error control. 0x180 is among them in CiA 301 but CiA 417 lets lift devices use it for a
+/// PDO, so it is allowed here. The
+/// configurable objects — PDOs, further SDO channels — must not use the others.
+pub fn restricted(id: u16) -> bool {
+    matches!(id, 0x000..=0x07F | 0x101..=0x17F | 0x581..=0x5FF | 0x601..=0x67F | 0x6E0..=0x6FF | 0x701..=0x77F | 0x780..=0x7FF)
+}
+
 /// A function code: the upper four bits of an 11-bit COB-ID in the pre-defined connection set.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum Function {

@@ -177,14 +177,74 @@ struct ClientInner {
     config: ClientConfig,
     /// Responses for the transfer in progress, by response COB-ID.
     routes: Mutex<HashMap<CanId, mpsc::Sender<Payload>>>,
-    /// Channels other than the default one, by server node-ID.
-    channels: HashMap<u8, (CanId, CanId)>,
-    /// One lock per node: transfers to the same node wait their turn.
-    nodes: Mutex<HashMap<u8, Arc<tokio::sync::Mutex<()>>>>,
+    /// Configured channels (request, response COB-ID) by server node-ID; a node without any
+    /// uses its default channel.
+    channels: HashMap<u8, Vec<(CanId, CanId)>>,
+    /// Each node's channels as they are taken and given back, made at its first transfer.
+    nodes: Mutex<HashMap<u8, Arc<NodeChannels>>>,
 }
 
-/// SDO client for every node of a bus (the default client channels 0x600/0x580 + node-ID).
-/// Transfers to different nodes run concurrently; transfers to the same node queue.
+/// The client channels to one node. A channel carries one transfer at a time (CiA 301
+/// §7.2.4.3: a server channel serves one client transfer), so a node reached by several
+/// channels — further SDO servers 1201h ff. assigned to this client — serves as many transfers
+/// at once; the rest wait their turn, first come first served.
+struct NodeChannels {
+    /// One permit per channel; the semaphore queues waiters in order.
+    permits: tokio::sync::Semaphore,
+    /// The channels no transfer holds.
+    free: Mutex<Vec<(CanId, CanId)>>,
+}
+
+impl NodeChannels {
+    fn new(channels: Vec<(CanId, CanId)>) -> Self {
+        NodeChannels {
+            permits: tokio::sync::Semaphore::new(channels.len()),
+            free: Mutex::new(channels),
+        }
+    }
+
+    /// Wait for a free channel; it is given back when the returned guard drops.
+    async fn take(&self) -> Result<ChannelGuard<'_>, ClientError> {
+        let permit = self
+            .permits
+            .acquire()
+            .await
+            .map_err(|_| ClientError::Closed)?;
+        let channel = self
+            .free
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .pop()
+            .ok_or(ClientError::Closed)?;
+        Ok(ChannelGuard {
+            node: self,
+            channel,
+            _permit: permit,
+        })
+    }
+}
+
+/// A channel held by one transfer. The channel goes back to the free list before the permit is
+/// released (fields drop after `drop`), so whoever gets the permit finds a channel.
+struct ChannelGuard<'a> {
+    node: &'a NodeChannels,
+    channel: (CanId, CanId),
+    _permit: tokio::sync::SemaphorePermit<'a>,
+}
+
+impl Drop for ChannelGuard<'_> {
+    fn drop(&mut self) {
+        self.node
+            .free
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .push(self.channel);
+    }
+}
+
+/// SDO client for every node of a bus (the default client channels 0x600/0x580 + node-ID, or
+/// the channels configured for a node). Transfers to different nodes run concurrently, and to
+/// one node as many as it has channels; the others queue.
 #[derive(Clone)]
 pub struct SdoClients {
     inner: Arc<ClientInner>,
@@ -198,7 +258,9 @@ impl SdoClients {
     }
 
     /// Like [`Self::new`], with configured client channels (server node-ID, request COB-ID,
-    /// response COB-ID), e.g. from [`client_channels`]; other nodes use the default channel.
+    /// response COB-ID), e.g. from [`client_channels`]; a node may have several, and transfers
+    /// to it then run on all of them at once (its default channel only if listed). Other nodes
+    /// use their default channel.
     pub fn with_channels(bus: Bus, config: ClientConfig, channels: &[(u8, CanId, CanId)]) -> Self {
         let (sender, mut receiver) = bus.split();
         let mut filters = vec![Filter::standard(0x580, 0x780)];
@@ -214,8 +276,13 @@ impl SdoClients {
             routes: Mutex::new(HashMap::new()),
             channels: channels
                 .iter()
-                .map(|&(node, req, resp)| (node, (req, resp)))
-                .collect(),
+                .fold(HashMap::new(), |mut by_node, &(node, req, resp)| {
+                    by_node
+                        .entry(node)
+                        .or_insert_with(Vec::new)
+                        .push((req, resp));
+                    by_node
+                }),
             nodes: Mutex::new(HashMap::new()),
         });
         let weak = Arc::downgrade(&inner);
@@ -237,13 +304,21 @@ impl SdoClients {
         SdoClients { inner }
     }
 
-    fn node_lock(&self, node: u8) -> Arc<tokio::sync::Mutex<()>> {
+    fn node_channels(&self, node: u8) -> Arc<NodeChannels> {
         self.inner
             .nodes
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .entry(node)
-            .or_default()
+            .or_insert_with(|| {
+                let channels = self
+                    .inner
+                    .channels
+                    .get(&node)
+                    .cloned()
+                    .unwrap_or_else(|| vec![default_channel(node & 0x7F)]);
+                Arc::new(NodeChannels::new(channels))
+            })
             .clone()
     }
 
@@ -257,14 +332,9 @@ impl SdoClients {
         mut sink: Option<&mut (dyn std::io::Write + Send)>,
         options: TransferOptions<'_>,
     ) -> Result<Vec<u8>, ClientError> {
-        let lock = self.node_lock(node);
-        let _turn = lock.lock().await;
-        let (request_id, response_id) = self
-            .inner
-            .channels
-            .get(&node)
-            .copied()
-            .unwrap_or_else(|| default_channel(node & 0x7F));
+        let channels = self.node_channels(node);
+        let turn = channels.take().await?;
+        let (request_id, response_id) = turn.channel;
         let (tx, mut rx) = mpsc::channel(256);
         self.inner
             .routes
@@ -642,6 +712,123 @@ mod tests {
         .map(|f| f.id())
         .collect();
         assert_eq!(ids, vec![CanId::Standard(0x640), CanId::Standard(0x5C0)]);
+        server.abort();
+    }
+
+    /// Node 7's default channel and two further ones (1201h, 1202h) as client channels.
+    fn three_channels() -> Vec<(u8, CanId, CanId)> {
+        [(0x607, 0x587), (0x641, 0x5C1), (0x642, 0x5C2)]
+            .into_iter()
+            .map(|(req, resp)| (7, CanId::Standard(req), CanId::Standard(resp)))
+            .collect()
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_node_with_several_channels_serves_as_many_transfers_at_once() {
+        // No server answers: each transfer holds its channel until it times out, so what the
+        // bus shows first is what was started at once.
+        let url = "mem://driver-channels-at-once";
+        let mut monitor = Bus::open(url).await.unwrap();
+        let config = ClientConfig {
+            timeout: Duration::from_millis(300),
+            ..ClientConfig::default()
+        };
+        let sdo =
+            SdoClients::with_channels(Bus::open(url).await.unwrap(), config, &three_channels());
+        let reads: Vec<_> = (0..4)
+            .map(|_| {
+                let sdo = sdo.clone();
+                tokio::spawn(async move { sdo.read_raw(7, 0x1018, 0).await })
+            })
+            .collect();
+        let mut first = Vec::new();
+        for _ in 0..3 {
+            first.push(monitor.receiver.recv_frame().await.unwrap());
+        }
+        let mut ids: Vec<CanId> = first.iter().map(|f| f.id()).collect();
+        ids.sort();
+        let mut requests: Vec<CanId> = three_channels().iter().map(|c| c.1).collect();
+        requests.sort();
+        assert_eq!(
+            ids, requests,
+            "three initiate requests, one on each channel"
+        );
+        // The fourth waits for a channel: nothing more on the bus before the timeouts.
+        assert!(
+            tokio::time::timeout(Duration::from_millis(150), monitor.receiver.recv_frame())
+                .await
+                .is_err(),
+            "a fourth transfer started while all channels were busy"
+        );
+        for read in reads {
+            let err = read.await.unwrap().unwrap_err();
+            assert_eq!(err.abort_code(), AbortCode::TIMEOUT);
+        }
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn transfers_on_several_channels_to_one_node_keep_their_answers_apart() {
+        let url = "mem://driver-channels-apart";
+        let od = node_dictionary(7);
+        {
+            let mut od = od.lock().unwrap();
+            for (n, (req, resp)) in [(1u16, (0x641u32, 0x5C1u32)), (2, (0x642, 0x5C2))] {
+                let cob = |v: u32| {
+                    Variable::new("COB-ID", DataType::Unsigned32, Access::Ro)
+                        .with_value(Value::Uint(v.into()))
+                };
+                od.insert(Object::composite(
+                    0x1200 + n,
+                    "SDO server",
+                    crate::od::ObjectCode::Record,
+                    [(1, cob(req)), (2, cob(resp))],
+                ));
+            }
+            for i in 0..12u16 {
+                od.insert(Object::var(
+                    0x2100 + i,
+                    Variable::new("Blob", DataType::Domain, Access::Rw),
+                ));
+            }
+        }
+        let server = serve_sdo(
+            Bus::open(url).await.unwrap(),
+            od,
+            7,
+            ServerConfig::default(),
+        );
+        let mut monitor = Bus::open(url).await.unwrap();
+        let sdo = SdoClients::with_channels(
+            Bus::open(url).await.unwrap(),
+            ClientConfig::default(),
+            &three_channels(),
+        );
+        let tasks: Vec<_> = (0..12u16)
+            .map(|i| {
+                let sdo = sdo.clone();
+                tokio::spawn(async move {
+                    // Segmented both ways: many frames per transfer, interleaved on the bus.
+                    let data = vec![i as u8; 60 + usize::from(i)];
+                    sdo.write_raw(7, 0x2100 + i, 0, &data).await.unwrap();
+                    assert_eq!(sdo.read_raw(7, 0x2100 + i, 0).await.unwrap(), data);
+                })
+            })
+            .collect();
+        for t in tasks {
+            t.await.unwrap();
+        }
+        let mut used = std::collections::BTreeSet::new();
+        while let Ok(Some(f)) =
+            tokio::time::timeout(Duration::from_millis(50), monitor.receiver.recv_frame()).await
+        {
+            used.insert(f.id());
+        }
+        for (_, req, resp) in three_channels() {
+            assert!(
+                used.contains(&req) && used.contains(&resp),
+                "{req:?} unused"
+            );
+        }
         server.abort();
     }
 

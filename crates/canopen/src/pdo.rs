@@ -22,6 +22,7 @@ use std::time::{Duration, Instant};
 
 use canbus::{CanId, Frame};
 
+use crate::cob::restricted;
 use crate::od::{Access, Object, ObjectCode, ObjectDictionary, Variable, WriteGuard};
 use crate::sdo::abort::AbortCode;
 use crate::types::{DataType, Value};
@@ -160,13 +161,6 @@ impl MapEntry {
     fn is_dummy(self) -> bool {
         (1..=7).contains(&self.index)
     }
-}
-
-/// The 11-bit identifiers CiA 301 §7.3.5 reserves for NMT, SYNC/EMCY, TIME, SDO, LSS and
-/// error control. 0x180 is among them in CiA 301 but CiA 417 lets lift devices use it for a
-/// PDO, so it is allowed here.
-pub fn restricted(id: u16) -> bool {
-    matches!(id, 0x000..=0x07F | 0x101..=0x17F | 0x581..=0x5FF | 0x601..=0x67F | 0x6E0..=0x6FF | 0x701..=0x77F | 0x780..=0x7FF)
 }
 
 /// Which PDO an index belongs to: (receive, number from 0, is mapping object).

@@ -5,6 +5,8 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
+use canbus::CanId;
+use canopen::cob::restricted;
 use nxg::gateway::{Identity, Policy, Settings};
 use serde::{Deserialize, Serialize};
 
@@ -99,16 +101,81 @@ pub struct NodeSection {
     /// supervise it (docs/PROTOCOL.md §Events).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub heartbeat_ms: Option<u16>,
+    /// The node's SDO server channels the gateway may use (its 1201h ff., as the node's
+    /// integrator assigned them to the gateway; its default channel only if listed): transfers
+    /// to the node run on all of them at once instead of one after another on the default
+    /// channel (CiA 301 §7.2.4.3: a channel serves one transfer at a time).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub sdo_channels: Vec<SdoChannel>,
+}
+
+/// One SDO channel of a node: its 11-bit COB-IDs (`{ request = 0x641, response = 0x5C1 }`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SdoChannel {
+    /// Client → server (the node's 1201h sub 1).
+    pub request: u16,
+    /// Server → client (the node's 1201h sub 2).
+    pub response: u16,
 }
 
 impl NodeSection {
+    /// The node's SDO client channels for [`canopen::driver::SdoClients::with_channels`].
+    pub fn client_channels(&self) -> impl Iterator<Item = (u8, CanId, CanId)> + '_ {
+        self.sdo_channels.iter().map(|c| {
+            (
+                self.id,
+                CanId::Standard(c.request),
+                CanId::Standard(c.response),
+            )
+        })
+    }
+
+    /// Each channel's identifiers are 11-bit, used once on the network (`taken` holds those
+    /// of the nodes checked before) and not restricted (CiA 301 §7.3.5) — except the node's
+    /// own default channel, 600h/580h + node-ID.
+    fn check_sdo_channels(&self, taken: &mut Vec<u16>) -> Result<(), ConfigError> {
+        for c in &self.sdo_channels {
+            let refuse = |why: &str| {
+                Err(ConfigError(format!(
+                    "node {}: sdo_channels {{ request = {:#X}, response = {:#X} }}: {why}",
+                    self.id, c.request, c.response
+                )))
+            };
+            let allowed = |id: u16, default: u16| {
+                id == default + u16::from(self.id) || (id <= 0x7FF && !restricted(id))
+            };
+            if !allowed(c.request, 0x600) || !allowed(c.response, 0x580) {
+                return refuse(
+                    "not an 11-bit identifier free for SDO (CiA 301 §7.3.5 restricts 581h–5FFh, \
+                     601h–67Fh but for the node's own default channel, 6E0h–7FFh and others)",
+                );
+            }
+            if c.request == c.response || taken.contains(&c.request) || taken.contains(&c.response)
+            {
+                return refuse("an identifier is used twice");
+            }
+            taken.extend([c.request, c.response]);
+        }
+        Ok(())
+    }
+
+    /// Node `id`, nothing said about it yet.
+    pub fn new(id: u8) -> NodeSection {
+        NodeSection {
+            id,
+            eds: None,
+            metadata: None,
+            heartbeat_ms: None,
+            sdo_channels: Vec::new(),
+        }
+    }
+
     /// A node described by `eds` alone.
     pub fn with_eds(id: u8, eds: PathBuf) -> NodeSection {
         NodeSection {
-            id,
             eds: Some(eds),
-            metadata: None,
-            heartbeat_ms: None,
+            ..NodeSection::new(id)
         }
     }
 }
@@ -293,20 +360,23 @@ impl Config {
             }
             nets.push(n.net);
         }
-        let node_sections = self
-            .bus
-            .nodes
-            .iter()
-            .chain(self.networks.iter().flat_map(|n| &n.nodes));
-        for n in node_sections {
-            if !(1..=127).contains(&n.id) {
-                return err("[[bus.nodes]] and [[networks.nodes]]: id is a node-ID 1–127");
-            }
-            if n.eds.is_none() && n.metadata.is_none() && n.heartbeat_ms.is_none() {
-                return Err(ConfigError(format!(
-                    "node {}: give eds, metadata or heartbeat_ms",
-                    n.id
-                )));
+        for (_, nodes) in self.node_sections() {
+            let mut taken = Vec::new();
+            for n in nodes {
+                if !(1..=127).contains(&n.id) {
+                    return err("[[bus.nodes]] and [[networks.nodes]]: id is a node-ID 1–127");
+                }
+                if n.eds.is_none()
+                    && n.metadata.is_none()
+                    && n.heartbeat_ms.is_none()
+                    && n.sdo_channels.is_empty()
+                {
+                    return Err(ConfigError(format!(
+                        "node {}: give eds, metadata, heartbeat_ms or sdo_channels",
+                        n.id
+                    )));
+                }
+                n.check_sdo_channels(&mut taken)?;
             }
         }
         if self.limits.max_in_flight == 0 || self.limits.max_message_bytes < 1024 {
@@ -321,6 +391,12 @@ impl Config {
             );
         }
         Ok(())
+    }
+
+    /// Each network's described nodes: `[[bus.nodes]]` as net 1, then each `[[networks]]`'s.
+    pub fn node_sections(&self) -> impl Iterator<Item = (u8, &[NodeSection])> {
+        std::iter::once((1u8, self.bus.nodes.as_slice()))
+            .chain(self.networks.iter().map(|n| (n.net, n.nodes.as_slice())))
     }
 
     /// The session settings.
@@ -344,5 +420,70 @@ impl Config {
             nets,
             policy: self.policy.clone(),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn with_channels(sections: &[(u8, &[(u16, u16)])]) -> Config {
+        let mut config = Config::default();
+        config.identity.sernum = "test".into();
+        config.cloud.url = "wss://127.0.0.1:1/".into();
+        config.bus.nodes = sections
+            .iter()
+            .map(|&(id, channels)| NodeSection {
+                sdo_channels: channels
+                    .iter()
+                    .map(|&(request, response)| SdoChannel { request, response })
+                    .collect(),
+                ..NodeSection::with_eds(id, "unused.eds".into())
+            })
+            .collect();
+        config
+    }
+
+    #[test]
+    fn sdo_channels_need_free_identifiers() {
+        let ok = with_channels(&[
+            (1, &[(0x601, 0x581), (0x6A1, 0x6C1)]),
+            (12, &[(0x6A2, 0x6C2)]),
+        ]);
+        assert_eq!(ok.validate(), Ok(()));
+        assert_eq!(
+            ok.bus.nodes[0].client_channels().collect::<Vec<_>>(),
+            vec![
+                (1, CanId::Standard(0x601), CanId::Standard(0x581)),
+                (1, CanId::Standard(0x6A1), CanId::Standard(0x6C1)),
+            ]
+        );
+        for (sections, why) in [
+            (
+                &[(1u8, &[(0x60C, 0x58C)][..])][..],
+                "another node's default channel",
+            ),
+            (
+                &[(1, &[(0x601, 0x58C)][..])][..],
+                "another node's default response",
+            ),
+            (&[(1, &[(0x705, 0x6C1)][..])][..], "heartbeat of node 5"),
+            (&[(1, &[(0x800, 0x6C1)][..])][..], "not 11-bit"),
+            (&[(1, &[(0x6A1, 0x6A1)][..])][..], "request = response"),
+            (
+                &[(1, &[(0x6A1, 0x6C1)][..]), (12, &[(0x6A2, 0x6C1)][..])][..],
+                "one response for two nodes",
+            ),
+        ] {
+            assert!(with_channels(sections).validate().is_err(), "{why}");
+        }
+        // Another network may use the same identifiers.
+        let mut two = with_channels(&[(1, &[(0x6A1, 0x6C1)])]);
+        two.networks = vec![NetworkSection {
+            net: 2,
+            url: "mem://other".into(),
+            nodes: two.bus.nodes.clone(),
+        }];
+        assert_eq!(two.validate(), Ok(()));
     }
 }

@@ -201,14 +201,23 @@ where
     }
 
     /// What is ready now; otherwise flush what was written (when `unflushed`, which is then
-    /// cleared) and wait.
+    /// cleared) and wait. With jobs running it first lets the other ready tasks run once:
+    /// answers of several SDO channels arrive in one read from the bus, and each job is a task
+    /// of its own — the first one done would otherwise flush alone, one TLS write per answer.
     async fn wait(
         &mut self,
         deadline: Option<Instant>,
         unflushed: &mut bool,
+        jobs_running: bool,
     ) -> Result<Wake, tokio_tungstenite::tungstenite::Error> {
         if let Some(wake) = futures_util::FutureExt::now_or_never(self.next(deadline)) {
             return Ok(wake);
+        }
+        if *unflushed && jobs_running {
+            tokio::task::yield_now().await;
+            if let Some(wake) = futures_util::FutureExt::now_or_never(self.next(deadline)) {
+                return Ok(wake);
+            }
         }
         if *unflushed {
             self.ws.flush().await?;
@@ -314,7 +323,10 @@ where
             ping: &mut ping,
             shutdown,
         };
-        let wake = match sources.wait(session.poll_timeout(), &mut unflushed).await {
+        let wake = match sources
+            .wait(session.poll_timeout(), &mut unflushed, running > 0)
+            .await
+        {
             Ok(wake) => wake,
             Err(e) => return ended(served, format!("sending failed: {e}")),
         };

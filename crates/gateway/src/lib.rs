@@ -36,7 +36,7 @@ use tokio::sync::{mpsc, watch};
 use tracing::Instrument;
 
 use crate::access::Backend;
-use crate::config::Config;
+use crate::config::{Config, NodeSection};
 use crate::feed::{Feed, LocalChanges, Update};
 use crate::metadata::BusMetadata;
 use crate::token::TokenStore;
@@ -163,12 +163,18 @@ impl Gateway {
         for n in &config.networks {
             interfaces.insert(n.net, open(&n.url).await?);
         }
-        let nets = interfaces
-            .iter()
-            .map(|(&net, interface)| {
-                Ok((net, SdoClients::new(endpoint(interface)?, client.clone())))
-            })
-            .collect::<Result<HashMap<_, _>, GatewayError>>()?;
+        let mut nets = HashMap::new();
+        for (net, nodes) in config.node_sections() {
+            if let Some(interface) = interfaces.get(&net) {
+                let channels: Vec<_> = nodes
+                    .iter()
+                    .flat_map(NodeSection::client_channels)
+                    .collect();
+                let sdo =
+                    SdoClients::with_channels(endpoint(interface)?, client.clone(), &channels);
+                nets.insert(net, sdo);
+            }
+        }
         // [bus] is net 1 (the configuration refuses it for [[networks]]).
         let sdo = nets[&1].clone();
         let node_config = NodeConfig {
@@ -184,9 +190,9 @@ impl Gateway {
         let node = LocalNode::start(endpoint(&bus)?, ObjectDictionary::new(), node_config);
         node.nmt(canopen::nmt::NmtCommand::Start);
         let mut networks = Vec::new();
-        let sections = std::iter::once((1u8, &config.bus.nodes, config.bus.node_id))
-            .chain(config.networks.iter().map(|n| (n.net, &n.nodes, 0)));
-        for (net, nodes, own) in sections {
+        for (net, nodes) in config.node_sections() {
+            // The gateway is a node of [bus] only.
+            let own = if net == 1 { config.bus.node_id } else { 0 };
             let (Some(sdo), Some(interface)) = (nets.get(&net).cloned(), interfaces.get(&net))
             else {
                 continue;

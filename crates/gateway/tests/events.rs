@@ -96,10 +96,8 @@ async fn faults_and_silence_reach_the_portal_in_order_even_after_a_gap() {
     // SDO while the test's own client below writes to node 1: two clients' frames would mix on
     // node 1's one SDO channel (CiA 301: one client per channel).
     config.bus.nodes.push(gateway::config::NodeSection {
-        id: 1,
-        eds: None,
-        metadata: None,
         heartbeat_ms: Some(lift417::sim::SimConfig::default().heartbeat_ms),
+        ..gateway::config::NodeSection::new(1)
     });
     let running = spawn(Gateway::bus_node(config).await.unwrap());
     // A direct SDO client for fault injection while the portal is away.

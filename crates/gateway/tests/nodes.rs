@@ -3,7 +3,7 @@
 mod common;
 
 use common::*;
-use gateway::config::{NetworkSection, NodeSection};
+use gateway::config::{NetworkSection, NodeSection, SdoChannel};
 use gateway::Gateway;
 use lift417::catalog::Device;
 use lift417::sim::{export_eds, SimConfig, Simulator};
@@ -86,6 +86,79 @@ async fn eds_metadata_and_a_second_network() {
     running.stop().await;
     sim1.stop().await;
     sim2.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_controller_with_further_sdo_channels_is_read_on_all_of_them() {
+    let dir = testkit::scratch();
+    let pki = pki(dir.path());
+    let portal = Portal::start(&pki).await;
+    let bus = "mem://nodes-sdo-channels";
+    let (second, third) = ((0x6A1, 0x6C1), (0x6A2, 0x6C2));
+    let id = |n| canbus::CanId::Standard(n);
+    let sim = Simulator::start(
+        bus,
+        SimConfig {
+            sdo_servers: vec![(id(second.0), id(second.1)), (id(third.0), id(third.1))],
+            ..SimConfig::default()
+        },
+    )
+    .await
+    .unwrap();
+    let mut monitor = canbus::Bus::open(bus).await.unwrap();
+    let mut config = config(&portal.url(), &pki, bus, dir.path());
+    config.bus.nodes = vec![NodeSection {
+        sdo_channels: [(0x601, 0x581), second, third]
+            .into_iter()
+            .map(|(request, response)| SdoChannel { request, response })
+            .collect(),
+        ..NodeSection::new(1)
+    }];
+    let gateway = Gateway::bus_node(config).await.unwrap();
+    let running = spawn(gateway);
+    let (mut ws, ..) = portal.accept().await;
+    connack(&mut ws).await;
+    // 24 reads at once of the controller's identity (1018h sub 4 is its node-ID: 1) and
+    // device name, every answer checked.
+    for i in 0..24 {
+        let mplex = if i % 2 == 0 { "0x101804" } else { "0x100800" };
+        send(
+            &mut ws,
+            &format!(
+                r#"{{"jsonrpc":"2.0","id":{i},"method":"get_canopen_object","params":{{"object":{{"mplex":"{mplex}","naked":true}}}}}}"#
+            ),
+        )
+        .await;
+    }
+    let mut answered = 0;
+    while answered < 24 {
+        let v = recv(&mut ws).await;
+        let Some(i) = v["id"].as_u64() else { continue };
+        let expected = if i % 2 == 0 {
+            json!(["1"])
+        } else {
+            json!(["canlift simulated lift controller"])
+        };
+        assert_eq!(v["result"]["object"]["value"], expected, "{v}");
+        answered += 1;
+    }
+    let mut requests = std::collections::BTreeSet::new();
+    while let Ok(Some(f)) = tokio::time::timeout(
+        std::time::Duration::from_millis(100),
+        monitor.receiver.recv_frame(),
+    )
+    .await
+    {
+        requests.insert(f.id());
+    }
+    for request in [0x601, second.0, third.0] {
+        assert!(
+            requests.contains(&id(request)),
+            "no request on {request:#X}"
+        );
+    }
+    running.stop().await;
+    sim.stop().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

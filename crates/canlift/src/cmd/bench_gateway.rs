@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use futures_util::{SinkExt, StreamExt};
-use gateway::config::{Config, NodeSection};
+use gateway::config::{Config, NodeSection, SdoChannel};
 use gateway::metadata::BusMetadata;
 use gateway::Gateway;
 use lift417::catalog::{Catalog, Device};
@@ -49,6 +49,10 @@ pub struct GatewayBench {
     /// Only the gateway's CPU per request (its own process, read from /proc).
     #[arg(long)]
     cpu_only: bool,
+    /// SDO channels to the simulated controller for the CPU figure's second bus-node run (its
+    /// default channel and up to 7 further ones; 1: no second run).
+    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u8).range(1..=8))]
+    sdo_channels: u8,
     /// Only the memory of a `canlift gateway` process, idle and with `--subscriptions`.
     #[arg(long)]
     memory_only: bool,
@@ -488,10 +492,20 @@ async fn cpu_per_request(
     dir: &Path,
 ) -> anyhow::Result<()> {
     let exe = args.exe()?;
-    for mode in ["local dictionary", "SDO via hub to sim"] {
+    // The controller's default SDO channel alone, then with the further ones the simulator
+    // offers (docs/GATEWAY.md §Nodes: a channel carries one transfer at a time).
+    let mut modes = vec![
+        ("local dictionary".to_owned(), 0),
+        ("SDO via hub to sim".to_owned(), 1),
+    ];
+    if args.sdo_channels > 1 {
+        let n = usize::from(args.sdo_channels);
+        modes.push((format!("SDO, {n} channels"), n));
+    }
+    for (mode, channels) in modes {
         let portal = Portal::start(pki).await?;
         let url = portal.url()?;
-        let daemon = if mode == "local dictionary" {
+        let daemon = if channels == 0 {
             let state = dir.join("cpu-local");
             Daemon::spawn(
                 &exe,
@@ -511,7 +525,18 @@ async fn cpu_per_request(
                 Stdio::null(),
             )?
         } else {
-            let config = config(&url, pki, bus, &dir.join("cpu-bus"));
+            let mut config = config(&url, pki, bus, &dir.join("cpu-bus"));
+            if channels > 1 {
+                let default = (0x601, 0x581);
+                config.bus.nodes = vec![NodeSection {
+                    sdo_channels: std::iter::once(default)
+                        .chain(SIM_SDO_SERVERS)
+                        .take(channels)
+                        .map(|(request, response)| SdoChannel { request, response })
+                        .collect(),
+                    ..NodeSection::new(1)
+                }];
+            }
             let path = dir.join("cpu-gateway.toml");
             std::fs::write(&path, toml::to_string_pretty(&config)?)?;
             Daemon::start(&exe, "gateway", &path)?
@@ -522,12 +547,14 @@ async fn cpu_per_request(
         tokio::time::sleep(Duration::from_millis(500)).await;
         for window in [1, args.window] {
             let cpu = super::bench::cpu_time(daemon.pid).unwrap_or_default();
+            let started = Instant::now();
             windowed_gets(&mut ws, "naked", args.requests, window).await?;
+            let rate = args.requests as f64 / started.elapsed().as_secs_f64();
             let spent = super::bench::cpu_time(daemon.pid)
                 .unwrap_or_default()
                 .saturating_sub(cpu);
             println!(
-                "gateway CPU per request  {mode:<20} {window:>2} in flight: {:.1} µs (the gateway process alone, {} naked gets)",
+                "gateway CPU per request  {mode:<20} {window:>2} in flight: {:.1} µs (the gateway process alone, {} naked gets; {rate:.0} requests/s)",
                 spent.as_secs_f64() * 1e6 / args.requests as f64,
                 args.requests
             );
@@ -615,6 +642,17 @@ pub async fn run(args: GatewayBench) -> anyhow::Result<()> {
     result
 }
 
+/// The further SDO server channels of the benchmark's simulated controller (1201h–1207h).
+const SIM_SDO_SERVERS: [(u16, u16); 7] = [
+    (0x6A1, 0x6C1),
+    (0x6A2, 0x6C2),
+    (0x6A3, 0x6C3),
+    (0x6A4, 0x6C4),
+    (0x6A5, 0x6C5),
+    (0x6A6, 0x6C6),
+    (0x6A7, 0x6C7),
+];
+
 /// A hub on a loopback port with the simulated lift on it; the bus URL.
 async fn hub_with_simulator() -> anyhow::Result<(canbus::hub::HubHandle, String, Simulator)> {
     let hub = canbus::hub::Hub::bind(canbus::hub::HubConfig {
@@ -624,7 +662,15 @@ async fn hub_with_simulator() -> anyhow::Result<(canbus::hub::HubHandle, String,
     .await?
     .spawn()?;
     let bus = format!("socketcand://{}/can0", hub.local_addr());
-    let sim = Simulator::start(&bus, SimConfig::default()).await?;
+    let id = canbus::CanId::Standard;
+    let sim = SimConfig {
+        sdo_servers: SIM_SDO_SERVERS
+            .iter()
+            .map(|&(request, response)| (id(request), id(response)))
+            .collect(),
+        ..SimConfig::default()
+    };
+    let sim = Simulator::start(&bus, sim).await?;
     Ok((hub, bus, sim))
 }
 

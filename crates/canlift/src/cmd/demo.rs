@@ -9,6 +9,7 @@ use std::time::Duration;
 
 use anyhow::Context;
 use canbus::hub::{Hub, HubConfig};
+use canbus::CanId;
 use cloud::server::Portal;
 use cloud::store::Store;
 use lift417::catalog::Device;
@@ -61,6 +62,8 @@ pub struct DemoArgs {
 
 const DOMAIN: &str = "DEMO";
 const SERNUM: &str = "DEMO-0001";
+/// The simulated controller's further SDO channels (1201h, 1202h), the gateway's to use.
+const DEMO_SDO_CHANNELS: [(u16, u16); 2] = [(0x6A1, 0x6C1), (0x6A2, 0x6C2)];
 
 fn default_state() -> PathBuf {
     let data = std::env::var_os("XDG_DATA_HOME")
@@ -136,6 +139,10 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
         speed: args.speed,
         state_dir: Some(dir.join("lift")),
         passengers: (args.passengers > 0.0).then(|| Duration::from_secs_f64(args.passengers)),
+        sdo_servers: DEMO_SDO_CHANNELS
+            .iter()
+            .map(|&(request, response)| (CanId::Standard(request), CanId::Standard(response)))
+            .collect(),
         ..SimConfig::default()
     };
     let sim = Simulator::start(&bus, sim_config.clone())
@@ -158,6 +165,16 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
     let (service, setup) = lift_passwords(&dir)?;
     gw.privileges.service_sha1 = Some(cloud::store::passhash(&service));
     gw.privileges.setup_sha1 = Some(cloud::store::passhash(&setup));
+    // The gateway reads the controller on SDO channels of its own, two transfers at once, and
+    // leaves the default channel to the user's tools (`canlift sdo`, python-canopen) on the
+    // same bus: one client per channel (docs/GATEWAY.md §Behaviour).
+    gw.bus.nodes.push(gateway::config::NodeSection {
+        sdo_channels: DEMO_SDO_CHANNELS
+            .iter()
+            .map(|&(request, response)| gateway::config::SdoChannel { request, response })
+            .collect(),
+        ..gateway::config::NodeSection::new(sim_config.node_id)
+    });
     // The I/O node described by its EDS, as an integrator would (docs/GATEWAY.md §Metadata).
     if let Some(id) = sim_config.io_node {
         let eds = dir.join(format!("io-node-{id}.eds"));

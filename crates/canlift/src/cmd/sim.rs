@@ -4,6 +4,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::Context;
+use canbus::CanId;
 use lift417::catalog::Device;
 use lift417::sim::{export_eds, SimConfig, Simulator};
 
@@ -42,6 +43,11 @@ pub struct SimArgs {
     /// Stay pre-operational until an NMT master starts the nodes.
     #[arg(long)]
     no_autostart: bool,
+    /// A further SDO server channel of the controller, REQUEST:RESPONSE COB-IDs (e.g.
+    /// 0x641:0x5C1; 1201h, 1202h, … in order): a gateway given the same channels reads the
+    /// controller with as many transfers at once. Repeat for more.
+    #[arg(long = "sdo-server", value_name = "REQUEST:RESPONSE", value_parser = parse_channel)]
+    sdo_servers: Vec<(CanId, CanId)>,
     /// Write the controller's EDS to this file (and the I/O node's beside it) and exit.
     #[arg(long)]
     export_eds: Option<PathBuf>,
@@ -86,9 +92,24 @@ impl SimArgs {
             faults,
             passengers,
             autostart: !self.no_autostart,
+            sdo_servers: self.sdo_servers.clone(),
             ..SimConfig::default()
         })
     }
+}
+
+/// `0x641:0x5C1` as an SDO channel's (request, response) 11-bit COB-IDs.
+fn parse_channel(text: &str) -> anyhow::Result<(CanId, CanId)> {
+    let Some((request, response)) = text.split_once(':') else {
+        anyhow::bail!("{text:?} is not REQUEST:RESPONSE (e.g. 0x641:0x5C1)");
+    };
+    let id = |what, text| -> anyhow::Result<CanId> {
+        Ok(CanId::standard(super::parse_number(what, text)?)?)
+    };
+    Ok((
+        id("request COB-ID", request)?,
+        id("response COB-ID", response)?,
+    ))
 }
 
 /// Run `canlift sim` until Ctrl-C or SIGTERM.
@@ -126,4 +147,22 @@ pub async fn run(args: SimArgs) -> anyhow::Result<()> {
     sim.stop().await;
     tracing::info!("simulated lift stopped, counters stored");
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sdo_server_channels_are_request_colon_response() {
+        let id = CanId::Standard;
+        assert_eq!(
+            parse_channel("0x6A1:0x6C1").unwrap(),
+            (id(0x6A1), id(0x6C1))
+        );
+        assert_eq!(parse_channel("1697:1729").unwrap(), (id(0x6A1), id(0x6C1)));
+        for bad in ["0x6A1", "0x6A1:", "0x800:0x6C1", "x:0x6C1", "0x6A1:0x6C1:1"] {
+            assert!(parse_channel(bad).is_err(), "{bad}");
+        }
+    }
 }

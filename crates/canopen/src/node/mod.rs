@@ -62,6 +62,10 @@ pub struct NodeConfig {
     pub storage: Option<std::path::PathBuf>,
     /// SDO server behaviour.
     pub sdo: ServerConfig,
+    /// Further SDO server channels (request, response COB-ID), offered as 1201h, 1202h, …
+    /// (CiA 301 §7.5.2.33) beside the default one: a client given several of them, like the
+    /// gateway, runs as many transfers to this node at once.
+    pub sdo_servers: Vec<(canbus::CanId, canbus::CanId)>,
 }
 
 impl NodeConfig {
@@ -79,6 +83,7 @@ impl NodeConfig {
             pdos: (4, 4),
             storage: None,
             sdo: ServerConfig::default(),
+            sdo_servers: Vec::new(),
         }
     }
 }

@@ -4,6 +4,7 @@
 use std::sync::Arc;
 
 use super::NodeConfig;
+use crate::cob::parameter_from_id;
 use crate::objects::*;
 use crate::od::{Access, Object, ObjectCode, ObjectDictionary, Variable, VariableHook};
 use crate::sdo::abort::AbortCode;
@@ -146,6 +147,31 @@ pub fn add_communication_objects(od: &mut ObjectDictionary, config: &NodeConfig)
             ],
         ),
     ];
+    for (n, &(request, response)) in (1u16..0x80).zip(&config.sdo_servers) {
+        defaults.push(Object::composite(
+            SDO_SERVER + n,
+            "SDO server parameter",
+            ObjectCode::Record,
+            [
+                (
+                    1,
+                    u32_var(
+                        "COB-ID client to server",
+                        Access::Ro,
+                        parameter_from_id(request),
+                    ),
+                ),
+                (
+                    2,
+                    u32_var(
+                        "COB-ID server to client",
+                        Access::Ro,
+                        parameter_from_id(response),
+                    ),
+                ),
+            ],
+        ));
+    }
     let mut history = Object::composite(
         ERROR_HISTORY,
         "Pre-defined error field",

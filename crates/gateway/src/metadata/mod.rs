@@ -113,9 +113,7 @@ impl BusMetadata {
     /// Read the EDS and metadata files `config` names.
     pub fn load(config: &Config) -> Result<BusMetadata, GatewayError> {
         let mut nodes = HashMap::new();
-        let sections = std::iter::once((1u8, &config.bus.nodes))
-            .chain(config.networks.iter().map(|n| (n.net, &n.nodes)));
-        for (net, list) in sections {
+        for (net, list) in config.node_sections() {
             for n in list {
                 nodes.insert(Target { net, node: n.id }, load_node(n)?);
             }

@@ -21,10 +21,9 @@ fn fixture(name: &str) -> PathBuf {
 
 fn node(id: u8, eds: Option<PathBuf>, metadata: Option<PathBuf>) -> NodeSection {
     NodeSection {
-        id,
         eds,
         metadata,
-        heartbeat_ms: None,
+        ..NodeSection::new(id)
     }
 }
 

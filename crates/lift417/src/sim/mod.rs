@@ -17,7 +17,8 @@ use std::path::PathBuf;
 use std::sync::{Arc, PoisonError};
 use std::time::{Duration, Instant};
 
-use canbus::Bus;
+use canbus::{Bus, CanId};
+use canopen::cob::restricted;
 use canopen::eds::{self, DeviceDescription};
 use canopen::nmt::{NmtCommand, NmtState};
 use canopen::node::{add_communication_objects, LocalNode, NodeConfig, PdoSetup};
@@ -67,6 +68,9 @@ pub struct SimConfig {
     pub autostart: bool,
     /// Seed of the simulated passengers and loads.
     pub seed: u64,
+    /// Further SDO server channels of the controller (request, response COB-ID; 1201h ff.),
+    /// for a gateway that reads it with several transfers at once.
+    pub sdo_servers: Vec<(CanId, CanId)>,
 }
 
 impl Default for SimConfig {
@@ -83,6 +87,7 @@ impl Default for SimConfig {
             passengers: None,
             autostart: true,
             seed: 0x5EED,
+            sdo_servers: Vec::new(),
         }
     }
 }
@@ -132,6 +137,40 @@ impl SimConfig {
         if !(self.speed.is_finite() && self.speed > 0.0 && self.speed <= 1000.0) {
             return bad(format!("speed {}: more than 0, at most 1000", self.speed));
         }
+        self.check_sdo_servers()
+    }
+
+    /// Further SDO channels need identifiers of their own: 11-bit, not restricted (CiA 301
+    /// §7.3.5, which covers every node's default SDO channel), none of the PDOs' (the
+    /// pre-defined connection set's 181h–57Fh and the further lifts' TPDOs) and no two alike.
+    fn check_sdo_servers(&self) -> Result<(), SimError> {
+        if self.sdo_servers.len() > 127 {
+            return Err(SimError::Config(format!(
+                "{} SDO server channels: 1201h–127Fh hold 127",
+                self.sdo_servers.len()
+            )));
+        }
+        let mut taken: Vec<CanId> = (2..=self.lifts)
+            .flat_map(|lift| (0..3).map(move |k| lift_tpdo_cob_id(self.node_id, lift, k)))
+            .filter_map(|id| u16::try_from(id).ok().map(CanId::Standard))
+            .collect();
+        for &(request, response) in &self.sdo_servers {
+            for id in [request, response] {
+                let why = match id {
+                    CanId::Standard(raw) if restricted(raw) => "is restricted (CiA 301 §7.3.5)",
+                    CanId::Standard(0x181..=0x57F) => "is a PDO's (CiA 301 §7.3.5)",
+                    CanId::Standard(_) if taken.contains(&id) => "is used twice or by a PDO",
+                    CanId::Standard(_) => {
+                        taken.push(id);
+                        continue;
+                    }
+                    CanId::Extended(_) => "is not an 11-bit identifier",
+                };
+                return Err(SimError::Config(format!(
+                    "SDO channel 0x{request}/0x{response}: 0x{id} {why}"
+                )));
+            }
+        }
         Ok(())
     }
 
@@ -153,7 +192,10 @@ impl SimConfig {
     }
 
     fn controller_config(&self) -> NodeConfig {
-        self.node_config(self.node_id, CONTROLLER_DEVICE, 0x417_0001, CONTROLLER_NAME)
+        NodeConfig {
+            sdo_servers: self.sdo_servers.clone(),
+            ..self.node_config(self.node_id, CONTROLLER_DEVICE, 0x417_0001, CONTROLLER_NAME)
+        }
     }
 
     fn io_config(&self, id: u8) -> NodeConfig {
@@ -495,11 +537,7 @@ fn configure_tpdos(node: &LocalNode, config: &SimConfig) -> Result<(), SimError>
         ];
         for (k, (objects, inhibit_100us, event_ms)) in layouts.into_iter().enumerate() {
             let k16 = k as u16;
-            let cob_id = if lift == 1 {
-                0x180 + 0x100 * u32::from(k16) + u32::from(config.node_id)
-            } else {
-                0x680 + 3 * (u32::from(lift) - 2) + u32::from(k16)
-            };
+            let cob_id = lift_tpdo_cob_id(config.node_id, lift, k16);
             node.configure_pdo(&PdoSetup {
                 transmit: true,
                 number: 3 * (u16::from(lift) - 1) + k16 + 1,
@@ -513,6 +551,16 @@ fn configure_tpdos(node: &LocalNode, config: &SimConfig) -> Result<(), SimError>
         }
     }
     Ok(())
+}
+
+/// The COB-ID of TPDO `k` (0–2) of lift `lift`: lift 1 in the pre-defined connection set, lifts
+/// 2–8 at 680h + 3 × (lift − 2) + k.
+fn lift_tpdo_cob_id(node_id: u8, lift: u8, k: u16) -> u32 {
+    if lift == 1 {
+        0x180 + 0x100 * u32::from(k) + u32::from(node_id)
+    } else {
+        0x680 + 3 * (u32::from(lift) - 2) + u32::from(k)
+    }
 }
 
 /// The task that moves the lifts.

@@ -75,6 +75,68 @@ fn settings_are_checked() {
 }
 
 #[test]
+fn further_sdo_channels_need_free_identifiers() {
+    let id = CanId::Standard;
+    let with = |channels: &[(u16, u16)]| SimConfig {
+        sdo_servers: channels.iter().map(|&(q, r)| (id(q), id(r))).collect(),
+        ..SimConfig::default()
+    };
+    assert!(with(&[(0x6A1, 0x6C1), (0x6A2, 0x6C2)]).check().is_ok());
+    for bad in [
+        // The I/O node's default channel, and another node's.
+        with(&[(0x60C, 0x58C)]),
+        with(&[(0x640, 0x5C0)]),
+        // Restricted: heartbeats, LSS.
+        with(&[(0x705, 0x6C1)]),
+        with(&[(0x7E5, 0x6C1)]),
+        // A PDO's: lift 1's TPDO 1 of the pre-defined set.
+        with(&[(0x181, 0x6C1)]),
+        // Twice, or request = response.
+        with(&[(0x6A1, 0x6C1), (0x6A2, 0x6C1)]),
+        with(&[(0x6A1, 0x6A1)]),
+    ] {
+        assert!(bad.check().is_err(), "{:?}", bad.sdo_servers);
+    }
+    // Lift 2's TPDOs are at 680h–682h.
+    let two_lifts = SimConfig {
+        lifts: 2,
+        ..with(&[(0x681, 0x6C1)])
+    };
+    assert!(two_lifts.check().is_err());
+    assert!(SimConfig {
+        lifts: 1,
+        ..two_lifts
+    }
+    .check()
+    .is_ok());
+    let extended = SimConfig {
+        sdo_servers: vec![(CanId::Extended(0x1000), id(0x6C1))],
+        ..SimConfig::default()
+    };
+    assert!(extended.check().is_err());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_controller_serves_its_further_sdo_channels() {
+    let bus = "mem://sim-sdo-channels";
+    let id = CanId::Standard;
+    let config = SimConfig {
+        sdo_servers: vec![(id(0x6A1), id(0x6C1))],
+        ..SimConfig::default()
+    };
+    let sim = Simulator::start(bus, config).await.unwrap();
+    let sdo = canopen::driver::SdoClients::with_channels(
+        Bus::open(bus).await.unwrap(),
+        Default::default(),
+        &[(1, id(0x6A1), id(0x6C1))],
+    );
+    // Its 1201h says so, read on the channel itself.
+    assert_eq!(sdo.read::<u32>(1, 0x1201, 1).await.unwrap(), 0x6A1);
+    assert_eq!(sdo.read::<u32>(1, 0x1201, 2).await.unwrap(), 0x6C1);
+    sim.stop().await;
+}
+
+#[test]
 fn the_exported_eds_describes_the_running_dictionary() {
     let config = SimConfig {
         lifts: 2,
