@@ -16,7 +16,31 @@ async fn stored_token(rig: &Rig) -> String {
         rig.gateway_token().is_some()
     })
     .await;
+    // The gateway answers once its token is stored, and the portal records it then: a gateway
+    // stopped in between never confirmed it (and is a first contact again when it returns).
+    until(WAIT, "the portal records the confirmed token", || async {
+        portal_token_set(rig).await
+    })
+    .await;
     rig.gateway_token().expect("a token")
+}
+
+/// Whether the portal's registry holds a confirmed token of the lift.
+async fn portal_token_set(rig: &Rig) -> bool {
+    let url = format!(
+        "sqlite://{}",
+        rig.dir().join("portal").join("canlift.db").display()
+    );
+    let pool = sqlx::AnyPool::connect(&url).await.expect("the database");
+    let set: Option<i64> = sqlx::query_scalar(
+        "SELECT COUNT(*) FROM gateways WHERE id = $1 AND token_hash IS NOT NULL",
+    )
+    .bind(LIFT)
+    .fetch_optional(&pool)
+    .await
+    .expect("the registry");
+    pool.close().await;
+    set.unwrap_or(0) > 0
 }
 
 /// Refused attempts recorded for the lift.

@@ -188,6 +188,9 @@ impl Connection {
     async fn identify(&mut self, connect: Connect) -> Vec<Output> {
         let lift = store::lift_id(&connect.identity);
         let peer = self.peer.clone();
+        // A token its last connection confirmed is on record first (else: a first contact
+        // again, its board unchecked).
+        self.shared.records.settled(&lift).await;
         // A known gateway on its known board changes nothing the next admission decides on
         // (`unchanged`): its row is refreshed behind the connection, with others.
         let (admission, unchanged) = match self.shared.admissions.admit(&connect).await {
@@ -262,8 +265,7 @@ impl Connection {
         ));
     }
 
-    /// Queued behind the gateway's row: a CONNECT before it is written is a first contact
-    /// again and gets another token.
+    /// Queued behind the gateway's row; the lift's next admission waits until it is written.
     async fn token_confirmed(&mut self, token: &str) {
         if let Some(a) = &self.admitted {
             let record = GatewayRecord::token(&a.lift, token);

@@ -7,7 +7,12 @@
 //! of the gateways behind them waited for a connection too. One writer takes them many at a
 //! time, in order, one transaction per batch. What an admission decides on (a first contact's
 //! row, a changed board) is written before CONNACK all the same: its connection waits for the
-//! batch it is in ([`Records::write_now`]). A confirmed token is queued behind its row.
+//! batch it is in ([`Records::write_now`]). A confirmed token is queued behind its row, and the
+//! next admission of its lift waits until it is written ([`Records::settled`]).
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
 
 use tokio::sync::mpsc::error::TrySendError;
 use tokio::sync::{mpsc, oneshot, watch};
@@ -18,6 +23,41 @@ use crate::store::{GatewayRecord, Store, StoreError};
 struct Queued {
     record: GatewayRecord,
     written: Option<oneshot::Sender<Result<(), StoreError>>>,
+    /// A token's number in [`Unwritten`].
+    token: Option<u64>,
+}
+
+/// Confirmed tokens queued and not yet written, by lift (the number of the last one queued).
+/// Until its token is written, a lift's row has none: a CONNECT of that lift would be taken
+/// for a first contact again — a new token, and no check of its board. Such an admission
+/// waits ([`Records::settled`]).
+#[derive(Default)]
+struct Unwritten {
+    tokens: Mutex<HashMap<String, u64>>,
+    numbers: AtomicU64,
+    /// Bumped after each batch the writer is done with (written or lost).
+    batches: watch::Sender<u64>,
+}
+
+impl Unwritten {
+    fn queued(&self, lift: String) -> u64 {
+        let number = self.numbers.fetch_add(1, Ordering::Relaxed);
+        self.lock().insert(lift, number);
+        number
+    }
+
+    /// `lift`'s token `number` is written or lost: unless a later one is queued, nothing of the
+    /// lift waits any more.
+    fn done(&self, lift: &str, number: u64) {
+        let mut tokens = self.lock();
+        if tokens.get(lift) == Some(&number) {
+            tokens.remove(lift);
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<String, u64>> {
+        self.tokens.lock().unwrap_or_else(PoisonError::into_inner)
+    }
 }
 
 /// Records waiting for the writer; beyond this a connection waits for room.
@@ -31,16 +71,37 @@ const BATCH: usize = 1024;
 pub struct Records {
     tx: mpsc::Sender<Queued>,
     store: Store,
+    unwritten: Arc<Unwritten>,
 }
 
 /// What [`writer`] takes from the queue.
-pub struct Queue(mpsc::Receiver<Queued>);
+pub struct Queue(mpsc::Receiver<Queued>, Arc<Unwritten>);
 
 impl Records {
     /// The queue in front of [`writer`], which takes the receiver.
     pub fn new(store: Store) -> (Records, Queue) {
         let (tx, rx) = mpsc::channel(QUEUE);
-        (Records { tx, store }, Queue(rx))
+        let unwritten = Arc::new(Unwritten::default());
+        (
+            Records {
+                tx,
+                store,
+                unwritten: unwritten.clone(),
+            },
+            Queue(rx, unwritten),
+        )
+    }
+
+    /// Returns once no confirmed token of `lift` waits in the queue (at once almost always:
+    /// only a gateway that reconnects right after confirming one waits for the writer).
+    pub async fn settled(&self, lift: &str) {
+        // Subscribed before looking, so a batch done in between is not missed.
+        let mut batches = self.unwritten.batches.subscribe();
+        while self.unwritten.lock().contains_key(lift) {
+            if batches.changed().await.is_err() {
+                return;
+            }
+        }
     }
 
     /// Queue `record` behind the ones before it, waiting for room when the writer is behind
@@ -67,21 +128,43 @@ impl Records {
         record: GatewayRecord,
         written: Option<oneshot::Sender<Result<(), StoreError>>>,
     ) -> Result<(), StoreError> {
-        match self.tx.send(Queued { record, written }).await {
+        let queued = self.queued(record, written);
+        match self.tx.send(queued).await {
             Ok(()) => Ok(()),
-            Err(unsent) => self.store.record(&[unsent.0.record]).await,
+            Err(unsent) => {
+                let Queued { record, token, .. } = unsent.0;
+                let written = self.store.record(std::slice::from_ref(&record)).await;
+                if let Some(number) = token {
+                    self.unwritten.done(&record.lift(), number);
+                }
+                written
+            }
+        }
+    }
+
+    fn queued(
+        &self,
+        record: GatewayRecord,
+        written: Option<oneshot::Sender<Result<(), StoreError>>>,
+    ) -> Queued {
+        let token = match &record {
+            GatewayRecord::Token { lift, .. } => Some(self.unwritten.queued(lift.clone())),
+            _ => None,
+        };
+        Queued {
+            record,
+            written,
+            token,
         }
     }
 
     /// [`Records::write`] without waiting: when there is no room it waits in the background.
     pub fn write_later(&self, record: GatewayRecord) {
-        let queued = Queued {
-            record,
-            written: None,
-        };
+        let queued = self.queued(record, None);
         if let Err(TrySendError::Full(queued) | TrySendError::Closed(queued)) =
             self.tx.try_send(queued)
         {
+            // A token stays unwritten for `settled` until `write` numbers it again.
             let records = self.clone();
             tokio::spawn(async move { records.write(queued.record).await });
         }
@@ -91,12 +174,20 @@ impl Records {
 /// Write what is queued, in order, a batch per transaction, until every [`Records`] is gone
 /// or `stop` turns true (then what is queued still is). A batch the database refuses is logged
 /// and lost, as a single write's failure was.
-pub async fn writer(store: Store, Queue(mut rx): Queue, mut stop: watch::Receiver<bool>) {
+pub async fn writer(
+    store: Store,
+    Queue(mut rx, unwritten): Queue,
+    mut stop: watch::Receiver<bool>,
+) {
     let mut batch = Vec::with_capacity(BATCH);
     let mut records = Vec::with_capacity(BATCH);
     let mut waiting = Vec::with_capacity(BATCH);
+    let mut tokens = Vec::new();
     while super::next_batch(&mut rx, &mut batch, BATCH, &mut stop).await > 0 {
         for queued in batch.drain(..) {
+            if let Some(number) = queued.token {
+                tokens.push((queued.record.lift(), number));
+            }
             records.push(queued.record);
             waiting.push(queued.written);
         }
@@ -125,7 +216,14 @@ pub async fn writer(store: Store, Queue(mut rx): Queue, mut stop: watch::Receive
             }
         }
         records.clear();
+        for (lift, number) in tokens.drain(..) {
+            unwritten.done(&lift, number);
+        }
+        unwritten.batches.send_modify(|n| *n += 1);
     }
+    // Nothing is written any more: nobody waits for it.
+    unwritten.lock().clear();
+    unwritten.batches.send_modify(|n| *n += 1);
 }
 
 #[cfg(test)]
@@ -157,6 +255,49 @@ mod tests {
             Store::open(&url).await.unwrap(),
         )
         .await;
+    }
+
+    /// A confirmed token waiting in the queue holds up its lift's next admission, and only
+    /// its lift's, until the writer has written it: then the gateway is known, with its board.
+    #[tokio::test]
+    async fn a_lifts_admission_waits_for_its_queued_token() {
+        let dir = tempfile::tempdir().unwrap();
+        let url = format!("sqlite://{}", dir.path().join("records.db").display());
+        let store = Store::open(&url).await.unwrap();
+        store.add_account("masora", "MAS").await.unwrap();
+        let first = connect("GW1", "v1");
+        let lift = crate::store::lift_id(&first.identity);
+        store
+            .record(&[GatewayRecord::connected(&first, 2)])
+            .await
+            .unwrap();
+        let (records, rx) = Records::new(store.clone());
+        records.write(GatewayRecord::token(&lift, "T1")).await;
+        let wait = std::time::Duration::from_millis(300);
+        // No writer yet: the token is not on record, and the lift's admission waits.
+        let again = crate::store::tests::connect("GW1", "MAS", Some("T1"));
+        assert!(matches!(
+            store.admit(&again).await.unwrap(),
+            crate::store::Admission::FirstContact { .. }
+        ));
+        assert!(tokio::time::timeout(wait, records.settled(&lift))
+            .await
+            .is_err());
+        let other = crate::store::lift_id(&connect("GW2", "").identity);
+        tokio::time::timeout(wait, records.settled(&other))
+            .await
+            .expect("another lift does not wait");
+        let (stop, stopping) = watch::channel(false);
+        let task = tokio::spawn(writer(store.clone(), rx, stopping));
+        tokio::time::timeout(std::time::Duration::from_secs(10), records.settled(&lift))
+            .await
+            .expect("settled once written");
+        assert!(matches!(
+            store.admit(&again).await.unwrap(),
+            crate::store::Admission::Known(_)
+        ));
+        stop.send_replace(true);
+        task.await.unwrap();
     }
 
     /// Records queued from many connections reach the database in order, in few batches:
