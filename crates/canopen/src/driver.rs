@@ -717,7 +717,7 @@ mod tests {
 
     /// Node 7's default channel and two further ones (1201h, 1202h) as client channels.
     fn three_channels() -> Vec<(u8, CanId, CanId)> {
-        [(0x607, 0x587), (0x641, 0x5C1), (0x642, 0x5C2)]
+        [(0x607, 0x587), (0x6A1, 0x6C1), (0x6A2, 0x6C2)]
             .into_iter()
             .map(|(req, resp)| (7, CanId::Standard(req), CanId::Standard(resp)))
             .collect()
@@ -772,7 +772,7 @@ mod tests {
         let od = node_dictionary(7);
         {
             let mut od = od.lock().unwrap();
-            for (n, (req, resp)) in [(1u16, (0x641u32, 0x5C1u32)), (2, (0x642, 0x5C2))] {
+            for (n, (req, resp)) in [(1u16, (0x6A1u32, 0x6C1u32)), (2, (0x6A2, 0x6C2))] {
                 let cob = |v: u32| {
                     Variable::new("COB-ID", DataType::Unsigned32, Access::Ro)
                         .with_value(Value::Uint(v.into()))

@@ -109,7 +109,7 @@ pub struct NodeSection {
     pub sdo_channels: Vec<SdoChannel>,
 }
 
-/// One SDO channel of a node: its 11-bit COB-IDs (`{ request = 0x641, response = 0x5C1 }`).
+/// One SDO channel of a node: its 11-bit COB-IDs (`{ request = 0x6A1, response = 0x6C1 }`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SdoChannel {

@@ -44,7 +44,7 @@ pub struct SimArgs {
     #[arg(long)]
     no_autostart: bool,
     /// A further SDO server channel of the controller, REQUEST:RESPONSE COB-IDs (e.g.
-    /// 0x641:0x5C1; 1201h, 1202h, … in order): a gateway given the same channels reads the
+    /// 0x6A1:0x6C1; 1201h, 1202h, … in order): a gateway given the same channels reads the
     /// controller with as many transfers at once. Repeat for more.
     #[arg(long = "sdo-server", value_name = "REQUEST:RESPONSE", value_parser = parse_channel)]
     sdo_servers: Vec<(CanId, CanId)>,
@@ -98,10 +98,10 @@ impl SimArgs {
     }
 }
 
-/// `0x641:0x5C1` as an SDO channel's (request, response) 11-bit COB-IDs.
+/// `0x6A1:0x6C1` as an SDO channel's (request, response) 11-bit COB-IDs.
 fn parse_channel(text: &str) -> anyhow::Result<(CanId, CanId)> {
     let Some((request, response)) = text.split_once(':') else {
-        anyhow::bail!("{text:?} is not REQUEST:RESPONSE (e.g. 0x641:0x5C1)");
+        anyhow::bail!("{text:?} is not REQUEST:RESPONSE (e.g. 0x6A1:0x6C1)");
     };
     let id = |what, text| -> anyhow::Result<CanId> {
         Ok(CanId::standard(super::parse_number(what, text)?)?)
