@@ -32,10 +32,7 @@ const GIVE_UP: Duration = Duration::from_secs(3 * 24 * 3600);
 /// The signature header's value for `body` under `secret`.
 pub fn signature(secret: &str, body: &[u8]) -> String {
     let key = ring::hmac::Key::new(ring::hmac::HMAC_SHA256, secret.as_bytes());
-    format!(
-        "sha256={}",
-        store::hex(ring::hmac::sign(&key, body).as_ref())
-    )
+    format!("sha256={}", hex::encode(ring::hmac::sign(&key, body)))
 }
 
 /// A receiver ready to be posted to.
