@@ -193,13 +193,16 @@ struct NodeChannels {
     permits: tokio::sync::Semaphore,
     /// The channels no transfer holds.
     free: Mutex<Vec<(CanId, CanId)>>,
+    /// All of them, in the configured order.
+    all: Vec<(CanId, CanId)>,
 }
 
 impl NodeChannels {
     fn new(channels: Vec<(CanId, CanId)>) -> Self {
         NodeChannels {
             permits: tokio::sync::Semaphore::new(channels.len()),
-            free: Mutex::new(channels),
+            free: Mutex::new(channels.clone()),
+            all: channels,
         }
     }
 
@@ -322,19 +325,69 @@ impl SdoClients {
             .clone()
     }
 
+    /// Read 1000h (the device type, which every CiA 301 device has) on all of `node`'s channels
+    /// at once, holding them meanwhile (other transfers to the node wait, at most one response
+    /// timeout): which ones answer, in the configured order. A channel configured here that the
+    /// node does not serve would fail every transfer that lands on it; this finds it.
+    pub async fn check_channels(
+        &self,
+        node: u8,
+    ) -> Result<Vec<((CanId, CanId), Result<(), ClientError>)>, ClientError> {
+        let channels = self.node_channels(node);
+        let count = u32::try_from(channels.all.len()).map_err(|_| ClientError::Closed)?;
+        let _all = channels
+            .permits
+            .acquire_many(count)
+            .await
+            .map_err(|_| ClientError::Closed)?;
+        let mut reads = tokio::task::JoinSet::new();
+        for (i, &channel) in channels.all.iter().enumerate() {
+            let sdo = self.clone();
+            reads.spawn(async move {
+                let options = TransferOptions::default();
+                let answer = sdo
+                    .transfer_on(channel, node, (0x1000, 0), None, None, options)
+                    .await;
+                (i, channel, answer.map(|_| ()))
+            });
+        }
+        let mut answers = Vec::with_capacity(channels.all.len());
+        while let Some(done) = reads.join_next().await {
+            answers.push(done.map_err(|_| ClientError::Closed)?);
+        }
+        answers.sort_by_key(|(i, ..)| *i);
+        Ok(answers
+            .into_iter()
+            .map(|(_, channel, answer)| (channel, answer))
+            .collect())
+    }
+
     /// Run one transfer: a download from `source`, or an upload (into `sink` as it arrives, or
     /// returned at the end).
     async fn transfer(
         &self,
+        node: u8,
+        object: (u16, u8),
+        source: Option<Box<dyn DownloadSource>>,
+        sink: Option<&mut (dyn std::io::Write + Send)>,
+        options: TransferOptions<'_>,
+    ) -> Result<Vec<u8>, ClientError> {
+        let channels = self.node_channels(node);
+        let turn = channels.take().await?;
+        self.transfer_on(turn.channel, node, object, source, sink, options)
+            .await
+    }
+
+    /// [`Self::transfer`] on `channel`, which the caller holds.
+    async fn transfer_on(
+        &self,
+        (request_id, response_id): (CanId, CanId),
         node: u8,
         (index, sub): (u16, u8),
         source: Option<Box<dyn DownloadSource>>,
         mut sink: Option<&mut (dyn std::io::Write + Send)>,
         options: TransferOptions<'_>,
     ) -> Result<Vec<u8>, ClientError> {
-        let channels = self.node_channels(node);
-        let turn = channels.take().await?;
-        let (request_id, response_id) = turn.channel;
         let (tx, mut rx) = mpsc::channel(256);
         self.inner
             .routes
@@ -829,6 +882,44 @@ mod tests {
                 "{req:?} unused"
             );
         }
+        server.abort();
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_channel_the_node_does_not_serve_is_found() {
+        let url = "mem://driver-channels-checked";
+        let od = node_dictionary(7);
+        od.lock().unwrap().insert(Object::composite(
+            0x1201,
+            "SDO server 2",
+            crate::od::ObjectCode::Record,
+            [0x6A1u32, 0x6C1].into_iter().zip(1u8..).map(|(v, sub)| {
+                let var = Variable::new("COB-ID", DataType::Unsigned32, Access::Ro)
+                    .with_value(Value::Uint(v.into()));
+                (sub, var)
+            }),
+        ));
+        let server = serve_sdo(
+            Bus::open(url).await.unwrap(),
+            od,
+            7,
+            ServerConfig::default(),
+        );
+        let config = ClientConfig {
+            timeout: Duration::from_millis(200),
+            ..ClientConfig::default()
+        };
+        // 1202h (6A2h/6C2h) is configured here but not on the node.
+        let sdo =
+            SdoClients::with_channels(Bus::open(url).await.unwrap(), config, &three_channels());
+        let answers = sdo.check_channels(7).await.unwrap();
+        let answered: Vec<(u16, bool)> = answers
+            .iter()
+            .map(|((request, _), answer)| (request.as_raw() as u16, answer.is_ok()))
+            .collect();
+        assert_eq!(answered, vec![(0x607, true), (0x6A1, true), (0x6A2, false)]);
+        let silent = answers.into_iter().find_map(|(_, a)| a.err()).unwrap();
+        assert_eq!(silent.abort_code(), AbortCode::TIMEOUT);
         server.abort();
     }
 

@@ -126,6 +126,9 @@ pub struct Gateway {
     supervisors: Vec<tokio::task::JoinHandle<()>>,
 }
 
+/// How often configured SDO channels are checked again while their node answers on none.
+const CHECK_RETRY: Duration = Duration::from_secs(10);
+
 /// Open the bus behind `url` once: the gateway's endpoints on it (SDO client, its own node,
 /// supervision, a PDO feed per portal connection) share one link.
 async fn open(url: &str) -> Result<Interface, GatewayError> {
@@ -208,6 +211,17 @@ impl Gateway {
                     .collect(),
             });
         }
+        // Configured SDO channels a node does not serve are named in the log once it answers.
+        let mut checks = Vec::new();
+        for (net, nodes) in config.node_sections() {
+            let Some(sdo) = nets.get(&net) else { continue };
+            for n in nodes.iter().filter(|n| !n.sdo_channels.is_empty()) {
+                let check = supervision::check_sdo_channels(sdo.clone(), net, n.id, CHECK_RETRY);
+                checks.push(tokio::spawn(async move {
+                    check.await;
+                }));
+            }
+        }
         let mode = Mode::Bus { sdo, bus };
         let mut gateway =
             Gateway::assemble(config, tls, metadata, Backend::Bus(nets), mode, Some(node));
@@ -219,6 +233,7 @@ impl Gateway {
             .into_iter()
             .map(|n| supervision::spawn(n, sink.clone()))
             .collect();
+        gateway.supervisors.extend(checks);
         Ok(gateway)
     }
 

@@ -7,7 +7,7 @@
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
-use canbus::{Bus, BusEvent as Link, Filter, ERR_FLAG};
+use canbus::{Bus, BusEvent as Link, CanId, Filter, ERR_FLAG};
 use canopen::driver::{sleep_until, SdoClients};
 use canopen::supervisor::{BusCondition, NodeStatus, Supervision, Supervisor};
 use nxg::gateway::{BusEvent, EventQueue, Happening};
@@ -111,6 +111,42 @@ async fn run(network: Network, sink: Sink) {
             Some((node, ms)) = periods.recv() => supervisor.period(node, ms),
             _ = timer => supervisor.handle_timeout(Instant::now(), &mut out),
         }
+    }
+}
+
+/// Check `node`'s configured SDO channels ([`SdoClients::check_channels`]) once it answers on
+/// any of them — while it answers on none (not booted yet, switched off) ask again every
+/// `retry` — and log each channel it does not serve: every request that lands on one would
+/// fail with a timeout. Returns those channels.
+pub async fn check_sdo_channels(
+    sdo: SdoClients,
+    net: u8,
+    node: u8,
+    retry: std::time::Duration,
+) -> Vec<(CanId, CanId)> {
+    loop {
+        let Ok(answers) = sdo.check_channels(node).await else {
+            return Vec::new();
+        };
+        if answers.iter().all(|(_, answer)| answer.is_err()) {
+            tokio::time::sleep(retry).await;
+            continue;
+        }
+        let mut silent = Vec::new();
+        for ((request, response), answer) in answers {
+            match answer {
+                Ok(()) => {
+                    tracing::debug!(net, node, %request, %response, "SDO channel answers")
+                }
+                Err(error) => {
+                    tracing::warn!(net, node, %request, %response, %error,
+                        "SDO channel does not answer while others do: requests that land on it fail; \
+                         check the node's SDO server parameters (1201h ff.) against [[bus.nodes]] sdo_channels");
+                    silent.push((request, response));
+                }
+            }
+        }
+        return silent;
     }
 }
 

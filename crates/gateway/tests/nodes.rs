@@ -2,6 +2,8 @@
 
 mod common;
 
+use canopen::driver::SdoClients;
+use canopen::sdo::client::ClientConfig;
 use common::*;
 use gateway::config::{NetworkSection, NodeSection, SdoChannel};
 use gateway::Gateway;
@@ -158,6 +160,43 @@ async fn a_controller_with_further_sdo_channels_is_read_on_all_of_them() {
         );
     }
     running.stop().await;
+    sim.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_configured_sdo_channel_the_node_does_not_serve_is_named_once_it_answers() {
+    let bus = "mem://nodes-sdo-channels-checked";
+    let id = canbus::CanId::Standard;
+    let config = ClientConfig {
+        timeout: std::time::Duration::from_millis(100),
+        ..ClientConfig::default()
+    };
+    let channels = [(0x601, 0x581), (0x6A1, 0x6C1), (0x6A2, 0x6C2)]
+        .map(|(request, response)| (1, id(request), id(response)));
+    let sdo = SdoClients::with_channels(canbus::Bus::open(bus).await.unwrap(), config, &channels);
+    // Nobody answers yet (the controller has not booted): asked again until it does.
+    let check = tokio::spawn(gateway::supervision::check_sdo_channels(
+        sdo,
+        1,
+        1,
+        std::time::Duration::from_millis(100),
+    ));
+    tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+    assert!(
+        !check.is_finished(),
+        "named channels of a node that is not there"
+    );
+    let sim = Simulator::start(
+        bus,
+        SimConfig {
+            sdo_servers: vec![(id(0x6A1), id(0x6C1))],
+            ..SimConfig::default()
+        },
+    )
+    .await
+    .unwrap();
+    let silent = tokio::time::timeout(WAIT, check).await.unwrap().unwrap();
+    assert_eq!(silent, vec![(id(0x6A2), id(0x6C2))]);
     sim.stop().await;
 }
 
