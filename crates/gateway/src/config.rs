@@ -119,15 +119,22 @@ pub struct SdoChannel {
     pub response: u16,
 }
 
+impl SdoChannel {
+    /// The channel's (request, response) identifiers, as the SDO client and server take them.
+    pub const fn ids(&self) -> (CanId, CanId) {
+        (
+            CanId::Standard(self.request),
+            CanId::Standard(self.response),
+        )
+    }
+}
+
 impl NodeSection {
     /// The node's SDO client channels for [`canopen::driver::SdoClients::with_channels`].
     pub fn client_channels(&self) -> impl Iterator<Item = (u8, CanId, CanId)> + '_ {
         self.sdo_channels.iter().map(|c| {
-            (
-                self.id,
-                CanId::Standard(c.request),
-                CanId::Standard(c.response),
-            )
+            let (request, response) = c.ids();
+            (self.id, request, response)
         })
     }
 

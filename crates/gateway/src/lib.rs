@@ -167,16 +167,24 @@ impl Gateway {
             interfaces.insert(n.net, open(&n.url).await?);
         }
         let mut nets = HashMap::new();
+        // Configured SDO channels a node does not serve are named in the log once it answers.
+        let mut checks = Vec::new();
         for (net, nodes) in config.node_sections() {
-            if let Some(interface) = interfaces.get(&net) {
-                let channels: Vec<_> = nodes
-                    .iter()
-                    .flat_map(NodeSection::client_channels)
-                    .collect();
-                let sdo =
-                    SdoClients::with_channels(endpoint(interface)?, client.clone(), &channels);
-                nets.insert(net, sdo);
+            let Some(interface) = interfaces.get(&net) else {
+                continue;
+            };
+            let channels: Vec<_> = nodes
+                .iter()
+                .flat_map(NodeSection::client_channels)
+                .collect();
+            let sdo = SdoClients::with_channels(endpoint(interface)?, client.clone(), &channels);
+            for n in nodes.iter().filter(|n| !n.sdo_channels.is_empty()) {
+                let check = supervision::check_sdo_channels(sdo.clone(), net, n.id, CHECK_RETRY);
+                checks.push(tokio::spawn(async move {
+                    check.await;
+                }));
             }
+            nets.insert(net, sdo);
         }
         // [bus] is net 1 (the configuration refuses it for [[networks]]).
         let sdo = nets[&1].clone();
@@ -210,17 +218,6 @@ impl Gateway {
                     .filter_map(|n| n.heartbeat_ms.map(|ms| (n.id, ms)))
                     .collect(),
             });
-        }
-        // Configured SDO channels a node does not serve are named in the log once it answers.
-        let mut checks = Vec::new();
-        for (net, nodes) in config.node_sections() {
-            let Some(sdo) = nets.get(&net) else { continue };
-            for n in nodes.iter().filter(|n| !n.sdo_channels.is_empty()) {
-                let check = supervision::check_sdo_channels(sdo.clone(), net, n.id, CHECK_RETRY);
-                checks.push(tokio::spawn(async move {
-                    check.await;
-                }));
-            }
         }
         let mode = Mode::Bus { sdo, bus };
         let mut gateway =

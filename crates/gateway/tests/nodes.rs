@@ -96,12 +96,16 @@ async fn a_controller_with_further_sdo_channels_is_read_on_all_of_them() {
     let pki = pki(dir.path());
     let portal = Portal::start(&pki).await;
     let bus = "mem://nodes-sdo-channels";
-    let (second, third) = ((0x6A1, 0x6C1), (0x6A2, 0x6C2));
-    let id = |n| canbus::CanId::Standard(n);
+    let channel = |request, response| SdoChannel { request, response };
+    let channels = [
+        channel(0x601, 0x581),
+        channel(0x6A1, 0x6C1),
+        channel(0x6A2, 0x6C2),
+    ];
     let sim = Simulator::start(
         bus,
         SimConfig {
-            sdo_servers: vec![(id(second.0), id(second.1)), (id(third.0), id(third.1))],
+            sdo_servers: channels[1..].iter().map(SdoChannel::ids).collect(),
             ..SimConfig::default()
         },
     )
@@ -110,10 +114,7 @@ async fn a_controller_with_further_sdo_channels_is_read_on_all_of_them() {
     let mut monitor = canbus::Bus::open(bus).await.unwrap();
     let mut config = config(&portal.url(), &pki, bus, dir.path());
     config.bus.nodes = vec![NodeSection {
-        sdo_channels: [(0x601, 0x581), second, third]
-            .into_iter()
-            .map(|(request, response)| SdoChannel { request, response })
-            .collect(),
+        sdo_channels: channels.to_vec(),
         ..NodeSection::new(1)
     }];
     let gateway = Gateway::bus_node(config).await.unwrap();
@@ -153,11 +154,8 @@ async fn a_controller_with_further_sdo_channels_is_read_on_all_of_them() {
     {
         requests.insert(f.id());
     }
-    for request in [0x601, second.0, third.0] {
-        assert!(
-            requests.contains(&id(request)),
-            "no request on {request:#X}"
-        );
+    for (request, _) in channels.iter().map(SdoChannel::ids) {
+        assert!(requests.contains(&request), "no request on {request}");
     }
     running.stop().await;
     sim.stop().await;

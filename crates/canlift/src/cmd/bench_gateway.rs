@@ -527,12 +527,14 @@ async fn cpu_per_request(
         } else {
             let mut config = config(&url, pki, bus, &dir.join("cpu-bus"));
             if channels > 1 {
-                let default = (0x601, 0x581);
+                let default = SdoChannel {
+                    request: 0x601,
+                    response: 0x581,
+                };
                 config.bus.nodes = vec![NodeSection {
                     sdo_channels: std::iter::once(default)
-                        .chain(SIM_SDO_SERVERS)
+                        .chain(sim_sdo_servers())
                         .take(channels)
-                        .map(|(request, response)| SdoChannel { request, response })
                         .collect(),
                     ..NodeSection::new(1)
                 }];
@@ -642,16 +644,14 @@ pub async fn run(args: GatewayBench) -> anyhow::Result<()> {
     result
 }
 
-/// The further SDO server channels of the benchmark's simulated controller (1201h–1207h).
-const SIM_SDO_SERVERS: [(u16, u16); 7] = [
-    (0x6A1, 0x6C1),
-    (0x6A2, 0x6C2),
-    (0x6A3, 0x6C3),
-    (0x6A4, 0x6C4),
-    (0x6A5, 0x6C5),
-    (0x6A6, 0x6C6),
-    (0x6A7, 0x6C7),
-];
+/// The further SDO server channels of the benchmark's simulated controller (1201h–1207h:
+/// 6A1h/6C1h … 6A7h/6C7h).
+fn sim_sdo_servers() -> impl Iterator<Item = SdoChannel> {
+    (1..=7).map(|n| SdoChannel {
+        request: 0x6A0 + n,
+        response: 0x6C0 + n,
+    })
+}
 
 /// A hub on a loopback port with the simulated lift on it; the bus URL.
 async fn hub_with_simulator() -> anyhow::Result<(canbus::hub::HubHandle, String, Simulator)> {
@@ -662,12 +662,8 @@ async fn hub_with_simulator() -> anyhow::Result<(canbus::hub::HubHandle, String,
     .await?
     .spawn()?;
     let bus = format!("socketcand://{}/can0", hub.local_addr());
-    let id = canbus::CanId::Standard;
     let sim = SimConfig {
-        sdo_servers: SIM_SDO_SERVERS
-            .iter()
-            .map(|&(request, response)| (id(request), id(response)))
-            .collect(),
+        sdo_servers: sim_sdo_servers().map(|c| c.ids()).collect(),
         ..SimConfig::default()
     };
     let sim = Simulator::start(&bus, sim).await?;

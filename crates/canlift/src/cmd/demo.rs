@@ -9,9 +9,9 @@ use std::time::Duration;
 
 use anyhow::Context;
 use canbus::hub::{Hub, HubConfig};
-use canbus::CanId;
 use cloud::server::Portal;
 use cloud::store::Store;
+use gateway::config::{NodeSection, SdoChannel};
 use lift417::catalog::Device;
 use lift417::sim::{export_eds, SimConfig, Simulator};
 
@@ -63,7 +63,16 @@ pub struct DemoArgs {
 const DOMAIN: &str = "DEMO";
 const SERNUM: &str = "DEMO-0001";
 /// The simulated controller's further SDO channels (1201h, 1202h), the gateway's to use.
-const DEMO_SDO_CHANNELS: [(u16, u16); 2] = [(0x6A1, 0x6C1), (0x6A2, 0x6C2)];
+const DEMO_SDO_CHANNELS: [SdoChannel; 2] = [
+    SdoChannel {
+        request: 0x6A1,
+        response: 0x6C1,
+    },
+    SdoChannel {
+        request: 0x6A2,
+        response: 0x6C2,
+    },
+];
 
 fn default_state() -> PathBuf {
     let data = std::env::var_os("XDG_DATA_HOME")
@@ -139,10 +148,7 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
         speed: args.speed,
         state_dir: Some(dir.join("lift")),
         passengers: (args.passengers > 0.0).then(|| Duration::from_secs_f64(args.passengers)),
-        sdo_servers: DEMO_SDO_CHANNELS
-            .iter()
-            .map(|&(request, response)| (CanId::Standard(request), CanId::Standard(response)))
-            .collect(),
+        sdo_servers: DEMO_SDO_CHANNELS.iter().map(SdoChannel::ids).collect(),
         ..SimConfig::default()
     };
     let sim = Simulator::start(&bus, sim_config.clone())
@@ -168,21 +174,16 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
     // The gateway reads the controller on SDO channels of its own, two transfers at once, and
     // leaves the default channel to the user's tools (`canlift sdo`, python-canopen) on the
     // same bus: one client per channel (docs/GATEWAY.md §Behaviour).
-    gw.bus.nodes.push(gateway::config::NodeSection {
-        sdo_channels: DEMO_SDO_CHANNELS
-            .iter()
-            .map(|&(request, response)| gateway::config::SdoChannel { request, response })
-            .collect(),
-        ..gateway::config::NodeSection::new(sim_config.node_id)
+    gw.bus.nodes.push(NodeSection {
+        sdo_channels: DEMO_SDO_CHANNELS.to_vec(),
+        ..NodeSection::new(sim_config.node_id)
     });
     // The I/O node described by its EDS, as an integrator would (docs/GATEWAY.md §Metadata).
     if let Some(id) = sim_config.io_node {
         let eds = dir.join(format!("io-node-{id}.eds"));
         std::fs::write(&eds, export_eds(&sim_config, Device::Io)?)
             .with_context(|| format!("writing {}", eds.display()))?;
-        gw.bus
-            .nodes
-            .push(gateway::config::NodeSection::with_eds(id, eds));
+        gw.bus.nodes.push(NodeSection::with_eds(id, eds));
     }
     let gateway_toml = dir.join("gateway.toml");
     std::fs::write(&gateway_toml, toml::to_string_pretty(&gw)?)?;

@@ -11,7 +11,6 @@
 //! next admission of its lift waits until it is written ([`Records::settled`]).
 
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 
 use tokio::sync::mpsc::error::TrySendError;
@@ -23,39 +22,40 @@ use crate::store::{GatewayRecord, Store, StoreError};
 struct Queued {
     record: GatewayRecord,
     written: Option<oneshot::Sender<Result<(), StoreError>>>,
-    /// A token's number in [`Unwritten`].
-    token: Option<u64>,
 }
 
-/// Confirmed tokens queued and not yet written, by lift (the number of the last one queued).
-/// Until its token is written, a lift's row has none: a CONNECT of that lift would be taken
-/// for a first contact again — a new token, and no check of its board. Such an admission
-/// waits ([`Records::settled`]).
+/// Confirmed tokens queued and not yet written, counted by lift. Until its token is written, a
+/// lift's row has none: a CONNECT of that lift would be taken for a first contact again — a new
+/// token, and no check of its board. Such an admission waits ([`Records::settled`]).
 #[derive(Default)]
 struct Unwritten {
-    tokens: Mutex<HashMap<String, u64>>,
-    numbers: AtomicU64,
+    tokens: Mutex<HashMap<String, usize>>,
     /// Bumped after each batch the writer is done with (written or lost).
     batches: watch::Sender<u64>,
 }
 
 impl Unwritten {
-    fn queued(&self, lift: String) -> u64 {
-        let number = self.numbers.fetch_add(1, Ordering::Relaxed);
-        self.lock().insert(lift, number);
-        number
-    }
-
-    /// `lift`'s token `number` is written or lost: unless a later one is queued, nothing of the
-    /// lift waits any more.
-    fn done(&self, lift: &str, number: u64) {
-        let mut tokens = self.lock();
-        if tokens.get(lift) == Some(&number) {
-            tokens.remove(lift);
+    /// `record` goes into the queue.
+    fn queued(&self, record: &GatewayRecord) {
+        if let GatewayRecord::Token { lift, .. } = record {
+            *self.lock().entry(lift.clone()).or_default() += 1;
         }
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<String, u64>> {
+    /// `record` left the queue, written or lost.
+    fn done(&self, record: &GatewayRecord) {
+        if let GatewayRecord::Token { lift, .. } = record {
+            let mut tokens = self.lock();
+            if let Some(count) = tokens.get_mut(lift) {
+                *count -= 1;
+                if *count == 0 {
+                    tokens.remove(lift);
+                }
+            }
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<String, usize>> {
         self.tokens.lock().unwrap_or_else(PoisonError::into_inner)
     }
 }
@@ -108,7 +108,11 @@ impl Records {
     /// (so a storm's connections take turns with it); without a writer (the portal is
     /// stopping) it is written at once.
     pub async fn write(&self, record: GatewayRecord) {
-        if let Err(e) = self.queue(record, None).await {
+        self.deliver(self.queued(record, None)).await;
+    }
+
+    async fn deliver(&self, queued: Queued) {
+        if let Err(e) = self.send(queued).await {
             tracing::error!(error = %e, "gateway not recorded");
         }
     }
@@ -117,45 +121,31 @@ impl Records {
     /// batch): for what the next admission decides on.
     pub async fn write_now(&self, record: GatewayRecord) -> Result<(), StoreError> {
         let (written, done) = oneshot::channel();
-        self.queue(record, Some(written)).await?;
+        self.send(self.queued(record, Some(written))).await?;
         // The writer dropped the batch unanswered only if it ended mid-way: the portal stops.
         done.await
             .unwrap_or_else(|_| Err(sqlx::Error::PoolClosed.into()))
     }
 
-    async fn queue(
-        &self,
-        record: GatewayRecord,
-        written: Option<oneshot::Sender<Result<(), StoreError>>>,
-    ) -> Result<(), StoreError> {
-        let queued = self.queued(record, written);
-        match self.tx.send(queued).await {
-            Ok(()) => Ok(()),
-            Err(unsent) => {
-                let Queued { record, token, .. } = unsent.0;
-                let written = self.store.record(std::slice::from_ref(&record)).await;
-                if let Some(number) = token {
-                    self.unwritten.done(&record.lift(), number);
-                }
-                written
-            }
-        }
+    /// Into the queue; without a writer (the portal is stopping) written at once.
+    async fn send(&self, queued: Queued) -> Result<(), StoreError> {
+        let Err(unsent) = self.tx.send(queued).await else {
+            return Ok(());
+        };
+        let record = unsent.0.record;
+        let written = self.store.record(std::slice::from_ref(&record)).await;
+        self.unwritten.done(&record);
+        written
     }
 
+    /// `record` counted as queued ([`Unwritten`]) until the writer is done with it.
     fn queued(
         &self,
         record: GatewayRecord,
         written: Option<oneshot::Sender<Result<(), StoreError>>>,
     ) -> Queued {
-        let token = match &record {
-            GatewayRecord::Token { lift, .. } => Some(self.unwritten.queued(lift.clone())),
-            _ => None,
-        };
-        Queued {
-            record,
-            written,
-            token,
-        }
+        self.unwritten.queued(&record);
+        Queued { record, written }
     }
 
     /// [`Records::write`] without waiting: when there is no room it waits in the background.
@@ -164,9 +154,8 @@ impl Records {
         if let Err(TrySendError::Full(queued) | TrySendError::Closed(queued)) =
             self.tx.try_send(queued)
         {
-            // A token stays unwritten for `settled` until `write` numbers it again.
             let records = self.clone();
-            tokio::spawn(async move { records.write(queued.record).await });
+            tokio::spawn(async move { records.deliver(queued).await });
         }
     }
 }
@@ -185,8 +174,8 @@ pub async fn writer(
     let mut tokens = Vec::new();
     while super::next_batch(&mut rx, &mut batch, BATCH, &mut stop).await > 0 {
         for queued in batch.drain(..) {
-            if let Some(number) = queued.token {
-                tokens.push((queued.record.lift(), number));
+            if matches!(queued.record, GatewayRecord::Token { .. }) {
+                tokens.push(queued.record.clone());
             }
             records.push(queued.record);
             waiting.push(queued.written);
@@ -216,8 +205,8 @@ pub async fn writer(
             }
         }
         records.clear();
-        for (lift, number) in tokens.drain(..) {
-            unwritten.done(&lift, number);
+        for token in tokens.drain(..) {
+            unwritten.done(&token);
         }
         unwritten.batches.send_modify(|n| *n += 1);
     }
