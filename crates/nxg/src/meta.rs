@@ -507,6 +507,11 @@ impl Texts {
         if other.is_empty() {
             return self.clone();
         }
+        // The usual case (an EDS's English name under the catalog's or a vendor's texts):
+        // `other` has every language, so it is the answer, shared rather than copied.
+        if self.languages().all(|l| other.languages().any(|o| o == l)) {
+            return other.clone();
+        }
         self.pairs()
             .chain(other.pairs())
             .map(|(l, t)| (l.to_owned(), t.to_owned()))
@@ -808,6 +813,13 @@ mod tests {
             (both.get("en"), both.get("de")),
             (Some("Door hold time"), Some("Türoffenhaltezeit"))
         );
+        // Texts with every language of the EDS's name replace it whole.
+        assert_eq!(eds.overlay(&t), t);
+        assert_eq!(
+            t.overlay(&eds).languages().collect::<Vec<_>>(),
+            ["de", "en"]
+        );
+        assert_eq!(t.overlay(&eds).get("en"), Some("Door hold time"));
         assert_eq!(
             Bound::Int(4_294_967_295).to_json(),
             Some(4_294_967_295u64.into())

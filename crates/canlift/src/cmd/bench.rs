@@ -368,13 +368,21 @@ async fn run_node_bench(args: NodeBench) -> anyhow::Result<()> {
 
 /// CPU time (user + system) of process `pid` so far, summed over its threads.
 pub(crate) fn cpu_time(pid: u32) -> Option<Duration> {
+    schedstat(pid).map(|(cpu, _)| cpu)
+}
+
+/// CPU time of process `pid` so far and how many times one of its threads was put on a CPU
+/// (each wake-up at least once), summed over its threads: `/proc/PID/task/*/schedstat`.
+pub(crate) fn schedstat(pid: u32) -> Option<(Duration, u64)> {
     let tasks = std::fs::read_dir(format!("/proc/{pid}/task")).ok()?;
-    let mut total = 0u64;
+    let (mut total, mut slices) = (0u64, 0u64);
     for task in tasks.flatten() {
         let text = std::fs::read_to_string(task.path().join("schedstat")).ok()?;
-        total += text.split_whitespace().next()?.parse::<u64>().ok()?;
+        let mut fields = text.split_whitespace();
+        total += fields.next()?.parse::<u64>().ok()?;
+        slices += fields.nth(1)?.parse::<u64>().ok()?;
     }
-    Some(Duration::from_nanos(total))
+    Some((Duration::from_nanos(total), slices))
 }
 
 #[derive(Default)]

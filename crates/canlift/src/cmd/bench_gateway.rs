@@ -50,8 +50,9 @@ pub struct GatewayBench {
     #[arg(long)]
     cpu_only: bool,
     /// SDO channels to the simulated controller for the CPU figure's second bus-node run (its
-    /// default channel and up to 7 further ones; 1: no second run).
-    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u8).range(1..=8))]
+    /// default channel and up to 7 further ones; 1: no second run; 0: the local dictionary
+    /// alone).
+    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u8).range(0..=8))]
     sdo_channels: u8,
     /// Only the memory of a `canlift gateway` process, idle and with `--subscriptions`.
     #[arg(long)]
@@ -494,10 +495,10 @@ async fn cpu_per_request(
     let exe = args.exe()?;
     // The controller's default SDO channel alone, then with the further ones the simulator
     // offers (docs/GATEWAY.md §Nodes: a channel carries one transfer at a time).
-    let mut modes = vec![
-        ("local dictionary".to_owned(), 0),
-        ("SDO via hub to sim".to_owned(), 1),
-    ];
+    let mut modes = vec![("local dictionary".to_owned(), 0)];
+    if args.sdo_channels > 0 {
+        modes.push(("SDO via hub to sim".to_owned(), 1));
+    }
     if args.sdo_channels > 1 {
         let n = usize::from(args.sdo_channels);
         modes.push((format!("SDO, {n} channels"), n));
@@ -548,17 +549,19 @@ async fn cpu_per_request(
         sequential_gets(&mut ws, "naked", 200).await?;
         tokio::time::sleep(Duration::from_millis(500)).await;
         for window in [1, args.window] {
-            let cpu = super::bench::cpu_time(daemon.pid).unwrap_or_default();
+            let (cpu, slices) = super::bench::schedstat(daemon.pid).unwrap_or_default();
             let started = Instant::now();
             windowed_gets(&mut ws, "naked", args.requests, window).await?;
             let rate = args.requests as f64 / started.elapsed().as_secs_f64();
-            let spent = super::bench::cpu_time(daemon.pid)
-                .unwrap_or_default()
-                .saturating_sub(cpu);
+            let (cpu_after, slices_after) = super::bench::schedstat(daemon.pid).unwrap_or_default();
+            let per_request = |n: f64| n / args.requests as f64;
+            // Each wake-up costs the same whatever it serves: requests per wake-up say
+            // whether a change in CPU per request is the work's or the batching's.
             println!(
-                "gateway CPU per request  {mode:<20} {window:>2} in flight: {:.1} µs (the gateway process alone, {} naked gets; {rate:.0} requests/s)",
-                spent.as_secs_f64() * 1e6 / args.requests as f64,
-                args.requests
+                "gateway CPU per request  {mode:<20} {window:>2} in flight: {:.1} µs (the gateway process alone, {} naked gets; {rate:.0} requests/s; {:.2} wake-ups per request)",
+                per_request(cpu_after.saturating_sub(cpu).as_secs_f64() * 1e6),
+                args.requests,
+                per_request(slices_after.saturating_sub(slices) as f64),
             );
         }
         daemon.stop(Duration::from_secs(5)).await;

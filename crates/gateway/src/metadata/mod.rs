@@ -36,10 +36,11 @@ const MANUFACTURER: std::ops::RangeInclusive<u16> = 0x2000..=0x5FFF;
 /// manufacturer-specific area, where the same index means something else on every vendor's
 /// device, only when the English names agree (an EDS exported by `canlift sim`); elsewhere the
 /// index says it.
-fn same_object(index: u16, catalog: &Texts, eds: &Texts) -> bool {
+fn same_object(index: u16, catalog: &Texts, eds_name: &str) -> bool {
     !MANUFACTURER.contains(&index)
-        || matches!((catalog.get("en"), eds.get("en")),
-            (Some(a), Some(b)) if a.trim().eq_ignore_ascii_case(b.trim()))
+        || catalog
+            .get("en")
+            .is_some_and(|a| a.trim().eq_ignore_ascii_case(eds_name.trim()))
 }
 
 /// What describes one node.
@@ -149,6 +150,7 @@ impl BusMetadata {
         index: u16,
         sub: u8,
         d: &Description,
+        eds_name: &str,
     ) -> Option<Description> {
         let same_type = |l: Lookup| match l {
             Lookup::Found(found) if found.datatype == d.datatype => Some(*found),
@@ -158,7 +160,7 @@ impl BusMetadata {
             .and_then(|v| same_type(v.describe(None, index, sub)))
             .or_else(|| {
                 same_type(Catalog::builtin().describe(None, index, sub))
-                    .filter(|c| same_object(index, &c.name, &d.name))
+                    .filter(|c| same_object(index, &c.name, eds_name))
             })
             .or_else(|| same_type(standard(index, sub)))
     }
@@ -180,7 +182,6 @@ impl BusMetadata {
         let mut d = bare(var.data_type.into());
         d.objcode = object.code.into();
         d.access = Access::from(var.access);
-        d.name = Texts::english(&var.name);
         d.formtype = form_of(var.data_type);
         d.privilege = self.default_privilege;
         if let Some(low) = var.low.as_ref().and_then(bound) {
@@ -192,8 +193,14 @@ impl BusMetadata {
         if let Some(len) = var.max_len {
             d.max = Some(Bound::Int(len as i128));
         }
-        if let Some(n) = self.nxg_part(vendor, index, sub, &d) {
-            d.name = d.name.overlay(&n.name);
+        let eds_name = || Texts::english(&var.name);
+        if let Some(n) = self.nxg_part(vendor, index, sub, &d, &var.name) {
+            // Where the NXg texts have an English name, nothing of the EDS's remains.
+            d.name = if n.name.languages().any(|l| l == "en") {
+                n.name
+            } else {
+                eds_name().overlay(&n.name)
+            };
             d.hint = n.hint;
             d.formtype = n.formtype;
             d.physunit = n.physunit;
@@ -201,6 +208,8 @@ impl BusMetadata {
             d.list = n.list;
             d.zero = n.zero;
             d.hints = n.hints;
+        } else {
+            d.name = eds_name();
         }
         Lookup::Found(Box::new(d))
     }
@@ -253,7 +262,7 @@ impl Metadata for BusMetadata {
         let catalog = || {
             Catalog::builtin()
                 .object_texts(None, index)
-                .filter(|(name, _)| same_object(index, name, &eds))
+                .filter(|(name, _)| same_object(index, name, &object.name))
         };
         Some(
             match from_vendor()

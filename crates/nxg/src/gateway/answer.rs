@@ -2,6 +2,8 @@
 //! §6.1.1–§6.2.2) from a description and the bytes read, a `put_canopen_object` value checked
 //! against its description (§6.3), and error objects in the caller's language.
 
+use std::borrow::Cow;
+
 use canopen::types::{self, Value as CoValue};
 
 use super::metadata::Metadata;
@@ -12,30 +14,35 @@ use crate::msg::{AnswerLang, ErrorObject, Lang, ObjectAnswer, ObjectData};
 /// Longest language tag kept from a request.
 const MAX_LANG: usize = 16;
 
-/// The caller's languages, as a session keeps them.
+/// The caller's languages, as a session keeps them: English costs no allocation, a request's
+/// own tags are its strings, cut to length.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub(crate) struct Langs {
-    pub(crate) preferred: String,
-    pub(crate) alternate: String,
+    pub(crate) preferred: Cow<'static, str>,
+    pub(crate) alternate: Cow<'static, str>,
 }
 
 impl Default for Langs {
     fn default() -> Self {
         Langs {
-            preferred: "en".into(),
-            alternate: "en".into(),
+            preferred: Cow::Borrowed("en"),
+            alternate: Cow::Borrowed("en"),
         }
     }
 }
 
 impl Langs {
     /// The languages of a request's `lang` (alternate defaults to preferred).
-    pub(crate) fn of(lang: &Lang) -> Option<Langs> {
-        let short = |l: &String| l.chars().take(MAX_LANG).collect::<String>();
-        let preferred = lang.preferred_language.as_ref().map(short)?;
+    pub(crate) fn of(lang: Lang) -> Option<Langs> {
+        let short = |mut l: String| -> Cow<'static, str> {
+            if let Some((end, _)) = l.char_indices().nth(MAX_LANG) {
+                l.truncate(end);
+            }
+            Cow::Owned(l)
+        };
+        let preferred = short(lang.preferred_language?);
         let alternate = lang
             .alternate_language
-            .as_ref()
             .map_or_else(|| preferred.clone(), short);
         Some(Langs {
             preferred,
@@ -206,6 +213,21 @@ mod tests {
     use super::*;
     use crate::gateway::metadata::bare;
     use crate::meta::DataType;
+
+    #[test]
+    fn a_requests_languages_are_cut_to_length_and_default_to_each_other() {
+        let long = "dé-ÄÖÜ-0123456789-suffix";
+        let langs = Langs::of(Lang {
+            preferred_language: Some(long.into()),
+            alternate_language: None,
+        })
+        .expect("a preferred language");
+        assert_eq!(langs.preferred, "dé-ÄÖÜ-012345678");
+        assert_eq!(langs.alternate, langs.preferred);
+        let langs = Langs::of(Lang::new("de", "fr")).expect("a preferred language");
+        assert_eq!((&*langs.preferred, &*langs.alternate), ("de", "fr"));
+        assert_eq!(Langs::of(Lang::default()), None);
+    }
 
     #[test]
     fn values_are_checked_against_type_and_limits() {

@@ -428,14 +428,14 @@ impl Session {
                 .and_then(|p| self.update_token(&id, p)),
             Method::GetCanopenObject => msg::params::<GetParams>(params)
                 .map_err(Failure::Params)
-                .and_then(|p| {
-                    lang = languages(p.lang.as_ref());
+                .and_then(|mut p| {
+                    lang = languages(p.lang.take());
                     self.get(&id, p, &lang)
                 }),
             Method::PutCanopenObject => msg::params::<PutParams>(params)
                 .map_err(Failure::Params)
-                .and_then(|p| {
-                    lang = languages(p.lang.as_ref());
+                .and_then(|mut p| {
+                    lang = languages(p.lang.take());
                     let (node, mplex) = (p.node.map(|n| n.id.get()), p.object.mplex.text.clone());
                     self.put(&id, p, &lang, now).inspect_err(|f| {
                         if let Failure::Nxg(r) = f {
@@ -483,8 +483,8 @@ impl Session {
 
     /// `reg_canopen_event` (api ≥ 2): the kinds are added to those registered, and what waited
     /// for a portal follows the answer.
-    fn register_events(&mut self, id: &Option<Id>, p: RegEventParams) -> Vec<Output> {
-        let lang = languages(p.lang.as_ref());
+    fn register_events(&mut self, id: &Option<Id>, mut p: RegEventParams) -> Vec<Output> {
+        let lang = languages(p.lang.take());
         let subscription = self.events.get_or_insert_with(|| EventSubscription {
             kinds: BTreeSet::new(),
             lang: lang.clone(),
@@ -1047,7 +1047,7 @@ impl Session {
 }
 
 /// The languages of a request's `lang`; English without one.
-fn languages(lang: Option<&msg::Lang>) -> Langs {
+fn languages(lang: Option<msg::Lang>) -> Langs {
     lang.and_then(Langs::of).unwrap_or_default()
 }
 
