@@ -2,11 +2,37 @@
 
 use canbus::CanId;
 
+use crate::sdo::abort::AbortCode;
+
+/// Bit 31 of a COB-ID parameter (PDO communication, SDO server and client parameters): set,
+/// the object does not exist.
+pub const COB_INVALID: u32 = 0x8000_0000;
+
+/// A network write of a COB-ID parameter whose bit 31 says whether its object exists — a PDO's
+/// (CiA 301 §7.5.2.35–36, sub 1) or a further SDO channel's (§7.5.2.33, subs 1 and 2) — from
+/// `old` to `new`: while the object exists only that bit may change (so a channel or PDO in use
+/// never moves under its peer: invalidate, change, validate), and a valid identifier must be a
+/// CAN identifier that the pre-defined connection set leaves free ([`restricted`]).
+pub fn check_parameter_write(old: u32, new: u32) -> Result<(), AbortCode> {
+    let exists = old & COB_INVALID == 0;
+    if exists && new & COB_INVALID == 0 && (new ^ old) & 0x3FFF_FFFF != 0 {
+        return Err(AbortCode::INVALID_VALUE);
+    }
+    if new & COB_INVALID == 0 {
+        match id_from_parameter(new) {
+            None => return Err(AbortCode::INVALID_VALUE),
+            Some(CanId::Standard(id)) if restricted(id) => return Err(AbortCode::INVALID_VALUE),
+            Some(_) => {}
+        }
+    }
+    Ok(())
+}
+
 /// The identifier in a COB-ID parameter value (0x1005, 0x1014, 0x1200…, 0x1400…): bit 31 set
 /// means not valid (`None`), bit 29 selects a 29-bit identifier; bit 30 (RTR / producer flag)
 /// is the caller's business.
 pub fn id_from_parameter(value: u32) -> Option<CanId> {
-    if value & 0x8000_0000 != 0 {
+    if value & COB_INVALID != 0 {
         None
     } else if value & 0x2000_0000 != 0 {
         CanId::extended(value & 0x1FFF_FFFF).ok()

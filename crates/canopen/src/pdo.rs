@@ -22,7 +22,7 @@ use std::time::{Duration, Instant};
 
 use canbus::{CanId, Frame};
 
-use crate::cob::restricted;
+use crate::cob::{check_parameter_write, COB_INVALID};
 use crate::od::{Access, Object, ObjectCode, ObjectDictionary, Variable, WriteGuard};
 use crate::sdo::abort::AbortCode;
 use crate::types::{DataType, Value};
@@ -39,8 +39,6 @@ pub const TPDO_MAP: u16 = 0x1A00;
 pub const MAX_PDOS: u16 = 512;
 /// Mapping entries per PDO at most.
 pub const MAX_ENTRIES: u8 = 64;
-
-const COB_INVALID: u32 = 0x8000_0000;
 
 fn u32_value(od: &ObjectDictionary, index: u16, sub: u8) -> Option<u32> {
     match od.get_value(index, sub) {
@@ -230,20 +228,7 @@ impl WriteGuard for PdoGuard {
                         data.try_into().map_err(|_| AbortCode::LENGTH_MISMATCH)?,
                     );
                     let old = u32_value(od, comm, 1).unwrap_or(COB_INVALID);
-                    // A valid PDO keeps its identifier: only the valid bit may change.
-                    if valid && new & COB_INVALID == 0 && (new ^ old) & 0x3FFF_FFFF != 0 {
-                        return Err(AbortCode::INVALID_VALUE);
-                    }
-                    if new & COB_INVALID == 0 {
-                        match crate::cob::id_from_parameter(new) {
-                            None => return Err(AbortCode::INVALID_VALUE),
-                            Some(CanId::Standard(id)) if restricted(id) => {
-                                return Err(AbortCode::INVALID_VALUE)
-                            }
-                            Some(_) => {}
-                        }
-                    }
-                    Ok(())
+                    check_parameter_write(old, new)
                 }
                 2 if matches!(data.first(), Some(241..=251)) => Err(AbortCode::INVALID_VALUE),
                 // Inhibit time and SYNC start value cannot change while the TPDO exists.

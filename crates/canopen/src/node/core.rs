@@ -270,6 +270,10 @@ impl Node {
             PRODUCER_HEARTBEAT => self
                 .producer
                 .set_period_ms(u32_value(od, PRODUCER_HEARTBEAT, 0) as u16, now),
+            // A further SDO channel moved, opened or closed (CiA 301 §7.5.2.33).
+            0x1201..=0x127F => self
+                .sdo
+                .reconfigure(server_channels(od, self.node_id), &self.sdo_config),
             _ if PdoEngine::is_config(index) => self.pdo = PdoEngine::configure(od, now),
             _ => self.pdo.on_change(index, sub, now),
         }
@@ -728,6 +732,61 @@ mod tests {
             "segmented upload, size indicated"
         );
         assert_eq!(out.frames[0].data()[4], 12, "12 characters");
+    }
+
+    #[test]
+    fn a_further_sdo_channel_is_moved_only_while_not_valid() {
+        let config = NodeConfig {
+            sdo_servers: vec![(CanId::Standard(0x6A1), CanId::Standard(0x6C1))],
+            ..NodeConfig::new(5)
+        };
+        let mut rig = Rig::new(config);
+        rig.run(|n, od, now, out| n.start(od, now, out));
+        let std = |id: u16, data: &[u8]| Frame::standard(id, data).unwrap();
+        // Upload of 1201h sub 1 on `request`; the answer's identifier, if any.
+        let ask = |rig: &mut Rig, request: u16| {
+            let out = rig.frame(std(request, &[0x40, 0x01, 0x12, 0x01, 0, 0, 0, 0]));
+            out.frames
+                .first()
+                .map(|f| (f.id(), f.data()[4..6].to_vec()))
+        };
+        // Write 1201h `sub` on the default channel, and let the node see the change as a
+        // `LocalNode` does; the answer's command byte and abort code.
+        let write = |rig: &mut Rig, sub: u8, value: u32| {
+            let mut data = vec![0x23, 0x01, 0x12, sub];
+            data.extend(value.to_le_bytes());
+            let out = rig.frame(std(0x605, &data));
+            rig.run(|n, od, now, out| n.handle_change(od, 0x1201, sub, now, out));
+            let answer = &out.frames[0];
+            let code = u32::from_le_bytes(answer.data()[4..8].try_into().unwrap());
+            (answer.data()[0], code)
+        };
+        assert_eq!(
+            ask(&mut rig, 0x6A1),
+            Some((CanId::Standard(0x6C1), vec![0xA1, 0x06]))
+        );
+        // In use: moving it is refused, closing it is not.
+        assert_eq!(write(&mut rig, 1, 0x6A5), (0x80, 0x0609_0030));
+        assert_eq!(write(&mut rig, 1, 0x8000_06A1), (0x60, 0));
+        assert_eq!(ask(&mut rig, 0x6A1), None, "closed");
+        // Closed: it may move, but not onto an identifier the connection set reserves.
+        assert_eq!(write(&mut rig, 1, 0x605), (0x80, 0x0609_0030));
+        assert_eq!(write(&mut rig, 1, 0x6A5), (0x60, 0));
+        assert_eq!(
+            ask(&mut rig, 0x6A5),
+            Some((CanId::Standard(0x6C1), vec![0xA5, 0x06]))
+        );
+        assert_eq!(ask(&mut rig, 0x6A1), None);
+        // The default channel stays where it is.
+        let out = rig.frame(std(0x605, &[0x23, 0x00, 0x12, 0x01, 0xA7, 0x06, 0, 0]));
+        assert_eq!(out.frames[0].data()[0], 0x80, "1200h is read-only");
+        // A reset of communication brings back the configured channel.
+        rig.frame(NmtCommand::ResetCommunication.frame(0));
+        assert_eq!(
+            ask(&mut rig, 0x6A1),
+            Some((CanId::Standard(0x6C1), vec![0xA1, 0x06]))
+        );
+        assert_eq!(ask(&mut rig, 0x6A5), None);
     }
 
     #[test]

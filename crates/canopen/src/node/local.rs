@@ -209,6 +209,11 @@ impl Shell {
         let alarm = crate::alarm::Alarm::new(&format!("canopen-node-{}", self.node.node_id())).ok();
         self.step(|node, od, out| node.start(od, Instant::now(), out));
         loop {
+            // What the last step changed (a communication parameter written by SDO) takes
+            // effect before its answer goes out: the writer's next frame finds it in force.
+            while let Ok((index, sub)) = changes.try_recv() {
+                self.step(|node, od, out| node.handle_change(od, index, sub, Instant::now(), out));
+            }
             if !self.flush(&sender).await {
                 return;
             }

@@ -64,7 +64,8 @@ pub struct NodeConfig {
     pub sdo: ServerConfig,
     /// Further SDO server channels (request, response COB-ID), offered as 1201h, 1202h, …
     /// (CiA 301 §7.5.2.33) beside the default one: a client given several of them, like the
-    /// gateway, runs as many transfers to this node at once.
+    /// gateway, runs as many transfers to this node at once. A client may move one, as that
+    /// section has it, only while it is not valid.
     pub sdo_servers: Vec<(canbus::CanId, canbus::CanId)>,
 }
 

@@ -153,11 +153,13 @@ pub fn add_communication_objects(od: &mut ObjectDictionary, config: &NodeConfig)
             "SDO server parameter",
             ObjectCode::Record,
             [
+                // Writable (CiA 301 §7.5.2.33): a client may move or close the channel,
+                // under the rule of `SdoServerGuard`.
                 (
                     1,
                     u32_var(
                         "COB-ID client to server",
-                        Access::Ro,
+                        Access::Rw,
                         parameter_from_id(request),
                     ),
                 ),
@@ -165,7 +167,7 @@ pub fn add_communication_objects(od: &mut ObjectDictionary, config: &NodeConfig)
                     2,
                     u32_var(
                         "COB-ID server to client",
-                        Access::Ro,
+                        Access::Rw,
                         parameter_from_id(response),
                     ),
                 ),
@@ -195,6 +197,7 @@ pub fn add_communication_objects(od: &mut ObjectDictionary, config: &NodeConfig)
     }
     crate::pdo::add_pdo_objects(od, config.node_id, config.pdos.0, config.pdos.1);
     od.guard(Arc::new(crate::pdo::PdoGuard));
+    od.guard(Arc::new(crate::sdo::server::SdoServerGuard));
 }
 
 /// Move the default COB-IDs that derive from the node-ID (EMCY, SDO server, PDOs 1–4) from

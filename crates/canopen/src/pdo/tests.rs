@@ -1,6 +1,7 @@
 use std::sync::{Arc, Mutex};
 
 use super::*;
+use crate::cob::restricted;
 
 fn dictionary() -> ObjectDictionary {
     let mut od = ObjectDictionary::new();

@@ -11,7 +11,7 @@ use super::abort::AbortCode;
 use super::crc::Crc16;
 use super::msg::{self, BlockSegment, Initiate, Request, Response};
 use super::{size_indication, Payload, SubBlockReceiver, MAX_BLOCK_SIZE, SEGMENT_DATA};
-use crate::od::{ObjectDictionary, Reader, Writer};
+use crate::od::{ObjectDictionary, Reader, WriteGuard, Writer};
 use crate::types::Value;
 use canbus::{CanId, Filter, Frame};
 
@@ -636,6 +636,31 @@ pub fn server_channels(od: &ObjectDictionary, node_id: u8) -> Vec<(CanId, CanId)
     channels
 }
 
+/// Enforces on network writes the rule of CiA 301 §7.5.2.33 for the further SDO server
+/// channels (1201h–127Fh, subs 1 and 2): a channel's identifiers change only while it is not
+/// valid ([`crate::cob::check_parameter_write`]). 1200h, the default channel, is read-only.
+pub struct SdoServerGuard;
+
+impl WriteGuard for SdoServerGuard {
+    fn check(
+        &self,
+        od: &ObjectDictionary,
+        index: u16,
+        sub: u8,
+        data: &[u8],
+    ) -> Result<(), AbortCode> {
+        if !(0x1201..=0x127F).contains(&index) || !(1..=2).contains(&sub) {
+            return Ok(());
+        }
+        let new = u32::from_le_bytes(data.try_into().map_err(|_| AbortCode::LENGTH_MISMATCH)?);
+        let old = match od.get_value(index, sub) {
+            Ok(Value::Uint(v)) => u32::try_from(v).unwrap_or(crate::cob::COB_INVALID),
+            _ => crate::cob::COB_INVALID,
+        };
+        crate::cob::check_parameter_write(old, new)
+    }
+}
+
 /// Every SDO server channel of a node, with requests dispatched by COB-ID.
 pub struct ServerChannels {
     channels: Vec<(CanId, CanId, SdoServer)>,
@@ -652,6 +677,27 @@ impl ServerChannels {
                 .collect(),
             payloads: Vec::new(),
         }
+    }
+
+    /// Serve `channels` from now on: a channel that stays keeps its transfer in progress, one
+    /// that goes ends its transfer without a word (its identifiers are no longer valid), a new one
+    /// starts idle.
+    pub fn reconfigure(&mut self, channels: Vec<(CanId, CanId)>, config: &ServerConfig) {
+        let mut before = std::mem::take(&mut self.channels);
+        self.channels = channels
+            .into_iter()
+            .map(|(rx, tx)| {
+                let kept = before
+                    .iter()
+                    .position(|&(r, t, _)| (r, t) == (rx, tx))
+                    .map(|i| before.swap_remove(i).2);
+                (
+                    rx,
+                    tx,
+                    kept.unwrap_or_else(|| SdoServer::new(config.clone())),
+                )
+            })
+            .collect();
     }
 
     /// Acceptance filters for the request COB-IDs.

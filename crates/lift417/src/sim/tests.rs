@@ -133,7 +133,36 @@ async fn the_controller_serves_its_further_sdo_channels() {
     // Its 1201h says so, read on the channel itself.
     assert_eq!(sdo.read::<u32>(1, 0x1201, 1).await.unwrap(), 0x6A1);
     assert_eq!(sdo.read::<u32>(1, 0x1201, 2).await.unwrap(), 0x6C1);
+    // A client on the default channel moves it (CiA 301 §7.5.2.33): not while it is valid;
+    // closed, moved, opened again, it answers on its new identifier only.
+    let default = canopen::driver::SdoClients::new(Bus::open(bus).await.unwrap(), fast());
+    assert!(default.write::<u32>(1, 0x1201, 1, 0x6A5).await.is_err());
+    default
+        .write::<u32>(1, 0x1201, 1, 0x8000_06A1)
+        .await
+        .unwrap();
+    default.write::<u32>(1, 0x1201, 1, 0x6A5).await.unwrap();
+    let moved = canopen::driver::SdoClients::with_channels(
+        Bus::open(bus).await.unwrap(),
+        fast(),
+        &[(1, id(0x6A5), id(0x6C1))],
+    );
+    assert_eq!(moved.read::<u32>(1, 0x1201, 1).await.unwrap(), 0x6A5);
+    let old = canopen::driver::SdoClients::with_channels(
+        Bus::open(bus).await.unwrap(),
+        fast(),
+        &[(1, id(0x6A1), id(0x6C1))],
+    );
+    assert!(old.read::<u32>(1, 0x1000, 0).await.is_err(), "closed");
     sim.stop().await;
+}
+
+/// A client that gives up on a silent channel after 200 ms.
+fn fast() -> canopen::sdo::client::ClientConfig {
+    canopen::sdo::client::ClientConfig {
+        timeout: Duration::from_millis(200),
+        ..Default::default()
+    }
 }
 
 #[test]
