@@ -211,7 +211,11 @@ impl Shell {
         loop {
             // What the last step changed (a communication parameter written by SDO) takes
             // effect before its answer goes out: the writer's next frame finds it in force.
-            while let Ok((index, sub)) = changes.try_recv() {
+            // Only what is queued now: changes these make wait for the next round.
+            for _ in 0..changes.len() {
+                let Ok((index, sub)) = changes.try_recv() else {
+                    break;
+                };
                 self.step(|node, od, out| node.handle_change(od, index, sub, Instant::now(), out));
             }
             if !self.flush(&sender).await {
