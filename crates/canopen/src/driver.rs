@@ -2,6 +2,7 @@
 //! [`canbus::Bus`], and [`SdoClients`], the async client API.
 
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
@@ -182,66 +183,153 @@ struct ClientInner {
     channels: HashMap<u8, Vec<(CanId, CanId)>>,
     /// Each node's channels as they are taken and given back, made at its first transfer.
     nodes: Mutex<HashMap<u8, Arc<NodeChannels>>>,
+    /// How often a channel set aside is asked again.
+    probe_nanos: AtomicU64,
 }
+
+/// Timeouts in a row on one channel after which it is set aside — each after the first
+/// only if the node answered on another channel since the one before.
+const SILENT_LIMIT: u32 = 3;
 
 /// The client channels to one node. A channel carries one transfer at a time (CiA 301
 /// §7.2.4.3: a server channel serves one client transfer), so a node reached by several
 /// channels — further SDO servers 1201h ff. assigned to this client — serves as many transfers
-/// at once; the rest wait their turn, first come first served.
+/// at once; the rest wait their turn, first come first served. Free channels are taken in turn
+/// (oldest first), so every channel carries transfers even when they come one by one.
+///
+/// A channel that stops answering while the node answers on another (moved or closed on the
+/// node, CiA 301 §7.5.2.33) would fail every transfer that lands on it: after [`SILENT_LIMIT`]
+/// timeouts in a row it is set aside — a task holds it, as a transfer would, and asks it
+/// again at intervals until it answers — as long as another channel stays in service.
 struct NodeChannels {
     /// One permit per channel; the semaphore queues waiters in order.
     permits: tokio::sync::Semaphore,
-    /// The channels no transfer holds.
-    free: Mutex<Vec<(CanId, CanId)>>,
+    /// The channels no transfer holds, and what the node's channels have shown.
+    pool: Mutex<Pool>,
     /// All of them, in the configured order.
     all: Vec<(CanId, CanId)>,
+    /// Woken when a channel is set aside (a wait for all channels in service waits for one
+    /// fewer).
+    set_aside: tokio::sync::Notify,
+}
+
+#[derive(Default)]
+struct Pool {
+    free: std::collections::VecDeque<(CanId, CanId)>,
+    /// Transfers the node answered, on any of its channels.
+    answers: u64,
+    /// Per channel (by request COB-ID): timeouts in a row that count, and `answers` at the
+    /// last of them.
+    silent: HashMap<CanId, (u32, u64)>,
+    /// Channels set aside.
+    aside: usize,
+}
+
+/// What one transfer on a channel showed about it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Heard {
+    /// A response (data or an abort): the channel works.
+    Answer,
+    /// No response in time.
+    Silence,
+    /// Nothing about the channel (the bus or the caller failed).
+    Nothing,
+}
+
+impl Heard {
+    fn of<T>(result: &Result<T, ClientError>) -> Heard {
+        match result {
+            Ok(_) => Heard::Answer,
+            Err(ClientError::Sdo {
+                error: SdoError::Timeout,
+                ..
+            }) => Heard::Silence,
+            Err(ClientError::Sdo { .. } | ClientError::Type { .. }) => Heard::Answer,
+            Err(_) => Heard::Nothing,
+        }
+    }
 }
 
 impl NodeChannels {
     fn new(channels: Vec<(CanId, CanId)>) -> Self {
         NodeChannels {
             permits: tokio::sync::Semaphore::new(channels.len()),
-            free: Mutex::new(channels.clone()),
+            pool: Mutex::new(Pool {
+                free: channels.iter().copied().collect(),
+                ..Pool::default()
+            }),
             all: channels,
+            set_aside: tokio::sync::Notify::new(),
         }
     }
 
+    fn pool(&self) -> std::sync::MutexGuard<'_, Pool> {
+        self.pool.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
     /// Wait for a free channel; it is given back when the returned guard drops.
-    async fn take(&self) -> Result<ChannelGuard<'_>, ClientError> {
+    async fn take(self: &Arc<Self>) -> Result<ChannelGuard, ClientError> {
         let permit = self
             .permits
             .acquire()
             .await
             .map_err(|_| ClientError::Closed)?;
-        let channel = self
-            .free
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .pop()
-            .ok_or(ClientError::Closed)?;
+        let channel = self.pool().free.pop_front().ok_or(ClientError::Closed)?;
+        permit.forget();
         Ok(ChannelGuard {
-            node: self,
+            node: self.clone(),
             channel,
-            _permit: permit,
         })
+    }
+
+    /// Note what a transfer on `channel` showed; whether the channel is to be set aside now.
+    fn heard(&self, channel: (CanId, CanId), heard: Heard) -> bool {
+        let mut pool = self.pool();
+        let answers = pool.answers;
+        match heard {
+            Heard::Nothing => false,
+            Heard::Answer => {
+                pool.answers += 1;
+                pool.silent.remove(&channel.0);
+                false
+            }
+            Heard::Silence => {
+                // A node that answers on no channel (off, booting) is not a channel's fault:
+                // after the first, a timeout counts only if the node answered since the last.
+                let (count, last) = pool.silent.entry(channel.0).or_insert((0, answers));
+                if *count == 0 || answers > *last {
+                    *count += 1;
+                }
+                *last = answers;
+                let set_aside = *count >= SILENT_LIMIT && pool.aside + 1 < self.all.len();
+                if set_aside {
+                    pool.aside += 1;
+                    pool.silent.remove(&channel.0);
+                }
+                set_aside
+            }
+        }
+    }
+
+    /// A channel set aside answers again.
+    fn back_in_service(&self) {
+        let mut pool = self.pool();
+        pool.aside = pool.aside.saturating_sub(1);
     }
 }
 
-/// A channel held by one transfer. The channel goes back to the free list before the permit is
-/// released (fields drop after `drop`), so whoever gets the permit finds a channel.
-struct ChannelGuard<'a> {
-    node: &'a NodeChannels,
+/// A channel held by one transfer (or by the task that asks a channel set aside): given back,
+/// with its permit, when this drops — the channel first, so that whoever gets the permit finds
+/// a channel.
+struct ChannelGuard {
+    node: Arc<NodeChannels>,
     channel: (CanId, CanId),
-    _permit: tokio::sync::SemaphorePermit<'a>,
 }
 
-impl Drop for ChannelGuard<'_> {
+impl Drop for ChannelGuard {
     fn drop(&mut self) {
-        self.node
-            .free
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .push(self.channel);
+        self.node.pool().free.push_back(self.channel);
+        self.node.permits.add_permits(1);
     }
 }
 
@@ -287,6 +375,7 @@ impl SdoClients {
                     by_node
                 }),
             nodes: Mutex::new(HashMap::new()),
+            probe_nanos: AtomicU64::new(10_000_000_000),
         });
         let weak = Arc::downgrade(&inner);
         tokio::spawn(async move {
@@ -326,40 +415,70 @@ impl SdoClients {
     }
 
     /// Read 1000h (the device type, which every CiA 301 device has) on all of `node`'s channels
-    /// at once, holding them meanwhile (other transfers to the node wait, at most one response
-    /// timeout): which ones answer, in the configured order. A channel configured here that the
-    /// node does not serve would fail every transfer that lands on it; this finds it.
+    /// in service at once, holding them meanwhile (other transfers to the node wait, at most one
+    /// response timeout): which ones answer, in the configured order. A channel configured here
+    /// that the node does not serve would fail every transfer that lands on it; this finds it.
+    /// Channels set aside (see [`Self::set_probe_interval`]) are their probe's, not checked.
     pub async fn check_channels(
         &self,
         node: u8,
     ) -> Result<Vec<((CanId, CanId), Result<(), ClientError>)>, ClientError> {
         let channels = self.node_channels(node);
-        let count = u32::try_from(channels.all.len()).map_err(|_| ClientError::Closed)?;
-        let _all = channels
-            .permits
-            .acquire_many(count)
-            .await
-            .map_err(|_| ClientError::Closed)?;
+        let held = loop {
+            // One set aside meanwhile would never come back to this wait: count again.
+            let aside = channels.set_aside.notified();
+            tokio::pin!(aside);
+            aside.as_mut().enable();
+            let in_service = channels.all.len().saturating_sub(channels.pool().aside);
+            let count = u32::try_from(in_service).map_err(|_| ClientError::Closed)?;
+            tokio::select! {
+                held = channels.permits.acquire_many(count) => {
+                    break held.map_err(|_| ClientError::Closed)?;
+                }
+                () = &mut aside => {}
+            }
+        };
+        // Each permit held stands for a free channel: take them as transfers would.
+        let count = held.num_permits();
+        held.forget();
+        let turns: Vec<ChannelGuard> = {
+            let mut pool = channels.pool();
+            let taken: Vec<_> = (0..count).filter_map(|_| pool.free.pop_front()).collect();
+            // (There is a free channel per permit; should one be missing, its permit is not.)
+            channels.permits.add_permits(count - taken.len());
+            taken
+                .into_iter()
+                .map(|channel| ChannelGuard {
+                    node: channels.clone(),
+                    channel,
+                })
+                .collect()
+        };
         let mut reads = tokio::task::JoinSet::new();
-        for (i, &channel) in channels.all.iter().enumerate() {
+        for turn in turns {
             let sdo = self.clone();
             reads.spawn(async move {
                 let options = TransferOptions::default();
                 let answer = sdo
-                    .transfer_on(channel, node, (0x1000, 0), None, None, options)
+                    .transfer_on(turn.channel, node, (0x1000, 0), None, None, options)
                     .await;
-                (i, channel, answer.map(|_| ()))
+                (turn.channel, answer.map(|_| ()))
             });
         }
         let mut answers = Vec::with_capacity(channels.all.len());
         while let Some(done) = reads.join_next().await {
             answers.push(done.map_err(|_| ClientError::Closed)?);
         }
-        answers.sort_by_key(|(i, ..)| *i);
-        Ok(answers
-            .into_iter()
-            .map(|(_, channel, answer)| (channel, answer))
-            .collect())
+        answers.sort_by_key(|(channel, _)| channels.all.iter().position(|c| c == channel));
+        Ok(answers)
+    }
+
+    /// How often a channel set aside is asked whether it answers again (default 10 s). A
+    /// channel is set aside after three timeouts in a row while its node answers on another of
+    /// its channels, as long as another stays in service: transfers then use the others.
+    pub fn set_probe_interval(&self, every: Duration) {
+        let nanos = u64::try_from(every.as_nanos()).unwrap_or(u64::MAX);
+        self.inner.probe_nanos.store(nanos, Ordering::Relaxed);
     }
 
     /// Run one transfer: a download from `source`, or an upload (into `sink` as it arrives, or
@@ -374,8 +493,51 @@ impl SdoClients {
     ) -> Result<Vec<u8>, ClientError> {
         let channels = self.node_channels(node);
         let turn = channels.take().await?;
-        self.transfer_on(turn.channel, node, object, source, sink, options)
-            .await
+        let result = self
+            .transfer_on(turn.channel, node, object, source, sink, options)
+            .await;
+        if channels.heard(turn.channel, Heard::of(&result)) {
+            self.set_aside(node, turn);
+        }
+        result
+    }
+
+    /// Hold `turn`'s channel in a task that asks it (1000h) at every probe interval, until it
+    /// answers or the client is gone; then it is free again.
+    fn set_aside(&self, node: u8, turn: ChannelGuard) {
+        let every = Duration::from_nanos(self.inner.probe_nanos.load(Ordering::Relaxed));
+        let (request, response) = turn.channel;
+        tracing::warn!(
+            node,
+            request = format_args!("{:03X}h", request.as_raw()),
+            response = format_args!("{:03X}h", response.as_raw()),
+            "SDO channel set aside: {SILENT_LIMIT} timeouts in a row while the node answers on \
+             its other channels (moved or closed on the node?); asked again every {every:?}"
+        );
+        turn.node.set_aside.notify_waiters();
+        let client = Arc::downgrade(&self.inner);
+        tokio::spawn(async move {
+            loop {
+                tokio::time::sleep(every).await;
+                let Some(inner) = client.upgrade() else {
+                    return;
+                };
+                let sdo = SdoClients { inner };
+                let options = TransferOptions::default();
+                let answer = sdo
+                    .transfer_on(turn.channel, node, (0x1000, 0), None, None, options)
+                    .await;
+                if Heard::of(&answer) == Heard::Answer {
+                    turn.node.back_in_service();
+                    tracing::info!(
+                        node,
+                        request = format_args!("{:03X}h", request.as_raw()),
+                        "SDO channel answers again: back in service"
+                    );
+                    return;
+                }
+            }
+        });
     }
 
     /// [`Self::transfer`] on `channel`, which the caller holds.
@@ -889,22 +1051,7 @@ mod tests {
     async fn a_channel_the_node_does_not_serve_is_found() {
         let url = "mem://driver-channels-checked";
         let od = node_dictionary(7);
-        od.lock().unwrap().insert(Object::composite(
-            0x1201,
-            "SDO server 2",
-            crate::od::ObjectCode::Record,
-            [0x6A1u32, 0x6C1].into_iter().zip(1u8..).map(|(v, sub)| {
-                let var = Variable::new("COB-ID", DataType::Unsigned32, Access::Ro)
-                    .with_value(Value::Uint(v.into()));
-                (sub, var)
-            }),
-        ));
-        let server = serve_sdo(
-            Bus::open(url).await.unwrap(),
-            od,
-            7,
-            ServerConfig::default(),
-        );
+        let server = serve_with(url, &od, server_channel(0x1201, 0x6A1, 0x6C1)).await;
         let config = ClientConfig {
             timeout: Duration::from_millis(200),
             ..ClientConfig::default()
@@ -920,6 +1067,85 @@ mod tests {
         assert_eq!(answered, vec![(0x607, true), (0x6A1, true), (0x6A2, false)]);
         let silent = answers.into_iter().find_map(|(_, a)| a.err()).unwrap();
         assert_eq!(silent.abort_code(), AbortCode::TIMEOUT);
+        server.abort();
+    }
+
+    /// Server channel object `index` (1201h ff.) with identifiers `request`/`response`.
+    fn server_channel(index: u16, request: u32, response: u32) -> Object {
+        Object::composite(
+            index,
+            "SDO server",
+            crate::od::ObjectCode::Record,
+            [request, response].into_iter().zip(1u8..).map(|(v, sub)| {
+                let var = Variable::new("COB-ID", DataType::Unsigned32, Access::Ro)
+                    .with_value(Value::Uint(v.into()));
+                (sub, var)
+            }),
+        )
+    }
+
+    /// Node 7 serving `od` on `url`, `channel` (a further server channel) added to it first.
+    async fn serve_with(url: &str, od: &SharedDictionary, channel: Object) -> JoinHandle<()> {
+        od.lock().unwrap().insert(channel);
+        let bus = Bus::open(url).await.unwrap();
+        serve_sdo(bus, od.clone(), 7, ServerConfig::default())
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_channel_that_falls_silent_is_set_aside_and_taken_back_when_it_answers() {
+        let url = "mem://driver-channel-set-aside";
+        let config = ClientConfig {
+            timeout: Duration::from_millis(100),
+            ..ClientConfig::default()
+        };
+        let sdo =
+            SdoClients::with_channels(Bus::open(url).await.unwrap(), config, &three_channels());
+        sdo.set_probe_interval(Duration::from_millis(200));
+        let read = || async { sdo.read::<u32>(7, 0x1000, 0).await.is_ok() };
+        // The node is off: every channel is silent, and none is set aside for it.
+        for _ in 0..9 {
+            assert!(!read().await);
+        }
+        assert_eq!(sdo.check_channels(7).await.unwrap().len(), 3);
+        // The node serves two of the three (1202h, 6A2h/6C2h, is not on it): one read in
+        // three fails — taken in turn — until 6A2h is set aside: its third timeout in a row,
+        // the first of them while the node was off.
+        let od = node_dictionary(7);
+        let server = serve_with(url, &od, server_channel(0x1201, 0x6A1, 0x6C1)).await;
+        let mut answered = Vec::new();
+        for _ in 0..15 {
+            answered.push(read().await);
+        }
+        assert_eq!(
+            answered.iter().filter(|ok| !**ok).count(),
+            2,
+            "{answered:?}"
+        );
+        assert!(answered[6..].iter().all(|ok| *ok), "{answered:?}");
+        let in_service: Vec<u32> = sdo
+            .check_channels(7)
+            .await
+            .unwrap()
+            .into_iter()
+            .map(|((request, _), answer)| {
+                assert!(answer.is_ok());
+                request.as_raw()
+            })
+            .collect();
+        assert_eq!(in_service, [0x607, 0x6A1]);
+        // The node opens 1202h: the next probe finds it, and it carries transfers again.
+        server.abort();
+        let server = serve_with(url, &od, server_channel(0x1202, 0x6A2, 0x6C2)).await;
+        let back = tokio::time::timeout(Duration::from_secs(5), async {
+            loop {
+                tokio::time::sleep(Duration::from_millis(100)).await;
+                let answers = sdo.check_channels(7).await.unwrap();
+                if answers.len() == 3 && answers.iter().all(|(_, a)| a.is_ok()) {
+                    return;
+                }
+            }
+        });
+        assert!(back.await.is_ok(), "6A2h back in service");
         server.abort();
     }
 
