@@ -274,12 +274,25 @@ impl NodeChannels {
             .acquire()
             .await
             .map_err(|_| ClientError::Closed)?;
-        let channel = self.pool().free.pop_front().ok_or(ClientError::Closed)?;
-        permit.forget();
-        Ok(ChannelGuard {
-            node: self.clone(),
-            channel,
-        })
+        self.claim(permit).pop().ok_or(ClientError::Closed)
+    }
+
+    /// A free channel for each of the `permits` held: the permits go with the guards, which
+    /// give them back with their channels. (There is a free channel per permit; should one be
+    /// missing, its permit is released, not lost.)
+    fn claim(self: &Arc<Self>, permits: tokio::sync::SemaphorePermit<'_>) -> Vec<ChannelGuard> {
+        let count = permits.num_permits();
+        permits.forget();
+        let mut pool = self.pool();
+        let taken: Vec<_> = (0..count).filter_map(|_| pool.free.pop_front()).collect();
+        self.permits.add_permits(count - taken.len());
+        taken
+            .into_iter()
+            .map(|channel| ChannelGuard {
+                node: self.clone(),
+                channel,
+            })
+            .collect()
     }
 
     /// Note what a transfer on `channel` showed; whether the channel is to be set aside now.
@@ -438,24 +451,8 @@ impl SdoClients {
                 () = &mut aside => {}
             }
         };
-        // Each permit held stands for a free channel: take them as transfers would.
-        let count = held.num_permits();
-        held.forget();
-        let turns: Vec<ChannelGuard> = {
-            let mut pool = channels.pool();
-            let taken: Vec<_> = (0..count).filter_map(|_| pool.free.pop_front()).collect();
-            // (There is a free channel per permit; should one be missing, its permit is not.)
-            channels.permits.add_permits(count - taken.len());
-            taken
-                .into_iter()
-                .map(|channel| ChannelGuard {
-                    node: channels.clone(),
-                    channel,
-                })
-                .collect()
-        };
         let mut reads = tokio::task::JoinSet::new();
-        for turn in turns {
+        for turn in channels.claim(held) {
             let sdo = self.clone();
             reads.spawn(async move {
                 let options = TransferOptions::default();
@@ -509,8 +506,8 @@ impl SdoClients {
         let (request, response) = turn.channel;
         tracing::warn!(
             node,
-            request = format_args!("{:03X}h", request.as_raw()),
-            response = format_args!("{:03X}h", response.as_raw()),
+            %request,
+            %response,
             "SDO channel set aside: {SILENT_LIMIT} timeouts in a row while the node answers on \
              its other channels (moved or closed on the node?); asked again every {every:?}"
         );
@@ -529,11 +526,7 @@ impl SdoClients {
                     .await;
                 if Heard::of(&answer) == Heard::Answer {
                     turn.node.back_in_service();
-                    tracing::info!(
-                        node,
-                        request = format_args!("{:03X}h", request.as_raw()),
-                        "SDO channel answers again: back in service"
-                    );
+                    tracing::info!(node, %request, "SDO channel answers again: back in service");
                     return;
                 }
             }
@@ -987,18 +980,8 @@ mod tests {
         let od = node_dictionary(7);
         {
             let mut od = od.lock().unwrap();
-            for (n, (req, resp)) in [(1u16, (0x6A1u32, 0x6C1u32)), (2, (0x6A2, 0x6C2))] {
-                let cob = |v: u32| {
-                    Variable::new("COB-ID", DataType::Unsigned32, Access::Ro)
-                        .with_value(Value::Uint(v.into()))
-                };
-                od.insert(Object::composite(
-                    0x1200 + n,
-                    "SDO server",
-                    crate::od::ObjectCode::Record,
-                    [(1, cob(req)), (2, cob(resp))],
-                ));
-            }
+            od.insert(server_channel(0x1201, 0x6A1, 0x6C1));
+            od.insert(server_channel(0x1202, 0x6A2, 0x6C2));
             for i in 0..12u16 {
                 od.insert(Object::var(
                     0x2100 + i,

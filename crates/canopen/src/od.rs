@@ -693,6 +693,15 @@ impl ObjectDictionary {
         Ok(())
     }
 
+    /// The value at `index`/`sub` if it is an unsigned integer that fits 32 bits (COB-IDs,
+    /// times, counts of the communication profile); owner's view like [`Self::get_value`].
+    pub fn get_u32(&self, index: u16, sub: u8) -> Option<u32> {
+        match self.get_value(index, sub) {
+            Ok(Value::Uint(v)) => u32::try_from(v).ok(),
+            _ => None,
+        }
+    }
+
     /// The decoded value at `index`/`sub` (owner's view: no access check, no hook).
     pub fn get_value(&self, index: u16, sub: u8) -> Result<Value, AbortCode> {
         let var = self.variable(index, sub)?;

@@ -40,13 +40,6 @@ pub const MAX_PDOS: u16 = 512;
 /// Mapping entries per PDO at most.
 pub const MAX_ENTRIES: u8 = 64;
 
-fn u32_value(od: &ObjectDictionary, index: u16, sub: u8) -> Option<u32> {
-    match od.get_value(index, sub) {
-        Ok(Value::Uint(v)) => u32::try_from(v).ok(),
-        _ => None,
-    }
-}
-
 fn u32_var(name: &str, access: Access, value: u32) -> Variable {
     Variable::new(name, DataType::Unsigned32, access).with_value(Value::Uint(value.into()))
 }
@@ -220,14 +213,14 @@ impl WriteGuard for PdoGuard {
             return Ok(());
         };
         let comm = if receive { RPDO_COMM } else { TPDO_COMM } + n;
-        let valid = u32_value(od, comm, 1).is_some_and(|c| c & COB_INVALID == 0);
+        let valid = od.get_u32(comm, 1).is_some_and(|c| c & COB_INVALID == 0);
         if !is_map {
             return match sub {
                 1 => {
                     let new = u32::from_le_bytes(
                         data.try_into().map_err(|_| AbortCode::LENGTH_MISMATCH)?,
                     );
-                    let old = u32_value(od, comm, 1).unwrap_or(COB_INVALID);
+                    let old = od.get_u32(comm, 1).unwrap_or(COB_INVALID);
                     check_parameter_write(old, new)
                 }
                 2 if matches!(data.first(), Some(241..=251)) => Err(AbortCode::INVALID_VALUE),
@@ -247,7 +240,7 @@ impl WriteGuard for PdoGuard {
             }
             let mut bits = 0u32;
             for s in 1..=count {
-                let entry = MapEntry::from_u32(u32_value(od, map, s).ok_or(AbortCode::PDO_LENGTH)?);
+                let entry = MapEntry::from_u32(od.get_u32(map, s).ok_or(AbortCode::PDO_LENGTH)?);
                 check_entry(od, entry, receive)?;
                 bits += u32::from(entry.bits);
             }
@@ -257,7 +250,7 @@ impl WriteGuard for PdoGuard {
                 Err(AbortCode::PDO_LENGTH)
             };
         }
-        if u32_value(od, map, 0) != Some(0) {
+        if od.get_u32(map, 0) != Some(0) {
             return Err(AbortCode::UNSUPPORTED_ACCESS);
         }
         let value = u32::from_le_bytes(data.try_into().map_err(|_| AbortCode::LENGTH_MISMATCH)?);
@@ -341,11 +334,12 @@ pub struct PdoEngine {
 }
 
 fn read_map(od: &ObjectDictionary, map_index: u16) -> Vec<MapEntry> {
-    let count = u32_value(od, map_index, 0)
+    let count = od
+        .get_u32(map_index, 0)
         .unwrap_or(0)
         .min(u32::from(MAX_ENTRIES)) as u8;
     (1..=count)
-        .filter_map(|s| u32_value(od, map_index, s).map(MapEntry::from_u32))
+        .filter_map(|s| od.get_u32(map_index, s).map(MapEntry::from_u32))
         .collect()
 }
 
@@ -355,15 +349,16 @@ impl PdoEngine {
         let mut engine = PdoEngine::default();
         for n in 0..MAX_PDOS {
             if od.object(RPDO_COMM + n).is_some() {
-                let cob = u32_value(od, RPDO_COMM + n, 1).unwrap_or(COB_INVALID);
+                let cob = od.get_u32(RPDO_COMM + n, 1).unwrap_or(COB_INVALID);
                 let map = read_map(od, RPDO_MAP + n);
                 if let (Some(id), false) = (crate::cob::id_from_parameter(cob), map.is_empty()) {
                     engine.rpdos.push(Rpdo {
                         number: n + 1,
                         id,
-                        ttype: u32_value(od, RPDO_COMM + n, 2).unwrap_or(254) as u8,
+                        ttype: od.get_u32(RPDO_COMM + n, 2).unwrap_or(254) as u8,
                         map,
-                        timeout: u32_value(od, RPDO_COMM + n, 5)
+                        timeout: od
+                            .get_u32(RPDO_COMM + n, 5)
                             .filter(|&ms| ms > 0)
                             .map(|ms| Duration::from_millis(ms.into())),
                         deadline: None,
@@ -372,11 +367,12 @@ impl PdoEngine {
                 }
             }
             if od.object(TPDO_COMM + n).is_some() {
-                let cob = u32_value(od, TPDO_COMM + n, 1).unwrap_or(COB_INVALID);
+                let cob = od.get_u32(TPDO_COMM + n, 1).unwrap_or(COB_INVALID);
                 let map = read_map(od, TPDO_MAP + n);
                 if let (Some(id), false) = (crate::cob::id_from_parameter(cob), map.is_empty()) {
-                    let ttype = u32_value(od, TPDO_COMM + n, 2).unwrap_or(254) as u8;
-                    let event_timer = u32_value(od, TPDO_COMM + n, 5)
+                    let ttype = od.get_u32(TPDO_COMM + n, 2).unwrap_or(254) as u8;
+                    let event_timer = od
+                        .get_u32(TPDO_COMM + n, 5)
                         .filter(|&ms| ms > 0 && ttype >= 254)
                         .map(|ms| Duration::from_millis(ms.into()));
                     let index = engine.tpdos.len();
@@ -395,10 +391,10 @@ impl PdoEngine {
                         rtr_allowed: cob & 0x4000_0000 == 0,
                         ttype,
                         inhibit: Duration::from_micros(
-                            u64::from(u32_value(od, TPDO_COMM + n, 3).unwrap_or(0)) * 100,
+                            u64::from(od.get_u32(TPDO_COMM + n, 3).unwrap_or(0)) * 100,
                         ),
                         event_timer,
-                        sync_start: u32_value(od, TPDO_COMM + n, 6).unwrap_or(0) as u8,
+                        sync_start: od.get_u32(TPDO_COMM + n, 6).unwrap_or(0) as u8,
                         map,
                         last_sent: None,
                         pending: None,

@@ -5,7 +5,7 @@ mod common;
 use canopen::driver::SdoClients;
 use canopen::sdo::client::ClientConfig;
 use common::*;
-use gateway::config::{NetworkSection, NodeSection, SdoChannel};
+use gateway::config::{Config, NetworkSection, NodeSection, SdoChannel};
 use gateway::Gateway;
 use lift417::catalog::Device;
 use lift417::sim::{export_eds, SimConfig, Simulator};
@@ -90,6 +90,24 @@ async fn eds_metadata_and_a_second_network() {
     sim2.stop().await;
 }
 
+/// The simulated controller on `bus`, offering `further` as its SDO server channels 1201h ff.
+async fn controller_offering(bus: &str, further: &[SdoChannel]) -> Simulator {
+    let config = SimConfig {
+        sdo_servers: further.iter().map(SdoChannel::ids).collect(),
+        ..SimConfig::default()
+    };
+    Simulator::start(bus, config).await.unwrap()
+}
+
+/// `config` with the controller (node 1) read on `channels`.
+fn reading_on(mut config: Config, channels: &[SdoChannel]) -> Config {
+    config.bus.nodes = vec![NodeSection {
+        sdo_channels: channels.to_vec(),
+        ..NodeSection::new(1)
+    }];
+    config
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_controller_with_further_sdo_channels_is_read_on_all_of_them() {
     let dir = testkit::scratch();
@@ -102,21 +120,9 @@ async fn a_controller_with_further_sdo_channels_is_read_on_all_of_them() {
         channel(0x6A1, 0x6C1),
         channel(0x6A2, 0x6C2),
     ];
-    let sim = Simulator::start(
-        bus,
-        SimConfig {
-            sdo_servers: channels[1..].iter().map(SdoChannel::ids).collect(),
-            ..SimConfig::default()
-        },
-    )
-    .await
-    .unwrap();
+    let sim = controller_offering(bus, &channels[1..]).await;
     let mut monitor = canbus::Bus::open(bus).await.unwrap();
-    let mut config = config(&portal.url(), &pki, bus, dir.path());
-    config.bus.nodes = vec![NodeSection {
-        sdo_channels: channels.to_vec(),
-        ..NodeSection::new(1)
-    }];
+    let config = reading_on(config(&portal.url(), &pki, bus, dir.path()), &channels);
     let gateway = Gateway::bus_node(config).await.unwrap();
     let running = spawn(gateway);
     let (mut ws, ..) = portal.accept().await;
@@ -169,21 +175,9 @@ async fn a_channel_closed_on_the_controller_is_set_aside_and_reads_go_on() {
     let bus = "mem://nodes-sdo-channel-closed";
     let channels = [(0x6A1, 0x6C1), (0x6A2, 0x6C2)]
         .map(|(request, response)| SdoChannel { request, response });
-    let sim = Simulator::start(
-        bus,
-        SimConfig {
-            sdo_servers: channels.iter().map(SdoChannel::ids).collect(),
-            ..SimConfig::default()
-        },
-    )
-    .await
-    .unwrap();
-    let mut config = config(&portal.url(), &pki, bus, dir.path());
+    let sim = controller_offering(bus, &channels).await;
+    let mut config = reading_on(config(&portal.url(), &pki, bus, dir.path()), &channels);
     config.bus.sdo_timeout_ms = 100;
-    config.bus.nodes = vec![NodeSection {
-        sdo_channels: channels.to_vec(),
-        ..NodeSection::new(1)
-    }];
     let running = spawn(Gateway::bus_node(config).await.unwrap());
     let (mut ws, ..) = portal.accept().await;
     connack(&mut ws).await;
@@ -246,15 +240,11 @@ async fn a_configured_sdo_channel_the_node_does_not_serve_is_named_once_it_answe
         !check.is_finished(),
         "named channels of a node that is not there"
     );
-    let sim = Simulator::start(
-        bus,
-        SimConfig {
-            sdo_servers: vec![(id(0x6A1), id(0x6C1))],
-            ..SimConfig::default()
-        },
-    )
-    .await
-    .unwrap();
+    let offered = SdoChannel {
+        request: 0x6A1,
+        response: 0x6C1,
+    };
+    let sim = controller_offering(bus, &[offered]).await;
     let silent = tokio::time::timeout(WAIT, check).await.unwrap().unwrap();
     assert_eq!(silent, vec![(id(0x6A2), id(0x6C2))]);
     sim.stop().await;

@@ -519,6 +519,17 @@ impl Texts {
             .into()
     }
 
+    /// These texts with `name` as the English one where they have none: an EDS's name under
+    /// the NXg texts of the same object ([`Self::overlay`] without making the English text
+    /// when it would be covered).
+    pub fn or_english(self, name: &str) -> Texts {
+        if self.languages().any(|l| l == "en") {
+            self
+        } else {
+            Texts::english(name).overlay(&self)
+        }
+    }
+
     /// The texts with every `key` replaced by `value`; shared when none contains it.
     pub fn fill(&self, key: &str, value: u16) -> Texts {
         if !self.pairs().any(|(_, t)| t.contains(key)) {
@@ -815,6 +826,8 @@ mod tests {
         );
         // Texts with every language of the EDS's name replace it whole.
         assert_eq!(eds.overlay(&t), t);
+        assert_eq!(t.clone().or_english("Door hold time"), t);
+        assert_eq!(vendor.clone().or_english("Door hold time"), both);
         assert_eq!(
             t.overlay(&eds).languages().collect::<Vec<_>>(),
             ["de", "en"]

@@ -65,10 +65,7 @@ pub struct Node {
 }
 
 fn u32_value(od: &ObjectDictionary, index: u16, sub: u8) -> u32 {
-    match od.get_value(index, sub) {
-        Ok(Value::Uint(v)) => u32::try_from(v).unwrap_or(0),
-        _ => 0,
-    }
+    od.get_u32(index, sub).unwrap_or(0)
 }
 
 /// Where LSS "store configuration" keeps the node-ID and bit timing: beside the parameters.

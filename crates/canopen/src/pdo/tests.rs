@@ -40,7 +40,7 @@ fn map_tpdo(
     inhibit: u16,
     timer: u16,
 ) {
-    let cob = u32_value(od, TPDO_COMM + n, 1).unwrap() & 0x7FF;
+    let cob = od.get_u32(TPDO_COMM + n, 1).unwrap() & 0x7FF;
     w32(od, TPDO_COMM + n, 1, cob | COB_INVALID).unwrap();
     od.write(TPDO_COMM + n, 2, &[ttype]).unwrap();
     od.write(TPDO_COMM + n, 3, &inhibit.to_le_bytes()).unwrap();

@@ -12,7 +12,6 @@ use super::crc::Crc16;
 use super::msg::{self, BlockSegment, Initiate, Request, Response};
 use super::{size_indication, Payload, SubBlockReceiver, MAX_BLOCK_SIZE, SEGMENT_DATA};
 use crate::od::{ObjectDictionary, Reader, WriteGuard, Writer};
-use crate::types::Value;
 use canbus::{CanId, Filter, Frame};
 
 /// How a server channel behaves.
@@ -623,11 +622,9 @@ pub fn default_channel(node_id: u8) -> (CanId, CanId) {
 pub fn server_channels(od: &ObjectDictionary, node_id: u8) -> Vec<(CanId, CanId)> {
     let mut channels = vec![default_channel(node_id)];
     for index in 0x1201..=0x127F {
-        let cob = |sub| match od.get_value(index, sub) {
-            Ok(Value::Uint(v)) => u32::try_from(v)
-                .ok()
-                .and_then(crate::cob::id_from_parameter),
-            _ => None,
+        let cob = |sub| {
+            od.get_u32(index, sub)
+                .and_then(crate::cob::id_from_parameter)
         };
         if let (Some(rx), Some(tx)) = (cob(1), cob(2)) {
             channels.push((rx, tx));
@@ -653,10 +650,7 @@ impl WriteGuard for SdoServerGuard {
             return Ok(());
         }
         let new = u32::from_le_bytes(data.try_into().map_err(|_| AbortCode::LENGTH_MISMATCH)?);
-        let old = match od.get_value(index, sub) {
-            Ok(Value::Uint(v)) => u32::try_from(v).unwrap_or(crate::cob::COB_INVALID),
-            _ => crate::cob::COB_INVALID,
-        };
+        let old = od.get_u32(index, sub).unwrap_or(crate::cob::COB_INVALID);
         crate::cob::check_parameter_write(old, new)
     }
 }

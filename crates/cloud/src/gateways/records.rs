@@ -171,12 +171,8 @@ pub async fn writer(
     let mut batch = Vec::with_capacity(BATCH);
     let mut records = Vec::with_capacity(BATCH);
     let mut waiting = Vec::with_capacity(BATCH);
-    let mut tokens = Vec::new();
     while super::next_batch(&mut rx, &mut batch, BATCH, &mut stop).await > 0 {
         for queued in batch.drain(..) {
-            if matches!(queued.record, GatewayRecord::Token { .. }) {
-                tokens.push(queued.record.clone());
-            }
             records.push(queued.record);
             waiting.push(queued.written);
         }
@@ -186,6 +182,7 @@ pub async fn writer(
             Err(e) if !e.is_unavailable() && records.len() > 1 => {
                 for (record, waiter) in records.drain(..).zip(waiting.drain(..)) {
                     let written = store.record(std::slice::from_ref(&record)).await;
+                    unwritten.done(&record);
                     if let Err(e) = &written {
                         // The lift, not the record: a CONNECT's identity holds its token.
                         tracing::error!(error = %e, lift = %record.lift(), "gateway not recorded");
@@ -202,11 +199,10 @@ pub async fn writer(
                 for waiter in waiting.drain(..).flatten() {
                     let _ = waiter.send(written.clone());
                 }
+                for record in records.drain(..) {
+                    unwritten.done(&record);
+                }
             }
-        }
-        records.clear();
-        for token in tokens.drain(..) {
-            unwritten.done(&token);
         }
         unwritten.batches.send_modify(|n| *n += 1);
     }

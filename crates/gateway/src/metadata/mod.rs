@@ -193,14 +193,8 @@ impl BusMetadata {
         if let Some(len) = var.max_len {
             d.max = Some(Bound::Int(len as i128));
         }
-        let eds_name = || Texts::english(&var.name);
         if let Some(n) = self.nxg_part(vendor, index, sub, &d, &var.name) {
-            // Where the NXg texts have an English name, nothing of the EDS's remains.
-            d.name = if n.name.languages().any(|l| l == "en") {
-                n.name
-            } else {
-                eds_name().overlay(&n.name)
-            };
+            d.name = n.name.or_english(&var.name);
             d.hint = n.hint;
             d.formtype = n.formtype;
             d.physunit = n.physunit;
@@ -209,7 +203,7 @@ impl BusMetadata {
             d.zero = n.zero;
             d.hints = n.hints;
         } else {
-            d.name = eds_name();
+            d.name = Texts::english(&var.name);
         }
         Lookup::Found(Box::new(d))
     }
