@@ -88,9 +88,9 @@ impl Client {
             hyper::client::conn::http1::handshake(hyper_util::rt::TokioIo::new(tls))
                 .await
                 .map_err(|e| io(&e))?;
-        tokio::spawn(conn);
         Ok(Connection {
             sender,
+            conn: Some(Box::new(conn)),
             host: self.host.clone(),
             key: self.key.clone(),
             cookie: self.cookie.clone(),
@@ -129,31 +129,44 @@ impl Client {
         body: Body<'_>,
     ) -> Result<Reply, ClientError> {
         let mut connection = self.connect().await?;
-        let response = connection.send_body(method, path, body).await?;
-        let retry_after = response
-            .headers()
-            .get(hyper::header::RETRY_AFTER)
-            .and_then(|v| v.to_str().ok())
-            .and_then(|v| v.parse().ok());
-        let set_cookie = response
-            .headers()
-            .get(hyper::header::SET_COOKIE)
-            .and_then(|v| v.to_str().ok())
-            .and_then(|v| v.split(';').next())
-            .map(str::to_owned);
-        let (status, body) = answer(response).await?;
-        Ok(Reply {
-            status,
-            retry_after,
-            body,
-            set_cookie,
-        })
+        let request = connection.request(method, path, body)?;
+        connection
+            .driven(|sender| async move {
+                let response = send(sender, request).await?;
+                let retry_after = response
+                    .headers()
+                    .get(hyper::header::RETRY_AFTER)
+                    .and_then(|v| v.to_str().ok())
+                    .and_then(|v| v.parse().ok());
+                let set_cookie = response
+                    .headers()
+                    .get(hyper::header::SET_COOKIE)
+                    .and_then(|v| v.to_str().ok())
+                    .and_then(|v| v.split(';').next())
+                    .map(str::to_owned);
+                let (status, body) = answer(response).await?;
+                Ok(Reply {
+                    status,
+                    retry_after,
+                    body,
+                    set_cookie,
+                })
+            })
+            .await
     }
 
     /// Open the Server-Sent Events at `path` (the portal subscribes before answering, so
     /// nothing published after this returns is missed). `Err` carries a status other than 200.
     pub async fn events(&self, path: &str) -> Result<Result<EventStream, Answer>, ClientError> {
-        let response = self.connect().await?.send("GET", path, None).await?;
+        let mut connection = self.connect().await?;
+        let request = connection.request("GET", path, Body::Empty)?;
+        // The stream outlives this call: its connection is driven by a task of its own.
+        if let Some(conn) = connection.conn.take() {
+            tokio::spawn(conn);
+        }
+        let response = send(&mut connection.sender, request)
+            .await
+            .map_err(|e| at(&self.host, e))?;
         if response.status() != 200 {
             return Ok(Err(answer(response).await?));
         }
@@ -164,9 +177,21 @@ impl Client {
     }
 }
 
+/// hyper's end of an HTTP/1.1 connection, driven by whoever awaits a call on it.
+type Conn = hyper::client::conn::http1::Connection<
+    hyper_util::rt::TokioIo<tokio_rustls::client::TlsStream<tokio::net::TcpStream>>,
+    Full<Bytes>,
+>;
+
 /// One kept-alive connection to the portal: requests go one after another.
 pub struct Connection {
     sender: hyper::client::conn::http1::SendRequest<Full<Bytes>>,
+    /// The connection's I/O, polled within each call rather than in a task of its own: a
+    /// spawned one is woken for every request and wakes the caller for every answer, often
+    /// across threads — more than twice the client's CPU per request in the portal benchmark
+    /// (docs/BENCHMARKS.md §"What the portal adds to an operator read"). `None` once it ended
+    /// or was handed to a task (an event stream's); boxed, as it is a kilobyte and more.
+    conn: Option<Box<Conn>>,
     host: String,
     key: Option<String>,
     cookie: Option<String>,
@@ -199,23 +224,13 @@ pub struct Reply {
 }
 
 impl Connection {
-    async fn send(
-        &mut self,
-        method: &str,
-        path: &str,
-        body: Option<&Value>,
-    ) -> Result<hyper::Response<hyper::body::Incoming>, ClientError> {
-        let body = body.map_or(Body::Empty, Body::Json);
-        self.send_body(method, path, body).await
-    }
-
-    async fn send_body(
-        &mut self,
+    /// A request to `path` with this connection's credentials.
+    fn request(
+        &self,
         method: &str,
         path: &str,
         body: Body<'_>,
-    ) -> Result<hyper::Response<hyper::body::Incoming>, ClientError> {
-        let io = |e: &dyn std::fmt::Display| ClientError::Io(format!("{}: {e}", self.host));
+    ) -> Result<hyper::Request<Full<Bytes>>, ClientError> {
         let mut request = hyper::Request::builder()
             .method(method)
             .uri(path)
@@ -243,9 +258,35 @@ impl Connection {
             }
             Body::Empty => Bytes::new(),
         };
-        let request = request.body(Full::new(bytes)).map_err(|e| io(&e))?;
-        self.sender.ready().await.map_err(|e| io(&e))?;
-        self.sender.send_request(request).await.map_err(|e| io(&e))
+        request
+            .body(Full::new(bytes))
+            .map_err(|e| ClientError::Io(format!("{}: {e}", self.host)))
+    }
+
+    /// `exchange` (a request and the reading of its answer) while this task drives the
+    /// connection's I/O beside it.
+    async fn driven<'a, T, F>(
+        &'a mut self,
+        exchange: impl FnOnce(&'a mut hyper::client::conn::http1::SendRequest<Full<Bytes>>) -> F,
+    ) -> Result<T, ClientError>
+    where
+        F: std::future::Future<Output = Result<T, ClientError>>,
+    {
+        let work = exchange(&mut self.sender);
+        let located = |e| at(&self.host, e);
+        let Some(conn) = &mut self.conn else {
+            return work.await.map_err(located);
+        };
+        let ended = tokio::select! {
+            biased;
+            done = work => return done.map_err(located),
+            ended = conn => ended,
+        };
+        self.conn = None;
+        Err(located(ClientError::Io(match ended {
+            Ok(()) => "the connection closed".to_owned(),
+            Err(e) => e.to_string(),
+        })))
     }
 
     /// One request with a JSON answer, on this connection.
@@ -255,8 +296,33 @@ impl Connection {
         path: &str,
         body: Option<Value>,
     ) -> Result<Answer, ClientError> {
-        answer(self.send(method, path, body.as_ref()).await?).await
+        let request = self.request(method, path, body.as_ref().map_or(Body::Empty, Body::Json))?;
+        self.driven(|sender| async move { answer(send(sender, request).await?).await })
+            .await
     }
+}
+
+/// `e`, saying which portal when it is a connection's.
+fn at(host: &str, e: ClientError) -> ClientError {
+    match e {
+        ClientError::Io(e) => ClientError::Io(format!("{host}: {e}")),
+        e => e,
+    }
+}
+
+/// Send `request` once the connection can take it.
+async fn send(
+    sender: &mut hyper::client::conn::http1::SendRequest<Full<Bytes>>,
+    request: hyper::Request<Full<Bytes>>,
+) -> Result<hyper::Response<hyper::body::Incoming>, ClientError> {
+    sender
+        .ready()
+        .await
+        .map_err(|e| ClientError::Io(e.to_string()))?;
+    sender
+        .send_request(request)
+        .await
+        .map_err(|e| ClientError::Io(e.to_string()))
 }
 
 /// The status and the whole body of `response`, as JSON (a string when it is not JSON).

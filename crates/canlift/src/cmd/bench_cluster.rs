@@ -19,6 +19,7 @@ use futures_util::StreamExt;
 use super::bench::cpu_time;
 use super::bench_gateway::{memory_kib, percentile, Daemon};
 use super::bench_portal::{bench_config, free_port, PortalProcess};
+use super::loadgen::lift_id;
 
 /// Arguments of `canlift bench cluster`.
 #[derive(Debug, Clone, clap::Args)]
@@ -192,11 +193,6 @@ impl Layout {
     fn holder(&self, number: usize) -> usize {
         ((number - 1) / self.per) % self.portals
     }
-}
-
-/// The lift id of load-generator gateway `number` (`canlift loadgen`'s identities).
-fn lift_id(number: usize) -> String {
-    format!("1050-4097-LOAD-{number:06}")
 }
 
 /// `reads` gets of 0x652001, each of a lift held by process `h` asked of process `ask(h)`;

@@ -91,10 +91,12 @@ impl Portal {
     }
 
     pub(crate) fn url(&self) -> anyhow::Result<String> {
-        Ok(format!(
-            "wss://localhost:{}/ws",
-            self.listener.local_addr()?.port()
-        ))
+        Ok(format!("wss://localhost:{}/ws", self.addr()?.port()))
+    }
+
+    /// Where it listens.
+    pub(crate) fn addr(&self) -> anyhow::Result<std::net::SocketAddr> {
+        Ok(self.listener.local_addr()?)
     }
 
     /// Accept a gateway and answer its CONNECT.
@@ -440,6 +442,38 @@ impl Daemon {
     }
 }
 
+/// One embedded gateway on a local dictionary in a process of its own (`canlift loadgen`,
+/// gateway number `number` of `domain`), dialling `url`.
+pub(crate) fn lone_gateway(
+    exe: &Path,
+    url: &str,
+    ca: &Path,
+    domain: &str,
+    number: usize,
+    state: &Path,
+) -> anyhow::Result<Daemon> {
+    let number = number.to_string();
+    Daemon::spawn(
+        exe,
+        &[
+            "loadgen".as_ref(),
+            "--portal".as_ref(),
+            url.as_ref(),
+            "--ca".as_ref(),
+            ca.as_os_str(),
+            "--domain".as_ref(),
+            domain.as_ref(),
+            "--gateways".as_ref(),
+            "1".as_ref(),
+            "--first".as_ref(),
+            number.as_ref(),
+            "--state".as_ref(),
+            state.as_os_str(),
+        ],
+        Stdio::null(),
+    )
+}
+
 /// RSS, PSS and anonymous memory of a process in KiB (`/proc/PID/smaps_rollup`): RSS counts the
 /// binary's pages shared with other canlift processes in full, PSS shares them out, anonymous is
 /// the process's own heap and stacks.
@@ -507,24 +541,7 @@ async fn cpu_per_request(
         let portal = Portal::start(pki).await?;
         let url = portal.url()?;
         let daemon = if channels == 0 {
-            let state = dir.join("cpu-local");
-            Daemon::spawn(
-                &exe,
-                &[
-                    "loadgen".as_ref(),
-                    "--portal".as_ref(),
-                    url.as_ref(),
-                    "--ca".as_ref(),
-                    pki.ca.as_os_str(),
-                    "--domain".as_ref(),
-                    "BENCH".as_ref(),
-                    "--gateways".as_ref(),
-                    "1".as_ref(),
-                    "--state".as_ref(),
-                    state.as_os_str(),
-                ],
-                Stdio::null(),
-            )?
+            lone_gateway(&exe, &url, &pki.ca, "BENCH", 1, &dir.join("cpu-local"))?
         } else {
             let mut config = config(&url, pki, bus, &dir.join("cpu-bus"));
             if channels > 1 {

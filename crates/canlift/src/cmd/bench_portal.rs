@@ -1,22 +1,22 @@
 //! `canlift bench portal`: the cloud portal under load (docs/BENCHMARKS.md). The portal runs as its own
 //! process (`canlift cloud`), so its memory is its own; the gateways are `canlift loadgen`'s
-//! (the real gateway code in embedded mode) in this process, and the operator-latency figure
-//! uses a real gateway in bus-node mode in front of the simulated lift.
+//! (the real gateway code in embedded mode) in this process, and the operator-latency figure's
+//! gateway is one in a process of its own.
 //!
 //! Figures: idle TLS gateways held and the portal's memory per connection; a reconnect storm
 //! (gateways with known tokens all at once, time until every one has CONNACK); notification
-//! ingest into the database (stored and dropped per second); operator get latency portal →
-//! gateway → SDO → simulator.
+//! ingest into the database (stored and dropped per second); operator get latency through the
+//! portal against the same gateway read directly and through a bare relay process.
 
 use std::path::{Path, PathBuf};
+use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
-use lift417::sim::{SimConfig, Simulator};
 
-use super::bench::cpu_time;
-use super::bench_gateway::{memory_kib, mib, percentile, Daemon};
-use super::loadgen::{Fleet, LoadgenArgs, Sessions};
+use super::bench::{cpu_time, schedstat};
+use super::bench_gateway::{lone_gateway, memory_kib, mib, percentile, Daemon};
+use super::loadgen::{lift_id, Fleet, LoadgenArgs, Sessions};
 
 /// Arguments of `canlift bench portal`.
 #[derive(Debug, Clone, clap::Args)]
@@ -437,71 +437,35 @@ pub(super) async fn ingest(
     Ok(stored / seconds)
 }
 
-/// The bench lift's gateway (bus-node mode, the simulator on `bus`) connecting to `url`.
-async fn lift_gateway(
-    url: &str,
-    ca: &Path,
-    bus: &str,
-    state: &Path,
-) -> anyhow::Result<gateway::Gateway> {
-    let identity = nxg::gateway::Identity {
-        sernum: "BENCH-LIFT".into(),
-        vendorid: 1050,
-        productcode: 4096,
-        domaintoken: "OPS".into(),
-        ..Default::default()
-    };
-    let config = gateway::config::Config::for_portal(identity, url, ca, bus, state);
-    Ok(gateway::Gateway::bus_node(config).await?)
+/// Load-generator number of the latency phase's gateway (clear of the fleets' 1, 2, …).
+const LATENCY_GATEWAY: usize = 900_000;
+
+/// Rounds the latency phase interleaves its three ways in, so that a slow patch of the VM
+/// falls on each of them alike.
+const ROUNDS: usize = 5;
+
+/// One way to the latency phase's gateway.
+enum Way {
+    /// A stand-in portal's end of the gateway's WebSocket (directly, or through `bench relay`).
+    Door(Box<super::bench_gateway::Ws>),
+    /// The portal's REST API, one keep-alive HTTPS connection.
+    Portal(cloud::client::Connection),
 }
 
-/// Operator gets through the portal, and the same gateway's gets timed at its own door: what
-/// the portal adds is the difference.
-async fn latency(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyhow::Result<()> {
-    let store = cloud::store::Store::open(&database_url(args, dir)).await?;
-    let key = store.add_account("operator", "OPS").await?;
-    let bus = "mem://bench-portal";
-    let sim = Simulator::start(bus, SimConfig::default()).await?;
-    // Directly: a stand-in portal with the portal's own certificate.
-    let pki = cloud::devpki::ensure(&dir.join("portal"))?;
-    let harness = super::bench_gateway::Portal::start(&pki).await?;
-    let gw = lift_gateway(&harness.url()?, &pki.ca, bus, &dir.join("direct")).await?;
-    let (stop, stopped) = tokio::sync::watch::channel(false);
-    let task = tokio::spawn(gw.run(stopped));
-    let mut ws = harness.accept().await?;
-    let mut direct = Vec::new();
-    for form in ["naked", "full"] {
-        direct.push(super::bench_gateway::sequential_gets(&mut ws, form, args.requests).await?);
-    }
-    stop.send_replace(true);
-    let _ = task.await;
-    // Through the portal.
-    let gw = lift_gateway(
-        &format!("wss://localhost:{}/ws", portal.port),
-        &portal.ca,
-        bus,
-        &dir.join("lift-gateway"),
-    )
-    .await?;
-    let mut online = gw.online();
-    let (stop, stopped) = tokio::sync::watch::channel(false);
-    let task = tokio::spawn(gw.run(stopped));
-    tokio::time::timeout(Duration::from_secs(20), online.wait_for(|o| *o))
-        .await
-        .context("the lift's gateway did not come online")??;
-    let client = cloud::client::Client::new(
-        &format!("https://localhost:{}", portal.port),
-        Some(&key),
-        Some(&portal.ca),
-    )?;
-    let mut connection = client.connect().await?;
-    for ((form, query), direct) in [("naked", "?form=naked"), ("full", "")]
-        .into_iter()
-        .zip(direct)
-    {
-        let path = format!("/api/v1/lifts/1050-4096-BENCH-LIFT/objects/0x652001{query}");
-        let mut times = Vec::with_capacity(args.requests);
-        for _ in 0..args.requests {
+impl Way {
+    /// `n` gets of 0x652001 in `form` one after another; their times.
+    async fn gets(&mut self, form: &str, n: usize) -> anyhow::Result<Vec<Duration>> {
+        let connection = match self {
+            Way::Door(ws) => return super::bench_gateway::sequential_gets(ws, form, n).await,
+            Way::Portal(connection) => connection,
+        };
+        let query = if form == "naked" { "?form=naked" } else { "" };
+        let path = format!(
+            "/api/v1/lifts/{}/objects/0x652001{query}",
+            lift_id(LATENCY_GATEWAY)
+        );
+        let mut times = Vec::with_capacity(n);
+        for _ in 0..n {
             let sent = Instant::now();
             let (status, body) = connection.call("GET", &path, None).await?;
             if status != 200 {
@@ -509,20 +473,148 @@ async fn latency(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyh
             }
             times.push(sent.elapsed());
         }
-        times.sort();
-        let (p50, p99) = (percentile(&times, 50.0), percentile(&times, 99.0));
-        let (d50, d99) = (percentile(&direct, 50.0), percentile(&direct, 99.0));
+        Ok(times)
+    }
+}
+
+/// Wait until something listens on loopback `port`.
+async fn listening(port: u16, what: &str) -> anyhow::Result<()> {
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while tokio::net::TcpStream::connect(("127.0.0.1", port))
+        .await
+        .is_err()
+    {
+        if Instant::now() > deadline {
+            bail!("{what} did not start");
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    Ok(())
+}
+
+/// Operator gets of one gateway three ways, every party a process of its own as in the field:
+/// at the gateway's own door (a stand-in portal in this process), through a process that only
+/// copies bytes (`bench relay`: the least any process in the path costs on this machine), and
+/// through the portal (REST over HTTPS). The three gateways are the same embedded gateway
+/// (`canlift loadgen`, local dictionary), each in its own process.
+async fn latency(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyhow::Result<()> {
+    let exe = std::env::current_exe()?;
+    let store = cloud::store::Store::open(&database_url(args, dir)).await?;
+    let key = store.add_account("operator", "OPS").await?;
+    let pki = cloud::devpki::ensure(&dir.join("stand-in"))?;
+    let harness = super::bench_gateway::Portal::start(&pki).await?;
+    let lone = |url: &str, ca: &Path, state: &str| {
+        lone_gateway(&exe, url, ca, "OPS", LATENCY_GATEWAY, &dir.join(state))
+    };
+    let mut daemons = vec![lone(&harness.url()?, &pki.ca, "latency-direct")?];
+    let direct = harness.accept().await?;
+    let relay_port = free_port()?;
+    let (listen, to) = (
+        format!("127.0.0.1:{relay_port}"),
+        harness.addr()?.to_string(),
+    );
+    let relay = Daemon::spawn(
+        &exe,
+        &[
+            "bench".as_ref(),
+            "relay".as_ref(),
+            "--listen".as_ref(),
+            listen.as_ref(),
+            "--to".as_ref(),
+            to.as_ref(),
+        ],
+        Stdio::inherit(),
+    )?;
+    listening(relay_port, "the relay").await?;
+    let relayed_url = format!("wss://localhost:{relay_port}/ws");
+    daemons.push(lone(&relayed_url, &pki.ca, "latency-relayed")?);
+    let relayed = harness.accept().await?;
+    let portal_url = format!("wss://localhost:{}/ws", portal.port);
+    daemons.push(lone(&portal_url, &portal.ca, "latency-portal")?);
+    let client = cloud::client::Client::new(
+        &format!("https://localhost:{}", portal.port),
+        Some(&key),
+        Some(&portal.ca),
+    )?;
+    let mut through_portal = Way::Portal(client.connect().await?);
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while let Err(e) = through_portal.gets("naked", 1).await {
+        if Instant::now() > deadline {
+            return Err(e.context("the lift's gateway did not come online"));
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    // Each way with the process it adds (none: directly), whose CPU per read is measured
+    // beside this process's own (the stand-in's or the HTTPS client's).
+    let mut ways = [
+        (Way::Door(Box::new(direct)), None),
+        (Way::Door(Box::new(relayed)), Some(relay.pid)),
+        (through_portal, Some(portal.daemon.pid)),
+    ];
+    let forms = ["naked", "full"];
+    let mut times = vec![vec![Vec::new(); forms.len()]; ways.len()];
+    let mut used = vec![[(Duration::ZERO, 0); 2]; ways.len()];
+    for (way, _) in &mut ways {
+        way.gets("naked", 200).await?;
+    }
+    let per_round = args.requests.div_ceil(ROUNDS);
+    for _ in 0..ROUNDS {
+        for (f, form) in forms.iter().enumerate() {
+            for (w, (way, pid)) in ways.iter_mut().enumerate() {
+                let pids = [*pid, Some(std::process::id())];
+                let before = pids.map(|p| p.and_then(schedstat));
+                times[w][f].extend(way.gets(form, per_round).await?);
+                for (k, (p, before)) in pids.into_iter().zip(before).enumerate() {
+                    if let (Some(b), Some(a)) = (before, p.and_then(schedstat)) {
+                        used[w][k].0 += a.0.saturating_sub(b.0);
+                        used[w][k].1 += a.1.saturating_sub(b.1);
+                    }
+                }
+            }
+        }
+    }
+    for (f, form) in forms.iter().enumerate() {
+        let mut stats = |w: usize| {
+            times[w][f].sort();
+            (
+                percentile(&times[w][f], 50.0),
+                percentile(&times[w][f], 99.0),
+            )
+        };
+        let [(d50, d99), (r50, r99), (p50, p99)] = [stats(0), stats(1), stats(2)];
         println!(
-            "operator get ({form:<5})    p50 {p50:.0} µs   p99 {p99:.0} µs   (REST → portal → gateway → SDO → simulator, one connection)"
+            "operator get ({form:<5})  p50 / p99: directly {d50:.0} / {d99:.0} µs, through a relay {r50:.0} / {r99:.0} µs, through the portal {p50:.0} / {p99:.0} µs"
         );
         println!(
-            "  the gateway directly    p50 {d50:.0} µs   p99 {d99:.0} µs   → the portal adds {:.0} µs at p50",
-            p50 - d50
+            "  the portal adds {:.0} µs at p50; a process that only relays adds {:.0} µs; the portal's own share {:.0} µs",
+            p50 - d50,
+            r50 - d50,
+            p50 - r50
         );
     }
-    stop.send_replace(true);
-    let _ = task.await;
-    sim.stop().await;
+    let reads = (per_round * ROUNDS * forms.len()) as f64;
+    let per_read = |(cpu, slices): (Duration, u64)| {
+        format!(
+            "{:.1} µs CPU and {:.2} wake-ups",
+            cpu.as_secs_f64() * 1e6 / reads,
+            slices as f64 / reads
+        )
+    };
+    println!(
+        "  per read: the relay {}, the portal {} ({reads} reads each way, {ROUNDS} rounds interleaved)",
+        per_read(used[1][0]),
+        per_read(used[2][0]),
+    );
+    println!(
+        "  this process per read: at the door {}, through the relay {}, through the portal (the HTTPS client) {}",
+        per_read(used[0][1]),
+        per_read(used[1][1]),
+        per_read(used[2][1]),
+    );
+    relay.kill().await;
+    for daemon in daemons {
+        daemon.stop(Duration::from_secs(5)).await;
+    }
     Ok(())
 }
 

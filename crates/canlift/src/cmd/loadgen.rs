@@ -52,6 +52,25 @@ pub struct LoadgenArgs {
     pub until_online: bool,
 }
 
+/// Load-generator gateway `number`'s identity (NXg §5.2.1), of the account of `domain`.
+fn identity(number: usize, domain: &str) -> nxg::gateway::Identity {
+    nxg::gateway::Identity {
+        sernum: format!("LOAD-{number:06}"),
+        vendorid: 1050,
+        productcode: 4097,
+        domaintoken: domain.to_owned(),
+        liftnum: format!("load {number}"),
+        software: format!("canlift loadgen {}", env!("CARGO_PKG_VERSION")),
+        ..Default::default()
+    }
+}
+
+/// The portal's lift id of load-generator gateway `number`.
+#[cfg(feature = "portal")]
+pub(crate) fn lift_id(number: usize) -> String {
+    cloud::store::lift_id(&identity(number, "").connect(None).identity)
+}
+
 /// Running gateways.
 pub struct Fleet {
     /// Each gateway's in-service status (`Gateway::online`).
@@ -106,15 +125,7 @@ impl Fleet {
         let mut gateways = Vec::with_capacity(args.gateways);
         for i in 0..args.gateways {
             let number = args.first + i;
-            let identity = nxg::gateway::Identity {
-                sernum: format!("LOAD-{number:06}"),
-                vendorid: 1050,
-                productcode: 4097,
-                domaintoken: args.domain.clone(),
-                liftnum: format!("load {number}"),
-                software: format!("canlift loadgen {}", env!("CARGO_PKG_VERSION")),
-                ..Default::default()
-            };
+            let identity = identity(number, &args.domain);
             let mut config = gateway::config::Config::for_portal(
                 identity,
                 &args.portal,
