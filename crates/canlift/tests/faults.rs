@@ -789,6 +789,56 @@ async fn a_garbage_flood_on_the_bus_leaves_answers_timely() {
     portal.kill().await;
 }
 
+/// Answers to the portal's own requests are not a gateway's flood: with a limit of 5 messages/s
+/// (bursts of 10) and nothing subscribed as the lift connects, 8 operators reading the lift at
+/// once, 200 reads in all, are all answered and the lift stays online. The limit still closes a
+/// gateway that sends on its own (`an_abusive_gateway_is_closed_alone`).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn answers_to_the_portals_requests_do_not_count_against_the_message_rate() {
+    let rig = Rig::builder()
+        .portal(|c| {
+            c.gateways.max_messages_per_s = 5;
+            c.dashboard.live.clear();
+            c.dashboard.parameters.clear();
+            c.dashboard.events.clear();
+        })
+        .start()
+        .await;
+    rig.online().await;
+    let client = cloud::client::Client::new(&rig.url(), Some(&rig.key), Some(&rig.ca))
+        .expect("a client of the portal");
+    let path = format!("/api/v1/lifts/{LIFT}/objects/0x652001?form=naked");
+    let mut connections = Vec::new();
+    for _ in 0..8 {
+        connections.push(client.connect().await.expect("a connection"));
+    }
+    let begin = tokio::time::Instant::now();
+    let answered = futures_util::future::join_all(connections.iter_mut().map(|c| async {
+        let mut statuses = Vec::new();
+        for _ in 0..25 {
+            statuses.push(
+                c.call("GET", &path, None)
+                    .await
+                    .map(|(status, _)| status)
+                    .ok(),
+            );
+        }
+        statuses
+    }))
+    .await;
+    let took = begin.elapsed();
+    let ok = answered
+        .iter()
+        .flatten()
+        .filter(|s| **s == Some(200))
+        .count();
+    assert_eq!(ok, 200, "{answered:?}");
+    // Unless this took 38 s, more answers than the limit lets a gateway send of its own.
+    eprintln!("200 reads in {took:?}");
+    assert!(rig.registry().online(LIFT), "the lift stays online");
+    rig.stop().await;
+}
+
 type GatewaySocket = tokio_tungstenite::WebSocketStream<tokio_rustls::client::TlsStream<TcpStream>>;
 
 /// A hand-made gateway of account `someone` (domain OTH) admitted by the rig's portal.

@@ -115,8 +115,9 @@ pub struct GatewaysSection {
     pub max_queued: usize,
     /// Largest message accepted from a gateway (bytes).
     pub max_message_bytes: usize,
-    /// Messages a gateway may send per second, on average over two seconds; a connection
-    /// above it is closed (1008) without touching the others.
+    /// Messages a gateway may send of its own per second (answers to the portal's requests
+    /// do not count), on average over two seconds; a connection above it is closed (1008)
+    /// without touching the others.
     pub max_messages_per_s: u32,
     /// What a CONNECT with a valid token from another board (`boardhash`) gets.
     pub boardhash_change: BoardhashChange,

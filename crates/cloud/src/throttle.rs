@@ -41,6 +41,11 @@ impl TokenBucket {
         Ok(())
     }
 
+    /// Undo one [`Self::take`] that turned out not to count (never above a full bucket).
+    pub fn give_back(&mut self) {
+        self.tokens = (self.tokens + 1.0).min(2.0 * self.per_s);
+    }
+
     /// Whether it has been full since `now` (an idle key's bucket can be forgotten).
     fn full(&self, now: Instant) -> bool {
         let refill = now.saturating_duration_since(self.at).as_secs_f64() * self.per_s;
@@ -201,6 +206,21 @@ mod tests {
             .count();
         assert!((390..=410).contains(&accepted), "{accepted}");
         assert!(fast.full(later + Duration::from_secs(30)));
+    }
+
+    #[test]
+    fn what_is_given_back_can_be_taken_again_but_never_beyond_a_full_bucket() {
+        let start = Instant::now();
+        let mut rate = TokenBucket::new(10, start);
+        assert!((0..20).all(|_| rate.take(start).is_ok()));
+        assert!(rate.take(start).is_err());
+        rate.give_back();
+        assert!(rate.take(start).is_ok(), "the one given back");
+        assert!(rate.take(start).is_err());
+        // Given back into a full bucket: still two seconds' worth, not one more.
+        let mut full = TokenBucket::new(10, start);
+        full.give_back();
+        assert_eq!((0..30).take_while(|_| full.take(start).is_ok()).count(), 20);
     }
 
     #[test]

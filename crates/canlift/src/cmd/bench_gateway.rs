@@ -186,9 +186,25 @@ pub(crate) async fn sequential_gets(
     Ok(times)
 }
 
-/// `n` gets of 0x652001 in `form` with `window` of them outstanding; an error answer ends it,
-/// notifications in between are passed over.
-async fn windowed_gets(ws: &mut Ws, form: &str, n: usize, window: usize) -> anyhow::Result<()> {
+/// How requests come while a window is kept outstanding.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Refill {
+    /// A new request as each answer is read: the requests trickle in, one per answer.
+    Trickle,
+    /// The answers that came together are read first, then the window is topped up in one
+    /// write: requests come in bursts.
+    Bursts,
+}
+
+/// `n` gets of 0x652001 in `form` with `window` of them outstanding, refilled as `refill`
+/// says; an error answer ends it, notifications in between are passed over.
+async fn windowed_gets(
+    ws: &mut Ws,
+    form: &str,
+    n: usize,
+    window: usize,
+    refill: Refill,
+) -> anyhow::Result<()> {
     let (mut sent, mut done) = (0, 0);
     while done < n {
         while sent < n && sent - done < window {
@@ -197,12 +213,21 @@ async fn windowed_gets(ws: &mut Ws, form: &str, n: usize, window: usize) -> anyh
             sent += 1;
         }
         ws.flush().await?;
-        let answer = recv(ws).await?;
-        if answer.get("error").is_some() {
-            bail!("{form} get failed: {answer}");
-        }
-        if answer.get("result").is_some() {
-            done += 1;
+        let mut answer = Some(recv(ws).await?);
+        while let Some(a) = answer {
+            if a.get("error").is_some() {
+                bail!("{form} get failed: {a}");
+            }
+            if a.get("result").is_some() {
+                done += 1;
+            }
+            answer = match refill {
+                Refill::Trickle => None,
+                Refill::Bursts => match futures_util::FutureExt::now_or_never(recv(ws)) {
+                    Some(next) => Some(next?),
+                    None => None,
+                },
+            };
         }
     }
     Ok(())
@@ -213,7 +238,7 @@ async fn requests(ws: &mut Ws, what: &str, args: &GatewayBench) -> anyhow::Resul
     for form in ["naked", "stripped", "full"] {
         let times = sequential_gets(ws, form, args.requests).await?;
         let started = Instant::now();
-        windowed_gets(ws, form, args.requests, args.window).await?;
+        windowed_gets(ws, form, args.requests, args.window, Refill::Trickle).await?;
         let rate = args.requests as f64 / started.elapsed().as_secs_f64();
         println!(
             "{what:<22} {form:<9} p50 {:>8.0} µs   p99 {:>8.0} µs   {rate:>8.0} requests/s (window {})",
@@ -565,17 +590,24 @@ async fn cpu_per_request(
         // Warm up (first reads, allocations) and let the start settle.
         sequential_gets(&mut ws, "naked", 200).await?;
         tokio::time::sleep(Duration::from_millis(500)).await;
-        for window in [1, args.window] {
+        // One at a time, then the window refilled both ways: what a request costs the gateway
+        // depends on how many come per wake-up, which is the portal's doing.
+        let runs = [
+            (1, Refill::Trickle, ""),
+            (args.window, Refill::Trickle, ", one per answer"),
+            (args.window, Refill::Bursts, ", refilled in bursts"),
+        ];
+        for (window, refill, how) in runs {
             let (cpu, slices) = super::bench::schedstat(daemon.pid).unwrap_or_default();
             let started = Instant::now();
-            windowed_gets(&mut ws, "naked", args.requests, window).await?;
+            windowed_gets(&mut ws, "naked", args.requests, window, refill).await?;
             let rate = args.requests as f64 / started.elapsed().as_secs_f64();
             let (cpu_after, slices_after) = super::bench::schedstat(daemon.pid).unwrap_or_default();
             let per_request = |n: f64| n / args.requests as f64;
             // Each wake-up costs the same whatever it serves: requests per wake-up say
             // whether a change in CPU per request is the work's or the batching's.
             println!(
-                "gateway CPU per request  {mode:<20} {window:>2} in flight: {:.1} µs (the gateway process alone, {} naked gets; {rate:.0} requests/s; {:.2} wake-ups per request)",
+                "gateway CPU per request  {mode:<20} {window:>2} in flight{how}: {:.1} µs (the gateway process alone, {} naked gets; {rate:.0} requests/s; {:.2} wake-ups per request)",
                 per_request(cpu_after.saturating_sub(cpu).as_secs_f64() * 1e6),
                 args.requests,
                 per_request(slices_after.saturating_sub(slices) as f64),

@@ -459,11 +459,7 @@ impl Way {
             Way::Door(ws) => return super::bench_gateway::sequential_gets(ws, form, n).await,
             Way::Portal(connection) => connection,
         };
-        let query = if form == "naked" { "?form=naked" } else { "" };
-        let path = format!(
-            "/api/v1/lifts/{}/objects/0x652001{query}",
-            lift_id(LATENCY_GATEWAY)
-        );
+        let path = path_of(form);
         let mut times = Vec::with_capacity(n);
         for _ in 0..n {
             let sent = Instant::now();
@@ -474,6 +470,102 @@ impl Way {
             times.push(sent.elapsed());
         }
         Ok(times)
+    }
+}
+
+/// The REST path of the latency phase's get in `form`.
+fn path_of(form: &str) -> String {
+    let query = if form == "naked" { "?form=naked" } else { "" };
+    format!(
+        "/api/v1/lifts/{}/objects/0x652001{query}",
+        lift_id(LATENCY_GATEWAY)
+    )
+}
+
+/// Operators reading one lift at once through the portal, each on a connection of its own (a
+/// lift page asking for its objects): reads per second, and the CPU and wake-ups per read of the
+/// portal and of the gateway (`pids`).
+async fn together(
+    client: &cloud::client::Client,
+    path: &str,
+    reads: usize,
+    pids: [u32; 2],
+) -> anyhow::Result<()> {
+    const OPERATORS: usize = 32;
+    let mut connections = Vec::with_capacity(OPERATORS);
+    for _ in 0..OPERATORS {
+        connections.push(client.connect().await?);
+    }
+    let each = reads.div_ceil(OPERATORS);
+    let before = pids.map(schedstat);
+    let started = Instant::now();
+    futures_util::future::try_join_all(connections.iter_mut().map(|connection| async move {
+        for _ in 0..each {
+            let (status, body) = connection.call("GET", path, None).await?;
+            if status != 200 {
+                bail!("GET {path}: {status} {body}");
+            }
+        }
+        anyhow::Ok(())
+    }))
+    .await?;
+    let elapsed = started.elapsed();
+    let total = (each * OPERATORS) as f64;
+    let [portal, gateway] = [0, 1].map(|k| used_since(pids[k], before[k], total));
+    println!(
+        "{OPERATORS} operators at once (naked)  {:.0} reads/s; per read: the portal {portal}, the gateway {gateway}",
+        total / elapsed.as_secs_f64()
+    );
+    Ok(())
+}
+
+/// The web UI's page of the lift, signed in with `key`, 200 times one after another (the page
+/// reads each object it shows from the gateway, all at once): its time, and the CPU and
+/// wake-ups per page of the portal and of the gateway (`pids`).
+async fn lift_pages(
+    client: &cloud::client::Client,
+    key: &str,
+    pids: [u32; 2],
+) -> anyhow::Result<()> {
+    const PAGES: usize = 200;
+    let signed_in = client
+        .exchange("POST", "/login", cloud::client::Body::Form(&[("key", key)]))
+        .await?;
+    let cookie = signed_in
+        .set_cookie
+        .with_context(|| format!("signing in: {}", signed_in.status))?;
+    let mut connection = client.clone().with_cookie(&cookie).connect().await?;
+    let path = format!("/lifts/{}", lift_id(LATENCY_GATEWAY));
+    let before = pids.map(schedstat);
+    let mut times = Vec::with_capacity(PAGES);
+    for _ in 0..PAGES {
+        let begin = Instant::now();
+        let (status, body) = connection.call("GET", &path, None).await?;
+        if status != 200 {
+            bail!("GET {path}: {status} {body}");
+        }
+        times.push(begin.elapsed());
+    }
+    times.sort();
+    let [portal, gateway] = [0, 1].map(|k| used_since(pids[k], before[k], PAGES as f64));
+    println!(
+        "the lift's web page  p50 {:.0} µs, p99 {:.0} µs; per page: the portal {portal}, the gateway {gateway}",
+        percentile(&times, 50.0),
+        percentile(&times, 99.0)
+    );
+    Ok(())
+}
+
+/// What process `pid` used since `before` (its [`schedstat`] then), per one of `n`: CPU and
+/// wake-ups.
+fn used_since(pid: u32, before: Option<(Duration, u64)>, n: f64) -> String {
+    match (before, schedstat(pid)) {
+        (Some(b), Some(a)) => format!(
+            "{:.1} µs CPU and {:.2} wake-ups",
+            a.0.saturating_sub(b.0).as_secs_f64() * 1e6 / n,
+            a.1.saturating_sub(b.1) as f64 / n
+        ),
+        _ => "not measured".to_owned(),
     }
 }
 
@@ -530,7 +622,7 @@ async fn latency(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyh
     daemons.push(lone(&relayed_url, &pki.ca, "latency-relayed")?);
     let relayed = harness.accept().await?;
     let portal_url = format!("wss://localhost:{}/ws", portal.port);
-    daemons.push(lone(&portal_url, &portal.ca, "latency-portal")?);
+    let held = lone(&portal_url, &portal.ca, "latency-portal")?;
     let client = cloud::client::Client::new(
         &format!("https://localhost:{}", portal.port),
         Some(&key),
@@ -611,8 +703,11 @@ async fn latency(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyh
         per_read(used[1][1]),
         per_read(used[2][1]),
     );
+    let pids = [portal.daemon.pid, held.pid];
+    together(&client, &path_of("naked"), args.requests, pids).await?;
+    lift_pages(&client, &key, pids).await?;
     relay.kill().await;
-    for daemon in daemons {
+    for daemon in daemons.into_iter().chain([held]) {
         daemon.stop(Duration::from_secs(5)).await;
     }
     Ok(())

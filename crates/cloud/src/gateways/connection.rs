@@ -150,7 +150,17 @@ impl Connection {
                     return Err(format!("more than {limit} messages/s"));
                 }
                 match message {
-                    Some(Ok(Message::Text(text))) => Ok(self.session.text(text.as_str(), now)),
+                    Some(Ok(Message::Text(text))) => {
+                        let out = self.session.text(text.as_str(), now);
+                        // An answer to one of the portal's own requests is not a message the
+                        // gateway chose to send: those requests are limited where they are
+                        // made (`max_in_flight`, the API keys' rates), and operators reading a
+                        // lift at once must not cost the lift its connection.
+                        if out.iter().any(|o| matches!(o, Output::Answer(..))) {
+                            self.rate.give_back();
+                        }
+                        Ok(out)
+                    }
                     Some(Ok(Message::Ping(_) | Message::Pong(_))) => {
                         self.session.activity(now);
                         Ok(Vec::new())
