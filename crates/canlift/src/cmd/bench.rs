@@ -421,6 +421,27 @@ pub(crate) fn schedstat(pid: u32) -> Option<(Duration, u64)> {
     Some((Duration::from_nanos(total), slices))
 }
 
+/// What process `pid` used since `before` (its [`schedstat`] then): CPU time and wake-ups.
+#[cfg(feature = "portal")]
+pub(crate) fn used_since(pid: u32, before: Option<(Duration, u64)>) -> Option<(Duration, u64)> {
+    let (cpu, slices) = before?;
+    let (now, slices_now) = schedstat(pid)?;
+    Some((now.saturating_sub(cpu), slices_now.saturating_sub(slices)))
+}
+
+/// `used` (CPU time, wake-ups) per one of `n` things done, as the benchmarks print it.
+#[cfg(feature = "portal")]
+pub(crate) fn per_one(used: Option<(Duration, u64)>, n: f64) -> String {
+    match used {
+        Some((cpu, slices)) => format!(
+            "{:.1} µs CPU and {:.2} wake-ups",
+            cpu.as_secs_f64() * 1e6 / n,
+            slices as f64 / n
+        ),
+        None => "not measured".to_owned(),
+    }
+}
+
 #[derive(Default)]
 struct ReceiverReport {
     received: u64,

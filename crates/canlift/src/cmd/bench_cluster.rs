@@ -18,7 +18,7 @@ use futures_util::StreamExt;
 
 use super::bench::cpu_time;
 use super::bench_gateway::{memory_kib, percentile, Daemon};
-use super::bench_portal::{bench_config, free_port, PortalProcess};
+use super::bench_portal::{bench_config, free_port, listening, PortalProcess};
 use super::loadgen::lift_id;
 
 /// Arguments of `canlift bench cluster`.
@@ -77,16 +77,7 @@ impl Nats {
             .kill_on_drop(true)
             .spawn()
             .with_context(|| format!("{} (apt-get install nats-server)", binary.display()))?;
-        let deadline = Instant::now() + Duration::from_secs(10);
-        while tokio::net::TcpStream::connect(("127.0.0.1", port))
-            .await
-            .is_err()
-        {
-            if Instant::now() > deadline {
-                bail!("nats-server did not start");
-            }
-            tokio::time::sleep(Duration::from_millis(50)).await;
-        }
+        listening(port, "nats-server", Duration::from_secs(10)).await?;
         Ok(Nats {
             child,
             url: format!("nats://127.0.0.1:{port}"),

@@ -598,19 +598,19 @@ async fn cpu_per_request(
             (args.window, Refill::Bursts, ", refilled in bursts"),
         ];
         for (window, refill, how) in runs {
-            let (cpu, slices) = super::bench::schedstat(daemon.pid).unwrap_or_default();
+            let before = super::bench::schedstat(daemon.pid);
             let started = Instant::now();
             windowed_gets(&mut ws, "naked", args.requests, window, refill).await?;
             let rate = args.requests as f64 / started.elapsed().as_secs_f64();
-            let (cpu_after, slices_after) = super::bench::schedstat(daemon.pid).unwrap_or_default();
+            let (cpu, slices) = super::bench::used_since(daemon.pid, before).unwrap_or_default();
             let per_request = |n: f64| n / args.requests as f64;
             // Each wake-up costs the same whatever it serves: requests per wake-up say
             // whether a change in CPU per request is the work's or the batching's.
             println!(
                 "gateway CPU per request  {mode:<20} {window:>2} in flight{how}: {:.1} µs (the gateway process alone, {} naked gets; {rate:.0} requests/s; {:.2} wake-ups per request)",
-                per_request(cpu_after.saturating_sub(cpu).as_secs_f64() * 1e6),
+                per_request(cpu.as_secs_f64() * 1e6),
                 args.requests,
-                per_request(slices_after.saturating_sub(slices) as f64),
+                per_request(slices as f64),
             );
         }
         daemon.stop(Duration::from_secs(5)).await;

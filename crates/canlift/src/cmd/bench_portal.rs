@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 
-use super::bench::{cpu_time, schedstat};
+use super::bench::{cpu_time, per_one, schedstat, used_since};
 use super::bench_gateway::{lone_gateway, memory_kib, mib, percentile, Daemon};
 use super::loadgen::{lift_id, Fleet, LoadgenArgs, Sessions};
 
@@ -126,16 +126,10 @@ impl PortalProcess {
         std::fs::create_dir_all(dir)?;
         std::fs::write(&path, toml::to_string_pretty(config)?)?;
         let daemon = Daemon::start(&std::env::current_exe()?, "cloud", &path)?;
-        let deadline = Instant::now() + Duration::from_secs(30);
-        while tokio::net::TcpStream::connect(("127.0.0.1", port))
-            .await
-            .is_err()
-            || !ca.exists()
-        {
-            if Instant::now() > deadline {
-                bail!("the portal did not start");
-            }
-            tokio::time::sleep(Duration::from_millis(50)).await;
+        // The portal writes its development CA before it listens.
+        listening(port, "the portal", Duration::from_secs(30)).await?;
+        if !ca.exists() {
+            bail!("the portal listens but {} is missing", ca.display());
         }
         let client =
             cloud::client::Client::new(&format!("https://localhost:{port}"), None, Some(&ca))?;
@@ -462,15 +456,23 @@ impl Way {
         let path = path_of(form);
         let mut times = Vec::with_capacity(n);
         for _ in 0..n {
-            let sent = Instant::now();
-            let (status, body) = connection.call("GET", &path, None).await?;
-            if status != 200 {
-                bail!("GET {path}: {status} {body}");
-            }
-            times.push(sent.elapsed());
+            times.push(timed_get(connection, &path).await?);
         }
         Ok(times)
     }
+}
+
+/// One GET of `path` that must answer 200; how long it took.
+async fn timed_get(
+    connection: &mut cloud::client::Connection,
+    path: &str,
+) -> anyhow::Result<Duration> {
+    let sent = Instant::now();
+    let (status, body) = connection.call("GET", path, None).await?;
+    if status != 200 {
+        bail!("GET {path}: {status} {body}");
+    }
+    Ok(sent.elapsed())
 }
 
 /// The REST path of the latency phase's get in `form`.
@@ -501,17 +503,14 @@ async fn together(
     let started = Instant::now();
     futures_util::future::try_join_all(connections.iter_mut().map(|connection| async move {
         for _ in 0..each {
-            let (status, body) = connection.call("GET", path, None).await?;
-            if status != 200 {
-                bail!("GET {path}: {status} {body}");
-            }
+            timed_get(connection, path).await?;
         }
         anyhow::Ok(())
     }))
     .await?;
     let elapsed = started.elapsed();
     let total = (each * OPERATORS) as f64;
-    let [portal, gateway] = [0, 1].map(|k| used_since(pids[k], before[k], total));
+    let [portal, gateway] = [0, 1].map(|k| per_one(used_since(pids[k], before[k]), total));
     println!(
         "{OPERATORS} operators at once (naked)  {:.0} reads/s; per read: the portal {portal}, the gateway {gateway}",
         total / elapsed.as_secs_f64()
@@ -539,15 +538,10 @@ async fn lift_pages(
     let before = pids.map(schedstat);
     let mut times = Vec::with_capacity(PAGES);
     for _ in 0..PAGES {
-        let begin = Instant::now();
-        let (status, body) = connection.call("GET", &path, None).await?;
-        if status != 200 {
-            bail!("GET {path}: {status} {body}");
-        }
-        times.push(begin.elapsed());
+        times.push(timed_get(&mut connection, &path).await?);
     }
     times.sort();
-    let [portal, gateway] = [0, 1].map(|k| used_since(pids[k], before[k], PAGES as f64));
+    let [portal, gateway] = [0, 1].map(|k| per_one(used_since(pids[k], before[k]), PAGES as f64));
     println!(
         "the lift's web page  p50 {:.0} µs, p99 {:.0} µs; per page: the portal {portal}, the gateway {gateway}",
         percentile(&times, 50.0),
@@ -556,22 +550,10 @@ async fn lift_pages(
     Ok(())
 }
 
-/// What process `pid` used since `before` (its [`schedstat`] then), per one of `n`: CPU and
-/// wake-ups.
-fn used_since(pid: u32, before: Option<(Duration, u64)>, n: f64) -> String {
-    match (before, schedstat(pid)) {
-        (Some(b), Some(a)) => format!(
-            "{:.1} µs CPU and {:.2} wake-ups",
-            a.0.saturating_sub(b.0).as_secs_f64() * 1e6 / n,
-            a.1.saturating_sub(b.1) as f64 / n
-        ),
-        _ => "not measured".to_owned(),
-    }
-}
-
-/// Wait until something listens on loopback `port`.
-async fn listening(port: u16, what: &str) -> anyhow::Result<()> {
-    let deadline = Instant::now() + Duration::from_secs(20);
+/// Wait until something listens on loopback `port` (a process the benchmark started), at
+/// most `limit`.
+pub(crate) async fn listening(port: u16, what: &str, limit: Duration) -> anyhow::Result<()> {
+    let deadline = Instant::now() + limit;
     while tokio::net::TcpStream::connect(("127.0.0.1", port))
         .await
         .is_err()
@@ -579,7 +561,7 @@ async fn listening(port: u16, what: &str) -> anyhow::Result<()> {
         if Instant::now() > deadline {
             bail!("{what} did not start");
         }
-        tokio::time::sleep(Duration::from_millis(20)).await;
+        tokio::time::sleep(Duration::from_millis(50)).await;
     }
     Ok(())
 }
@@ -617,7 +599,7 @@ async fn latency(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyh
         ],
         Stdio::inherit(),
     )?;
-    listening(relay_port, "the relay").await?;
+    listening(relay_port, "the relay", Duration::from_secs(20)).await?;
     let relayed_url = format!("wss://localhost:{relay_port}/ws");
     daemons.push(lone(&relayed_url, &pki.ca, "latency-relayed")?);
     let relayed = harness.accept().await?;
@@ -657,9 +639,9 @@ async fn latency(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyh
                 let before = pids.map(|p| p.and_then(schedstat));
                 times[w][f].extend(way.gets(form, per_round).await?);
                 for (k, (p, before)) in pids.into_iter().zip(before).enumerate() {
-                    if let (Some(b), Some(a)) = (before, p.and_then(schedstat)) {
-                        used[w][k].0 += a.0.saturating_sub(b.0);
-                        used[w][k].1 += a.1.saturating_sub(b.1);
+                    if let Some((cpu, slices)) = p.and_then(|p| used_since(p, before)) {
+                        used[w][k].0 += cpu;
+                        used[w][k].1 += slices;
                     }
                 }
             }
@@ -685,13 +667,7 @@ async fn latency(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyh
         );
     }
     let reads = (per_round * ROUNDS * forms.len()) as f64;
-    let per_read = |(cpu, slices): (Duration, u64)| {
-        format!(
-            "{:.1} µs CPU and {:.2} wake-ups",
-            cpu.as_secs_f64() * 1e6 / reads,
-            slices as f64 / reads
-        )
-    };
+    let per_read = |used| per_one(Some(used), reads);
     println!(
         "  per read: the relay {}, the portal {} ({reads} reads each way, {ROUNDS} rounds interleaved)",
         per_read(used[1][0]),
