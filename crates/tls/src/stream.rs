@@ -11,7 +11,9 @@
 //!
 //! Reads decrypt every complete record at once and copy the plaintext straight into the
 //! caller's buffer, keeping what does not fit; writes encrypt into one record per call and
-//! write through to the socket, keeping what the socket does not take (up to
+//! leave for the socket at the writer's flush (or once a full record's worth waits), so that
+//! what a writer writes together — a burst of WebSocket messages — is one system call and one
+//! wake-up of the peer, not one each; what the socket does not take is kept (up to
 //! [`WRITE_BACKLOG`], then the writer waits). A peer that ends the connection without TLS's
 //! close_notify is an `UnexpectedEof` error, as with rustls's own reader.
 
@@ -390,9 +392,12 @@ where
         }
         let n = data.len().min(MAX_FRAGMENT);
         this.send(Outgoing::Data(&data[..n]))?;
-        // Write through; what the socket does not take now waits in `outgoing`.
-        if let Poll::Ready(Err(e)) = this.poll_write_out(cx) {
-            return Poll::Ready(Err(e));
+        // Records wait for the flush unless a full record's worth does; what the socket does
+        // not take now waits in `outgoing`.
+        if this.outgoing.len() - this.written >= MAX_FRAGMENT {
+            if let Poll::Ready(Err(e)) = this.poll_write_out(cx) {
+                return Poll::Ready(Err(e));
+            }
         }
         Poll::Ready(Ok(n))
     }

@@ -2,7 +2,10 @@
 //! gateway uses): data both ways in every size and split, close_notify, resumption, key
 //! updates in order, push-back, no buffer held while idle, and the failures.
 
+use std::pin::Pin;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
+use std::task::{Context, Poll};
 use std::time::Duration;
 
 use proptest::prelude::*;
@@ -10,7 +13,7 @@ use rustls::pki_types::ServerName;
 use rustls::{ClientConfig, HandshakeKind, ServerConfig};
 use tls::stream::{Acceptor, ServerStream, WRITE_BACKLOG};
 use tls::tickets::TicketKeys;
-use tokio::io::{AsyncReadExt, AsyncWriteExt, DuplexStream};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt, DuplexStream, ReadBuf};
 use tokio_rustls::client::TlsStream;
 use tokio_rustls::TlsConnector;
 
@@ -108,6 +111,7 @@ async fn a_second_connection_resumes_the_session() {
     let mut got = [0; 4];
     server.read_exact(&mut got).await.unwrap();
     server.write_all(b"pong").await.unwrap();
+    server.flush().await.unwrap();
     client.read_exact(&mut got).await.unwrap();
     let (server, _client) = pair(&pki, 8192).await;
     assert_eq!(server.handshake_kind(), Some(HandshakeKind::Resumed));
@@ -203,6 +207,89 @@ async fn a_peer_that_speaks_no_tls_is_refused() {
     let mut alert = [0u8; 7];
     far.read_exact(&mut alert).await.unwrap();
     assert_eq!(alert[0], 21, "{alert:?}");
+}
+
+/// A pipe that counts the writes reaching it.
+struct Counted {
+    pipe: DuplexStream,
+    writes: Arc<AtomicUsize>,
+}
+
+impl AsyncRead for Counted {
+    fn poll_read(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.pipe).poll_read(cx, buf)
+    }
+}
+
+impl AsyncWrite for Counted {
+    fn poll_write(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        data: &[u8],
+    ) -> Poll<std::io::Result<usize>> {
+        self.writes.fetch_add(1, Ordering::Relaxed);
+        Pin::new(&mut self.pipe).poll_write(cx, data)
+    }
+
+    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.pipe).poll_flush(cx)
+    }
+
+    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.pipe).poll_shutdown(cx)
+    }
+}
+
+/// What a writer writes together (the portal's requests of one lift page) leaves at its flush
+/// in one write to the socket, each message its own record; a full record's worth leaves at
+/// once.
+#[tokio::test]
+async fn writes_leave_together_at_the_flush() {
+    let pki = pki();
+    let (near, far) = tokio::io::duplex(1 << 20);
+    let writes = Arc::new(AtomicUsize::new(0));
+    let near = Counted {
+        pipe: near,
+        writes: writes.clone(),
+    };
+    let acceptor = Acceptor::new(pki.server.clone());
+    let connector = TlsConnector::from(pki.client.clone());
+    let name = ServerName::try_from("localhost").unwrap();
+    let (server, client) = tokio::join!(acceptor.accept(near), connector.connect(name, far));
+    let (mut server, mut client) = (server.unwrap(), client.unwrap());
+    let before = writes.load(Ordering::Relaxed);
+    let messages: Vec<Vec<u8>> = (0..18).map(|k| message(150, k)).collect();
+    for m in &messages {
+        server.write_all(m).await.unwrap();
+    }
+    assert_eq!(
+        writes.load(Ordering::Relaxed),
+        before,
+        "nothing left before the flush"
+    );
+    assert!(server.buffered() > 18 * 150);
+    server.flush().await.unwrap();
+    assert_eq!(
+        writes.load(Ordering::Relaxed),
+        before + 1,
+        "one write for all"
+    );
+    assert_eq!(server.buffered(), 0);
+    let mut got = vec![0; 18 * 150];
+    client.read_exact(&mut got).await.unwrap();
+    assert!(got == messages.concat());
+    // A record's worth does not wait for the flush.
+    server.write_all(&message(40_000, 9)).await.unwrap();
+    assert!(writes.load(Ordering::Relaxed) > before + 1);
+    assert!(
+        server.buffered() < 16_384 + 256,
+        "holds {}",
+        server.buffered()
+    );
 }
 
 #[tokio::test]

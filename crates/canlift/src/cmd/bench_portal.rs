@@ -518,7 +518,7 @@ async fn together(
     Ok(())
 }
 
-/// The web UI's page of the lift, signed in with `key`, 200 times one after another (the page
+/// The web UI's page of the lift, signed in with `key`, 1,000 times one after another (the page
 /// reads each object it shows from the gateway, all at once): its time, and the CPU and
 /// wake-ups per page of the portal and of the gateway (`pids`).
 async fn lift_pages(
@@ -526,7 +526,7 @@ async fn lift_pages(
     key: &str,
     pids: [u32; 2],
 ) -> anyhow::Result<()> {
-    const PAGES: usize = 200;
+    const PAGES: usize = 1000;
     let signed_in = client
         .exchange("POST", "/login", cloud::client::Body::Form(&[("key", key)]))
         .await?;

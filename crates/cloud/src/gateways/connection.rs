@@ -9,6 +9,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use axum::extract::ws::{close_code, CloseFrame, Message, WebSocket};
+use futures_util::SinkExt;
 use nxg::msg::{Connect, Event, Notification};
 use nxg::portal::{Failure, Output, RequestId, Session};
 
@@ -99,13 +100,16 @@ impl Connection {
     /// Do what the session asks; handling an output may produce more (Identify → CONNACK,
     /// token), so until none is left. `Err`: the connection is over, with the cause.
     async fn carry_out(&mut self, mut outputs: Vec<Output>) -> Result<(), String> {
+        let mut unflushed = false;
         while !outputs.is_empty() {
             for output in std::mem::take(&mut outputs) {
                 match output {
+                    // Written together, flushed once below: one TLS write for all.
                     Output::Send(text) => {
-                        if self.socket.send(Message::Text(text.into())).await.is_err() {
+                        if self.socket.feed(Message::Text(text.into())).await.is_err() {
                             return Err("sending failed".into());
                         }
+                        unflushed = true;
                     }
                     Output::Close(reason) => {
                         let _ = self.socket.send(Message::Close(None)).await;
@@ -129,6 +133,9 @@ impl Connection {
                     Output::Event(event) => self.event(event),
                 }
             }
+        }
+        if unflushed && self.socket.flush().await.is_err() {
+            return Err("sending failed".into());
         }
         Ok(())
     }
@@ -174,9 +181,17 @@ impl Connection {
             }
             letter = self.calls.next() => match letter {
                 Letter::Item(call) => {
-                    let (request, out) =
-                        self.session.request(call.method, call.params, Instant::now());
-                    self.waiting.insert(request, call.reply);
+                    // The requests that came together (a lift page asks for all its objects
+                    // at once) leave together.
+                    let now = Instant::now();
+                    let mut out = Vec::new();
+                    let mut call = Some(call);
+                    while let Some(c) = call {
+                        let (request, sent) = self.session.request(c.method, c.params, now);
+                        self.waiting.insert(request, c.reply);
+                        out.extend(sent);
+                        call = self.calls.try_item();
+                    }
                     Ok(out)
                 }
                 Letter::Close => {

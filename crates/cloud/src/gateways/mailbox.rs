@@ -85,22 +85,35 @@ impl<T> Mailbox<T> {
     /// The next letter, once there is one. Cancel-safe: a letter is taken only when returned.
     pub(crate) async fn next(&self) -> Letter<T> {
         loop {
-            {
-                let mut inbox = self.inbox();
-                if inbox.close {
-                    return Letter::Close;
-                }
-                if let Some(item) = inbox.items.pop_front() {
-                    if inbox.items.is_empty() {
-                        // A burst's queue is not kept.
-                        inbox.items = VecDeque::new();
-                    }
-                    return Letter::Item(item);
-                }
+            if let Some(letter) = self.take() {
+                return letter;
             }
             // A notification given while nobody waited is kept for the next wait.
             self.ready.notified().await;
         }
+    }
+
+    /// A request waiting now, if any and no order to close came (that one `next` gives): the
+    /// connection takes the requests that came together at once and sends them in one write.
+    pub(crate) fn try_item(&self) -> Option<T> {
+        match self.take()? {
+            Letter::Item(item) => Some(item),
+            Letter::Close => None,
+        }
+    }
+
+    /// The order to close (kept) or else the first request waiting.
+    fn take(&self) -> Option<Letter<T>> {
+        let mut inbox = self.inbox();
+        if inbox.close {
+            return Some(Letter::Close);
+        }
+        let item = inbox.items.pop_front()?;
+        if inbox.items.is_empty() {
+            // A burst's queue is not kept.
+            inbox.items = VecDeque::new();
+        }
+        Some(Letter::Item(item))
     }
 
     /// The connection is gone: requests waiting are dropped (their senders learn it), new ones
@@ -151,6 +164,18 @@ mod tests {
         mailbox.post("put").unwrap();
         mailbox.close();
         assert_eq!(mailbox.next().await, Letter::Close);
+    }
+
+    #[test]
+    fn what_came_together_is_taken_at_once_but_never_past_an_order_to_close() {
+        let mailbox = Mailbox::new(4);
+        assert_eq!(mailbox.try_item(), None::<u8>);
+        mailbox.post(1).unwrap();
+        mailbox.post(2).unwrap();
+        assert_eq!(mailbox.try_item(), Some(1));
+        mailbox.close();
+        assert_eq!(mailbox.try_item(), None, "the close is not passed over");
+        assert_eq!(mailbox.take(), Some(Letter::Close), "and is still there");
     }
 
     #[tokio::test]

@@ -165,12 +165,8 @@ pub(super) async fn fleet(
     Query(query): Query<FleetQuery>,
 ) -> Response {
     let (session, l) = (&who.session, who.locale);
-    let (all, worst) = match (
-        app.store.lifts(&session.operator.account.domain).await,
-        app.store
-            .worst_alarms(&session.operator.account.domain)
-            .await,
-    ) {
+    let domain = &session.operator.account.domain;
+    let (all, worst) = match tokio::join!(app.store.lifts(domain), app.store.worst_alarms(domain)) {
         (Ok(l), Ok(w)) => (l, w),
         (Err(e), _) | (_, Err(e)) => return unavailable(e, who.viewer()),
     };

@@ -108,14 +108,17 @@ async fn shown(
         return Err(problem(StatusCode::BAD_REQUEST, who.viewer(), &message));
     }
     let period = Period::of(q);
-    let mut series = Vec::with_capacity(mplexes.len());
-    for m in &mplexes {
+    // Each series its own statement (they may be long), all asked at once.
+    let series = futures_util::future::try_join_all(mplexes.iter().map(|m| async move {
         let mplex = m.to_string();
-        match app.store.history(id, &mplex, period.from, period.to).await {
-            Ok(rows) => series.push(Series { mplex, rows }),
-            Err(e) => return Err(unavailable(e, who.viewer())),
-        }
-    }
+        let rows = app
+            .store
+            .history(id, &mplex, period.from, period.to)
+            .await?;
+        Ok::<_, store::StoreError>(Series { mplex, rows })
+    }))
+    .await
+    .map_err(|e| unavailable(e, who.viewer()))?;
     Ok((mplexes, series, period))
 }
 

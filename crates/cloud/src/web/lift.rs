@@ -1,7 +1,6 @@
 //! The lift page: identity, live values (kept current by the script from the lift's events),
 //! the parameter table with its edit dialog, and reading any object.
 
-use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -232,13 +231,7 @@ fn unit(u: PhysUnit, l: Locale) -> &'static str {
 
 /// Read full metadata of `mplexes` from the lift's gateway, all at once, each waiting at most
 /// [`READ_TIMEOUT`].
-async fn read_all(
-    app: &App,
-    lift: &str,
-    mplexes: &[Mplex],
-    l: Locale,
-    stored: &HashMap<String, (i64, String)>,
-) -> Vec<Object> {
+async fn read_all(app: &App, lift: &str, mplexes: &[Mplex], l: Locale) -> Vec<Object> {
     let online = app.registry.online(lift);
     let reads = mplexes.iter().map(|&mplex| async move {
         let answer = if online {
@@ -255,7 +248,7 @@ async fn read_all(
         Object {
             mplex,
             answer,
-            stored: stored.get(&mplex.to_string()).cloned(),
+            stored: None,
         }
     });
     futures_util::future::join_all(reads).await
@@ -277,7 +270,7 @@ pub(super) async fn describe(
     mplexes: &[Mplex],
     l: Locale,
 ) -> Vec<Described> {
-    read_all(app, lift, mplexes, l, &HashMap::new())
+    read_all(app, lift, mplexes, l)
         .await
         .into_iter()
         .map(|o| {
@@ -369,10 +362,6 @@ pub(super) async fn lift_page(
     let asked = q.read.as_deref().map(str::trim).filter(|r| !r.is_empty());
     let read = asked.map(|text| app.names.resolve(text));
     let live_keys: Vec<String> = live.iter().map(ToString::to_string).collect();
-    let stored = match app.store.latest(&id, &live_keys).await {
-        Ok(s) => s,
-        Err(e) => return unavailable(e, who.viewer()),
-    };
     let mut wanted = live.clone();
     wanted.extend_from_slice(parameters);
     wanted.push(PASSENGER_CALL);
@@ -380,7 +369,25 @@ pub(super) async fn lift_page(
     if let Some(Ok(m)) = read {
         wanted.push(m);
     }
-    let mut objects = read_all(&app, &id, &wanted, l, &stored).await;
+    let active = AlarmFilter {
+        active: true,
+        lift: Some(id.clone()),
+        limit: 100,
+    };
+    // The gateway's answers and the database's at once: the page waits for the slower only.
+    let (mut objects, stored, alarms, events) = tokio::join!(
+        read_all(&app, &id, &wanted, l),
+        app.store.latest(&id, &live_keys),
+        app.store.alarms(&session.operator.account.domain, &active),
+        app.store.event_log(&id, None, 50),
+    );
+    let (stored, alarms, events) = match (stored, alarms, events) {
+        (Ok(s), Ok(a), Ok(e)) => (s, a, e),
+        (Err(e), _, _) | (_, Err(e), _) | (_, _, Err(e)) => return unavailable(e, who.viewer()),
+    };
+    for o in &mut objects {
+        o.stored = stored.get(&o.mplex.to_string()).cloned();
+    }
     let read_object = matches!(read, Some(Ok(_))).then(|| objects.pop()).flatten();
     let floors = objects
         .pop()
@@ -404,20 +411,6 @@ pub(super) async fn lift_page(
             }
         }
     }
-    let active = AlarmFilter {
-        active: true,
-        lift: Some(id.clone()),
-        limit: 100,
-    };
-    let (alarms, events) = match (
-        app.store
-            .alarms(&session.operator.account.domain, &active)
-            .await,
-        app.store.event_log(&id, None, 50).await,
-    ) {
-        (Ok(a), Ok(e)) => (a, e),
-        (Err(e), _) | (_, Err(e)) => return unavailable(e, who.viewer()),
-    };
     let events: Vec<nxg::msg::Event> = events
         .iter()
         .filter_map(|b| serde_json::from_str(b).ok())
