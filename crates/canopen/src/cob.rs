@@ -2,6 +2,7 @@
 
 use canbus::CanId;
 
+use crate::od::ObjectDictionary;
 use crate::sdo::abort::AbortCode;
 
 /// Bit 31 of a COB-ID parameter (PDO communication, SDO server and client parameters): set,
@@ -26,6 +27,33 @@ pub fn check_parameter_write(old: u32, new: u32) -> Result<(), AbortCode> {
         }
     }
     Ok(())
+}
+
+/// Whether `id` is a valid identifier of one of the node's further SDO server channels
+/// (1201h–127Fh, request or response) other than the parameter `except` (index, sub).
+pub fn used_by_sdo_channel(od: &ObjectDictionary, except: (u16, u8), id: CanId) -> bool {
+    let entries = (0x1201..=0x127F).flat_map(|i| [(i, 1), (i, 2)]);
+    used_by(od, entries, except, id)
+}
+
+/// Whether `id` is the identifier of one of the node's valid RPDOs or TPDOs (1400h–15FFh,
+/// 1800h–19FFh sub 1) other than the parameter `except` (index, sub).
+pub fn used_by_pdo(od: &ObjectDictionary, except: (u16, u8), id: CanId) -> bool {
+    let entries = (0x1400..=0x15FF).chain(0x1800..=0x19FF).map(|i| (i, 1));
+    used_by(od, entries, except, id)
+}
+
+fn used_by(
+    od: &ObjectDictionary,
+    entries: impl Iterator<Item = (u16, u8)>,
+    except: (u16, u8),
+    id: CanId,
+) -> bool {
+    entries
+        .filter(|&entry| entry != except)
+        .filter_map(|(i, s)| od.get_u32(i, s))
+        .filter_map(id_from_parameter)
+        .any(|other| other == id)
 }
 
 /// The identifier in a COB-ID parameter value (0x1005, 0x1014, 0x1200…, 0x1400…): bit 31 set

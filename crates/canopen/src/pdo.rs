@@ -221,7 +221,14 @@ impl WriteGuard for PdoGuard {
                         data.try_into().map_err(|_| AbortCode::LENGTH_MISMATCH)?,
                     );
                     let old = od.get_u32(comm, 1).unwrap_or(COB_INVALID);
-                    check_parameter_write(old, new)
+                    check_parameter_write(old, new)?;
+                    // Not onto one of the node's SDO channels (CiA 301 §7.3.5).
+                    match crate::cob::id_from_parameter(new) {
+                        Some(id) if crate::cob::used_by_sdo_channel(od, (comm, 1), id) => {
+                            Err(AbortCode::INVALID_VALUE)
+                        }
+                        _ => Ok(()),
+                    }
                 }
                 2 if matches!(data.first(), Some(241..=251)) => Err(AbortCode::INVALID_VALUE),
                 // Inhibit time and SYNC start value cannot change while the TPDO exists.

@@ -749,15 +749,18 @@ mod tests {
         };
         // Write 1201h `sub` on the default channel, and let the node see the change as a
         // `LocalNode` does; the answer's command byte and abort code.
-        let write = |rig: &mut Rig, sub: u8, value: u32| {
-            let mut data = vec![0x23, 0x01, 0x12, sub];
+        let write_to = |rig: &mut Rig, index: u16, sub: u8, value: u32| {
+            let mut data = vec![0x23];
+            data.extend(index.to_le_bytes());
+            data.push(sub);
             data.extend(value.to_le_bytes());
             let out = rig.frame(std(0x605, &data));
-            rig.run(|n, od, now, out| n.handle_change(od, 0x1201, sub, now, out));
+            rig.run(|n, od, now, out| n.handle_change(od, index, sub, now, out));
             let answer = &out.frames[0];
             let code = u32::from_le_bytes(answer.data()[4..8].try_into().unwrap());
             (answer.data()[0], code)
         };
+        let write = |rig: &mut Rig, sub: u8, value: u32| write_to(rig, 0x1201, sub, value);
         assert_eq!(
             ask(&mut rig, 0x6A1),
             Some((CanId::Standard(0x6C1), vec![0xA1, 0x06]))
@@ -766,14 +769,23 @@ mod tests {
         assert_eq!(write(&mut rig, 1, 0x6A5), (0x80, 0x0609_0030));
         assert_eq!(write(&mut rig, 1, 0x8000_06A1), (0x60, 0));
         assert_eq!(ask(&mut rig, 0x6A1), None, "closed");
-        // Closed: it may move, but not onto an identifier the connection set reserves.
+        // Closed: it may move, but not onto an identifier the connection set reserves, nor
+        // onto one of the node's PDOs (TPDO 1's 185h, RPDO 1's 205h) or its own response.
         assert_eq!(write(&mut rig, 1, 0x605), (0x80, 0x0609_0030));
+        assert_eq!(write(&mut rig, 1, 0x185), (0x80, 0x0609_0030));
+        assert_eq!(write(&mut rig, 1, 0x205), (0x80, 0x0609_0030));
+        assert_eq!(write(&mut rig, 1, 0x6C1), (0x80, 0x0609_0030));
         assert_eq!(write(&mut rig, 1, 0x6A5), (0x60, 0));
         assert_eq!(
             ask(&mut rig, 0x6A5),
             Some((CanId::Standard(0x6C1), vec![0xA5, 0x06]))
         );
         assert_eq!(ask(&mut rig, 0x6A1), None);
+        // Nor may a PDO move onto the channel's identifiers.
+        assert_eq!(write_to(&mut rig, 0x1800, 1, 0x8000_0185), (0x60, 0));
+        assert_eq!(write_to(&mut rig, 0x1800, 1, 0x6A5), (0x80, 0x0609_0030));
+        assert_eq!(write_to(&mut rig, 0x1800, 1, 0x6C1), (0x80, 0x0609_0030));
+        assert_eq!(write_to(&mut rig, 0x1800, 1, 0x1A5), (0x60, 0));
         // The default channel stays where it is.
         let out = rig.frame(std(0x605, &[0x23, 0x00, 0x12, 0x01, 0xA7, 0x06, 0, 0]));
         assert_eq!(out.frames[0].data()[0], 0x80, "1200h is read-only");

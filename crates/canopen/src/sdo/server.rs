@@ -635,7 +635,10 @@ pub fn server_channels(od: &ObjectDictionary, node_id: u8) -> Vec<(CanId, CanId)
 
 /// Enforces on network writes the rule of CiA 301 §7.5.2.33 for the further SDO server
 /// channels (1201h–127Fh, subs 1 and 2): a channel's identifiers change only while it is not
-/// valid ([`crate::cob::check_parameter_write`]). 1200h, the default channel, is read-only.
+/// valid ([`crate::cob::check_parameter_write`]), and a valid one is not one of the node's
+/// identifiers in use — another channel's or a valid PDO's (CiA 301 §7.3.5: one identifier,
+/// one producer; a channel moved onto a PDO would answer its requests in the PDO's frames).
+/// 1200h, the default channel, is read-only.
 pub struct SdoServerGuard;
 
 impl WriteGuard for SdoServerGuard {
@@ -651,7 +654,15 @@ impl WriteGuard for SdoServerGuard {
         }
         let new = u32::from_le_bytes(data.try_into().map_err(|_| AbortCode::LENGTH_MISMATCH)?);
         let old = od.get_u32(index, sub).unwrap_or(crate::cob::COB_INVALID);
-        crate::cob::check_parameter_write(old, new)
+        crate::cob::check_parameter_write(old, new)?;
+        let taken = |id| {
+            crate::cob::used_by_sdo_channel(od, (index, sub), id)
+                || crate::cob::used_by_pdo(od, (index, sub), id)
+        };
+        match crate::cob::id_from_parameter(new) {
+            Some(id) if taken(id) => Err(AbortCode::INVALID_VALUE),
+            _ => Ok(()),
+        }
     }
 }
 
