@@ -199,6 +199,9 @@ pub struct BusSection {
     pub lift_controller: u8,
     /// SDO response timeout (ms).
     pub sdo_timeout_ms: u64,
+    /// How often configured SDO channels are asked again (1000h) while their node answers on
+    /// none, and a channel set aside is asked whether it answers again (ms).
+    pub sdo_probe_ms: u64,
     /// How often subscribed objects that no PDO carries are read (ms).
     pub poll_ms: u64,
     /// Nodes with an EDS.
@@ -212,6 +215,7 @@ impl Default for BusSection {
             node_id: 9,
             lift_controller: 1,
             sdo_timeout_ms: 1000,
+            sdo_probe_ms: 10_000,
             poll_ms: 500,
             nodes: Vec::new(),
         }

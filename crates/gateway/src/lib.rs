@@ -126,9 +126,6 @@ pub struct Gateway {
     supervisors: Vec<tokio::task::JoinHandle<()>>,
 }
 
-/// How often configured SDO channels are checked again while their node answers on none.
-const CHECK_RETRY: Duration = Duration::from_secs(10);
-
 /// Open the bus behind `url` once: the gateway's endpoints on it (SDO client, its own node,
 /// supervision, a PDO feed per portal connection) share one link.
 async fn open(url: &str) -> Result<Interface, GatewayError> {
@@ -169,6 +166,7 @@ impl Gateway {
         let mut nets = HashMap::new();
         // Configured SDO channels a node does not serve are named in the log once it answers.
         let mut checks = Vec::new();
+        let probe = Duration::from_millis(config.bus.sdo_probe_ms.max(10));
         for (net, nodes) in config.node_sections() {
             let Some(interface) = interfaces.get(&net) else {
                 continue;
@@ -178,8 +176,9 @@ impl Gateway {
                 .flat_map(NodeSection::client_channels)
                 .collect();
             let sdo = SdoClients::with_channels(endpoint(interface)?, client.clone(), &channels);
+            sdo.set_probe_interval(probe);
             for n in nodes.iter().filter(|n| !n.sdo_channels.is_empty()) {
-                let check = supervision::check_sdo_channels(sdo.clone(), net, n.id, CHECK_RETRY);
+                let check = supervision::check_sdo_channels(sdo.clone(), net, n.id, probe);
                 checks.push(tokio::spawn(async move {
                     check.await;
                 }));
