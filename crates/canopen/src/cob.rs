@@ -36,11 +36,16 @@ pub fn used_by_sdo_channel(od: &ObjectDictionary, except: (u16, u8), id: CanId) 
     used_by(od, entries, except, id)
 }
 
-/// Whether `id` is the identifier of one of the node's valid RPDOs or TPDOs (1400h–15FFh,
-/// 1800h–19FFh sub 1) other than the parameter `except` (index, sub).
-pub fn used_by_pdo(od: &ObjectDictionary, except: (u16, u8), id: CanId) -> bool {
-    let entries = (0x1400..=0x15FF).chain(0x1800..=0x19FF).map(|i| (i, 1));
-    used_by(od, entries, except, id)
+/// Whether `id` is the identifier of one of the node's valid TPDOs (1800h–19FFh sub 1) other
+/// than the parameter `except` (index, sub).
+pub fn used_by_tpdo(od: &ObjectDictionary, except: (u16, u8), id: CanId) -> bool {
+    used_by(od, (0x1800..=0x19FF).map(|i| (i, 1)), except, id)
+}
+
+/// Whether `id` is the identifier of one of the node's valid RPDOs (1400h–15FFh sub 1) other
+/// than the parameter `except` (index, sub).
+pub fn used_by_rpdo(od: &ObjectDictionary, except: (u16, u8), id: CanId) -> bool {
+    used_by(od, (0x1400..=0x15FF).map(|i| (i, 1)), except, id)
 }
 
 fn used_by(

@@ -198,6 +198,16 @@ pub fn check_entry(od: &ObjectDictionary, entry: MapEntry, receive: bool) -> Res
     Ok(())
 }
 
+/// Whether a PDO of this node (`receive`: an RPDO) may not take identifier `id`: one
+/// identifier, one producer on the network (CiA 301 §7.3.5) — so not one of the node's SDO
+/// channels', a TPDO not another TPDO's, and neither an RPDO's nor a TPDO's the other kind's
+/// (the node would produce what it expects from another). Two RPDOs may consume one frame.
+fn taken_for_pdo(od: &ObjectDictionary, except: (u16, u8), id: CanId, receive: bool) -> bool {
+    crate::cob::used_by_sdo_channel(od, except, id)
+        || crate::cob::used_by_tpdo(od, except, id)
+        || (!receive && crate::cob::used_by_rpdo(od, except, id))
+}
+
 /// Enforces the CiA 301 PDO configuration procedure on network writes.
 pub struct PdoGuard;
 
@@ -222,9 +232,8 @@ impl WriteGuard for PdoGuard {
                     );
                     let old = od.get_u32(comm, 1).unwrap_or(COB_INVALID);
                     check_parameter_write(old, new)?;
-                    // Not onto one of the node's SDO channels (CiA 301 §7.3.5).
                     match crate::cob::id_from_parameter(new) {
-                        Some(id) if crate::cob::used_by_sdo_channel(od, (comm, 1), id) => {
+                        Some(id) if taken_for_pdo(od, (comm, 1), id, receive) => {
                             Err(AbortCode::INVALID_VALUE)
                         }
                         _ => Ok(()),

@@ -53,6 +53,26 @@ fn map_tpdo(
     w32(od, TPDO_COMM + n, 1, cob).unwrap();
 }
 
+/// One identifier, one producer: a TPDO moves onto no other PDO's identifier of its node, an
+/// RPDO onto no TPDO's; two RPDOs may consume one frame.
+#[test]
+fn a_pdo_moves_onto_no_identifier_the_node_produces_or_consumes_otherwise() {
+    let mut od = dictionary();
+    // TPDO 2 (285h) and RPDO 2 (305h) closed first, as the procedure has it.
+    w32(&mut od, TPDO_COMM + 1, 1, COB_INVALID | 0x285).unwrap();
+    w32(&mut od, RPDO_COMM + 1, 1, COB_INVALID | 0x305).unwrap();
+    let refused = Err(AbortCode::INVALID_VALUE);
+    assert_eq!(w32(&mut od, TPDO_COMM + 1, 1, 0x185), refused, "TPDO 1's");
+    assert_eq!(w32(&mut od, TPDO_COMM + 1, 1, 0x205), refused, "RPDO 1's");
+    assert_eq!(w32(&mut od, RPDO_COMM + 1, 1, 0x185), refused, "TPDO 1's");
+    assert_eq!(w32(&mut od, RPDO_COMM + 1, 1, 0x205), Ok(()), "RPDO 1's");
+    assert_eq!(w32(&mut od, TPDO_COMM + 1, 1, 0x1A5), Ok(()));
+    // A closed PDO holds no identifier.
+    w32(&mut od, TPDO_COMM, 1, COB_INVALID | 0x185).unwrap();
+    w32(&mut od, TPDO_COMM + 1, 1, COB_INVALID | 0x1A5).unwrap();
+    assert_eq!(w32(&mut od, TPDO_COMM + 1, 1, 0x185), Ok(()));
+}
+
 #[test]
 fn the_mapping_procedure_and_its_aborts() {
     let mut od = dictionary();

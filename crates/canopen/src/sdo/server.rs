@@ -657,7 +657,8 @@ impl WriteGuard for SdoServerGuard {
         crate::cob::check_parameter_write(old, new)?;
         let taken = |id| {
             crate::cob::used_by_sdo_channel(od, (index, sub), id)
-                || crate::cob::used_by_pdo(od, (index, sub), id)
+                || crate::cob::used_by_tpdo(od, (index, sub), id)
+                || crate::cob::used_by_rpdo(od, (index, sub), id)
         };
         match crate::cob::id_from_parameter(new) {
             Some(id) if taken(id) => Err(AbortCode::INVALID_VALUE),
