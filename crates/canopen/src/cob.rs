@@ -13,8 +13,13 @@ pub const COB_INVALID: u32 = 0x8000_0000;
 /// (CiA 301 §7.5.2.35–36, sub 1) or a further SDO channel's (§7.5.2.33, subs 1 and 2) — from
 /// `old` to `new`: while the object exists only that bit may change (so a channel or PDO in use
 /// never moves under its peer: invalidate, change, validate), and a valid identifier must be a
-/// CAN identifier that the pre-defined connection set leaves free ([`restricted`]).
-pub fn check_parameter_write(old: u32, new: u32) -> Result<(), AbortCode> {
+/// CAN identifier that the pre-defined connection set leaves free ([`restricted`]) and that the
+/// node does not use otherwise (`in_use`: one identifier, one producer, §7.3.5).
+pub fn check_parameter_write(
+    old: u32,
+    new: u32,
+    in_use: impl Fn(CanId) -> bool,
+) -> Result<(), AbortCode> {
     let exists = old & COB_INVALID == 0;
     if exists && new & COB_INVALID == 0 && (new ^ old) & 0x3FFF_FFFF != 0 {
         return Err(AbortCode::INVALID_VALUE);
@@ -23,6 +28,7 @@ pub fn check_parameter_write(old: u32, new: u32) -> Result<(), AbortCode> {
         match id_from_parameter(new) {
             None => return Err(AbortCode::INVALID_VALUE),
             Some(CanId::Standard(id)) if restricted(id) => return Err(AbortCode::INVALID_VALUE),
+            Some(id) if in_use(id) => return Err(AbortCode::INVALID_VALUE),
             Some(_) => {}
         }
     }

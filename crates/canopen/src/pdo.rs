@@ -231,13 +231,7 @@ impl WriteGuard for PdoGuard {
                         data.try_into().map_err(|_| AbortCode::LENGTH_MISMATCH)?,
                     );
                     let old = od.get_u32(comm, 1).unwrap_or(COB_INVALID);
-                    check_parameter_write(old, new)?;
-                    match crate::cob::id_from_parameter(new) {
-                        Some(id) if taken_for_pdo(od, (comm, 1), id, receive) => {
-                            Err(AbortCode::INVALID_VALUE)
-                        }
-                        _ => Ok(()),
-                    }
+                    check_parameter_write(old, new, |id| taken_for_pdo(od, (comm, 1), id, receive))
                 }
                 2 if matches!(data.first(), Some(241..=251)) => Err(AbortCode::INVALID_VALUE),
                 // Inhibit time and SYNC start value cannot change while the TPDO exists.

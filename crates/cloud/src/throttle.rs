@@ -32,7 +32,7 @@ impl TokenBucket {
     /// One event at `now`: `Ok` within the rate, otherwise how long until one would be.
     pub fn take(&mut self, now: Instant) -> Result<(), Duration> {
         let refill = now.saturating_duration_since(self.at).as_secs_f64() * self.per_s;
-        self.tokens = (self.tokens + refill).min(2.0 * self.per_s);
+        self.tokens = (self.tokens + refill).min(self.capacity());
         self.at = now;
         if self.tokens < 1.0 {
             return Err(Duration::from_secs_f64((1.0 - self.tokens) / self.per_s));
@@ -43,13 +43,18 @@ impl TokenBucket {
 
     /// Undo one [`Self::take`] that turned out not to count (never above a full bucket).
     pub fn give_back(&mut self) {
-        self.tokens = (self.tokens + 1.0).min(2.0 * self.per_s);
+        self.tokens = (self.tokens + 1.0).min(self.capacity());
     }
 
     /// Whether it has been full since `now` (an idle key's bucket can be forgotten).
     fn full(&self, now: Instant) -> bool {
         let refill = now.saturating_duration_since(self.at).as_secs_f64() * self.per_s;
-        self.tokens + refill >= 2.0 * self.per_s
+        self.tokens + refill >= self.capacity()
+    }
+
+    /// A full bucket: two seconds' worth.
+    fn capacity(&self) -> f64 {
+        2.0 * self.per_s
     }
 }
 

@@ -223,10 +223,7 @@ async fn windowed_gets(
             }
             answer = match refill {
                 Refill::Trickle => None,
-                Refill::Bursts => match futures_util::FutureExt::now_or_never(recv(ws)) {
-                    Some(next) => Some(next?),
-                    None => None,
-                },
+                Refill::Bursts => futures_util::FutureExt::now_or_never(recv(ws)).transpose()?,
             };
         }
     }

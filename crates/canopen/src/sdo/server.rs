@@ -654,16 +654,11 @@ impl WriteGuard for SdoServerGuard {
         }
         let new = u32::from_le_bytes(data.try_into().map_err(|_| AbortCode::LENGTH_MISMATCH)?);
         let old = od.get_u32(index, sub).unwrap_or(crate::cob::COB_INVALID);
-        crate::cob::check_parameter_write(old, new)?;
-        let taken = |id| {
+        crate::cob::check_parameter_write(old, new, |id| {
             crate::cob::used_by_sdo_channel(od, (index, sub), id)
                 || crate::cob::used_by_tpdo(od, (index, sub), id)
                 || crate::cob::used_by_rpdo(od, (index, sub), id)
-        };
-        match crate::cob::id_from_parameter(new) {
-            Some(id) if taken(id) => Err(AbortCode::INVALID_VALUE),
-            _ => Ok(()),
-        }
+        })
     }
 }
 
