@@ -54,6 +54,11 @@ pub struct ClusterBench {
     /// The NATS server binary.
     #[arg(long, default_value = "nats-server")]
     nats_server: PathBuf,
+    /// Threads the NATS server runs Go code on at once (`GOMAXPROCS`; 0: Go's default, one per
+    /// core). One, where NATS shares two cores with the portals, costs a relayed read less of
+    /// NATS's CPU and time (docs/CLUSTER.md §NATS on a machine it shares).
+    #[arg(long, default_value_t = 0)]
+    nats_threads: u16,
 }
 
 /// How long the cluster's own cost is measured with every gateway online and no operator
@@ -67,9 +72,13 @@ struct Nats {
 }
 
 impl Nats {
-    async fn start(binary: &Path, dir: &Path) -> anyhow::Result<Nats> {
+    async fn start(binary: &Path, dir: &Path, threads: u16) -> anyhow::Result<Nats> {
         let port = free_port()?;
-        let child = tokio::process::Command::new(binary)
+        let mut command = tokio::process::Command::new(binary);
+        if threads > 0 {
+            command.env("GOMAXPROCS", threads.to_string());
+        }
+        let child = command
             .args(["-js", "-a", "127.0.0.1", "-p", &port.to_string(), "-sd"])
             .arg(dir)
             .stdout(std::process::Stdio::null())
@@ -257,7 +266,12 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
     }
     let layout = Layout::new(&args);
     let dir = tempfile::tempdir()?;
-    let nats = Nats::start(&args.nats_server, &dir.path().join("nats")).await?;
+    let nats = Nats::start(
+        &args.nats_server,
+        &dir.path().join("nats"),
+        args.nats_threads,
+    )
+    .await?;
     let pki = cloud::devpki::ensure(&dir.path().join("pki"))?;
     let store = cloud::store::Store::open(&args.database).await?;
     let domain = "CLUSTER".to_owned();
@@ -303,8 +317,16 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
     let (base_rss, base_nats) = (portals.rss_kib(), nats.rss_kib());
     println!(
         "{} portal processes ({connections} + 2 PostgreSQL connections each of {free} free), \
-         NATS {}, {} gateways from {} load generators of at most {}",
-        args.portals, nats.url, args.gateways, layout.loadgens, layout.per
+         NATS {} ({}), {} gateways from {} load generators of at most {}",
+        args.portals,
+        nats.url,
+        match args.nats_threads {
+            0 => "GOMAXPROCS as Go chooses".to_owned(),
+            n => format!("GOMAXPROCS={n}"),
+        },
+        args.gateways,
+        layout.loadgens,
+        layout.per
     );
     let exe = std::env::current_exe()?;
     let begin = Instant::now();
