@@ -123,11 +123,6 @@ pub struct GatewaysSection {
     pub boardhash_change: BoardhashChange,
     /// Days after which a gateway's token is replaced when it connects (NXg §5.4); 0: never.
     pub token_rotate_days: u32,
-    /// While the last CONNACKs came later than this after their connection was accepted (and
-    /// many connections wait), new connections are closed at once, before TLS: their gateways
-    /// back off instead of giving up in the queue (docs/PORTAL.md §Overload); 0 (the default,
-    /// until measured further): never.
-    pub shed_after_ms: u64,
 }
 
 /// What the portal does when a gateway with a valid token reports another `boardhash` than at
@@ -157,7 +152,6 @@ impl Default for GatewaysSection {
             max_messages_per_s: 5000,
             boardhash_change: BoardhashChange::default(),
             token_rotate_days: 0,
-            shed_after_ms: 0,
         }
     }
 }
@@ -167,11 +161,6 @@ impl GatewaysSection {
     pub fn token_lifetime(&self) -> Option<Duration> {
         (self.token_rotate_days > 0)
             .then(|| Duration::from_secs(u64::from(self.token_rotate_days) * 86_400))
-    }
-
-    /// How long a CONNACK may take before new connections are shed (`None`: never).
-    pub fn shed_after(&self) -> Option<Duration> {
-        (self.shed_after_ms > 0).then(|| Duration::from_millis(self.shed_after_ms))
     }
 
     /// The session settings.

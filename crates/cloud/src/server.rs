@@ -23,7 +23,6 @@ use crate::alarms::{service, webhook, Alarms};
 use crate::api::{self, App};
 use crate::config::Config;
 use crate::gateways::{self, telemetry, Registry, Shared};
-use crate::overload::Overload;
 use crate::store::Store;
 
 /// Why the portal cannot start.
@@ -86,14 +85,9 @@ struct WsState {
     metrics: Arc<Metrics>,
 }
 
-/// When the request's connection was accepted (for how long its CONNACK took).
-#[derive(Debug, Clone, Copy)]
-struct Accepted(std::time::Instant);
-
 async fn ws(
     State(state): State<Arc<WsState>>,
     ConnectInfo(peer): ConnectInfo<SocketAddr>,
-    accepted: Option<axum::Extension<Accepted>>,
     upgrade: WebSocketUpgrade,
 ) -> Response {
     let upgrade = upgrade
@@ -116,9 +110,7 @@ async fn ws(
     }
     let shared = state.shared.clone();
     state.metrics.connections.fetch_add(1, Ordering::Relaxed);
-    let accepted = accepted.map_or_else(std::time::Instant::now, |a| (a.0).0);
-    let arrival = shared.overload.arrival(accepted);
-    upgrade.on_upgrade(move |socket| gateways::serve(socket, shared, peer.to_string(), arrival))
+    upgrade.on_upgrade(move |socket| gateways::serve(socket, shared, peer.to_string()))
 }
 
 /// A portal bound to its port.
@@ -136,8 +128,6 @@ pub struct Portal {
     /// Closes the gateways' connections when the portal stops.
     closing: watch::Sender<bool>,
     metrics: Arc<Metrics>,
-    /// Whether a new connection is taken or closed at once (`[gateways] shed_after_ms`).
-    overload: Arc<Overload>,
 }
 
 fn server_tls(
@@ -330,7 +320,6 @@ impl Portal {
         ));
         let (closing, closing_rx) = watch::channel(false);
         let metrics = Arc::new(Metrics::default());
-        let overload = Overload::new(config.gateways.shed_after());
         if crate::memory::SUPPORTED {
             tasks.push(tokio::spawn(trim_after_bursts(
                 metrics.clone(),
@@ -352,13 +341,11 @@ impl Portal {
                 max_messages_per_s: config.gateways.max_messages_per_s,
                 boardhash_change: config.gateways.boardhash_change,
                 token_lifetime: config.gateways.token_lifetime(),
-                overload: overload.clone(),
             }),
             max_message: config.gateways.max_message_bytes,
             metrics: metrics.clone(),
         });
         let m = metrics.clone();
-        let o = overload.clone();
         let r = registry.clone();
         let a = alarms.counters.clone();
         let router = Router::new()
@@ -368,8 +355,8 @@ impl Portal {
                 "/metrics",
                 get(move || {
                     let (m, r, t, a) = (m.clone(), r.clone(), telemetry.clone(), a.clone());
-                    let (admitted, o) = (admitted.clone(), o.clone());
-                    async move { metrics_text(&m, &r, &t, &a, &admitted, &o) }
+                    let admitted = admitted.clone();
+                    async move { metrics_text(&m, &r, &t, &a, &admitted) }
                 }),
             )
             .merge({
@@ -406,7 +393,6 @@ impl Portal {
             stop_writers,
             closing,
             metrics,
-            overload,
         })
     }
 
@@ -434,7 +420,6 @@ impl Portal {
             stop_writers,
             closing,
             metrics,
-            overload,
         } = self;
         loop {
             let (tcp, peer) = tokio::select! {
@@ -448,17 +433,10 @@ impl Portal {
                 },
                 _ = shutdown.changed() => break,
             };
-            let accepted = std::time::Instant::now();
-            // docs/PORTAL.md §Overload: closed before the TLS handshake, the cheapest refusal.
-            let Some(on_the_way) = overload.accept(accepted) else {
-                drop(tcp);
-                continue;
-            };
             let _ = tcp.set_nodelay(true);
             let (tls, router, metrics) = (tls.clone(), router.clone(), metrics.clone());
             tokio::spawn(async move {
                 let handshake = tokio::time::timeout(HANDSHAKE_TIMEOUT, tls.accept(tcp)).await;
-                drop(on_the_way);
                 let stream = match handshake {
                     Ok(Ok(s)) => {
                         let counter = match s.handshake_kind() {
@@ -480,7 +458,6 @@ impl Portal {
                     router,
                     move |mut request: hyper::Request<hyper::body::Incoming>| {
                         request.extensions_mut().insert(ConnectInfo(peer));
-                        request.extensions_mut().insert(Accepted(accepted));
                         request
                     },
                 );
@@ -618,7 +595,6 @@ fn metrics_text(
     telemetry: &telemetry::Queue,
     a: &service::Counters,
     admitted: &gateways::admissions::AdmissionCounters,
-    overload: &Overload,
 ) -> String {
     let t = telemetry.counters();
     let load = |c: &AtomicU64| c.load(Ordering::Relaxed);
@@ -635,7 +611,6 @@ fn metrics_text(
             load(&admitted.unavailable),
         ),
         ("canlift_admission_lookups_total", load(&admitted.lookups)),
-        ("canlift_connections_shed_total", overload.shed_total()),
         (
             "canlift_tls_handshakes_full_total",
             load(&m.handshakes_full),

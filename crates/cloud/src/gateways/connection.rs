@@ -17,7 +17,6 @@ use super::mailbox::{Letter, Mailbox};
 use super::{dashboard, Calls, LiftEvent, Reply, Shared};
 use crate::alarms::Input;
 use crate::config::BoardhashChange;
-use crate::overload::Arrival;
 use crate::store::{self, Admission, AuditEntry, GatewayRecord, TelemetryRow};
 use crate::throttle::TokenBucket;
 
@@ -43,17 +42,14 @@ pub struct Connection {
     /// The gateway's messages: `[gateways] max_messages_per_s`, bursts of two seconds' worth
     /// (a gateway pushing its subscriptions after CONNACK).
     rate: TokenBucket,
-    /// Until CONNACK: when the connection was accepted, among those on their way
-    /// (docs/PORTAL.md §Overload).
-    arrival: Option<Arrival>,
 }
 
 /// Serve one gateway connection until it ends.
-pub async fn serve(socket: WebSocket, shared: Arc<Shared>, peer: String, arrival: Arrival) {
+pub async fn serve(socket: WebSocket, shared: Arc<Shared>, peer: String) {
     // The connection's task lives as long as the gateway stays: its future is what an idle
     // connection costs. The connection is boxed (an `async fn` holds its arguments twice), and
     // the database work of the end is boxed like that of the start (`carry_out`).
-    let mut connection = Box::new(Connection::new(socket, shared, peer, arrival));
+    let mut connection = Box::new(Connection::new(socket, shared, peer));
     let cause = connection.run().await;
     Box::pin(connection.finish(cause)).await;
 }
@@ -67,7 +63,7 @@ impl Drop for Connection {
 }
 
 impl Connection {
-    fn new(socket: WebSocket, shared: Arc<Shared>, peer: String, arrival: Arrival) -> Connection {
+    fn new(socket: WebSocket, shared: Arc<Shared>, peer: String) -> Connection {
         let session = Session::new(shared.settings.clone(), Instant::now());
         let calls = Calls::new(Mailbox::new(
             shared.settings.max_queued.max(1) + shared.settings.max_in_flight,
@@ -84,7 +80,6 @@ impl Connection {
             admitted: None,
             closing,
             rate,
-            arrival: Some(arrival),
         }
     }
 
@@ -248,9 +243,6 @@ impl Connection {
             }
             Ok(admission) => {
                 counters.admitted.fetch_add(1, Ordering::Relaxed);
-                if let Some(arrival) = self.arrival.take() {
-                    arrival.connacked(Instant::now());
-                }
                 let token = token_to_issue(&self.shared, &lift, &admission).await;
                 let out = self.session.accept(&connect, token, Instant::now());
                 let api = self.session.api();

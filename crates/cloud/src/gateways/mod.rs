@@ -463,6 +463,4 @@ pub struct Shared {
     pub boardhash_change: crate::config::BoardhashChange,
     /// Tokens older than this are replaced at CONNECT (`[gateways] token_rotate_days`).
     pub token_lifetime: Option<std::time::Duration>,
-    /// How long CONNACKs take, for shedding new connections (`[gateways] shed_after_ms`).
-    pub overload: Arc<crate::overload::Overload>,
 }
