@@ -31,8 +31,7 @@ impl TokenBucket {
 
     /// One event at `now`: `Ok` within the rate, otherwise how long until one would be.
     pub fn take(&mut self, now: Instant) -> Result<(), Duration> {
-        let refill = now.saturating_duration_since(self.at).as_secs_f64() * self.per_s;
-        self.tokens = (self.tokens + refill).min(self.capacity());
+        self.tokens = (self.tokens + self.refill(now)).min(self.capacity());
         self.at = now;
         if self.tokens < 1.0 {
             return Err(Duration::from_secs_f64((1.0 - self.tokens) / self.per_s));
@@ -48,8 +47,12 @@ impl TokenBucket {
 
     /// Whether it has been full since `now` (an idle key's bucket can be forgotten).
     fn full(&self, now: Instant) -> bool {
-        let refill = now.saturating_duration_since(self.at).as_secs_f64() * self.per_s;
-        self.tokens + refill >= self.capacity()
+        self.tokens + self.refill(now) >= self.capacity()
+    }
+
+    /// What has flowed in since the last [`Self::take`].
+    fn refill(&self, now: Instant) -> f64 {
+        now.saturating_duration_since(self.at).as_secs_f64() * self.per_s
     }
 
     /// A full bucket: two seconds' worth.
