@@ -380,7 +380,7 @@ impl Portal {
                     .merge(crate::web::routes(app))
                     .layer(tower_http::compression::CompressionLayer::new())
             });
-        let listener = TcpListener::bind(config.server.listen).await.map_err(|e| {
+        let listener = listen(config.server.listen).map_err(|e| {
             ServerError::Other(format!("listening on {}: {e}", config.server.listen))
         })?;
         Ok(Portal {
@@ -500,6 +500,26 @@ impl Portal {
         }
         tracing::info!("portal stopped");
     }
+}
+
+/// Connections the kernel completes and queues for `accept` while the portal is busy: as many
+/// as the system allows (Linux truncates it to `net.core.somaxconn`, 4096 by default). After
+/// an outage a fleet reconnects at once; beyond the queue the kernel drops SYNs, and each gateway
+/// dropped loses its SYN retransmission time (1 s, then 3 s, 7 s) on top of its wait for the
+/// portal — the tail of a reconnect storm (docs/BENCHMARKS.md §The listen queue, and patience
+/// for CONNACK). tokio's
+/// `TcpListener::bind` listens with 128, as the standard library does.
+const LISTEN_BACKLOG: u32 = 65_535;
+
+/// The portal's listening socket: `addr` (reused at once after a restart), [`LISTEN_BACKLOG`].
+fn listen(addr: SocketAddr) -> std::io::Result<TcpListener> {
+    let socket = match addr {
+        SocketAddr::V4(_) => tokio::net::TcpSocket::new_v4()?,
+        SocketAddr::V6(_) => tokio::net::TcpSocket::new_v6()?,
+    };
+    socket.set_reuseaddr(true)?;
+    socket.bind(addr)?;
+    socket.listen(LISTEN_BACKLOG)
 }
 
 /// How long a stopping portal waits for its gateways' connections to end and for what they
@@ -688,4 +708,42 @@ fn metrics_text(
         }
     }
     text
+}
+
+#[cfg(all(test, target_os = "linux"))]
+mod tests {
+    use std::os::fd::AsRawFd;
+
+    use super::*;
+
+    /// The bound of a listening socket's accept queue, as Linux reports it (`tcpi_sacked` of a
+    /// listener's `TCP_INFO`).
+    fn accept_queue_bound(listener: &TcpListener) -> u32 {
+        // SAFETY: `tcp_info` is plain integers, for which all zeroes is a value.
+        let mut info: libc::tcp_info = unsafe { std::mem::zeroed() };
+        let mut len = std::mem::size_of::<libc::tcp_info>() as libc::socklen_t;
+        // SAFETY: `info` is a valid `tcp_info` of `len` bytes; the descriptor is the listener's.
+        let rc = unsafe {
+            libc::getsockopt(
+                listener.as_raw_fd(),
+                libc::IPPROTO_TCP,
+                libc::TCP_INFO,
+                std::ptr::addr_of_mut!(info).cast(),
+                &mut len,
+            )
+        };
+        assert_eq!(rc, 0, "{}", std::io::Error::last_os_error());
+        info.tcpi_sacked
+    }
+
+    #[tokio::test]
+    async fn the_listen_queue_is_as_long_as_the_system_allows() {
+        let listener = listen(SocketAddr::from(([127, 0, 0, 1], 0))).unwrap();
+        let somaxconn: u32 = std::fs::read_to_string("/proc/sys/net/core/somaxconn")
+            .unwrap()
+            .trim()
+            .parse()
+            .unwrap();
+        assert_eq!(accept_queue_bound(&listener), somaxconn.min(LISTEN_BACKLOG));
+    }
 }

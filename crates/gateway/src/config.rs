@@ -29,8 +29,13 @@ pub struct CloudSection {
     pub origin: Option<String>,
     /// The portal's heartbeat interval (s); silence for 2 × this + 30 s drops the connection.
     pub heartbeat_s: u64,
-    /// Seconds to wait for TCP, TLS, the upgrade and CONNACK each.
+    /// Seconds to wait for TCP, TLS and the upgrade each.
     pub connect_timeout_s: u64,
+    /// Seconds to wait for CONNACK once CONNECT is sent. Longer than the others: a portal
+    /// that answered TCP, TLS and the upgrade is admitting the gateway, and a gateway that gave
+    /// up on it would throw that work away and come back with more (docs/GATEWAY.md
+    /// §Behaviour, "Reconnect").
+    pub connack_timeout_s: u64,
     /// Seconds between WebSocket pings.
     pub ping_s: u64,
     /// Local address to connect from (a gateway with several interfaces; `canlift loadgen`
@@ -60,6 +65,7 @@ impl Default for CloudSection {
             origin: None,
             heartbeat_s: 300,
             connect_timeout_s: 10,
+            connack_timeout_s: 30,
             ping_s: 60,
             source_address: None,
         }
@@ -426,7 +432,7 @@ impl Config {
             max_queued: self.limits.max_queued,
             max_subscriptions: self.limits.max_subscriptions,
             heartbeat: Duration::from_secs(self.cloud.heartbeat_s.max(1)),
-            connect_timeout: Duration::from_secs(self.cloud.connect_timeout_s.max(1)),
+            connack_timeout: Duration::from_secs(self.cloud.connack_timeout_s.max(1)),
             lift_controller: self.bus.lift_controller,
             nets,
             policy: self.policy.clone(),

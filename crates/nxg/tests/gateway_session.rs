@@ -40,7 +40,7 @@ fn settings() -> Settings {
         max_queued: 2,
         max_subscriptions: 4,
         heartbeat: Duration::from_secs(300),
-        connect_timeout: Duration::from_secs(10),
+        connack_timeout: Duration::from_secs(30),
         lift_controller: 1,
         nets: vec![1],
         policy: Policy::default(),
@@ -194,8 +194,9 @@ fn connack_forms_and_api_negotiation() {
     );
     assert!(matches!(&out[..], [Output::Close(CloseReason::Refused(e))] if e.message == "no"));
     let mut silent = Session::new(s, metadata(), None, now);
-    assert_eq!(silent.poll_timeout(), Some(now + Duration::from_secs(10)));
-    let out = silent.timeout(now + Duration::from_secs(10));
+    assert_eq!(silent.poll_timeout(), Some(now + Duration::from_secs(30)));
+    assert!(silent.timeout(now + Duration::from_secs(29)).is_empty());
+    let out = silent.timeout(now + Duration::from_secs(30));
     assert!(matches!(&out[..], [Output::Close(CloseReason::NoConnack)]));
 }
 

@@ -128,14 +128,18 @@ impl Portals {
         since: Instant,
         limit: Duration,
     ) -> anyhow::Result<Duration> {
-        let mut last_report = Instant::now();
+        let (mut last_report, mut held) = (Instant::now(), 0);
         loop {
-            // A process too busy to answer in time is asked again on the next round.
-            let (held, everywhere) = match self.count(n).await {
-                Ok(counts) => counts,
+            // A process too busy to answer in time is asked again on the next round; the count
+            // reported meanwhile is the last one all processes gave.
+            let everywhere = match self.count(n).await {
+                Ok((now_held, everywhere)) => {
+                    held = now_held;
+                    everywhere
+                }
                 Err(e) => {
-                    println!("  {e:#}");
-                    (0, false)
+                    println!("  a process did not answer: {e:#}");
+                    false
                 }
             };
             if everywhere {

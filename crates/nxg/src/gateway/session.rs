@@ -79,7 +79,7 @@ pub type JobId = u64;
 /// Why a session ended the connection.
 #[derive(Debug, Clone, PartialEq)]
 pub enum CloseReason {
-    /// No CONNACK within the connect timeout.
+    /// No CONNACK within the CONNACK timeout.
     NoConnack,
     /// The portal answered CONNECT with an error.
     Refused(ErrorObject),
@@ -262,7 +262,7 @@ impl Session {
 
     fn silence_deadline(&self) -> Instant {
         match self.phase {
-            Phase::Connecting => self.started + self.settings.connect_timeout,
+            Phase::Connecting => self.started + self.settings.connack_timeout,
             _ => self.last_rx + crate::silence_limit(self.settings.heartbeat),
         }
     }

@@ -85,8 +85,8 @@ pub struct Settings {
     pub max_subscriptions: usize,
     /// The portal's heartbeat interval: silence for 2 × this + 30 s ends the connection.
     pub heartbeat: Duration,
-    /// How long to wait for CONNACK.
-    pub connect_timeout: Duration,
+    /// How long to wait for CONNACK after CONNECT.
+    pub connack_timeout: Duration,
     /// Node-ID of the lift controller on net 1 (requests without `node`).
     pub lift_controller: u8,
     /// The CAN networks configured (1 is the bus of `[bus]`).
