@@ -46,6 +46,8 @@ struct Metrics {
     /// TLS handshakes with a certificate (full) and by a session ticket (resumed).
     handshakes_full: AtomicU64,
     handshakes_resumed: AtomicU64,
+    /// `accept` calls that failed (out of file descriptors, mostly).
+    accept_failures: AtomicU64,
     /// Memory given back to the system after bursts of connections ([`crate::memory`]).
     memory_trims: AtomicU64,
     memory_trimmed_bytes: AtomicU64,
@@ -421,13 +423,22 @@ impl Portal {
             closing,
             metrics,
         } = self;
+        let mut retry = None;
         loop {
             let (tcp, peer) = tokio::select! {
                 accepted = listener.accept() => match accepted {
-                    Ok(a) => a,
+                    Ok(a) => {
+                        retry = None;
+                        a
+                    }
                     Err(e) => {
-                        tracing::warn!(error = %e, "accept failed");
-                        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+                        metrics.accept_failures.fetch_add(1, Ordering::Relaxed);
+                        if retry.is_none() {
+                            tracing::warn!(error = %e, "accept failed: new connections wait in the listen queue until it works again (canlift_accept_failures_total counts the attempts)");
+                        }
+                        let wait = accept_retry(retry);
+                        retry = Some(wait);
+                        tokio::time::sleep(wait).await;
                         continue;
                     }
                 },
@@ -520,6 +531,17 @@ fn listen(addr: SocketAddr) -> std::io::Result<TcpListener> {
     socket.set_reuseaddr(true)?;
     socket.bind(addr)?;
     socket.listen(LISTEN_BACKLOG)
+}
+
+/// How long to wait before the next `accept` after one failed, `last` the wait before it: 5 ms,
+/// doubling to 1 s (as Go's `net/http` does). A process out of file descriptors (EMFILE) has its
+/// new connections wait in the listen queue; they are taken as soon as a descriptor is free
+/// again, without a busy loop or a warning every few milliseconds meanwhile (docs/PORTAL.md
+/// §Metrics).
+fn accept_retry(last: Option<Duration>) -> Duration {
+    last.map_or(Duration::from_millis(5), |w| {
+        (w * 2).min(Duration::from_secs(1))
+    })
 }
 
 /// How long a stopping portal waits for its gateways' connections to end and for what they
@@ -631,6 +653,7 @@ fn metrics_text(
             load(&admitted.unavailable),
         ),
         ("canlift_admission_lookups_total", load(&admitted.lookups)),
+        ("canlift_accept_failures_total", load(&m.accept_failures)),
         (
             "canlift_tls_handshakes_full_total",
             load(&m.handshakes_full),
@@ -734,6 +757,16 @@ mod tests {
         };
         assert_eq!(rc, 0, "{}", std::io::Error::last_os_error());
         info.tcpi_sacked
+    }
+
+    #[test]
+    fn a_failing_accept_is_tried_again_later_each_time_up_to_a_second() {
+        let waits: Vec<u128> =
+            std::iter::successors(Some(accept_retry(None)), |&w| Some(accept_retry(Some(w))))
+                .take(10)
+                .map(|w| w.as_millis())
+                .collect();
+        assert_eq!(waits, [5, 10, 20, 40, 80, 160, 320, 640, 1000, 1000]);
     }
 
     #[tokio::test]

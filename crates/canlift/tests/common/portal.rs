@@ -71,6 +71,35 @@ impl PortalProcess {
     pub async fn restart(&mut self) {
         let config = self.config.to_str().expect("UTF-8");
         self.child = Some(daemon(&["cloud", "--config", config]));
+        self.wait_listening().await;
+    }
+
+    /// Start the process again with at most `files` open files (`ulimit -n`) and wait until it
+    /// listens; the lines of its standard error (`RUST_LOG=warn`).
+    pub async fn restart_with_files(
+        &mut self,
+        files: u32,
+    ) -> tokio::io::Lines<tokio::io::BufReader<tokio::process::ChildStderr>> {
+        use tokio::io::AsyncBufReadExt;
+        let config = self.config.to_str().expect("UTF-8");
+        let mut child = tokio::process::Command::new("sh")
+            .args(["-c", "ulimit -n \"$0\" && exec \"$@\""])
+            .arg(files.to_string())
+            .arg(env!("CARGO_BIN_EXE_canlift"))
+            .args(["cloud", "--config", config])
+            .env("RUST_LOG", "warn")
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .kill_on_drop(true)
+            .spawn()
+            .expect("sh and canlift start");
+        let stderr = child.stderr.take().expect("stderr");
+        self.child = Some(child);
+        self.wait_listening().await;
+        tokio::io::BufReader::new(stderr).lines()
+    }
+
+    async fn wait_listening(&self) {
         let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
         while TcpStream::connect(("127.0.0.1", self.port)).await.is_err() {
             assert!(
