@@ -62,7 +62,7 @@ pub fn gateway_settings() -> Settings {
         max_queued: 4,
         max_subscriptions: 16,
         heartbeat: Duration::from_secs(300),
-        connect_timeout: Duration::from_secs(10),
+        connack_timeout: Duration::from_secs(30),
         lift_controller: 1,
         nets: vec![1],
         policy: Policy::default(),
