@@ -518,8 +518,7 @@ impl Portal {
 /// an outage a fleet reconnects at once; beyond the queue the kernel drops SYNs, and each gateway
 /// dropped loses its SYN retransmission time (1 s, then 3 s, 7 s) on top of its wait for the
 /// portal — the tail of a reconnect storm (docs/BENCHMARKS.md §The listen queue, and patience
-/// for CONNACK). tokio's
-/// `TcpListener::bind` listens with 128, as the standard library does.
+/// for CONNACK). tokio's `TcpListener::bind` listens with 128, as the standard library does.
 const LISTEN_BACKLOG: u32 = 65_535;
 
 /// The portal's listening socket: `addr` (reused at once after a restart), [`LISTEN_BACKLOG`].
