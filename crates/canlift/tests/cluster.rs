@@ -47,6 +47,19 @@ impl Cluster {
     /// appended to every process's configuration.
     async fn start_with(name: &str, count: usize, ttl: u64, more: &str) -> Option<Cluster> {
         let nats = Nats::start()?;
+        let url = nats.url();
+        Cluster::start_on(nats, &url, name, count, ttl, more).await
+    }
+
+    /// The same on a NATS server of the caller's, which the processes reach at `url`.
+    async fn start_on(
+        nats: Nats,
+        url: &str,
+        name: &str,
+        count: usize,
+        ttl: u64,
+        more: &str,
+    ) -> Option<Cluster> {
         let database = testkit::postgres(name).await?;
         let dir = testkit::scratch();
         let pki = testkit::pki::pki(dir.path());
@@ -54,10 +67,9 @@ impl Cluster {
             .map(|i| {
                 let extra = format!(
                     "tls_cert = \"{}\"\ntls_key = \"{}\"\n[database]\nurl = \"{database}\"\n\
-                     [cluster]\nnats = \"{}\"\nnode = \"p{i}\"\nholder_ttl_s = {ttl}\n{more}",
+                     [cluster]\nnats = \"{url}\"\nnode = \"p{i}\"\nholder_ttl_s = {ttl}\n{more}",
                     pki.cert.display(),
                     pki.key.display(),
-                    nats.url()
                 );
                 let mut portal =
                     PortalProcess::configure(&dir.path().join(format!("p{i}")), &extra);
@@ -619,6 +631,83 @@ async fn a_nats_outage_degrades_and_heals() {
         cluster.call(1, "GET", "/healthz", None).await.1,
         json!("ok\n")
     );
+    cluster.stop().await;
+}
+
+/// NATS with a user and password and TLS that verifies its clients (the processes' CA for it is
+/// not the portals'): the processes reach it with the credentials of their `nats` URL and the
+/// client certificate, a lift held by p0 is read through p1; p1 started again with a wrong
+/// password serves no lift held elsewhere, and says why in `/healthz`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nats_with_a_password_and_tls() {
+    let nats_dir = testkit::scratch();
+    let pki = testkit::pki::pki(nats_dir.path());
+    let path = |p: &std::path::Path| p.to_str().expect("UTF-8").to_owned();
+    // The configuration docs/CLUSTER.md §Securing NATS shows.
+    let conf = nats_dir.path().join("nats.conf");
+    let text = format!(
+        "authorization {{\n  user: canlift\n  password: \"s3cr:t@x\"\n}}\n\
+         tls {{\n  cert_file: \"{}\"\n  key_file: \"{}\"\n  ca_file: \"{}\"\n  verify: true\n}}\n",
+        path(&pki.cert),
+        path(&pki.key),
+        path(&pki.ca)
+    );
+    std::fs::write(&conf, text).expect("written");
+    let conf = path(&conf);
+    let options = ["-c", conf.as_str()];
+    let Some(nats) = Nats::start_with(&options) else {
+        return;
+    };
+    // The server asks for both (its INFO, sent before TLS).
+    let mut info = String::new();
+    let stream = std::net::TcpStream::connect(("127.0.0.1", nats.port())).expect("NATS listens");
+    std::io::BufRead::read_line(&mut std::io::BufReader::new(stream), &mut info).expect("INFO");
+    for asked in [r#""auth_required":true"#, r#""tls_verify":true"#] {
+        assert!(info.contains(asked), "{info}");
+    }
+    let url = format!("tls://canlift:s3cr%3At%40x@127.0.0.1:{}", nats.port());
+    let client = format!(
+        "nats_ca = \"{}\"\nnats_cert = \"{}\"\nnats_key = \"{}\"\n",
+        path(&pki.ca),
+        path(&pki.client_cert),
+        path(&pki.client_key)
+    );
+    let Some(mut cluster) = Cluster::start_on(nats, &url, "cluster_secured", 2, 6, &client).await
+    else {
+        return;
+    };
+    let (status, answer) = cluster.read(1).await;
+    assert_eq!(status, 200, "relayed through a secured NATS: {answer}");
+    assert_eq!(
+        cluster.call(1, "GET", "/healthz", None).await.1,
+        json!("ok\n")
+    );
+
+    let p1 = &mut cluster.portals[1];
+    p1.kill().await;
+    let config = std::fs::read_to_string(&p1.config).expect("p1's configuration");
+    let wrong = config.replace("s3cr%3At%40x", "wrong");
+    assert_ne!(config, wrong);
+    std::fs::write(&p1.config, wrong).expect("written");
+    p1.restart().await;
+    let took = until(LIMIT, "p1 says why it has no NATS", || async {
+        let health = cluster.call(1, "GET", "/healthz", None).await.1;
+        health
+            .as_str()
+            .is_some_and(|h| h.contains("authorization violation"))
+    })
+    .await;
+    let answer = cluster.call(1, "GET", "/healthz", None).await.1;
+    let health = answer.as_str().unwrap_or_default();
+    eprintln!("p1 degraded after {took:?}: {health}");
+    assert!(health.starts_with("degraded: NATS unreachable"), "{health}");
+    assert!(
+        !health.contains("wrong") && !health.contains("s3cr"),
+        "{health}"
+    );
+    let (status, answer) = cluster.read(1).await;
+    assert_eq!(status, 503, "no NATS, no relay: {answer}");
+    assert_eq!(cluster.read(0).await.0, 200, "the holder serves its lift");
     cluster.stop().await;
 }
 

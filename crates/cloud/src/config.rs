@@ -307,8 +307,17 @@ pub struct Config {
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ClusterSection {
-    /// `nats://HOST:PORT` of the NATS server (with JetStream, `nats-server -js`).
+    /// The NATS server (with JetStream, `nats-server -js`): `nats://HOST:PORT`, or
+    /// `tls://HOST:PORT` to require TLS; credentials as NATS URLs carry them,
+    /// `nats://USER:PASSWORD@HOST:PORT` or `nats://TOKEN@HOST:PORT` (docs/CLUSTER.md §Securing NATS).
     pub nats: Option<String>,
+    /// The CA certificate (PEM) that signed the NATS server's: TLS to NATS, trusting it alone.
+    pub nats_ca: Option<PathBuf>,
+    /// A client certificate (PEM) to present to a NATS server that verifies its clients (with
+    /// `nats_key`).
+    pub nats_cert: Option<PathBuf>,
+    /// The private key (PEM) of `nats_cert`.
+    pub nats_key: Option<PathBuf>,
     /// This process's name in the cluster; absent: the host name and the listening port.
     pub node: Option<String>,
     /// Seconds a process's lease stands unrenewed (it renews it every third of this): how
@@ -320,6 +329,9 @@ impl Default for ClusterSection {
     fn default() -> Self {
         ClusterSection {
             nats: None,
+            nats_ca: None,
+            nats_cert: None,
+            nats_key: None,
             node: None,
             holder_ttl_s: 15,
         }

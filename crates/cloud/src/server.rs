@@ -564,12 +564,16 @@ async fn join_cluster(
     let ttl = std::time::Duration::from_secs(config.cluster.holder_ttl_s);
     // The holder's own request timeout answers first; this one covers a holder that died.
     let timeout = config.gateways.settings().request_timeout + std::time::Duration::from_secs(1);
-    let (cluster, events) = crate::cluster::Cluster::connect(url, config.node_name(), ttl, timeout)
-        .await
-        .map_err(|e| ServerError::Other(e.to_string()))?;
+    let failed = |e: crate::cluster::nats::NatsConfigError| ServerError::Other(e.to_string());
+    let access =
+        crate::cluster::nats::NatsAccess::from_config(&config.cluster, url).map_err(failed)?;
+    let (cluster, events) =
+        crate::cluster::Cluster::connect(&access, config.node_name(), ttl, timeout)
+            .await
+            .map_err(failed)?;
     tracing::info!(
         node = cluster.node(),
-        nats = url,
+        nats = access.shown(),
         "portal process of a cluster"
     );
     registry.join(cluster.clone());
@@ -583,7 +587,11 @@ async fn join_cluster(
 async fn health(State(registry): State<Arc<Registry>>) -> String {
     match registry.cluster() {
         Some(cluster) if !cluster.connected() => {
-            "degraded: NATS unreachable (lifts held by other processes answer 503)\n".into()
+            let why = cluster
+                .last_error()
+                .map(|e| format!(": {e}"))
+                .unwrap_or_default();
+            format!("degraded: NATS unreachable{why} (lifts held by other processes answer 503)\n")
         }
         _ => "ok\n".into(),
     }

@@ -11,6 +11,8 @@ use crate::skip;
 pub struct Nats {
     port: u16,
     store: tempfile::TempDir,
+    /// More command-line options (authentication, TLS).
+    options: Vec<String>,
     child: Option<Child>,
 }
 
@@ -18,6 +20,11 @@ impl Nats {
     /// Start a server, or `None` after printing why the test is skipped (no `nats-server` on
     /// the PATH; with CANLIFT_REQUIRE_NATS=1 the test fails instead).
     pub fn start() -> Option<Nats> {
+        Nats::start_with(&[])
+    }
+
+    /// The same with more command-line options, such as `--user`, `--pass`, `--tls…`.
+    pub fn start_with(options: &[&str]) -> Option<Nats> {
         if Command::new("nats-server")
             .arg("--version")
             .stdout(Stdio::null())
@@ -36,10 +43,16 @@ impl Nats {
         let mut nats = Nats {
             port,
             store: crate::scratch(),
+            options: options.iter().map(|o| o.to_string()).collect(),
             child: None,
         };
         nats.start_again();
         Some(nats)
+    }
+
+    /// The port it listens on (127.0.0.1).
+    pub fn port(&self) -> u16 {
+        self.port
     }
 
     /// `nats://127.0.0.1:PORT`.
@@ -68,6 +81,7 @@ impl Nats {
                 "-sd",
             ])
             .arg(self.store.path())
+            .args(&self.options)
             .stdout(Stdio::null())
             .stderr(Stdio::null())
             .spawn()

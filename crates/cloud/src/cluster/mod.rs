@@ -10,6 +10,7 @@
 
 mod fleet;
 pub mod msgs;
+pub mod nats;
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -26,6 +27,7 @@ use crate::gateways::subscriptions::{Subscriptions, Terms};
 use crate::gateways::{LiftEvent, Registry};
 use fleet::Fleet;
 use msgs::{Alive, Holding, Key, Relayed, RelayedAnswer, RelayedWatch};
+use nats::{NatsAccess, NatsConfigError};
 
 /// The result of a relayed hold or release the holder made (a JSON `null` would read back as
 /// no result at all).
@@ -91,32 +93,28 @@ pub struct Cluster {
     events: mpsc::Sender<(String, Vec<u8>)>,
     /// Who holds which subscriptions here: told when a lift moves, asked by other processes.
     subscriptions: std::sync::OnceLock<Weak<Subscriptions>>,
+    /// The NATS client's last error since it last connected.
+    last_error: Arc<Mutex<Option<String>>>,
     /// Counted for `/metrics`.
     pub counters: ClusterCounters,
 }
 
-/// Why a portal cannot join its cluster.
-#[derive(Debug, thiserror::Error)]
-#[error("[cluster] nats = {url}: {why}")]
-pub struct ClusterError {
-    url: String,
-    why: String,
-}
-
 impl Cluster {
-    /// Connect to NATS at `url` as `node`. Returns at once: connecting, and connecting again
-    /// after losing the server, go on in the background. `request_timeout` bounds a relayed
-    /// request (the holder's own timeout answers first).
+    /// Connect to NATS as `node`. Returns at once: connecting, and connecting again after
+    /// losing the server, go on in the background (a refusal, such as wrong credentials, is
+    /// logged once per change and shown by [`Cluster::last_error`]). `request_timeout` bounds a
+    /// relayed request (the holder's own timeout answers first).
     pub async fn connect(
-        url: &str,
+        access: &NatsAccess,
         node: String,
         ttl: Duration,
         request_timeout: Duration,
-    ) -> Result<(Arc<Cluster>, mpsc::Receiver<(String, Vec<u8>)>), ClusterError> {
+    ) -> Result<(Arc<Cluster>, mpsc::Receiver<(String, Vec<u8>)>), NatsConfigError> {
         let nats_changed = Arc::new(Notify::new());
-        let poke = nats_changed.clone();
-        let name = node.clone();
-        let client = async_nats::ConnectOptions::new()
+        let last_error = Arc::new(Mutex::new(None));
+        let (poke, name, noted) = (nats_changed.clone(), node.clone(), last_error.clone());
+        let options = access
+            .apply(async_nats::ConnectOptions::new())
             .name(format!("canlift portal {node}"))
             .retry_on_initial_connect()
             .connection_timeout(Duration::from_secs(2))
@@ -124,24 +122,32 @@ impl Cluster {
                 Duration::from_millis((250 * attempts as u64).min(2_000))
             })
             .event_callback(move |event| {
-                let (poke, name) = (poke.clone(), name.clone());
+                let (poke, name, noted) = (poke.clone(), name.clone(), noted.clone());
                 async move {
-                    match event {
-                        async_nats::Event::Connected => tracing::info!(node = %name, "NATS connected"),
+                    match &event {
+                        async_nats::Event::Connected => {
+                            lock(&noted).take();
+                            tracing::info!(node = %name, "NATS connected")
+                        }
                         async_nats::Event::Disconnected => {
                             tracing::warn!(node = %name, "NATS unreachable: serving the lifts held here only")
                         }
+                        async_nats::Event::ClientError(e) => note(&noted, &name, e.to_string()),
+                        async_nats::Event::ServerError(
+                            e @ (async_nats::ServerError::AuthorizationViolation
+                            | async_nats::ServerError::Other(_)),
+                        ) => note(&noted, &name, e.to_string()),
                         other => tracing::debug!(node = %name, event = %other, "NATS"),
                     }
                     poke.notify_waiters();
                 }
-            })
-            .connect(url)
+            });
+        // With `retry_on_initial_connect` this returns at once; it fails only on an address
+        // that `NatsAccess` already parsed.
+        let client = options
+            .connect(access.server())
             .await
-            .map_err(|e| ClusterError {
-                url: url.into(),
-                why: e.to_string(),
-            })?;
+            .map_err(|e| access.error(e.to_string()))?;
         let (events, events_rx) = mpsc::channel(EVENT_QUEUE);
         let ttl = ttl.max(Duration::from_secs(3));
         let cluster = Arc::new(Cluster {
@@ -159,6 +165,7 @@ impl Cluster {
             generation: watch::channel(0).0,
             events,
             subscriptions: std::sync::OnceLock::new(),
+            last_error,
             counters: ClusterCounters::default(),
         });
         Ok((cluster, events_rx))
@@ -172,6 +179,12 @@ impl Cluster {
     /// Whether NATS is reachable now.
     pub fn connected(&self) -> bool {
         self.client.connection_state() == async_nats::connection::State::Connected
+    }
+
+    /// Why the last attempt to reach NATS failed (such as `authorization violation`), while it
+    /// is not reached again.
+    pub fn last_error(&self) -> Option<String> {
+        lock(&self.last_error).clone()
     }
 
     /// How many lifts are held here.
@@ -931,6 +944,17 @@ async fn answer(
     };
     if let Err(e) = cluster.client.publish(reply, body.into()).await {
         tracing::debug!(%lift, error = %e, "NATS: answer not sent");
+    }
+}
+
+/// Keep the NATS client's error for `/healthz`; every failed attempt reports it again, so it is
+/// logged only when it changes.
+fn note(last: &Mutex<Option<String>>, node: &str, error: String) {
+    let error = error.trim_start_matches("nats: ").to_owned();
+    let mut last = lock(last);
+    if last.as_deref() != Some(error.as_str()) {
+        tracing::warn!(node, %error, "NATS");
+        *last = Some(error);
     }
 }
 
