@@ -23,7 +23,8 @@ const LIMIT: Duration = Duration::from_secs(30);
 
 /// Portal processes, NATS, the balancer and the lift.
 struct Cluster {
-    nats: Nats,
+    /// The NATS server, or the servers of a NATS cluster.
+    nats: Vec<Nats>,
     portals: Vec<PortalProcess>,
     balancer: Balancer,
     lift: Lift,
@@ -48,12 +49,12 @@ impl Cluster {
     async fn start_with(name: &str, count: usize, ttl: u64, more: &str) -> Option<Cluster> {
         let nats = Nats::start()?;
         let url = nats.url();
-        Cluster::start_on(nats, &url, name, count, ttl, more).await
+        Cluster::start_on(vec![nats], &url, name, count, ttl, more).await
     }
 
     /// The same on a NATS server of the caller's, which the processes reach at `url`.
     async fn start_on(
-        nats: Nats,
+        nats: Vec<Nats>,
         url: &str,
         name: &str,
         count: usize,
@@ -445,7 +446,7 @@ async fn a_watching_process_that_goes_away_lets_go() {
         .expect("the watcher's object is pushed to p1's stream");
 
     // NATS away for longer than the lease (6 s here).
-    cluster.nats.stop();
+    cluster.nats[0].stop();
     cluster
         .until_metric(
             0,
@@ -454,7 +455,7 @@ async fn a_watching_process_that_goes_away_lets_go() {
             "p0 lets go of p1's watcher",
         )
         .await;
-    cluster.nats.start_again();
+    cluster.nats[0].start_again();
     let back = tokio::time::Instant::now();
     let mut last = 1;
     for value in [2, 3].into_iter().cycle() {
@@ -600,7 +601,7 @@ async fn a_nats_outage_degrades_and_heals() {
         return;
     };
     assert_eq!(cluster.read(1).await.0, 200);
-    cluster.nats.stop();
+    cluster.nats[0].stop();
     until(LIMIT, "p1 reports itself degraded", || async {
         let health = cluster.call(1, "GET", "/healthz", None).await;
         health.1.as_str().is_some_and(|h| h.starts_with("degraded"))
@@ -615,7 +616,7 @@ async fn a_nats_outage_degrades_and_heals() {
     assert_eq!(cluster.read(0).await.0, 200, "the holder serves its lift");
     let (status, answer) = cluster.read(1).await;
     assert_eq!(status, 503, "a lift held elsewhere: {answer}");
-    cluster.nats.start_again();
+    cluster.nats[0].start_again();
     let healed = until(LIMIT, "p1 reads the lift again", || async {
         cluster.read(1).await.0 == 200
     })
@@ -631,6 +632,52 @@ async fn a_nats_outage_degrades_and_heals() {
         cluster.call(1, "GET", "/healthz", None).await.1,
         json!("ok\n")
     );
+    cluster.stop().await;
+}
+
+/// NATS as a cluster of three servers, the holder bucket in three copies: the server the
+/// holding process is connected to is killed; the holder goes on through another, still holding
+/// the lift, which p1 reads and writes again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_nats_cluster_outlives_one_of_its_servers() {
+    let Some(servers) = testkit::nats::cluster(3) else {
+        return;
+    };
+    let (nats, monitors): (Vec<Nats>, Vec<u16>) = servers.into_iter().unzip();
+    let url = nats.iter().map(Nats::url).collect::<Vec<_>>().join(",");
+    let more = "nats_replicas = 3\n";
+    let Some(mut cluster) = Cluster::start_on(nats, &url, "cluster_nats3", 2, 6, more).await else {
+        return;
+    };
+    assert_eq!(cluster.read(1).await.0, 200);
+    for monitor in &monitors {
+        let page = testkit::nats::monitoring(*monitor, "/jsz?streams=true");
+        assert!(
+            page.contains("KV_canlift-holders"),
+            "a copy of the bucket on each server: {page}"
+        );
+    }
+    let p0_on = |monitor: &u16| testkit::nats::serves(*monitor, "canlift portal p0");
+    let lost = monitors
+        .iter()
+        .position(p0_on)
+        .expect("p0 is connected to one of the NATS servers");
+    cluster.nats[lost].stop();
+    let back = until(LIMIT, "p1 reads the lift again", || async {
+        cluster.read(1).await.0 == 200
+    })
+    .await;
+    eprintln!("read through p1 {back:?} after NATS server n{lost} was killed");
+    until(LIMIT, "p0 goes on through another NATS server", || async {
+        monitors
+            .iter()
+            .enumerate()
+            .any(|(i, monitor)| i != lost && p0_on(monitor))
+    })
+    .await;
+    cluster.wait_held_by(0).await;
+    cluster.write_0x502200(1, 7).await;
+    assert_eq!(cluster.read(1).await.0, 200);
     cluster.stop().await;
 }
 
@@ -672,7 +719,8 @@ async fn nats_with_a_password_and_tls() {
         path(&pki.client_cert),
         path(&pki.client_key)
     );
-    let Some(mut cluster) = Cluster::start_on(nats, &url, "cluster_secured", 2, 6, &client).await
+    let Some(mut cluster) =
+        Cluster::start_on(vec![nats], &url, "cluster_secured", 2, 6, &client).await
     else {
         return;
     };

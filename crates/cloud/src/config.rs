@@ -310,7 +310,11 @@ pub struct ClusterSection {
     /// The NATS server (with JetStream, `nats-server -js`): `nats://HOST:PORT`, or
     /// `tls://HOST:PORT` to require TLS; credentials as NATS URLs carry them,
     /// `nats://USER:PASSWORD@HOST:PORT` or `nats://TOKEN@HOST:PORT` (docs/CLUSTER.md §Securing NATS).
+    /// The servers of a NATS cluster separated by commas.
     pub nats: Option<String>,
+    /// Copies of the holder bucket in a NATS cluster (1 to 5; 3 outlives the loss of a NATS
+    /// server).
+    pub nats_replicas: usize,
     /// The CA certificate (PEM) that signed the NATS server's: TLS to NATS, trusting it alone.
     pub nats_ca: Option<PathBuf>,
     /// A client certificate (PEM) to present to a NATS server that verifies its clients (with
@@ -332,6 +336,7 @@ impl Default for ClusterSection {
             nats_ca: None,
             nats_cert: None,
             nats_key: None,
+            nats_replicas: 1,
             node: None,
             holder_ttl_s: 15,
         }

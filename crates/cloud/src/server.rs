@@ -567,8 +567,14 @@ async fn join_cluster(
     let failed = |e: crate::cluster::nats::NatsConfigError| ServerError::Other(e.to_string());
     let access =
         crate::cluster::nats::NatsAccess::from_config(&config.cluster, url).map_err(failed)?;
+    let replicas = config.cluster.nats_replicas;
+    if !(1..=5).contains(&replicas) {
+        return Err(ServerError::Other(format!(
+            "[cluster] nats_replicas = {replicas}: NATS keeps 1 to 5 copies of a bucket"
+        )));
+    }
     let (cluster, events) =
-        crate::cluster::Cluster::connect(&access, config.node_name(), ttl, timeout)
+        crate::cluster::Cluster::connect(&access, config.node_name(), ttl, timeout, replicas)
             .await
             .map_err(failed)?;
     tracing::info!(

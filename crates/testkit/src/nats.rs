@@ -103,3 +103,52 @@ impl Drop for Nats {
         self.stop();
     }
 }
+
+/// `count` servers forming one NATS cluster with JetStream (a bucket of several replicas lives
+/// on several of them), each with its monitoring port; `None` as [`Nats::start`].
+pub fn cluster(count: usize) -> Option<Vec<(Nats, u16)>> {
+    let routes: Vec<u16> = (0..count).map(|_| crate::free_port()).collect();
+    let all = routes
+        .iter()
+        .map(|port| format!("nats://127.0.0.1:{port}"))
+        .collect::<Vec<_>>()
+        .join(",");
+    (0..count)
+        .map(|i| {
+            let monitor = crate::free_port();
+            let options = [
+                "--server_name".to_owned(),
+                format!("n{i}"),
+                "--cluster_name".to_owned(),
+                "canlift".to_owned(),
+                "--cluster".to_owned(),
+                format!("nats://127.0.0.1:{}", routes[i]),
+                "--routes".to_owned(),
+                all.clone(),
+                "-m".to_owned(),
+                monitor.to_string(),
+            ];
+            let options: Vec<&str> = options.iter().map(String::as_str).collect();
+            Nats::start_with(&options).map(|nats| (nats, monitor))
+        })
+        .collect()
+}
+
+/// Whether the server monitored on `monitor` has a client named `client` connected now (its
+/// `/connz`).
+pub fn serves(monitor: u16, client: &str) -> bool {
+    monitoring(monitor, "/connz").contains(&format!("\"{client}\""))
+}
+
+/// A page of the monitoring port `monitor` (empty when it does not answer).
+pub fn monitoring(monitor: u16, path: &str) -> String {
+    use std::io::{Read, Write};
+    let mut page = String::new();
+    if let Ok(mut stream) = std::net::TcpStream::connect(("127.0.0.1", monitor)) {
+        let request = format!("GET {path} HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n");
+        if stream.write_all(request.as_bytes()).is_ok() {
+            let _ = stream.read_to_string(&mut page);
+        }
+    }
+    page
+}

@@ -76,6 +76,8 @@ pub struct Cluster {
     kv: RwLock<Option<kv::Store>>,
     ttl: Duration,
     request_timeout: Duration,
+    /// Copies of the bucket in a NATS cluster (`[cluster] nats_replicas`).
+    replicas: usize,
     /// The other processes and the lifts they hold.
     fleet: Mutex<Fleet>,
     /// The lifts held here: dropping a sender ends its holder task.
@@ -109,6 +111,7 @@ impl Cluster {
         node: String,
         ttl: Duration,
         request_timeout: Duration,
+        replicas: usize,
     ) -> Result<(Arc<Cluster>, mpsc::Receiver<(String, Vec<u8>)>), NatsConfigError> {
         let nats_changed = Arc::new(Notify::new());
         let last_error = Arc::new(Mutex::new(None));
@@ -145,7 +148,7 @@ impl Cluster {
         // With `retry_on_initial_connect` this returns at once; it fails only on an address
         // that `NatsAccess` already parsed.
         let client = options
-            .connect(access.server())
+            .connect(access.servers())
             .await
             .map_err(|e| access.error(e.to_string()))?;
         let (events, events_rx) = mpsc::channel(EVENT_QUEUE);
@@ -158,6 +161,7 @@ impl Cluster {
             kv: RwLock::new(None),
             ttl,
             request_timeout,
+            replicas,
             held: Mutex::default(),
             forwarded: Mutex::default(),
             watched: Mutex::default(),
@@ -263,7 +267,7 @@ impl Cluster {
             allow_rollup: true,
             deny_delete: true,
             allow_direct: true,
-            num_replicas: 1,
+            num_replicas: self.replicas,
             ..Default::default()
         };
         // Whether the connection was (re)made since the holders last wrote their entries: the
@@ -277,10 +281,21 @@ impl Cluster {
                 continue;
             }
             let bucket = match js.get_or_create_stream(config.clone()).await {
-                Ok(_) => js
-                    .get_key_value(msgs::BUCKET)
-                    .await
-                    .map_err(|e| e.to_string()),
+                Ok(stream) => {
+                    // The process that made the bucket chose its copies; changing them under
+                    // running processes would have them take turns.
+                    let copies = stream.cached_info().config.num_replicas;
+                    if copies != self.replicas {
+                        tracing::warn!(
+                            copies,
+                            nats_replicas = self.replicas,
+                            "NATS: the holder bucket keeps the copies it was made with"
+                        );
+                    }
+                    js.get_key_value(msgs::BUCKET)
+                        .await
+                        .map_err(|e| e.to_string())
+                }
                 Err(e) => Err(e.to_string()),
             };
             let store = match bucket {

@@ -11,10 +11,12 @@ use async_nats::{ConnectOptions, ServerAddr};
 
 use crate::config::ClusterSection;
 
-/// The NATS server and how to prove who this process is, checked before the process serves.
+/// The NATS servers and how to prove who this process is, checked before the process serves.
 pub struct NatsAccess {
-    /// The server, without credentials (async-nats logs it at debug level).
-    server: ServerAddr,
+    /// The servers, without credentials (async-nats logs them at debug level).
+    servers: Vec<ServerAddr>,
+    /// Their URLs as they may be shown.
+    shown: String,
     credentials: Option<Credentials>,
     tls: Option<rustls::ClientConfig>,
 }
@@ -27,7 +29,7 @@ enum Credentials {
     Token(String),
 }
 
-/// Why `[cluster]` cannot reach NATS as written; the URL in it is shown without credentials.
+/// Why `[cluster]` cannot reach NATS as written; the URLs in it are shown without credentials.
 #[derive(Debug, thiserror::Error)]
 #[error("[cluster] nats = {shown}: {why}")]
 pub struct NatsConfigError {
@@ -36,19 +38,29 @@ pub struct NatsConfigError {
 }
 
 impl NatsAccess {
-    /// Read `[cluster] nats`, `nats_ca`, `nats_cert` and `nats_key`: the files are read now, so
-    /// that a wrong one stops the process at start instead of failing every reconnection.
-    pub fn from_config(section: &ClusterSection, url: &str) -> Result<NatsAccess, NatsConfigError> {
+    /// Read `[cluster] nats` (one URL, or the URLs of a NATS cluster separated by commas),
+    /// `nats_ca`, `nats_cert` and `nats_key`: the files are read now, so that a wrong one stops
+    /// the process at start instead of failing every reconnection.
+    pub fn from_config(
+        section: &ClusterSection,
+        urls: &str,
+    ) -> Result<NatsAccess, NatsConfigError> {
         let refuse = |shown: &str, why: String| NatsConfigError {
             shown: shown.to_owned(),
             why,
         };
-        let given: ServerAddr = url
-            .parse()
-            .map_err(|e: std::io::Error| refuse("(not shown)", e.to_string()))?;
-        let server = without_credentials(&given);
-        let shown = server.as_url_str().to_owned();
-        if given.is_websocket() {
+        let given = urls
+            .split(',')
+            .map(|url| url.trim().parse::<ServerAddr>())
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| refuse("(not shown)", e.to_string()))?;
+        let servers: Vec<ServerAddr> = given.iter().map(without_credentials).collect();
+        let shown = servers
+            .iter()
+            .map(ServerAddr::as_url_str)
+            .collect::<Vec<_>>()
+            .join(",");
+        if given.iter().any(ServerAddr::is_websocket) {
             return Err(refuse(
                 &shown,
                 "use nats:// or tls:// (not WebSocket)".into(),
@@ -60,21 +72,37 @@ impl NatsAccess {
                 .map(|text| text.into_owned())
                 .map_err(|_| refuse(&shown, "the credentials are not UTF-8".into()))
         };
-        let credentials = match (given.username(), given.password()) {
-            (Some(user), Some(password)) => Some(Credentials::UserPassword {
-                user: decoded(user)?,
-                password: decoded(password)?,
-            }),
-            (Some(token), None) => Some(Credentials::Token(decoded(token)?)),
-            (None, Some(_)) => return Err(refuse(&shown, "a password needs a user".into())),
-            (None, None) => None,
-        };
+        let mut credentials = None;
+        for server in &given {
+            let these = match (server.username(), server.password()) {
+                (Some(user), Some(password)) => Credentials::UserPassword {
+                    user: decoded(user)?,
+                    password: decoded(password)?,
+                },
+                (Some(token), None) => Credentials::Token(decoded(token)?),
+                (None, Some(_)) => return Err(refuse(&shown, "a password needs a user".into())),
+                (None, None) => continue,
+            };
+            // One client, one CONNECT: the servers of a NATS cluster share their users.
+            match &credentials {
+                Some(first) if *first != these => {
+                    return Err(refuse(
+                        &shown,
+                        "the URLs carry different credentials".into(),
+                    ))
+                }
+                _ => credentials = Some(these),
+            }
+        }
         let identity = match (&section.nats_cert, &section.nats_key) {
             (Some(cert), Some(key)) => Some(tls::Identity { cert, key }),
             (None, None) => None,
             _ => return Err(refuse(&shown, "nats_cert and nats_key go together".into())),
         };
-        let tls = if given.tls_required() || section.nats_ca.is_some() || identity.is_some() {
+        let tls = if given.iter().any(ServerAddr::tls_required)
+            || section.nats_ca.is_some()
+            || identity.is_some()
+        {
             let config = tls::client_config(section.nats_ca.as_deref(), identity)
                 .map_err(|e| refuse(&shown, e.to_string()))?;
             Some(std::sync::Arc::unwrap_or_clone(config))
@@ -82,15 +110,16 @@ impl NatsAccess {
             None
         };
         Ok(NatsAccess {
-            server,
+            servers,
+            shown,
             credentials,
             tls,
         })
     }
 
-    /// The server's URL as it may be shown: without credentials.
+    /// The servers' URLs as they may be shown: without credentials.
     pub fn shown(&self) -> &str {
-        self.server.as_url_str()
+        &self.shown
     }
 
     /// An error about this server (shown without credentials).
@@ -101,9 +130,9 @@ impl NatsAccess {
         }
     }
 
-    /// The server to connect to.
-    pub fn server(&self) -> ServerAddr {
-        self.server.clone()
+    /// The servers to connect to.
+    pub fn servers(&self) -> Vec<ServerAddr> {
+        self.servers.clone()
     }
 
     /// `options` with the credentials and, where asked for, TLS required with canlift's TLS
@@ -154,11 +183,38 @@ mod tests {
         assert!(a.tls.is_none());
         let a = access("nats://T0K%2Fen@nats.internal").unwrap();
         assert_eq!(a.credentials, Some(Credentials::Token("T0K/en".into())));
-        assert_eq!(a.server().port(), 4222);
+        assert_eq!(a.servers()[0].port(), 4222);
         assert!(access("nats://127.0.0.1:4222")
             .unwrap()
             .credentials
             .is_none());
+    }
+
+    #[test]
+    fn the_servers_of_a_nats_cluster_share_their_credentials() {
+        let a =
+            access("nats://u:p@10.0.0.1:4222, nats://10.0.0.2:4222,nats://u:p@10.0.0.3").unwrap();
+        assert_eq!(a.servers().len(), 3);
+        assert_eq!(
+            a.shown(),
+            "nats://10.0.0.1:4222,nats://10.0.0.2:4222,nats://10.0.0.3"
+        );
+        assert_eq!(
+            a.credentials,
+            Some(Credentials::UserPassword {
+                user: "u".into(),
+                password: "p".into()
+            })
+        );
+        assert!(access("nats://10.0.0.1,tls://10.0.0.2")
+            .unwrap()
+            .tls
+            .is_some());
+        let e = access("nats://u:p@10.0.0.1,nats://u:secret@10.0.0.2")
+            .err()
+            .unwrap();
+        assert!(e.to_string().contains("different credentials"), "{e}");
+        assert!(!e.to_string().contains("secret"), "{e}");
     }
 
     #[test]
