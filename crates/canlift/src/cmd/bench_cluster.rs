@@ -59,46 +59,93 @@ pub struct ClusterBench {
     /// NATS's CPU and time (docs/CLUSTER.md §NATS on a machine it shares).
     #[arg(long, default_value_t = 0)]
     nats_threads: u16,
+    /// NATS servers forming one NATS cluster; the portals list them all and keep the holder
+    /// bucket in as many copies (at most 5) (docs/CLUSTER.md §A NATS of several servers).
+    #[arg(long, default_value_t = 1)]
+    nats_servers: usize,
 }
 
 /// How long the cluster's own cost is measured with every gateway online and no operator
 /// asking: what holding the lifts costs (leases renewed, the gateways' keep-alives).
 const IDLE_WINDOW: Duration = Duration::from_secs(20);
 
-/// The NATS server of the benchmark.
+/// The NATS server of the benchmark, or the servers of its NATS cluster.
 struct Nats {
-    child: tokio::process::Child,
-    url: String,
+    children: Vec<tokio::process::Child>,
+    urls: Vec<String>,
 }
 
 impl Nats {
-    async fn start(binary: &Path, dir: &Path, threads: u16) -> anyhow::Result<Nats> {
-        let port = free_port()?;
-        let mut command = tokio::process::Command::new(binary);
-        if threads > 0 {
-            command.env("GOMAXPROCS", threads.to_string());
+    async fn start(
+        binary: &Path,
+        dir: &Path,
+        threads: u16,
+        servers: usize,
+    ) -> anyhow::Result<Nats> {
+        let ports = (0..servers)
+            .map(|_| free_port())
+            .collect::<Result<Vec<_>, _>>()?;
+        let routes = (0..servers)
+            .map(|_| free_port())
+            .collect::<Result<Vec<_>, _>>()?;
+        let all_routes = routes
+            .iter()
+            .map(|port| format!("nats://127.0.0.1:{port}"))
+            .collect::<Vec<_>>()
+            .join(",");
+        let mut children = Vec::with_capacity(servers);
+        for (i, port) in ports.iter().enumerate() {
+            let mut command = tokio::process::Command::new(binary);
+            if threads > 0 {
+                command.env("GOMAXPROCS", threads.to_string());
+            }
+            command
+                .args(["-js", "-a", "127.0.0.1", "-p", &port.to_string(), "-sd"])
+                .arg(dir.join(format!("n{i}")));
+            if servers > 1 {
+                command
+                    .args(["--server_name", &format!("n{i}"), "--cluster_name", "bench"])
+                    .args(["--cluster", &format!("nats://127.0.0.1:{}", routes[i])])
+                    .args(["--routes", &all_routes]);
+            }
+            let child = command
+                .stdout(std::process::Stdio::null())
+                .stderr(std::process::Stdio::null())
+                .kill_on_drop(true)
+                .spawn()
+                .with_context(|| format!("{} (apt-get install nats-server)", binary.display()))?;
+            children.push(child);
         }
-        let child = command
-            .args(["-js", "-a", "127.0.0.1", "-p", &port.to_string(), "-sd"])
-            .arg(dir)
-            .stdout(std::process::Stdio::null())
-            .stderr(std::process::Stdio::null())
-            .kill_on_drop(true)
-            .spawn()
-            .with_context(|| format!("{} (apt-get install nats-server)", binary.display()))?;
-        listening(port, "nats-server", Duration::from_secs(10)).await?;
+        for port in &ports {
+            listening(*port, "nats-server", Duration::from_secs(10)).await?;
+        }
         Ok(Nats {
-            child,
-            url: format!("nats://127.0.0.1:{port}"),
+            children,
+            urls: ports
+                .iter()
+                .map(|port| format!("nats://127.0.0.1:{port}"))
+                .collect(),
         })
     }
 
+    /// `[cluster] nats`: every server.
+    fn url(&self) -> String {
+        self.urls.join(",")
+    }
+
     fn rss_kib(&self) -> u64 {
-        self.child.id().and_then(memory_kib).map_or(0, |m| m[0])
+        self.children
+            .iter()
+            .filter_map(|c| c.id().and_then(memory_kib))
+            .map(|m| m[0])
+            .sum()
     }
 
     fn cpu(&self) -> Duration {
-        self.child.id().and_then(cpu_time).unwrap_or_default()
+        self.children
+            .iter()
+            .filter_map(|c| c.id().and_then(cpu_time))
+            .sum()
     }
 }
 
@@ -235,9 +282,13 @@ async fn reads(
 
 /// A bare request and reply of 200 bytes between two NATS clients through the benchmark's
 /// server, `n` times: the least NATS adds to a relayed read on this machine (each client's hops
-/// and the server's, no portal).
-async fn nats_round_trips(url: &str, n: usize) -> anyhow::Result<Vec<Duration>> {
-    let replier = async_nats::connect(url).await?;
+/// and the server's, no portal). With a NATS cluster the two are on different servers (as two
+/// portal processes may be), which adds the route between them.
+async fn nats_round_trips(nats: &Nats, n: usize) -> anyhow::Result<Vec<Duration>> {
+    let (Some(first), Some(last)) = (nats.urls.first(), nats.urls.last()) else {
+        bail!("no NATS server");
+    };
+    let replier = async_nats::connect(first).await?;
     let mut asked = replier.subscribe("bench.echo").await?;
     replier.flush().await?;
     let answering = tokio::spawn(async move {
@@ -247,7 +298,7 @@ async fn nats_round_trips(url: &str, n: usize) -> anyhow::Result<Vec<Duration>> 
             }
         }
     });
-    let asker = async_nats::connect(url).await?;
+    let asker = async_nats::connect(last).await?;
     let payload = vec![b'x'; 200];
     let mut times = Vec::with_capacity(n);
     for _ in 0..n {
@@ -270,10 +321,14 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
     }
     let layout = Layout::new(&args);
     let dir = tempfile::tempdir()?;
+    if !(1..=32).contains(&args.nats_servers) {
+        bail!("--nats-servers: 1 to 32");
+    }
     let nats = Nats::start(
         &args.nats_server,
         &dir.path().join("nats"),
         args.nats_threads,
+        args.nats_servers,
     )
     .await?;
     let pki = cloud::devpki::ensure(&dir.path().join("pki"))?;
@@ -308,7 +363,8 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
         let mut config = bench_config(&pdir, &args.database)?;
         config.server.tls_cert = Some(pki.cert.clone());
         config.server.tls_key = Some(pki.key.clone());
-        config.cluster.nats = Some(nats.url.clone());
+        config.cluster.nats = Some(nats.url());
+        config.cluster.nats_replicas = args.nats_servers.min(5);
         config.cluster.node = Some(format!("bench-{i}"));
         config.cluster.holder_ttl_s = args.holder_ttl_s;
         config.database.connections = connections;
@@ -323,7 +379,7 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
         "{} portal processes ({connections} + 2 PostgreSQL connections each of {free} free), \
          NATS {} ({}), {} gateways from {} load generators of at most {}",
         args.portals,
-        nats.url,
+        nats.url(),
         match args.nats_threads {
             0 => "GOMAXPROCS as Go chooses".to_owned(),
             n => format!("GOMAXPROCS={n}"),
@@ -443,7 +499,7 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
         per_read(between.0, after.0),
         per_read(between.1, after.1)
     );
-    let bare = nats_round_trips(&nats.url, args.reads).await?;
+    let bare = nats_round_trips(&nats, args.reads).await?;
     println!(
         "a bare NATS request and reply (two clients, 200 bytes): p50 {:.0} µs p99 {:.0} µs",
         percentile(&bare, 50.0),

@@ -308,7 +308,12 @@ impl Cluster {
             };
             *self.kv.write().unwrap_or_else(PoisonError::into_inner) = Some(store.clone());
             // The lease before the entries: other processes take them for held once it is there.
-            self.renew(&store).await;
+            // A bucket just made in a NATS cluster may not take writes yet: try again soon, not
+            // a renewal period later.
+            if !self.renew(&store).await {
+                tokio::time::sleep(Duration::from_secs(1)).await;
+                continue;
+            }
             if std::mem::take(&mut reconnected) {
                 self.generation.send_modify(|g| *g += 1);
             }
@@ -352,7 +357,7 @@ impl Cluster {
         loop {
             tick.tick().await;
             if let Some(kv) = self.kv().filter(|_| self.connected()) {
-                self.renew(&kv).await;
+                let _ = self.renew(&kv).await;
                 self.sweep(&kv);
             }
             let lapsed = lock(&self.watched).lapsed_all(Instant::now());
@@ -362,16 +367,21 @@ impl Cluster {
         }
     }
 
-    async fn renew(&self, kv: &kv::Store) {
+    /// Write this process's lease; whether NATS took it.
+    async fn renew(&self, kv: &kv::Store) -> bool {
         let alive = Alive {
             incarnation: self.incarnation,
         };
         let Ok(value) = serde_json::to_vec(&alive) else {
-            return;
+            return false;
         };
         let key = Key::Process(self.node.clone()).encode();
-        if let Err(e) = kv.put(key, value.into()).await {
-            tracing::warn!(error = %e, "NATS: lease not renewed");
+        match kv.put(key, value.into()).await {
+            Ok(_) => true,
+            Err(e) => {
+                tracing::warn!(error = %e, "NATS: lease not renewed");
+                false
+            }
         }
     }
 
