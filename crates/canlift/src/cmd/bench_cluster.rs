@@ -63,6 +63,10 @@ pub struct ClusterBench {
     /// bucket in as many copies (at most 5) (docs/CLUSTER.md §A NATS of several servers).
     #[arg(long, default_value_t = 1)]
     nats_servers: usize,
+    /// NATS with TLS (a certificate of the benchmark's CA; the portals trust it by `nats_ca`),
+    /// to measure what TLS on the relays costs (docs/CLUSTER.md §Securing NATS).
+    #[arg(long)]
+    nats_tls: bool,
 }
 
 /// How long the cluster's own cost is measured with every gateway online and no operator
@@ -73,15 +77,17 @@ const IDLE_WINDOW: Duration = Duration::from_secs(20);
 struct Nats {
     children: Vec<tokio::process::Child>,
     urls: Vec<String>,
+    /// With TLS: the CA its clients trust.
+    ca: Option<PathBuf>,
 }
 
 impl Nats {
     async fn start(
-        binary: &Path,
+        args: &ClusterBench,
         dir: &Path,
-        threads: u16,
-        servers: usize,
+        pki: &cloud::devpki::DevPki,
     ) -> anyhow::Result<Nats> {
+        let (binary, threads, servers) = (&args.nats_server, args.nats_threads, args.nats_servers);
         let ports = (0..servers)
             .map(|_| free_port())
             .collect::<Result<Vec<_>, _>>()?;
@@ -102,6 +108,14 @@ impl Nats {
             command
                 .args(["-js", "-a", "127.0.0.1", "-p", &port.to_string(), "-sd"])
                 .arg(dir.join(format!("n{i}")));
+            if args.nats_tls {
+                command
+                    .arg("--tls")
+                    .arg("--tlscert")
+                    .arg(&pki.cert)
+                    .arg("--tlskey")
+                    .arg(&pki.key);
+            }
             if servers > 1 {
                 command
                     .args(["--server_name", &format!("n{i}"), "--cluster_name", "bench"])
@@ -119,13 +133,29 @@ impl Nats {
         for port in &ports {
             listening(*port, "nats-server", Duration::from_secs(10)).await?;
         }
+        let scheme = if args.nats_tls { "tls" } else { "nats" };
         Ok(Nats {
             children,
             urls: ports
                 .iter()
-                .map(|port| format!("nats://127.0.0.1:{port}"))
+                .map(|port| format!("{scheme}://127.0.0.1:{port}"))
                 .collect(),
+            ca: args.nats_tls.then(|| pki.ca.clone()),
         })
+    }
+
+    /// A client of server `url`, as the portals connect (TLS trusting the benchmark's CA).
+    async fn client(&self, url: &str) -> anyhow::Result<async_nats::Client> {
+        let options = match &self.ca {
+            Some(ca) => {
+                let config = tls::client_config(Some(ca), None)?;
+                async_nats::ConnectOptions::new()
+                    .require_tls(true)
+                    .tls_client_config(std::sync::Arc::unwrap_or_clone(config))
+            }
+            None => async_nats::ConnectOptions::new(),
+        };
+        Ok(options.connect(url).await?)
     }
 
     /// `[cluster] nats`: every server.
@@ -288,7 +318,7 @@ async fn nats_round_trips(nats: &Nats, n: usize) -> anyhow::Result<Vec<Duration>
     let (Some(first), Some(last)) = (nats.urls.first(), nats.urls.last()) else {
         bail!("no NATS server");
     };
-    let replier = async_nats::connect(first).await?;
+    let replier = nats.client(first).await?;
     let mut asked = replier.subscribe("bench.echo").await?;
     replier.flush().await?;
     let answering = tokio::spawn(async move {
@@ -298,7 +328,7 @@ async fn nats_round_trips(nats: &Nats, n: usize) -> anyhow::Result<Vec<Duration>
             }
         }
     });
-    let asker = async_nats::connect(last).await?;
+    let asker = nats.client(last).await?;
     let payload = vec![b'x'; 200];
     let mut times = Vec::with_capacity(n);
     for _ in 0..n {
@@ -324,14 +354,8 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
     if !(1..=32).contains(&args.nats_servers) {
         bail!("--nats-servers: 1 to 32");
     }
-    let nats = Nats::start(
-        &args.nats_server,
-        &dir.path().join("nats"),
-        args.nats_threads,
-        args.nats_servers,
-    )
-    .await?;
     let pki = cloud::devpki::ensure(&dir.path().join("pki"))?;
+    let nats = Nats::start(&args, &dir.path().join("nats"), &pki).await?;
     let store = cloud::store::Store::open(&args.database).await?;
     let domain = "CLUSTER".to_owned();
     if store.domain_exists(&domain).await? {
@@ -365,6 +389,7 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
         config.server.tls_key = Some(pki.key.clone());
         config.cluster.nats = Some(nats.url());
         config.cluster.nats_replicas = args.nats_servers.min(5);
+        config.cluster.nats_ca = nats.ca.clone();
         config.cluster.node = Some(format!("bench-{i}"));
         config.cluster.holder_ttl_s = args.holder_ttl_s;
         config.database.connections = connections;
