@@ -1,4 +1,4 @@
-//! How a portal process reaches NATS (docs/CLUSTER.md §Securing NATS): the server's URL with the
+//! How a portal process reaches NATS (docs/CLUSTER.md §Securing NATS): the servers' URLs with the
 //! credentials NATS URLs carry — `USER:PASSWORD@` or a `TOKEN@` — and TLS trusting a CA of its
 //! own, with a client certificate for servers that verify their clients.
 //!
@@ -122,7 +122,7 @@ impl NatsAccess {
         &self.shown
     }
 
-    /// An error about this server (shown without credentials).
+    /// An error about these servers (shown without credentials).
     pub(crate) fn error(&self, why: String) -> NatsConfigError {
         NatsConfigError {
             shown: self.shown().to_owned(),
@@ -155,7 +155,8 @@ impl NatsAccess {
 /// `server` without the user part of its URL.
 fn without_credentials(server: &ServerAddr) -> ServerAddr {
     let mut url = server.clone().into_inner();
-    // Both fail only for URLs without a host, which a NATS address always has.
+    // Both fail only for URLs without a host, which a NATS address always has; the scheme is
+    // the one `server` was parsed with, so `from_url` takes it again.
     let _ = url.set_password(None);
     let _ = url.set_username("");
     ServerAddr::from_url(url).unwrap_or_else(|_| server.clone())
