@@ -144,18 +144,15 @@ impl Nats {
         })
     }
 
-    /// A client of server `url`, as the portals connect (TLS trusting the benchmark's CA).
+    /// A client of server `url`, connected as the portals connect (`[cluster] nats_ca`).
     async fn client(&self, url: &str) -> anyhow::Result<async_nats::Client> {
-        let options = match &self.ca {
-            Some(ca) => {
-                let config = tls::client_config(Some(ca), None)?;
-                async_nats::ConnectOptions::new()
-                    .require_tls(true)
-                    .tls_client_config(std::sync::Arc::unwrap_or_clone(config))
-            }
-            None => async_nats::ConnectOptions::new(),
+        let section = cloud::config::ClusterSection {
+            nats_ca: self.ca.clone(),
+            ..Default::default()
         };
-        Ok(options.connect(url).await?)
+        let access = cloud::cluster::nats::NatsAccess::from_config(&section, url)?;
+        let options = access.apply(async_nats::ConnectOptions::new());
+        Ok(options.connect(access.servers()).await?)
     }
 
     /// `[cluster] nats`: every server.

@@ -265,15 +265,8 @@ mod tests {
     #[test]
     fn tls_is_required_by_scheme_or_by_a_ca_file() {
         let dir = tempfile::tempdir().unwrap();
-        let key = rcgen::KeyPair::generate().unwrap();
-        let ca = rcgen::CertificateParams::new(vec!["nats.internal".to_owned()])
-            .unwrap()
-            .self_signed(&key)
-            .unwrap();
-        let ca_file = dir.path().join("ca.pem");
-        std::fs::write(&ca_file, ca.pem()).unwrap();
         let with_ca = ClusterSection {
-            nats_ca: Some(ca_file),
+            nats_ca: Some(testkit::pki::pki(dir.path()).ca),
             ..ClusterSection::default()
         };
         let a = NatsAccess::from_config(&with_ca, "nats://nats.internal:4222").unwrap();
