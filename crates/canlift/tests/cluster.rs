@@ -731,12 +731,31 @@ async fn nats_with_a_password_and_tls() {
         json!("ok\n")
     );
 
+    refused_after_restart(
+        &mut cluster,
+        |p1| {
+            let config = std::fs::read_to_string(&p1.config).expect("p1's configuration");
+            let wrong = config.replace("s3cr%3At%40x", "wrong");
+            assert_ne!(config, wrong);
+            std::fs::write(&p1.config, wrong).expect("written");
+        },
+        &["wrong", "s3cr"],
+    )
+    .await;
+    cluster.stop().await;
+}
+
+/// p1 killed, `change` made to what it reads at start, p1 started again: NATS refuses it, and
+/// `/healthz` says why (showing none of `secrets`); p1 answers 503 for the lift p0 holds, which
+/// p0 still serves.
+async fn refused_after_restart(
+    cluster: &mut Cluster,
+    change: impl FnOnce(&PortalProcess),
+    secrets: &[&str],
+) {
     let p1 = &mut cluster.portals[1];
     p1.kill().await;
-    let config = std::fs::read_to_string(&p1.config).expect("p1's configuration");
-    let wrong = config.replace("s3cr%3At%40x", "wrong");
-    assert_ne!(config, wrong);
-    std::fs::write(&p1.config, wrong).expect("written");
+    change(p1);
     p1.restart().await;
     let took = until(LIMIT, "p1 says why it has no NATS", || async {
         let health = cluster.call(1, "GET", "/healthz", None).await.1;
@@ -749,13 +768,89 @@ async fn nats_with_a_password_and_tls() {
     let health = answer.as_str().unwrap_or_default();
     eprintln!("p1 degraded after {took:?}: {health}");
     assert!(health.starts_with("degraded: NATS unreachable"), "{health}");
-    assert!(
-        !health.contains("wrong") && !health.contains("s3cr"),
-        "{health}"
-    );
+    for secret in secrets {
+        assert!(!health.contains(secret), "{health}");
+    }
     let (status, answer) = cluster.read(1).await;
     assert_eq!(status, 503, "no NATS, no relay: {answer}");
     assert_eq!(cluster.read(0).await.0, 200, "the holder serves its lift");
+}
+
+/// A NATS server started with configuration `conf` (written to a file in `dir`) and a user file
+/// `name` with `content`, named in each process's `[cluster]` by `option`: the processes reach
+/// the server with it, and a lift held by p0 is read through p1.
+async fn cluster_on_secured_nats(
+    dir: &std::path::Path,
+    conf: &str,
+    (name, content, option): (&str, &str, &str),
+) -> Option<(Cluster, std::path::PathBuf)> {
+    let conf_file = dir.join("nats.conf");
+    std::fs::write(&conf_file, conf).expect("written");
+    let user_file = dir.join(name);
+    std::fs::write(&user_file, content).expect("written");
+    let conf_file = conf_file.to_str().expect("UTF-8").to_owned();
+    let nats = Nats::start_with(&["-c", conf_file.as_str()])?;
+    let url = nats.url();
+    let more = format!("{option} = \"{}\"\n", user_file.display());
+    let name = format!("cluster_{option}");
+    let cluster = Cluster::start_on(vec![nats], &url, &name, 2, 6, &more).await?;
+    let (status, answer) = cluster.read(1).await;
+    assert_eq!(status, 200, "relayed through NATS ({option}): {answer}");
+    assert_eq!(
+        cluster.call(1, "GET", "/healthz", None).await.1,
+        json!("ok\n")
+    );
+    Some((cluster, user_file))
+}
+
+/// NATS that knows its users by NKey (docs/CLUSTER.md §Securing NATS): the processes sign the
+/// server's nonce with the seed `nats_nkey` names; p1 started again with another user's seed is
+/// refused.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nats_with_an_nkey_user() {
+    let dir = testkit::scratch();
+    let (conf, seed) = testkit::nats::auth::nkey_user();
+    let Some((mut cluster, seed_file)) =
+        cluster_on_secured_nats(dir.path(), &conf, ("portal.nk", &seed, "nats_nkey")).await
+    else {
+        return;
+    };
+    let (_, stranger) = testkit::nats::auth::nkey_user();
+    refused_after_restart(
+        &mut cluster,
+        |_| std::fs::write(&seed_file, &stranger).expect("written"),
+        &[&seed, &stranger],
+    )
+    .await;
+    cluster.stop().await;
+}
+
+/// NATS in operator mode (JWT authentication, as NGS or a server set up with `nsc`): the
+/// processes present the user JWT of the credentials file `nats_creds` names and sign with its
+/// seed; p1 started again with the credentials of another operator's user is refused.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nats_with_jwt_credentials() {
+    let dir = testkit::scratch();
+    let (conf, creds) = testkit::nats::auth::operator_mode();
+    let Some((mut cluster, creds_file)) =
+        cluster_on_secured_nats(dir.path(), &conf, ("portal.creds", &creds, "nats_creds")).await
+    else {
+        return;
+    };
+    let (_, stranger) = testkit::nats::auth::operator_mode();
+    // The JWTs and the seeds: the long lines of the two files that are not decoration or prose.
+    let secrets: Vec<&str> = creds
+        .lines()
+        .chain(stranger.lines())
+        .filter(|line| line.len() > 40 && !line.starts_with(['-', '*']) && !line.contains(' '))
+        .collect();
+    assert_eq!(secrets.len(), 4);
+    refused_after_restart(
+        &mut cluster,
+        |_| std::fs::write(&creds_file, &stranger).expect("written"),
+        &secrets,
+    )
+    .await;
     cluster.stop().await;
 }
 

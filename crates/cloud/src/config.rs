@@ -309,8 +309,8 @@ pub struct Config {
 pub struct ClusterSection {
     /// The NATS server (with JetStream, `nats-server -js`): `nats://HOST:PORT`, or
     /// `tls://HOST:PORT` to require TLS; credentials as NATS URLs carry them,
-    /// `nats://USER:PASSWORD@HOST:PORT` or `nats://TOKEN@HOST:PORT` (docs/CLUSTER.md §Securing NATS).
-    /// The servers of a NATS cluster separated by commas.
+    /// `nats://USER:PASSWORD@HOST:PORT` or `nats://TOKEN@HOST:PORT` (docs/CLUSTER.md §Securing NATS;
+    /// or `nats_creds`, or `nats_nkey`). The servers of a NATS cluster separated by commas.
     pub nats: Option<String>,
     /// Copies of the holder bucket in a NATS cluster (1 to 5; 3 outlives the loss of a NATS
     /// server).
@@ -322,6 +322,12 @@ pub struct ClusterSection {
     pub nats_cert: Option<PathBuf>,
     /// The private key (PEM) of `nats_cert`.
     pub nats_key: Option<PathBuf>,
+    /// A NATS user credentials file (the user's JWT and NKey seed, as `nsc generate creds` writes
+    /// it) for a NATS server that authenticates by JWT (operator mode).
+    pub nats_creds: Option<PathBuf>,
+    /// A file holding a NATS user's NKey seed (`SU…`, as `nk -gen user` writes it) for a NATS
+    /// server that lists its users by NKey.
+    pub nats_nkey: Option<PathBuf>,
     /// This process's name in the cluster; absent: the host name and the listening port.
     pub node: Option<String>,
     /// Seconds a process's lease stands unrenewed (it renews it every third of this): how
@@ -336,6 +342,8 @@ impl Default for ClusterSection {
             nats_ca: None,
             nats_cert: None,
             nats_key: None,
+            nats_creds: None,
+            nats_nkey: None,
             nats_replicas: 1,
             node: None,
             holder_ttl_s: 15,

@@ -71,6 +71,9 @@ impl Nats {
     /// Start the stopped server again on the same port, and wait until it listens.
     pub fn start_again(&mut self) {
         self.stop();
+        // Its log (what it says when a configuration stops it) for the assertion below.
+        let log_path = self.store.path().join("nats-server.log");
+        let log = std::fs::File::create(&log_path).expect("a log file in the scratch directory");
         let child = Command::new("nats-server")
             .args([
                 "-js",
@@ -83,7 +86,7 @@ impl Nats {
             .arg(self.store.path())
             .args(&self.options)
             .stdout(Stdio::null())
-            .stderr(Stdio::null())
+            .stderr(log)
             .spawn()
             .expect("nats-server starts");
         self.child = Some(child);
@@ -91,7 +94,8 @@ impl Nats {
         while std::net::TcpStream::connect(("127.0.0.1", self.port)).is_err() {
             assert!(
                 begin.elapsed() < Duration::from_secs(10),
-                "nats-server listens within 10 s"
+                "nats-server listens within 10 s; its log:\n{}",
+                std::fs::read_to_string(&log_path).unwrap_or_default()
             );
             std::thread::sleep(Duration::from_millis(20));
         }
@@ -151,4 +155,106 @@ pub fn monitoring(monitor: u16, path: &str) -> String {
         }
     }
     page
+}
+
+/// NATS's decentralized and NKey authentication for tests: keys, JWTs signed as `nsc` signs
+/// them, and the server configuration and user files that go with them.
+#[cfg(feature = "nats-auth")]
+pub mod auth {
+    use base64::engine::general_purpose::URL_SAFE_NO_PAD;
+    use base64::Engine as _;
+    use nkeys::KeyPair;
+    use serde_json::{json, Value};
+
+    /// A server configuration (`nats-server -c`) with one user, known by its NKey, and that
+    /// user's seed (what `[cluster] nats_nkey` names).
+    pub fn nkey_user() -> (String, String) {
+        let user = KeyPair::new_user();
+        let conf = format!(
+            "authorization {{\n  users = [ {{ nkey: \"{}\" }} ]\n}}\n",
+            user.public_key()
+        );
+        (conf, seed(&user))
+    }
+
+    /// A server in operator mode (JWT authentication: an operator, its system account, one
+    /// account with JetStream and one user of it, the accounts preloaded into a memory resolver) and the user's
+    /// credentials file (what `[cluster] nats_creds` names), as `nsc generate creds` writes it.
+    pub fn operator_mode() -> (String, String) {
+        let operator = KeyPair::new_operator();
+        // JetStream needs the server's system account, which operator mode takes from a JWT.
+        let system = KeyPair::new_account();
+        let account = KeyPair::new_account();
+        let user = KeyPair::new_user();
+        let unlimited = json!({
+            "subs": -1, "data": -1, "payload": -1, "imports": -1, "exports": -1,
+            "wildcards": true, "conn": -1, "leaf": -1,
+            "mem_storage": -1, "disk_storage": -1, "streams": -1, "consumer": -1,
+        });
+        let operator_jwt = jwt(
+            &operator,
+            &operator,
+            "canlift-test",
+            json!({"type": "operator", "version": 2, "system_account": system.public_key()}),
+        );
+        let system_jwt = jwt(
+            &operator,
+            &system,
+            "SYS",
+            json!({"type": "account", "version": 2}),
+        );
+        let account_jwt = jwt(
+            &operator,
+            &account,
+            "canlift",
+            json!({"type": "account", "version": 2, "limits": unlimited}),
+        );
+        let user_jwt = jwt(
+            &account,
+            &user,
+            "portal",
+            json!({
+                "type": "user", "version": 2, "pub": {}, "sub": {},
+                "subs": -1, "data": -1, "payload": -1,
+            }),
+        );
+        let conf = format!(
+            "operator: \"{operator_jwt}\"\nsystem_account: {}\nresolver: MEMORY\n\
+             resolver_preload: {{\n  {}: \"{system_jwt}\"\n  {}: \"{account_jwt}\"\n}}\n",
+            system.public_key(),
+            system.public_key(),
+            account.public_key()
+        );
+        let creds = format!(
+            "-----BEGIN NATS USER JWT-----\n{user_jwt}\n------END NATS USER JWT------\n\n\
+             ************************* IMPORTANT *************************\n\
+             NKEY Seed printed below can be used to sign and prove identity.\n\
+             NKEYs are sensitive and should be treated as secrets.\n\n\
+             -----BEGIN USER NKEY SEED-----\n{}\n------END USER NKEY SEED------\n\n\
+             *************************************************************\n",
+            seed(&user)
+        );
+        (conf, creds)
+    }
+
+    fn seed(pair: &KeyPair) -> String {
+        pair.seed().expect("a key made here has its seed")
+    }
+
+    /// A NATS JWT (v2) about `subject`, signed by `issuer`.
+    fn jwt(issuer: &KeyPair, subject: &KeyPair, name: &str, nats: Value) -> String {
+        let header = json!({"typ": "JWT", "alg": "ed25519-nkey"});
+        let mut claims = json!({
+            "iat": 1_700_000_000,
+            "iss": issuer.public_key(),
+            "name": name,
+            "sub": subject.public_key(),
+            "nats": nats,
+        });
+        claims["jti"] = Value::String(format!("canlift-test-{}", subject.public_key()));
+        let encode = |value: &Value| URL_SAFE_NO_PAD.encode(value.to_string());
+        let signed = format!("{}.{}", encode(&header), encode(&claims));
+        let signature = issuer.sign(signed.as_bytes()).expect("signed");
+        format!("{signed}.{}", URL_SAFE_NO_PAD.encode(signature))
+    }
 }

@@ -117,7 +117,7 @@ impl Cluster {
         let last_error = Arc::new(Mutex::new(None));
         let (poke, name, noted) = (nats_changed.clone(), node.clone(), last_error.clone());
         let options = access
-            .apply(async_nats::ConnectOptions::new())
+            .apply(async_nats::ConnectOptions::new())?
             .name(format!("canlift portal {node}"))
             .retry_on_initial_connect()
             .connection_timeout(Duration::from_secs(2))

@@ -1,11 +1,14 @@
 //! How a portal process reaches NATS (docs/CLUSTER.md §Securing NATS): the servers' URLs with the
-//! credentials NATS URLs carry — `USER:PASSWORD@` or a `TOKEN@` — and TLS trusting a CA of its
-//! own, with a client certificate for servers that verify their clients.
+//! credentials NATS URLs carry — `USER:PASSWORD@` or a `TOKEN@` — or a user's NKey seed or
+//! credentials file (JWT), and TLS trusting a CA of its own, with a client certificate for servers
+//! that verify their clients.
 //!
 //! Whoever can publish on NATS can ask any lift's holder for anything an operator may ask, so a
 //! NATS reachable beyond one machine needs both. async-nats takes no credentials from the URL
 //! (it would connect without them, and NATS would refuse it), so they are taken out here; the
 //! URL is shown, in logs, errors and `/healthz`, only without them.
+
+use std::path::{Path, PathBuf};
 
 use async_nats::{ConnectOptions, ServerAddr};
 
@@ -21,12 +24,30 @@ pub struct NatsAccess {
     tls: Option<rustls::ClientConfig>,
 }
 
-/// What a NATS URL's user part means: `USER:PASSWORD`, or a token alone (as NATS's own clients
-/// read it).
-#[derive(Debug, PartialEq, Eq)]
+/// How this process proves who it is to NATS: one of the ways NATS's authorization offers.
+#[derive(PartialEq, Eq)]
 enum Credentials {
+    /// A NATS URL's `USER:PASSWORD@`.
     UserPassword { user: String, password: String },
+    /// A NATS URL's `TOKEN@` (a user part without a password, as NATS's own clients read it).
     Token(String),
+    /// `nats_nkey`: a user's NKey seed, with which the server's nonce is signed.
+    NKey(String),
+    /// `nats_creds`: a credentials file's text, its user JWT sent and the nonce signed with its
+    /// seed (NATS's operator mode).
+    Jwt { file: PathBuf, text: String },
+}
+
+/// Names the kind of credentials and never a secret.
+impl std::fmt::Debug for Credentials {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Credentials::UserPassword { user, .. } => write!(f, "user {user} with a password"),
+            Credentials::Token(_) => f.write_str("a token"),
+            Credentials::NKey(_) => f.write_str("an NKey seed"),
+            Credentials::Jwt { file, .. } => write!(f, "credentials file {}", file.display()),
+        }
+    }
 }
 
 /// Why `[cluster]` cannot reach NATS as written; the URLs in it are shown without credentials.
@@ -39,8 +60,9 @@ pub struct NatsConfigError {
 
 impl NatsAccess {
     /// Read `[cluster] nats` (one URL, or the URLs of a NATS cluster separated by commas),
-    /// `nats_ca`, `nats_cert` and `nats_key`: the files are read now, so that a wrong one stops
-    /// the process at start instead of failing every reconnection.
+    /// `nats_creds` or `nats_nkey`, `nats_ca`, `nats_cert` and `nats_key`: the files are read and
+    /// the credentials parsed now, so that a wrong one stops the process at start instead of
+    /// failing every reconnection.
     pub fn from_config(
         section: &ClusterSection,
         urls: &str,
@@ -94,6 +116,40 @@ impl NatsAccess {
                 _ => credentials = Some(these),
             }
         }
+        let read = |option: &str, file: &Path| {
+            std::fs::read_to_string(file)
+                .map_err(|e| refuse(&shown, format!("{option} {}: {e}", file.display())))
+        };
+        let mut from_files = Vec::new();
+        if let Some(file) = &section.nats_nkey {
+            let seed = read("nats_nkey", file)?.trim().to_owned();
+            let why = match nkeys::KeyPair::from_seed(&seed) {
+                Ok(pair) if pair.key_pair_type() == nkeys::KeyPairType::User => None,
+                Ok(_) => Some("the seed of another kind of key than a user's (SU…)".to_owned()),
+                Err(e) => Some(format!("not an NKey seed ({e})")),
+            };
+            if let Some(why) = why {
+                return Err(refuse(
+                    &shown,
+                    format!("nats_nkey {}: {why}", file.display()),
+                ));
+            }
+            from_files.push(Credentials::NKey(seed));
+        }
+        if let Some(file) = &section.nats_creds {
+            let text = read("nats_creds", file)?;
+            from_files.push(Credentials::Jwt {
+                file: file.clone(),
+                text,
+            });
+        }
+        if from_files.len() + usize::from(credentials.is_some()) > 1 {
+            return Err(refuse(
+                &shown,
+                "one way to authenticate: credentials in the URL, nats_creds or nats_nkey".into(),
+            ));
+        }
+        let credentials = credentials.or(from_files.pop());
         let identity = match (&section.nats_cert, &section.nats_key) {
             (Some(cert), Some(key)) => Some(tls::Identity { cert, key }),
             (None, None) => None,
@@ -109,12 +165,15 @@ impl NatsAccess {
         } else {
             None
         };
-        Ok(NatsAccess {
+        let access = NatsAccess {
             servers,
             shown,
             credentials,
             tls,
-        })
+        };
+        // A credentials file is parsed here, not at the first connection.
+        access.apply(ConnectOptions::new())?;
+        Ok(access)
     }
 
     /// The servers' URLs as they may be shown: without credentials.
@@ -137,18 +196,23 @@ impl NatsAccess {
 
     /// `options` with the credentials and, where asked for, TLS required with canlift's TLS
     /// configuration (the CA of `nats_ca`, else the system's roots; the client certificate).
-    pub fn apply(&self, options: ConnectOptions) -> ConnectOptions {
+    /// Fails only on a credentials file that [`NatsAccess::from_config`] already refused.
+    pub fn apply(&self, options: ConnectOptions) -> Result<ConnectOptions, NatsConfigError> {
         let options = match &self.credentials {
             Some(Credentials::UserPassword { user, password }) => {
                 options.user_and_password(user.clone(), password.clone())
             }
             Some(Credentials::Token(token)) => options.token(token.clone()),
+            Some(Credentials::NKey(seed)) => options.nkey(seed.clone()),
+            Some(Credentials::Jwt { file, text }) => options
+                .credentials(text)
+                .map_err(|e| self.error(format!("nats_creds {}: {e}", file.display())))?,
             None => options,
         };
-        match &self.tls {
+        Ok(match &self.tls {
             Some(config) => options.require_tls(true).tls_client_config(config.clone()),
             None => options,
-        }
+        })
     }
 }
 
@@ -259,6 +323,88 @@ mod tests {
                 .to_string();
             assert!(e.contains(why), "{url}: {e}");
             assert!(!e.contains("secret"), "{url}: {e}");
+        }
+    }
+
+    #[test]
+    fn nkey_seeds_and_credentials_files_are_read_at_start() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = |name: &str, text: &str| {
+            let path = dir.path().join(name);
+            std::fs::write(&path, text).unwrap();
+            Some(path)
+        };
+        let url = "nats://127.0.0.1:4222";
+        let (_, seed) = testkit::nats::auth::nkey_user();
+        let (_, creds) = testkit::nats::auth::operator_mode();
+        let nkey = ClusterSection {
+            nats_nkey: file("user.nk", &format!("{seed}\n")),
+            ..ClusterSection::default()
+        };
+        let a = NatsAccess::from_config(&nkey, url).unwrap();
+        assert_eq!(a.credentials, Some(Credentials::NKey(seed.clone())));
+        assert_eq!(format!("{:?}", a.credentials.unwrap()), "an NKey seed");
+        let jwt = ClusterSection {
+            nats_creds: file("user.creds", &creds),
+            ..ClusterSection::default()
+        };
+        assert!(matches!(
+            NatsAccess::from_config(&jwt, url).unwrap().credentials,
+            Some(Credentials::Jwt { .. })
+        ));
+
+        let account_seed = nkeys::KeyPair::new_account().seed().unwrap();
+        let both = ClusterSection {
+            nats_nkey: nkey.nats_nkey.clone(),
+            nats_creds: jwt.nats_creds.clone(),
+            ..ClusterSection::default()
+        };
+        for (section, url, why) in [
+            (
+                nkey.clone(),
+                "nats://user:pw@127.0.0.1",
+                "one way to authenticate",
+            ),
+            (both, url, "one way to authenticate"),
+            (
+                ClusterSection {
+                    nats_nkey: file("account.nk", &account_seed),
+                    ..ClusterSection::default()
+                },
+                url,
+                "another kind of key",
+            ),
+            (
+                ClusterSection {
+                    nats_nkey: file("garbage.nk", "SUNOTASEED"),
+                    ..ClusterSection::default()
+                },
+                url,
+                "garbage.nk: not an NKey seed",
+            ),
+            (
+                ClusterSection {
+                    nats_creds: file("half.creds", &creds[..creds.find("IMPORTANT").unwrap()]),
+                    ..ClusterSection::default()
+                },
+                url,
+                "half.creds: cannot parse nkey",
+            ),
+            (
+                ClusterSection {
+                    nats_creds: Some(dir.path().join("absent.creds")),
+                    ..ClusterSection::default()
+                },
+                url,
+                "absent.creds: No such file",
+            ),
+        ] {
+            let e = NatsAccess::from_config(&section, url)
+                .err()
+                .unwrap()
+                .to_string();
+            assert!(e.contains(why), "{e}");
+            assert!(!e.contains(&seed) && !e.contains(&account_seed), "{e}");
         }
     }
 
