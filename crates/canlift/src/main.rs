@@ -37,11 +37,11 @@ enum Command {
     Scan(cmd::scan::ScanArgs),
     /// Layer setting services (CiA 305): node-IDs and bit rates, Fastscan.
     Lss(cmd::lss::LssArgs),
-    /// Produce SYNC at a period (with the counter if asked).
     /// Another node's PDOs over SDO: show them, or configure one (CiA 301 mapping procedure).
     Pdo(cmd::pdo::PdoArgs),
     /// A node's configuration as a DCF: apply one (identity checked), or read one.
     Dcf(cmd::dcf::DcfArgs),
+    /// Produce SYNC at a period (with the counter if asked).
     Sync(cmd::sync::SyncArgs),
     /// Send the TIME object: the system's time or a given one.
     Time(cmd::time::TimeArgs),

@@ -776,21 +776,32 @@ async fn refused_after_restart(
     assert_eq!(cluster.read(0).await.0, 200, "the holder serves its lift");
 }
 
-/// A NATS server started with configuration `conf` (written to a file in `dir`) and a user file
-/// `name` with `content`, named in each process's `[cluster]` by `option`: the processes reach
-/// the server with it, and a lift held by p0 is read through p1.
+/// A NATS server started with configuration `conf` (written to a file in `dir`).
+fn secured_nats(dir: &std::path::Path, conf: &str) -> Option<Nats> {
+    let conf_file = dir.join("nats.conf");
+    std::fs::write(&conf_file, conf).expect("written");
+    let conf_file = conf_file.to_str().expect("UTF-8").to_owned();
+    Nats::start_with(&["-c", conf_file.as_str()])
+}
+
+/// A file `name` in `dir` holding `content`: a NATS user's seed or credentials.
+fn user_file(dir: &std::path::Path, name: &str, content: &str) -> std::path::PathBuf {
+    let path = dir.join(name);
+    std::fs::write(&path, content).expect("written");
+    path
+}
+
+/// Two processes on a NATS server started with configuration `conf`, each reaching it as the
+/// user whose file `name` (with `content`) its `[cluster]` names by `option`; a lift held by p0
+/// is read through p1.
 async fn cluster_on_secured_nats(
     dir: &std::path::Path,
     conf: &str,
     (name, content, option): (&str, &str, &str),
 ) -> Option<(Cluster, std::path::PathBuf)> {
-    let conf_file = dir.join("nats.conf");
-    std::fs::write(&conf_file, conf).expect("written");
-    let user_file = dir.join(name);
-    std::fs::write(&user_file, content).expect("written");
-    let conf_file = conf_file.to_str().expect("UTF-8").to_owned();
-    let nats = Nats::start_with(&["-c", conf_file.as_str()])?;
+    let nats = secured_nats(dir, conf)?;
     let url = nats.url();
+    let user_file = user_file(dir, name, content);
     let more = format!("{option} = \"{}\"\n", user_file.display());
     let name = format!("cluster_{option}");
     let cluster = Cluster::start_on(vec![nats], &url, &name, 2, 6, &more).await?;
@@ -803,18 +814,54 @@ async fn cluster_on_secured_nats(
     Some((cluster, user_file))
 }
 
-/// NATS that knows its users by NKey (docs/CLUSTER.md §Securing NATS): the processes sign the
-/// server's nonce with the seed `nats_nkey` names; p1 started again with another user's seed is
-/// refused.
+/// The NATS user docs/CLUSTER.md §Securing NATS shows (known by its NKey, allowed what a portal
+/// process needs and nothing else), as `public` key.
+fn documented_nkey_user(public: &str) -> String {
+    let page = std::fs::read_to_string(testkit::workspace().join("docs/CLUSTER.md"))
+        .expect("docs/CLUSTER.md");
+    let begin = page
+        .find("```text\nauthorization {\n  users = [")
+        .expect("the NKey user's configuration in docs/CLUSTER.md")
+        + "```text\n".len();
+    let block = &page[begin..];
+    let block = &block[..block.find("```").expect("the block's end")];
+    let key = block.find("nkey: \"").expect("an nkey") + "nkey: \"".len();
+    let end = key + block[key..].find('"').expect("the key's end");
+    format!("{}{public}{}", &block[..key], &block[end..])
+}
+
+/// NATS that knows its users by NKey, with the permissions docs/CLUSTER.md §Securing NATS gives
+/// the portals' user: the processes sign the server's nonce with the seed `nats_nkey` names, a
+/// lift held by p0 is read, watched and written through p1, and neither process was refused
+/// anything; p1 started again with another user's seed is refused.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn nats_with_an_nkey_user() {
     let dir = testkit::scratch();
-    let (conf, seed) = testkit::nats::auth::nkey_user();
+    let (public, seed) = testkit::nats::auth::nkey_user();
+    let conf = documented_nkey_user(&public);
     let Some((mut cluster, seed_file)) =
         cluster_on_secured_nats(dir.path(), &conf, ("portal.nk", &seed, "nats_nkey")).await
     else {
         return;
     };
+    let mut watch = cluster.watch_lantern(1).await;
+    cluster.write_lantern(3).await;
+    assert!(
+        pushed(&mut watch, 3).await.is_some(),
+        "p0's live event reaches p1's watcher"
+    );
+    cluster.write_0x502200(1, 4).await;
+    for index in 0..2 {
+        let health = cluster.call(index, "GET", "/healthz", None).await.1;
+        assert_eq!(health, json!("ok\n"), "p{index}");
+        assert_eq!(
+            cluster.portals[index]
+                .metric("canlift_cluster_nats_refused_total")
+                .await,
+            0,
+            "p{index}"
+        );
+    }
     let (_, stranger) = testkit::nats::auth::nkey_user();
     refused_after_restart(
         &mut cluster,
@@ -822,6 +869,49 @@ async fn nats_with_an_nkey_user() {
         &[&seed, &stranger],
     )
     .await;
+    cluster.stop().await;
+}
+
+/// The documented NATS user without the subscription to the lifts' subjects: the holder cannot
+/// take requests for its lift (the other process gets 503 at once: nobody answers on NATS), and
+/// says why in `/healthz` and `/metrics`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_nats_user_without_a_permission_is_degraded() {
+    let dir = testkit::scratch();
+    let (public, seed) = testkit::nats::auth::nkey_user();
+    let documented = documented_nkey_user(&public);
+    let conf = documented.replace(
+        r#"subscribe: ["canlift.lift.>", "_INBOX.>"]"#,
+        r#"subscribe: ["_INBOX.>"]"#,
+    );
+    assert_ne!(conf, documented, "the subscribe permission as documented");
+    let Some(nats) = secured_nats(dir.path(), &conf) else {
+        return;
+    };
+    let url = nats.url();
+    let more = format!(
+        "nats_nkey = \"{}\"\n",
+        user_file(dir.path(), "portal.nk", &seed).display()
+    );
+    let Some(cluster) = Cluster::start_on(vec![nats], &url, "cluster_refused", 2, 6, &more).await
+    else {
+        return;
+    };
+    let (status, answer) = cluster.read(1).await;
+    assert_eq!(status, 503, "nobody takes requests for p0's lift: {answer}");
+    let health = cluster.call(0, "GET", "/healthz", None).await.1;
+    let health = health.as_str().unwrap_or_default();
+    assert!(
+        health.starts_with("degraded: NATS refuses this process: Permissions Violation for Subscription to \"canlift.lift."),
+        "{health}"
+    );
+    assert!(
+        cluster.portals[0]
+            .metric("canlift_cluster_nats_refused_total")
+            .await
+            >= 1
+    );
+    assert_eq!(cluster.read(0).await.0, 200, "the holder serves its lift");
     cluster.stop().await;
 }
 

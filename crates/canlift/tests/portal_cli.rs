@@ -1,6 +1,7 @@
 //! The operator CLI against a running portal, gateway and simulated lift: `lifts`, `get`, `put`
 //! (learning datatype and unit first), `watch` until the trip counter rises, `alarms`, `events`,
-//! and the cloud token: `token rotate|reset`, `cloud token reset` on the portal's machine.
+//! and the cloud token: `token rotate|reset`, `cloud token reset` on the portal's machine; a
+//! cluster's NATS user key: `cloud nats-nkey`.
 
 use std::time::Duration;
 
@@ -323,4 +324,37 @@ async fn users_and_keys_on_the_command_line() {
     assert_eq!(users[0]["role"], "engineer");
     assert_eq!(users[0]["disabled"], true);
     rig.stop().await;
+}
+
+/// `canlift cloud nats-nkey FILE` writes a NATS user's seed that its owner alone may read and
+/// prints the public key it signs as (what the NATS server lists); an existing file is kept.
+#[tokio::test]
+async fn a_nats_user_key_for_its_owner_alone() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = testkit::scratch();
+    let file = dir.path().join("nats.nk");
+    let make = || {
+        common::canlift()
+            .args(["cloud", "nats-nkey"])
+            .arg(&file)
+            .output()
+    };
+    let made = make().await.expect("canlift runs");
+    assert!(made.status.success(), "{made:?}");
+    let public = String::from_utf8_lossy(&made.stdout).trim().to_owned();
+    let seed = std::fs::read_to_string(&file).expect("the seed file");
+    let pair = nkeys::KeyPair::from_seed(seed.trim()).expect("an NKey seed");
+    assert_eq!(pair.key_pair_type(), nkeys::KeyPairType::User);
+    assert_eq!(pair.public_key(), public);
+    let mode = std::fs::metadata(&file)
+        .expect("metadata")
+        .permissions()
+        .mode();
+    assert_eq!(mode & 0o777, 0o600, "{mode:o}");
+
+    let again = make().await.expect("canlift runs");
+    assert!(!again.status.success());
+    let said = String::from_utf8_lossy(&again.stderr);
+    assert!(said.contains("an existing file is kept"), "{said}");
+    assert_eq!(std::fs::read_to_string(&file).expect("the seed file"), seed);
 }

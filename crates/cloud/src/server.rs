@@ -588,8 +588,8 @@ async fn join_cluster(
     Ok(())
 }
 
-/// `/healthz`: `ok`, or in a cluster without NATS `degraded` with the reason (still 200: the
-/// process serves the gateways it holds).
+/// `/healthz`: `ok`, or in a cluster without NATS, or with a NATS that refuses part of its
+/// work, `degraded` with the reason (still 200: the process serves the gateways it holds).
 async fn health(State(registry): State<Arc<Registry>>) -> String {
     match registry.cluster() {
         Some(cluster) if !cluster.connected() => {
@@ -599,7 +599,13 @@ async fn health(State(registry): State<Arc<Registry>>) -> String {
                 .unwrap_or_default();
             format!("degraded: NATS unreachable{why} (lifts held by other processes answer 503)\n")
         }
-        _ => "ok\n".into(),
+        Some(cluster) => match cluster.refused() {
+            Some(why) => format!(
+                "degraded: NATS refuses this process: {why} (the permissions of its NATS user)\n"
+            ),
+            None => "ok\n".into(),
+        },
+        None => "ok\n".into(),
     }
 }
 
@@ -736,6 +742,7 @@ fn metrics_text(
             ),
             ("canlift_cluster_watch_lapsed_total", load(&n.watch_lapsed)),
             ("canlift_cluster_entries_swept_total", load(&n.swept)),
+            ("canlift_cluster_nats_refused_total", load(&n.nats_refused)),
         ]);
     }
     for (kind, list) in [("gauge", &gauges[..]), ("counter", &counters[..])] {

@@ -166,15 +166,11 @@ pub mod auth {
     use nkeys::KeyPair;
     use serde_json::{json, Value};
 
-    /// A server configuration (`nats-server -c`) with one user, known by its NKey, and that
-    /// user's seed (what `[cluster] nats_nkey` names).
+    /// A NATS user's NKey: its public key (`U…`, what the server's configuration lists) and
+    /// its seed (`SU…`, what `[cluster] nats_nkey` names).
     pub fn nkey_user() -> (String, String) {
         let user = KeyPair::new_user();
-        let conf = format!(
-            "authorization {{\n  users = [ {{ nkey: \"{}\" }} ]\n}}\n",
-            user.public_key()
-        );
-        (conf, seed(&user))
+        (user.public_key(), seed(&user))
     }
 
     /// A server in operator mode (JWT authentication: an operator, its system account, one

@@ -1,8 +1,9 @@
 //! `canlift cloud --config FILE`: the cloud portal (docs/PORTAL.md); `canlift cloud account add` creates
 //! an operator account and prints its API key once; `canlift cloud token reset LIFT` forgets a
 //! lift's cloud token in the portal's database; `user` and `key` manage an account's people and
-//! their API keys (docs/PORTAL.md §Users and roles). These are the administrator's commands on
-//! the portal's machine: they need the configuration, not an API key.
+//! their API keys (docs/PORTAL.md §Users and roles); `nats-nkey FILE` makes a cluster's NATS user
+//! key (docs/CLUSTER.md §Securing NATS). These are the administrator's commands on the portal's
+//! machine: they need the configuration, not an API key.
 
 use std::path::PathBuf;
 
@@ -45,6 +46,15 @@ enum CloudCommand {
     Key {
         #[command(subcommand)]
         what: KeyCommand,
+    },
+    /// A new NATS user key for the cluster: its seed written to FILE, its public key printed.
+    ///
+    /// The seed goes to FILE readable by its owner alone, for `[cluster] nats_nkey`; the public
+    /// key is for the NATS server's configuration (docs/CLUSTER.md §Securing NATS). An existing
+    /// FILE is kept.
+    NatsNkey {
+        /// Where the seed goes.
+        file: PathBuf,
     },
 }
 
@@ -204,6 +214,7 @@ pub async fn run(args: CloudArgs) -> anyhow::Result<()> {
             println!("{lift}: token forgotten; the gateway's next connection is a first contact");
             Ok(())
         }
+        Some(CloudCommand::NatsNkey { file }) => nats_nkey(&file),
         Some(CloudCommand::User { what }) => users(&config, what).await,
         Some(CloudCommand::Key { what }) => keys(&config, what).await,
         None => {
@@ -219,6 +230,23 @@ pub async fn run(args: CloudArgs) -> anyhow::Result<()> {
             Ok(())
         }
     }
+}
+
+/// `canlift cloud nats-nkey FILE`.
+fn nats_nkey(file: &std::path::Path) -> anyhow::Result<()> {
+    use std::io::Write;
+    use std::os::unix::fs::OpenOptionsExt;
+    let (public, seed) = cloud::cluster::nats::new_user_nkey()?;
+    // Created for its owner alone, never over an existing seed (which a NATS server may list).
+    let mut out = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .mode(0o600)
+        .open(file)
+        .with_context(|| format!("creating {} (an existing file is kept)", file.display()))?;
+    writeln!(out, "{seed}").with_context(|| format!("writing {}", file.display()))?;
+    println!("{public}");
+    Ok(())
 }
 
 /// The portal's database, opened by an administrator's command.

@@ -64,6 +64,18 @@ pub struct ClusterCounters {
     /// Watches of lifts held here that lapsed unrenewed (per watching process and lift): that
     /// process's watchers' subscriptions were let go of.
     pub watch_lapsed: AtomicU64,
+    /// Publications and subscriptions NATS refused (permissions violations).
+    pub nats_refused: AtomicU64,
+}
+
+/// What went wrong with NATS since the client last connected.
+#[derive(Default)]
+struct Troubles {
+    /// Why the last attempt to reach NATS failed (such as `authorization violation`).
+    unreachable: Option<String>,
+    /// The last publication or subscription NATS refused while connected: the NATS user lacks
+    /// a permission the cluster needs (docs/CLUSTER.md §Securing NATS).
+    refused: Option<String>,
 }
 
 /// This process's membership of the cluster.
@@ -95,10 +107,10 @@ pub struct Cluster {
     events: mpsc::Sender<(String, Vec<u8>)>,
     /// Who holds which subscriptions here: told when a lift moves, asked by other processes.
     subscriptions: std::sync::OnceLock<Weak<Subscriptions>>,
-    /// The NATS client's last error since it last connected.
-    last_error: Arc<Mutex<Option<String>>>,
+    /// What went wrong with NATS since the client last connected.
+    troubles: Arc<Mutex<Troubles>>,
     /// Counted for `/metrics`.
-    pub counters: ClusterCounters,
+    pub counters: Arc<ClusterCounters>,
 }
 
 impl Cluster {
@@ -114,8 +126,14 @@ impl Cluster {
         replicas: usize,
     ) -> Result<(Arc<Cluster>, mpsc::Receiver<(String, Vec<u8>)>), NatsConfigError> {
         let nats_changed = Arc::new(Notify::new());
-        let last_error = Arc::new(Mutex::new(None));
-        let (poke, name, noted) = (nats_changed.clone(), node.clone(), last_error.clone());
+        let troubles = Arc::new(Mutex::new(Troubles::default()));
+        let counters = Arc::new(ClusterCounters::default());
+        let (poke, name, noted, counted) = (
+            nats_changed.clone(),
+            node.clone(),
+            troubles.clone(),
+            counters.clone(),
+        );
         let options = access
             .apply(async_nats::ConnectOptions::new())?
             .name(format!("canlift portal {node}"))
@@ -125,21 +143,30 @@ impl Cluster {
                 Duration::from_millis((250 * attempts as u64).min(2_000))
             })
             .event_callback(move |event| {
-                let (poke, name, noted) = (poke.clone(), name.clone(), noted.clone());
+                let (poke, name, noted, counted) =
+                    (poke.clone(), name.clone(), noted.clone(), counted.clone());
                 async move {
                     match &event {
                         async_nats::Event::Connected => {
-                            lock(&noted).take();
+                            *lock(&noted) = Troubles::default();
                             tracing::info!(node = %name, "NATS connected")
                         }
                         async_nats::Event::Disconnected => {
                             tracing::warn!(node = %name, "NATS unreachable: serving the lifts held here only")
                         }
-                        async_nats::Event::ClientError(e) => note(&noted, &name, e.to_string()),
+                        async_nats::Event::ServerError(async_nats::ServerError::Other(e))
+                            if e.to_ascii_lowercase().starts_with("permissions violation") =>
+                        {
+                            counted.nats_refused.fetch_add(1, Ordering::Relaxed);
+                            note(&mut lock(&noted).refused, &name, e.clone());
+                        }
+                        async_nats::Event::ClientError(e) => {
+                            note(&mut lock(&noted).unreachable, &name, e.to_string())
+                        }
                         async_nats::Event::ServerError(
                             e @ (async_nats::ServerError::AuthorizationViolation
                             | async_nats::ServerError::Other(_)),
-                        ) => note(&noted, &name, e.to_string()),
+                        ) => note(&mut lock(&noted).unreachable, &name, e.to_string()),
                         other => tracing::debug!(node = %name, event = %other, "NATS"),
                     }
                     poke.notify_waiters();
@@ -169,8 +196,8 @@ impl Cluster {
             generation: watch::channel(0).0,
             events,
             subscriptions: std::sync::OnceLock::new(),
-            last_error,
-            counters: ClusterCounters::default(),
+            troubles,
+            counters,
         });
         Ok((cluster, events_rx))
     }
@@ -188,7 +215,13 @@ impl Cluster {
     /// Why the last attempt to reach NATS failed (such as `authorization violation`), while it
     /// is not reached again.
     pub fn last_error(&self) -> Option<String> {
-        lock(&self.last_error).clone()
+        lock(&self.troubles).unreachable.clone()
+    }
+
+    /// The last publication or subscription NATS refused since the client connected (a
+    /// permissions violation: part of the cluster's work fails while the NATS user lacks it).
+    pub fn refused(&self) -> Option<String> {
+        lock(&self.troubles).refused.clone()
     }
 
     /// How many lifts are held here.
@@ -974,9 +1007,9 @@ async fn answer(
 
 /// Keep the NATS client's error for `/healthz`; every failed attempt reports it again, so it is
 /// logged only when it changes.
-fn note(last: &Mutex<Option<String>>, node: &str, error: String) {
+/// `error` kept in `last`, and logged unless it is what `last` already held.
+fn note(last: &mut Option<String>, node: &str, error: String) {
     let error = error.trim_start_matches("nats: ").to_owned();
-    let mut last = lock(last);
     if last.as_deref() != Some(error.as_str()) {
         tracing::warn!(node, %error, "NATS");
         *last = Some(error);

@@ -216,6 +216,13 @@ impl NatsAccess {
     }
 }
 
+/// A new NATS user NKey (`canlift cloud nats-nkey`): its public key (`U…`, what the NATS server's
+/// configuration lists) and its seed (`SU…`, what `[cluster] nats_nkey` names).
+pub fn new_user_nkey() -> Result<(String, String), nkeys::error::Error> {
+    let pair = nkeys::KeyPair::new_user();
+    Ok((pair.public_key(), pair.seed()?))
+}
+
 /// `server` without the user part of its URL.
 fn without_credentials(server: &ServerAddr) -> ServerAddr {
     let mut url = server.clone().into_inner();
