@@ -681,6 +681,60 @@ async fn a_nats_cluster_outlives_one_of_its_servers() {
     cluster.stop().await;
 }
 
+/// A NATS grown into a cluster: the processes keep the holder bucket in one copy until p1 is
+/// started again asking for three — then every server has one, p0 (still asking for one) does
+/// not take them away, and the lift stays reachable through both.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_holder_bucket_gains_copies_when_asked() {
+    let Some(servers) = testkit::nats::cluster(3) else {
+        return;
+    };
+    let (nats, monitors): (Vec<Nats>, Vec<u16>) = servers.into_iter().unzip();
+    let url = nats.iter().map(Nats::url).collect::<Vec<_>>().join(",");
+    let Some(mut cluster) = Cluster::start_on(
+        nats,
+        &url,
+        "cluster_more_copies",
+        2,
+        6,
+        "nats_replicas = 1\n",
+    )
+    .await
+    else {
+        return;
+    };
+    let copies = || {
+        monitors
+            .iter()
+            .filter(|m| {
+                testkit::nats::monitoring(**m, "/jsz?streams=true").contains("KV_canlift-holders")
+            })
+            .count()
+    };
+    assert_eq!(copies(), 1, "one copy, as asked");
+    let p1 = &mut cluster.portals[1];
+    p1.kill().await;
+    let config = std::fs::read_to_string(&p1.config).expect("p1's configuration");
+    let three = config.replace("nats_replicas = 1\n", "nats_replicas = 3\n");
+    assert_ne!(config, three);
+    std::fs::write(&p1.config, three).expect("written");
+    p1.restart().await;
+    let took = until(LIMIT, "a copy of the bucket on each server", || async {
+        copies() == 3
+    })
+    .await;
+    eprintln!("three copies {took:?} after p1 asked for them");
+    cluster.wait_held_by(0).await;
+    assert_eq!(cluster.read(1).await.0, 200);
+    // p0 reconnects to NATS as any process may: it finds three copies and leaves them.
+    cluster.portals[0].kill().await;
+    cluster.portals[0].restart().await;
+    cluster.wait_held_by(0).await;
+    assert_eq!(cluster.read(1).await.0, 200);
+    assert_eq!(copies(), 3, "p0 asked for one and left three");
+    cluster.stop().await;
+}
+
 /// NATS with a user and password and TLS that verifies its clients (the processes' CA for it is
 /// not the portals'): the processes reach it with the credentials of their `nats` URL and the
 /// client certificate, a lift held by p0 is read through p1; p1 started again with a wrong

@@ -313,7 +313,7 @@ pub struct ClusterSection {
     /// or `nats_creds`, or `nats_nkey`). The servers of a NATS cluster separated by commas.
     pub nats: Option<String>,
     /// Copies of the holder bucket in a NATS cluster (1 to 5; 3 outlives the loss of a NATS
-    /// server).
+    /// server). A bucket with fewer is given more; one with more keeps them.
     pub nats_replicas: usize,
     /// The CA certificate (PEM) that signed the NATS server's: TLS to NATS, trusting it alone.
     pub nats_ca: Option<PathBuf>,

@@ -315,14 +315,33 @@ impl Cluster {
             }
             let bucket = match js.get_or_create_stream(config.clone()).await {
                 Ok(stream) => {
-                    // The process that made the bucket chose its copies; changing them under
-                    // running processes would have them take turns.
                     let copies = stream.cached_info().config.num_replicas;
-                    if copies != self.replicas {
+                    if copies < self.replicas {
+                        // A NATS grown into a cluster: the bucket gains copies in place, its
+                        // entries kept. Only ever more: processes configured apart during a
+                        // rolling change would otherwise take turns; the largest wish stands.
+                        let more = jetstream::stream::Config {
+                            num_replicas: self.replicas,
+                            ..stream.cached_info().config.clone()
+                        };
+                        match js.update_stream(more).await {
+                            Ok(_) => tracing::info!(
+                                copies = self.replicas,
+                                before = copies,
+                                "NATS: the holder bucket keeps more copies"
+                            ),
+                            Err(e) => tracing::warn!(
+                                error = %e,
+                                copies,
+                                nats_replicas = self.replicas,
+                                "NATS: the holder bucket keeps the copies it has"
+                            ),
+                        }
+                    } else if copies > self.replicas {
                         tracing::warn!(
                             copies,
                             nats_replicas = self.replicas,
-                            "NATS: the holder bucket keeps the copies it was made with"
+                            "NATS: the holder bucket keeps its copies (a process only ever asks for more)"
                         );
                     }
                     js.get_key_value(msgs::BUCKET)
