@@ -726,11 +726,16 @@ async fn the_holder_bucket_gains_copies_when_asked() {
     eprintln!("three copies {took:?} after p1 asked for them");
     cluster.wait_held_by(0).await;
     assert_eq!(cluster.read(1).await.0, 200);
-    // p0 reconnects to NATS as any process may: it finds three copies and leaves them.
+    // p0 reconnects to NATS as any process may: it finds three copies and leaves them. (Its
+    // gateway comes back to it or, through the balancer, to p1.)
     cluster.portals[0].kill().await;
     cluster.portals[0].restart().await;
-    cluster.wait_held_by(0).await;
-    assert_eq!(cluster.read(1).await.0, 200);
+    until(
+        LIMIT,
+        "the lift read through both processes again",
+        || async { cluster.read(0).await.0 == 200 && cluster.read(1).await.0 == 200 },
+    )
+    .await;
     assert_eq!(copies(), 3, "p0 asked for one and left three");
     cluster.stop().await;
 }
@@ -830,12 +835,15 @@ async fn refused_after_restart(
     assert_eq!(cluster.read(0).await.0, 200, "the holder serves its lift");
 }
 
-/// A NATS server started with configuration `conf` (written to a file in `dir`).
-fn secured_nats(dir: &std::path::Path, conf: &str) -> Option<Nats> {
+/// A NATS server started with configuration `conf` (written to a file in `dir`), and its
+/// monitoring port.
+fn secured_nats(dir: &std::path::Path, conf: &str) -> Option<(Nats, u16)> {
     let conf_file = dir.join("nats.conf");
     std::fs::write(&conf_file, conf).expect("written");
     let conf_file = conf_file.to_str().expect("UTF-8").to_owned();
-    Nats::start_with(&["-c", conf_file.as_str()])
+    let monitor = testkit::free_port().to_string();
+    let nats = Nats::start_with(&["-c", conf_file.as_str(), "-m", monitor.as_str()])?;
+    Some((nats, monitor.parse().expect("a port")))
 }
 
 /// A file `name` in `dir` holding `content`: a NATS user's seed or credentials.
@@ -852,8 +860,8 @@ async fn cluster_on_secured_nats(
     dir: &std::path::Path,
     conf: &str,
     (name, content, option): (&str, &str, &str),
-) -> Option<(Cluster, std::path::PathBuf)> {
-    let nats = secured_nats(dir, conf)?;
+) -> Option<(Cluster, std::path::PathBuf, u16)> {
+    let (nats, monitor) = secured_nats(dir, conf)?;
     let url = nats.url();
     let user_file = user_file(dir, name, content);
     let more = format!("{option} = \"{}\"\n", user_file.display());
@@ -865,7 +873,7 @@ async fn cluster_on_secured_nats(
         cluster.call(1, "GET", "/healthz", None).await.1,
         json!("ok\n")
     );
-    Some((cluster, user_file))
+    Some((cluster, user_file, monitor))
 }
 
 /// The NATS user docs/CLUSTER.md §Securing NATS shows (known by its NKey, allowed what a portal
@@ -893,7 +901,7 @@ async fn nats_with_an_nkey_user() {
     let dir = testkit::scratch();
     let (public, seed) = testkit::nats::auth::nkey_user();
     let conf = documented_nkey_user(&public);
-    let Some((mut cluster, seed_file)) =
+    let Some((mut cluster, seed_file, _)) =
         cluster_on_secured_nats(dir.path(), &conf, ("portal.nk", &seed, "nats_nkey")).await
     else {
         return;
@@ -939,7 +947,7 @@ async fn a_nats_user_without_a_permission_is_degraded() {
         r#"subscribe: ["_INBOX.>"]"#,
     );
     assert_ne!(conf, documented, "the subscribe permission as documented");
-    let Some(nats) = secured_nats(dir.path(), &conf) else {
+    let Some((nats, _)) = secured_nats(dir.path(), &conf) else {
         return;
     };
     let url = nats.url();
@@ -971,24 +979,56 @@ async fn a_nats_user_without_a_permission_is_degraded() {
 
 /// NATS in operator mode (JWT authentication, as NGS or a server set up with `nsc`): the
 /// processes present the user JWT of the credentials file `nats_creds` names and sign with its
-/// seed; p1 started again with the credentials of another operator's user is refused.
+/// seed. The file is read at each connection: the user's JWT expires, NATS lets the processes
+/// go, and they come back as the user of the renewed file without a restart. p1 started again
+/// with the credentials of another operator's user is refused.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn nats_with_jwt_credentials() {
     let dir = testkit::scratch();
-    let (conf, creds) = testkit::nats::auth::operator_mode();
-    let Some((mut cluster, creds_file)) =
-        cluster_on_secured_nats(dir.path(), &conf, ("portal.creds", &creds, "nats_creds")).await
+    let operator = testkit::nats::auth::OperatorMode::new();
+    let unix_now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .expect("after 1970")
+        .as_secs();
+    let (creds, first) = operator.user(Some(unix_now + 8));
+    let Some((mut cluster, creds_file, monitor)) = cluster_on_secured_nats(
+        dir.path(),
+        &operator.conf,
+        ("portal.creds", &creds, "nats_creds"),
+    )
+    .await
     else {
         return;
     };
-    let (_, stranger) = testkit::nats::auth::operator_mode();
-    // The JWTs and the seeds: the long lines of the two files that are not decoration or prose.
-    let secrets: Vec<&str> = creds
-        .lines()
-        .chain(stranger.lines())
+    // Both processes, as the file's user (the server's view of its clients).
+    let users = |user: &str| {
+        testkit::nats::monitoring(monitor, "/connz?auth=true")
+            .matches(user)
+            .count()
+    };
+    assert_eq!(users(&first), 2, "both processes as the first user");
+    // Renewed before it expires, as an operator's job would.
+    let (renewed, second) = operator.user(None);
+    std::fs::write(&creds_file, &renewed).expect("written");
+    let took = until(LIMIT, "both processes back as the renewed user", || async {
+        users(&second) == 2 && users(&first) == 0
+    })
+    .await;
+    eprintln!("both processes connected as the renewed user {took:?} after it was written");
+    assert_eq!(cluster.read(1).await.0, 200, "relayed after the renewal");
+    for index in 0..2 {
+        let health = cluster.call(index, "GET", "/healthz", None).await.1;
+        assert_eq!(health, json!("ok\n"), "p{index}");
+    }
+
+    let (stranger, _) = testkit::nats::auth::OperatorMode::new().user(None);
+    // The JWTs and the seeds: the long lines of the files that are not decoration or prose.
+    let secrets: Vec<&str> = [&creds, &renewed, &stranger]
+        .into_iter()
+        .flat_map(|text| text.lines())
         .filter(|line| line.len() > 40 && !line.starts_with(['-', '*']) && !line.contains(' '))
         .collect();
-    assert_eq!(secrets.len(), 4);
+    assert_eq!(secrets.len(), 6);
     refused_after_restart(
         &mut cluster,
         |_| std::fs::write(&creds_file, &stranger).expect("written"),

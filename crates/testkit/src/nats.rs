@@ -173,72 +173,104 @@ pub mod auth {
         (user.public_key(), seed(&user))
     }
 
-    /// A server in operator mode (JWT authentication: an operator, its system account, one
-    /// account with JetStream and one user of it, the accounts preloaded into a memory resolver) and the user's
-    /// credentials file (what `[cluster] nats_creds` names), as `nsc generate creds` writes it.
-    pub fn operator_mode() -> (String, String) {
-        let operator = KeyPair::new_operator();
-        // JetStream needs the server's system account, which operator mode takes from a JWT.
-        let system = KeyPair::new_account();
-        let account = KeyPair::new_account();
-        let user = KeyPair::new_user();
-        let unlimited = json!({
-            "subs": -1, "data": -1, "payload": -1, "imports": -1, "exports": -1,
-            "wildcards": true, "conn": -1, "leaf": -1,
-            "mem_storage": -1, "disk_storage": -1, "streams": -1, "consumer": -1,
-        });
-        let operator_jwt = jwt(
-            &operator,
-            &operator,
-            "canlift-test",
-            json!({"type": "operator", "version": 2, "system_account": system.public_key()}),
-        );
-        let system_jwt = jwt(
-            &operator,
-            &system,
-            "SYS",
-            json!({"type": "account", "version": 2}),
-        );
-        let account_jwt = jwt(
-            &operator,
-            &account,
-            "canlift",
-            json!({"type": "account", "version": 2, "limits": unlimited}),
-        );
-        let user_jwt = jwt(
-            &account,
-            &user,
-            "portal",
-            json!({
-                "type": "user", "version": 2, "pub": {}, "sub": {},
-                "subs": -1, "data": -1, "payload": -1,
-            }),
-        );
-        let conf = format!(
-            "operator: \"{operator_jwt}\"\nsystem_account: {}\nresolver: MEMORY\n\
-             resolver_preload: {{\n  {}: \"{system_jwt}\"\n  {}: \"{account_jwt}\"\n}}\n",
-            system.public_key(),
-            system.public_key(),
-            account.public_key()
-        );
-        let creds = format!(
-            "-----BEGIN NATS USER JWT-----\n{user_jwt}\n------END NATS USER JWT------\n\n\
-             ************************* IMPORTANT *************************\n\
-             NKEY Seed printed below can be used to sign and prove identity.\n\
-             NKEYs are sensitive and should be treated as secrets.\n\n\
-             -----BEGIN USER NKEY SEED-----\n{}\n------END USER NKEY SEED------\n\n\
-             *************************************************************\n",
-            seed(&user)
-        );
-        (conf, creds)
+    /// A NATS server in operator mode (JWT authentication, as `nsc` sets one up): an operator,
+    /// its system account (JetStream needs one), and one account with JetStream whose users
+    /// [`OperatorMode::user`] makes.
+    pub struct OperatorMode {
+        /// The server's configuration (`nats-server -c`): the operator, and the accounts
+        /// preloaded into a memory resolver.
+        pub conf: String,
+        account: KeyPair,
+    }
+
+    impl OperatorMode {
+        /// A new operator with its accounts.
+        pub fn new() -> OperatorMode {
+            let operator = KeyPair::new_operator();
+            let system = KeyPair::new_account();
+            let account = KeyPair::new_account();
+            let unlimited = json!({
+                "subs": -1, "data": -1, "payload": -1, "imports": -1, "exports": -1,
+                "wildcards": true, "conn": -1, "leaf": -1,
+                "mem_storage": -1, "disk_storage": -1, "streams": -1, "consumer": -1,
+            });
+            let operator_jwt = jwt(
+                &operator,
+                &operator,
+                "canlift-test",
+                json!({"type": "operator", "version": 2, "system_account": system.public_key()}),
+                None,
+            );
+            let system_jwt = jwt(
+                &operator,
+                &system,
+                "SYS",
+                json!({"type": "account", "version": 2}),
+                None,
+            );
+            let account_jwt = jwt(
+                &operator,
+                &account,
+                "canlift",
+                json!({"type": "account", "version": 2, "limits": unlimited}),
+                None,
+            );
+            let conf = format!(
+                "operator: \"{operator_jwt}\"\nsystem_account: {}\nresolver: MEMORY\n\
+                 resolver_preload: {{\n  {}: \"{system_jwt}\"\n  {}: \"{account_jwt}\"\n}}\n",
+                system.public_key(),
+                system.public_key(),
+                account.public_key()
+            );
+            OperatorMode { conf, account }
+        }
+
+        /// The credentials file of a new user of the account (what `[cluster] nats_creds`
+        /// names), as `nsc generate creds` writes it, and the user's public key; its JWT expires
+        /// at `expires` (Unix seconds) when given.
+        pub fn user(&self, expires: Option<u64>) -> (String, String) {
+            let user = KeyPair::new_user();
+            let user_jwt = jwt(
+                &self.account,
+                &user,
+                "portal",
+                json!({
+                    "type": "user", "version": 2, "pub": {}, "sub": {},
+                    "subs": -1, "data": -1, "payload": -1,
+                }),
+                expires,
+            );
+            let creds = format!(
+                "-----BEGIN NATS USER JWT-----\n{user_jwt}\n------END NATS USER JWT------\n\n\
+                 ************************* IMPORTANT *************************\n\
+                 NKEY Seed printed below can be used to sign and prove identity.\n\
+                 NKEYs are sensitive and should be treated as secrets.\n\n\
+                 -----BEGIN USER NKEY SEED-----\n{}\n------END USER NKEY SEED------\n\n\
+                 *************************************************************\n",
+                seed(&user)
+            );
+            (creds, user.public_key())
+        }
+    }
+
+    impl Default for OperatorMode {
+        fn default() -> Self {
+            OperatorMode::new()
+        }
     }
 
     fn seed(pair: &KeyPair) -> String {
         pair.seed().expect("a key made here has its seed")
     }
 
-    /// A NATS JWT (v2) about `subject`, signed by `issuer`.
-    fn jwt(issuer: &KeyPair, subject: &KeyPair, name: &str, nats: Value) -> String {
+    /// A NATS JWT (v2) about `subject`, signed by `issuer`, valid until `expires` if given.
+    fn jwt(
+        issuer: &KeyPair,
+        subject: &KeyPair,
+        name: &str,
+        nats: Value,
+        expires: Option<u64>,
+    ) -> String {
         let header = json!({"typ": "JWT", "alg": "ed25519-nkey"});
         let mut claims = json!({
             "iat": 1_700_000_000,
@@ -247,6 +279,9 @@ pub mod auth {
             "sub": subject.public_key(),
             "nats": nats,
         });
+        if let Some(expires) = expires {
+            claims["exp"] = json!(expires);
+        }
         claims["jti"] = Value::String(format!("canlift-test-{}", subject.public_key()));
         let encode = |value: &Value| URL_SAFE_NO_PAD.encode(value.to_string());
         let signed = format!("{}.{}", encode(&header), encode(&claims));

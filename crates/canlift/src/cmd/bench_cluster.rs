@@ -151,7 +151,7 @@ impl Nats {
             ..Default::default()
         };
         let access = cloud::cluster::nats::NatsAccess::from_config(&section, url)?;
-        let options = access.apply(async_nats::ConnectOptions::new())?;
+        let options = access.options();
         Ok(options.connect(access.servers()).await?)
     }
 

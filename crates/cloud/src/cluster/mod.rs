@@ -135,7 +135,7 @@ impl Cluster {
             counters.clone(),
         );
         let options = access
-            .apply(async_nats::ConnectOptions::new())?
+            .options()
             .name(format!("canlift portal {node}"))
             .retry_on_initial_connect()
             .connection_timeout(Duration::from_secs(2))

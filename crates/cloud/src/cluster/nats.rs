@@ -10,7 +10,7 @@
 
 use std::path::{Path, PathBuf};
 
-use async_nats::{ConnectOptions, ServerAddr};
+use async_nats::{Auth, AuthError, ConnectOptions, ServerAddr};
 
 use crate::config::ClusterSection;
 
@@ -33,9 +33,10 @@ enum Credentials {
     Token(String),
     /// `nats_nkey`: a user's NKey seed, with which the server's nonce is signed.
     NKey(String),
-    /// `nats_creds`: a credentials file's text, its user JWT sent and the nonce signed with its
-    /// seed (NATS's operator mode).
-    Jwt { file: PathBuf, text: String },
+    /// `nats_creds`: a credentials file, read again at each connection (a renewed user JWT
+    /// is taken up when NATS lets the expired one go), its JWT sent and the server's nonce signed
+    /// with its seed (NATS's operator mode).
+    Jwt(PathBuf),
 }
 
 /// Names the kind of credentials and never a secret.
@@ -45,7 +46,7 @@ impl std::fmt::Debug for Credentials {
             Credentials::UserPassword { user, .. } => write!(f, "user {user} with a password"),
             Credentials::Token(_) => f.write_str("a token"),
             Credentials::NKey(_) => f.write_str("an NKey seed"),
-            Credentials::Jwt { file, .. } => write!(f, "credentials file {}", file.display()),
+            Credentials::Jwt(file) => write!(f, "credentials file {}", file.display()),
         }
     }
 }
@@ -137,11 +138,9 @@ impl NatsAccess {
             from_files.push(Credentials::NKey(seed));
         }
         if let Some(file) = &section.nats_creds {
-            let text = read("nats_creds", file)?;
-            from_files.push(Credentials::Jwt {
-                file: file.clone(),
-                text,
-            });
+            user_credentials(&read("nats_creds", file)?)
+                .map_err(|why| refuse(&shown, format!("nats_creds {}: {why}", file.display())))?;
+            from_files.push(Credentials::Jwt(file.clone()));
         }
         if from_files.len() + usize::from(credentials.is_some()) > 1 {
             return Err(refuse(
@@ -165,15 +164,12 @@ impl NatsAccess {
         } else {
             None
         };
-        let access = NatsAccess {
+        Ok(NatsAccess {
             servers,
             shown,
             credentials,
             tls,
-        };
-        // A credentials file is parsed here, not at the first connection.
-        access.apply(ConnectOptions::new())?;
-        Ok(access)
+        })
     }
 
     /// The servers' URLs as they may be shown: without credentials.
@@ -194,26 +190,64 @@ impl NatsAccess {
         self.servers.clone()
     }
 
-    /// `options` with the credentials and, where asked for, TLS required with canlift's TLS
-    /// configuration (the CA of `nats_ca`, else the system's roots; the client certificate).
-    /// Fails only on a credentials file that [`NatsAccess::from_config`] already refused.
-    pub fn apply(&self, options: ConnectOptions) -> Result<ConnectOptions, NatsConfigError> {
+    /// The client's options: the credentials and, where asked for, TLS required with canlift's
+    /// TLS configuration (the CA of `nats_ca`, else the system's roots; the client certificate).
+    pub fn options(&self) -> ConnectOptions {
         let options = match &self.credentials {
             Some(Credentials::UserPassword { user, password }) => {
-                options.user_and_password(user.clone(), password.clone())
+                ConnectOptions::with_user_and_password(user.clone(), password.clone())
             }
-            Some(Credentials::Token(token)) => options.token(token.clone()),
-            Some(Credentials::NKey(seed)) => options.nkey(seed.clone()),
-            Some(Credentials::Jwt { file, text }) => options
-                .credentials(text)
-                .map_err(|e| self.error(format!("nats_creds {}: {e}", file.display())))?,
-            None => options,
+            Some(Credentials::Token(token)) => ConnectOptions::with_token(token.clone()),
+            Some(Credentials::NKey(seed)) => ConnectOptions::with_nkey(seed.clone()),
+            Some(Credentials::Jwt(file)) => {
+                let file = file.clone();
+                ConnectOptions::with_auth_callback(move |nonce| {
+                    let file = file.clone();
+                    async move { signed_in(&file, &nonce).await.map_err(AuthError::new) }
+                })
+            }
+            None => ConnectOptions::new(),
         };
-        Ok(match &self.tls {
+        match &self.tls {
             Some(config) => options.require_tls(true).tls_client_config(config.clone()),
             None => options,
-        })
+        }
     }
+}
+
+/// What a connection presents from the credentials file `file`, read now: its user JWT, and the
+/// server's `nonce` signed with its seed (NATS's clients read the file at each connection too).
+async fn signed_in(file: &Path, nonce: &[u8]) -> Result<Auth, String> {
+    let text = tokio::fs::read_to_string(file)
+        .await
+        .map_err(|e| format!("nats_creds {}: {e}", file.display()))?;
+    let (jwt, seed) =
+        user_credentials(&text).map_err(|why| format!("nats_creds {}: {why}", file.display()))?;
+    let mut auth = Auth::new();
+    auth.jwt = Some(jwt);
+    auth.signature = Some(seed.sign(nonce).map_err(|e| e.to_string())?);
+    Ok(auth)
+}
+
+/// The user JWT and the key of a NATS credentials file (as `nsc generate creds` writes it): the
+/// first two decorated blocks, `-----BEGIN NATS USER JWT-----` and `-----BEGIN USER NKEY
+/// SEED-----`, each a line of dashes followed by its value.
+fn user_credentials(text: &str) -> Result<(String, nkeys::KeyPair), String> {
+    let mut lines = text.lines().map(str::trim);
+    let mut blocks = Vec::new();
+    while let Some(line) = lines.next() {
+        if line.starts_with("---") && line.contains("BEGIN") {
+            blocks.extend(lines.next());
+        }
+    }
+    let [jwt, seed, ..] = blocks[..] else {
+        return Err("not a credentials file (a user JWT and its seed)".into());
+    };
+    let key = nkeys::KeyPair::from_seed(seed).map_err(|e| format!("not an NKey seed ({e})"))?;
+    if key.key_pair_type() != nkeys::KeyPairType::User || jwt.split('.').count() != 3 {
+        return Err("not a user's credentials".into());
+    }
+    Ok((jwt.to_owned(), key))
 }
 
 /// A new NATS user NKey (`canlift cloud nats-nkey`): its public key (`U…`, what the NATS server's
@@ -343,7 +377,7 @@ mod tests {
         };
         let url = "nats://127.0.0.1:4222";
         let (_, seed) = testkit::nats::auth::nkey_user();
-        let (_, creds) = testkit::nats::auth::operator_mode();
+        let (creds, _) = testkit::nats::auth::OperatorMode::new().user(None);
         let nkey = ClusterSection {
             nats_nkey: file("user.nk", &format!("{seed}\n")),
             ..ClusterSection::default()
@@ -357,7 +391,7 @@ mod tests {
         };
         assert!(matches!(
             NatsAccess::from_config(&jwt, url).unwrap().credentials,
-            Some(Credentials::Jwt { .. })
+            Some(Credentials::Jwt(_))
         ));
 
         let account_seed = nkeys::KeyPair::new_account().seed().unwrap();
@@ -395,7 +429,7 @@ mod tests {
                     ..ClusterSection::default()
                 },
                 url,
-                "half.creds: cannot parse nkey",
+                "half.creds: not a credentials file",
             ),
             (
                 ClusterSection {
