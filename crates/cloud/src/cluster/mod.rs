@@ -139,8 +139,10 @@ impl Cluster {
             .name(format!("canlift portal {node}"))
             .retry_on_initial_connect()
             .connection_timeout(Duration::from_secs(2))
+            // The first attempt at once (at start, and when the server is lost: another of a
+            // NATS cluster may be there), then every 0.25 s more, up to 2 s.
             .reconnect_delay_callback(|attempts| {
-                Duration::from_millis((250 * attempts as u64).min(2_000))
+                Duration::from_millis((250 * attempts.saturating_sub(1) as u64).min(2_000))
             })
             .event_callback(move |event| {
                 let (poke, name, noted, counted) =
