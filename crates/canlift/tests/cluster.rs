@@ -899,7 +899,7 @@ fn documented_nkey_user(public: &str) -> String {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn nats_with_an_nkey_user() {
     let dir = testkit::scratch();
-    let (public, seed) = testkit::nats::auth::nkey_user();
+    let (public, seed) = cloud::cluster::nats::new_user_nkey().expect("an NKey");
     let conf = documented_nkey_user(&public);
     let Some((mut cluster, seed_file, _)) =
         cluster_on_secured_nats(dir.path(), &conf, ("portal.nk", &seed, "nats_nkey")).await
@@ -924,7 +924,7 @@ async fn nats_with_an_nkey_user() {
             "p{index}"
         );
     }
-    let (_, stranger) = testkit::nats::auth::nkey_user();
+    let (_, stranger) = cloud::cluster::nats::new_user_nkey().expect("an NKey");
     refused_after_restart(
         &mut cluster,
         |_| std::fs::write(&seed_file, &stranger).expect("written"),
@@ -940,7 +940,7 @@ async fn nats_with_an_nkey_user() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_nats_user_without_a_permission_is_degraded() {
     let dir = testkit::scratch();
-    let (public, seed) = testkit::nats::auth::nkey_user();
+    let (public, seed) = cloud::cluster::nats::new_user_nkey().expect("an NKey");
     let documented = documented_nkey_user(&public);
     let conf = documented.replace(
         r#"subscribe: ["canlift.lift.>", "_INBOX.>"]"#,

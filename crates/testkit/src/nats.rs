@@ -157,21 +157,15 @@ pub fn monitoring(monitor: u16, path: &str) -> String {
     page
 }
 
-/// NATS's decentralized and NKey authentication for tests: keys, JWTs signed as `nsc` signs
-/// them, and the server configuration and user files that go with them.
+/// NATS's decentralized authentication for tests: keys, JWTs signed as `nsc` signs them, and
+/// the server configuration and credentials files that go with them (an NKey alone:
+/// `cloud::cluster::nats::new_user_nkey`).
 #[cfg(feature = "nats-auth")]
 pub mod auth {
     use base64::engine::general_purpose::URL_SAFE_NO_PAD;
     use base64::Engine as _;
     use nkeys::KeyPair;
     use serde_json::{json, Value};
-
-    /// A NATS user's NKey: its public key (`U…`, what the server's configuration lists) and
-    /// its seed (`SU…`, what `[cluster] nats_nkey` names).
-    pub fn nkey_user() -> (String, String) {
-        let user = KeyPair::new_user();
-        (user.public_key(), seed(&user))
-    }
 
     /// A NATS server in operator mode (JWT authentication, as `nsc` sets one up): an operator,
     /// its system account (JetStream needs one), and one account with JetStream whose users

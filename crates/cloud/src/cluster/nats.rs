@@ -376,7 +376,7 @@ mod tests {
             Some(path)
         };
         let url = "nats://127.0.0.1:4222";
-        let (_, seed) = testkit::nats::auth::nkey_user();
+        let (_, seed) = new_user_nkey().unwrap();
         let (creds, _) = testkit::nats::auth::OperatorMode::new().user(None);
         let nkey = ClusterSection {
             nats_nkey: file("user.nk", &format!("{seed}\n")),
