@@ -895,13 +895,15 @@ fn documented_nkey_user(public: &str) -> String {
 /// NATS that knows its users by NKey, with the permissions docs/CLUSTER.md §Securing NATS gives
 /// the portals' user: the processes sign the server's nonce with the seed `nats_nkey` names, a
 /// lift held by p0 is read, watched and written through p1, and neither process was refused
-/// anything; p1 started again with another user's seed is refused.
+/// anything. The key rotated (a new user in NATS's configuration, its seed in the file, NATS
+/// restarted), both processes come back as the new user without restarting; p1 started again
+/// with another user's seed is refused.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn nats_with_an_nkey_user() {
     let dir = testkit::scratch();
     let (public, seed) = cloud::cluster::nats::new_user_nkey().expect("an NKey");
     let conf = documented_nkey_user(&public);
-    let Some((mut cluster, seed_file, _)) =
+    let Some((mut cluster, seed_file, monitor)) =
         cluster_on_secured_nats(dir.path(), &conf, ("portal.nk", &seed, "nats_nkey")).await
     else {
         return;
@@ -924,11 +926,21 @@ async fn nats_with_an_nkey_user() {
             "p{index}"
         );
     }
+    // The key rotated: NATS's configuration names the new user, the file holds its seed.
+    let (second, rotated_seed) = cloud::cluster::nats::new_user_nkey().expect("an NKey");
+    std::fs::write(dir.path().join("nats.conf"), documented_nkey_user(&second)).expect("written");
+    rotated(
+        &mut cluster,
+        monitor,
+        (&seed_file, &rotated_seed),
+        [&public, &second],
+    )
+    .await;
     let (_, stranger) = cloud::cluster::nats::new_user_nkey().expect("an NKey");
     refused_after_restart(
         &mut cluster,
         |_| std::fs::write(&seed_file, &stranger).expect("written"),
-        &[&seed, &stranger],
+        &[&seed, &rotated_seed, &stranger],
     )
     .await;
     cluster.stop().await;
@@ -977,6 +989,40 @@ async fn a_nats_user_without_a_permission_is_degraded() {
     cluster.stop().await;
 }
 
+/// The processes' user `users[0]` replaced by `users[1]`: its `file` rewritten with `content`
+/// (NATS's configuration already holds the new user, or is rewritten beside it), NATS started
+/// again. The processes read the file at each connection, so both come back as the new user
+/// (the server's view of its clients: `/connz?auth=true`) without being restarted, and serve.
+async fn rotated(
+    cluster: &mut Cluster,
+    monitor: u16,
+    (file, content): (&std::path::Path, &str),
+    [before, after]: [&str; 2],
+) {
+    let users = |user: &str| {
+        testkit::nats::monitoring(monitor, "/connz?auth=true")
+            .matches(user)
+            .count()
+    };
+    assert_eq!(users(before), 2, "both processes as the first user");
+    std::fs::write(file, content).expect("written");
+    cluster.nats[0].stop();
+    cluster.nats[0].start_again();
+    let took = until(LIMIT, "both processes back as the new user", || async {
+        users(after) == 2 && users(before) == 0
+    })
+    .await;
+    eprintln!("both processes connected as the new user {took:?} after NATS restarted");
+    until(LIMIT, "the lift read through p1 again", || async {
+        cluster.read(1).await.0 == 200
+    })
+    .await;
+    for index in 0..2 {
+        let health = cluster.call(index, "GET", "/healthz", None).await.1;
+        assert_eq!(health, json!("ok\n"), "p{index}");
+    }
+}
+
 /// NATS in operator mode (JWT authentication, as NGS or a server set up with `nsc`): the
 /// processes present the user JWT of the credentials file `nats_creds` names and sign with its
 /// seed. The file is read at each connection: replaced (a renewed JWT), it is what the processes
@@ -996,30 +1042,14 @@ async fn nats_with_jwt_credentials() {
     else {
         return;
     };
-    // Both processes, as the file's user (the server's view of its clients).
-    let users = |user: &str| {
-        testkit::nats::monitoring(monitor, "/connz?auth=true")
-            .matches(user)
-            .count()
-    };
-    assert_eq!(users(&first), 2, "both processes as the first user");
     let (renewed, second) = operator.user(None);
-    std::fs::write(&creds_file, &renewed).expect("written");
-    cluster.nats[0].stop();
-    cluster.nats[0].start_again();
-    let took = until(LIMIT, "both processes back as the renewed user", || async {
-        users(&second) == 2 && users(&first) == 0
-    })
+    rotated(
+        &mut cluster,
+        monitor,
+        (&creds_file, &renewed),
+        [&first, &second],
+    )
     .await;
-    eprintln!("both processes connected as the renewed user {took:?} after NATS restarted");
-    until(LIMIT, "the lift read through p1 again", || async {
-        cluster.read(1).await.0 == 200
-    })
-    .await;
-    for index in 0..2 {
-        let health = cluster.call(index, "GET", "/healthz", None).await.1;
-        assert_eq!(health, json!("ok\n"), "p{index}");
-    }
 
     let (stranger, _) = testkit::nats::auth::OperatorMode::new().user(None);
     // The JWTs and the seeds: the long lines of the files that are not decoration or prose.

@@ -743,6 +743,10 @@ fn metrics_text(
             ("canlift_cluster_watch_lapsed_total", load(&n.watch_lapsed)),
             ("canlift_cluster_entries_swept_total", load(&n.swept)),
             ("canlift_cluster_nats_refused_total", load(&n.nats_refused)),
+            (
+                "canlift_cluster_nats_slow_consumer_total",
+                load(&n.nats_slow),
+            ),
         ]);
     }
     for (kind, list) in [("gauge", &gauges[..]), ("counter", &counters[..])] {

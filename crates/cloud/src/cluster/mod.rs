@@ -66,6 +66,9 @@ pub struct ClusterCounters {
     pub watch_lapsed: AtomicU64,
     /// Publications and subscriptions NATS refused (permissions violations).
     pub nats_refused: AtomicU64,
+    /// Messages the NATS client dropped because a subscription here read too slowly (at
+    /// least: the client reports a drop only while its own event queue has room).
+    pub nats_slow: AtomicU64,
 }
 
 /// What went wrong with NATS since the client last connected.
@@ -76,6 +79,9 @@ struct Troubles {
     /// The last publication or subscription NATS refused while connected: the NATS user lacks
     /// a permission the cluster needs (docs/CLUSTER.md §Securing NATS).
     refused: Option<String>,
+    /// The last slow consumer reported: logged once per subscription, not shown in `/healthz`
+    /// (a drop is over when it is counted).
+    slow: Option<String>,
 }
 
 /// This process's membership of the cluster.
@@ -148,29 +154,7 @@ impl Cluster {
                 let (poke, name, noted, counted) =
                     (poke.clone(), name.clone(), noted.clone(), counted.clone());
                 async move {
-                    match &event {
-                        async_nats::Event::Connected => {
-                            *lock(&noted) = Troubles::default();
-                            tracing::info!(node = %name, "NATS connected")
-                        }
-                        async_nats::Event::Disconnected => {
-                            tracing::warn!(node = %name, "NATS unreachable: serving the lifts held here only")
-                        }
-                        async_nats::Event::ServerError(async_nats::ServerError::Other(e))
-                            if e.to_ascii_lowercase().starts_with("permissions violation") =>
-                        {
-                            counted.nats_refused.fetch_add(1, Ordering::Relaxed);
-                            note(&mut lock(&noted).refused, &name, e.clone());
-                        }
-                        async_nats::Event::ClientError(e) => {
-                            note(&mut lock(&noted).unreachable, &name, e.to_string())
-                        }
-                        async_nats::Event::ServerError(
-                            e @ (async_nats::ServerError::AuthorizationViolation
-                            | async_nats::ServerError::Other(_)),
-                        ) => note(&mut lock(&noted).unreachable, &name, e.to_string()),
-                        other => tracing::debug!(node = %name, event = %other, "NATS"),
-                    }
+                    on_event(&event, &name, &noted, &counted);
                     poke.notify_waiters();
                 }
             });
@@ -1026,6 +1010,43 @@ async fn answer(
     }
 }
 
+/// What the NATS client reports, kept for `/healthz` and counted for `/metrics`.
+fn on_event(
+    event: &async_nats::Event,
+    node: &str,
+    troubles: &Mutex<Troubles>,
+    counters: &ClusterCounters,
+) {
+    use async_nats::{Event, ServerError};
+    match event {
+        Event::Connected => {
+            *lock(troubles) = Troubles::default();
+            tracing::info!(node, "NATS connected")
+        }
+        Event::Disconnected => {
+            tracing::warn!(node, "NATS unreachable: serving the lifts held here only")
+        }
+        Event::ServerError(ServerError::Other(e))
+            if e.to_ascii_lowercase().starts_with("permissions violation") =>
+        {
+            counters.nats_refused.fetch_add(1, Ordering::Relaxed);
+            note(&mut lock(troubles).refused, node, e.clone());
+        }
+        // A message dropped because its subscription's queue was full (a relayed request then
+        // times out, a watcher misses an event, the fleet's watch starts again): the process
+        // does not keep up with what NATS brings it.
+        Event::SlowConsumer(_) => {
+            counters.nats_slow.fetch_add(1, Ordering::Relaxed);
+            note(&mut lock(troubles).slow, node, event.to_string());
+        }
+        Event::ClientError(e) => note(&mut lock(troubles).unreachable, node, e.to_string()),
+        Event::ServerError(e @ (ServerError::AuthorizationViolation | ServerError::Other(_))) => {
+            note(&mut lock(troubles).unreachable, node, e.to_string())
+        }
+        other => tracing::debug!(node, event = %other, "NATS"),
+    }
+}
+
 /// Keep the NATS client's error for `/healthz`; every failed attempt reports it again, so it is
 /// logged only when it changes.
 /// `error` kept in `last`, and logged unless it is what `last` already held.
@@ -1046,6 +1067,43 @@ mod tests {
     use super::*;
 
     const LEASE: Duration = Duration::from_secs(30);
+
+    #[test]
+    fn what_nats_reports_is_counted_and_kept_for_health() {
+        use async_nats::{Event, ServerError};
+        let (troubles, counters) = (Mutex::new(Troubles::default()), ClusterCounters::default());
+        let report = |event: Event| on_event(&event, "p0", &troubles, &counters);
+        report(Event::ServerError(ServerError::AuthorizationViolation));
+        report(Event::ServerError(ServerError::Other(
+            "Permissions Violation for Subscription to \"canlift.lift.L.rpc\"".into(),
+        )));
+        for sid in [7, 7, 9] {
+            report(Event::SlowConsumer(sid));
+        }
+        let count = |counter: &AtomicU64| counter.load(Ordering::Relaxed);
+        assert_eq!(count(&counters.nats_refused), 1);
+        assert_eq!(count(&counters.nats_slow), 3);
+        {
+            let troubles = lock(&troubles);
+            assert_eq!(
+                troubles.unreachable.as_deref(),
+                Some("authorization violation")
+            );
+            assert!(troubles
+                .refused
+                .as_deref()
+                .is_some_and(|e| e.contains("canlift.lift.L.rpc")));
+            // A drop is counted, not kept as the process's state.
+            assert_eq!(
+                troubles.slow.as_deref(),
+                Some("slow consumers for subscription 9")
+            );
+        }
+        report(Event::Connected);
+        let troubles = lock(&troubles);
+        assert!(troubles.unreachable.is_none() && troubles.refused.is_none());
+        assert_eq!(count(&counters.nats_slow), 3);
+    }
 
     /// The processes whose lease of lift `L` lapsed by `now`.
     fn lapsed(leases: &mut Leases, now: Instant) -> Vec<u64> {

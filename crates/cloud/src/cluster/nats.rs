@@ -31,8 +31,9 @@ enum Credentials {
     UserPassword { user: String, password: String },
     /// A NATS URL's `TOKEN@` (a user part without a password, as NATS's own clients read it).
     Token(String),
-    /// `nats_nkey`: a user's NKey seed, with which the server's nonce is signed.
-    NKey(String),
+    /// `nats_nkey`: a file holding a user's NKey seed, with which the server's nonce is signed;
+    /// read again at each connection, as the credentials file is.
+    NKey(PathBuf),
     /// `nats_creds`: a credentials file, read again at each connection (a renewed user JWT
     /// is taken up when NATS lets the expired one go), its JWT sent and the server's nonce signed
     /// with its seed (NATS's operator mode).
@@ -45,7 +46,7 @@ impl std::fmt::Debug for Credentials {
         match self {
             Credentials::UserPassword { user, .. } => write!(f, "user {user} with a password"),
             Credentials::Token(_) => f.write_str("a token"),
-            Credentials::NKey(_) => f.write_str("an NKey seed"),
+            Credentials::NKey(file) => write!(f, "NKey seed file {}", file.display()),
             Credentials::Jwt(file) => write!(f, "credentials file {}", file.display()),
         }
     }
@@ -123,19 +124,9 @@ impl NatsAccess {
         };
         let mut from_files = Vec::new();
         if let Some(file) = &section.nats_nkey {
-            let seed = read("nats_nkey", file)?.trim().to_owned();
-            let why = match nkeys::KeyPair::from_seed(&seed) {
-                Ok(pair) if pair.key_pair_type() == nkeys::KeyPairType::User => None,
-                Ok(_) => Some("the seed of another kind of key than a user's (SU…)".to_owned()),
-                Err(e) => Some(format!("not an NKey seed ({e})")),
-            };
-            if let Some(why) = why {
-                return Err(refuse(
-                    &shown,
-                    format!("nats_nkey {}: {why}", file.display()),
-                ));
-            }
-            from_files.push(Credentials::NKey(seed));
+            user_seed(&read("nats_nkey", file)?)
+                .map_err(|why| refuse(&shown, format!("nats_nkey {}: {why}", file.display())))?;
+            from_files.push(Credentials::NKey(file.clone()));
         }
         if let Some(file) = &section.nats_creds {
             user_credentials(&read("nats_creds", file)?)
@@ -198,14 +189,8 @@ impl NatsAccess {
                 ConnectOptions::with_user_and_password(user.clone(), password.clone())
             }
             Some(Credentials::Token(token)) => ConnectOptions::with_token(token.clone()),
-            Some(Credentials::NKey(seed)) => ConnectOptions::with_nkey(seed.clone()),
-            Some(Credentials::Jwt(file)) => {
-                let file = file.clone();
-                ConnectOptions::with_auth_callback(move |nonce| {
-                    let file = file.clone();
-                    async move { signed_in(&file, &nonce).await.map_err(AuthError::new) }
-                })
-            }
+            Some(Credentials::NKey(file)) => signing_with(KeyFile::NKey, file),
+            Some(Credentials::Jwt(file)) => signing_with(KeyFile::Creds, file),
             None => ConnectOptions::new(),
         };
         match &self.tls {
@@ -215,18 +200,62 @@ impl NatsAccess {
     }
 }
 
-/// What a connection presents from the credentials file `file`, read now: its user JWT, and the
-/// server's `nonce` signed with its seed (NATS's clients read the file at each connection too).
-async fn signed_in(file: &Path, nonce: &[u8]) -> Result<Auth, String> {
+/// Which kind of file holds the key that signs a connection.
+#[derive(Clone, Copy)]
+enum KeyFile {
+    /// `nats_nkey`: the seed alone.
+    NKey,
+    /// `nats_creds`: the user's JWT and its seed.
+    Creds,
+}
+
+/// Options whose every connection reads `file` again and signs the server's nonce with its key,
+/// as NATS's own clients do: a replaced file (a renewed JWT, a rotated seed) is taken up at the
+/// next connection, without restarting the process.
+fn signing_with(kind: KeyFile, file: &Path) -> ConnectOptions {
+    let file = file.to_owned();
+    ConnectOptions::with_auth_callback(move |nonce| {
+        let file = file.clone();
+        async move { signed_in(kind, &file, &nonce).await.map_err(AuthError::new) }
+    })
+}
+
+/// What a connection presents from `file`, read now: the server's `nonce` signed with its seed,
+/// with the user's public key (an NKey seed file) or its JWT (a credentials file).
+async fn signed_in(kind: KeyFile, file: &Path, nonce: &[u8]) -> Result<Auth, String> {
+    let option = match kind {
+        KeyFile::NKey => "nats_nkey",
+        KeyFile::Creds => "nats_creds",
+    };
+    let fault = |why: String| format!("{option} {}: {why}", file.display());
     let text = tokio::fs::read_to_string(file)
         .await
-        .map_err(|e| format!("nats_creds {}: {e}", file.display()))?;
-    let (jwt, seed) =
-        user_credentials(&text).map_err(|why| format!("nats_creds {}: {why}", file.display()))?;
+        .map_err(|e| fault(e.to_string()))?;
     let mut auth = Auth::new();
-    auth.jwt = Some(jwt);
-    auth.signature = Some(seed.sign(nonce).map_err(|e| e.to_string())?);
+    let key = match kind {
+        KeyFile::NKey => {
+            let key = user_seed(&text).map_err(fault)?;
+            auth.nkey = Some(key.public_key());
+            key
+        }
+        KeyFile::Creds => {
+            let (jwt, key) = user_credentials(&text).map_err(fault)?;
+            auth.jwt = Some(jwt);
+            key
+        }
+    };
+    auth.signature = Some(key.sign(nonce).map_err(|e| e.to_string())?);
     Ok(auth)
+}
+
+/// The key of an NKey seed file: a user's (`SU…`).
+fn user_seed(text: &str) -> Result<nkeys::KeyPair, String> {
+    let key =
+        nkeys::KeyPair::from_seed(text.trim()).map_err(|e| format!("not an NKey seed ({e})"))?;
+    if key.key_pair_type() != nkeys::KeyPairType::User {
+        return Err("the seed of another kind of key than a user's (SU…)".into());
+    }
+    Ok(key)
 }
 
 /// The user JWT and the key of a NATS credentials file (as `nsc generate creds` writes it): the
@@ -383,8 +412,13 @@ mod tests {
             ..ClusterSection::default()
         };
         let a = NatsAccess::from_config(&nkey, url).unwrap();
-        assert_eq!(a.credentials, Some(Credentials::NKey(seed.clone())));
-        assert_eq!(format!("{:?}", a.credentials.unwrap()), "an NKey seed");
+        assert_eq!(
+            a.credentials,
+            Some(Credentials::NKey(nkey.nats_nkey.clone().unwrap()))
+        );
+        let shown = format!("{:?}", a.credentials.unwrap());
+        assert!(shown.starts_with("NKey seed file ") && shown.ends_with("user.nk"));
+        assert!(!shown.contains(&seed));
         let jwt = ClusterSection {
             nats_creds: file("user.creds", &creds),
             ..ClusterSection::default()
@@ -447,6 +481,49 @@ mod tests {
             assert!(e.contains(why), "{e}");
             assert!(!e.contains(&seed) && !e.contains(&account_seed), "{e}");
         }
+    }
+
+    #[tokio::test]
+    async fn each_connection_signs_with_the_key_file_as_it_is_then() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("user.nk");
+        let nonce = b"a server's nonce";
+        for _ in 0..2 {
+            // The seed rotated between two connections: the second signs with the new key.
+            let (public, seed) = new_user_nkey().unwrap();
+            std::fs::write(&file, format!("{seed}\n")).unwrap();
+            let auth = signed_in(KeyFile::NKey, &file, nonce).await.unwrap();
+            assert_eq!(auth.nkey.as_deref(), Some(public.as_str()));
+            assert!(auth.jwt.is_none());
+            let signature = auth.signature.unwrap();
+            nkeys::KeyPair::from_public_key(&public)
+                .unwrap()
+                .verify(nonce, &signature)
+                .unwrap();
+        }
+        let (creds, public) = testkit::nats::auth::OperatorMode::new().user(None);
+        let file = dir.path().join("user.creds");
+        std::fs::write(&file, &creds).unwrap();
+        let auth = signed_in(KeyFile::Creds, &file, nonce).await.unwrap();
+        assert!(auth.jwt.is_some_and(|jwt| creds.contains(&jwt)));
+        nkeys::KeyPair::from_public_key(&public)
+            .unwrap()
+            .verify(nonce, &auth.signature.unwrap())
+            .unwrap();
+        // A file broken since the start fails that connection, naming the file, not the seed.
+        std::fs::write(&file, "SUNOTASEED").unwrap();
+        let Err(e) = signed_in(KeyFile::Creds, &file, nonce).await else {
+            panic!("a broken file signs")
+        };
+        assert!(
+            e.starts_with("nats_creds ") && e.contains("user.creds"),
+            "{e}"
+        );
+        std::fs::remove_file(&file).unwrap();
+        let Err(e) = signed_in(KeyFile::NKey, &file, nonce).await else {
+            panic!("a missing file signs")
+        };
+        assert!(e.starts_with("nats_nkey "), "{e}");
     }
 
     #[test]
