@@ -46,6 +46,8 @@ struct Metrics {
     /// TLS handshakes with a certificate (full) and by a session ticket (resumed).
     handshakes_full: AtomicU64,
     handshakes_resumed: AtomicU64,
+    /// Connections whose client had closed them behind its ClientHello: dropped unanswered.
+    handshakes_abandoned: AtomicU64,
     /// `accept` calls that failed (out of file descriptors, mostly).
     accept_failures: AtomicU64,
     /// Memory given back to the system after bursts of connections ([`crate::memory`]).
@@ -457,6 +459,10 @@ impl Portal {
                         counter.fetch_add(1, Ordering::Relaxed);
                         s
                     }
+                    Ok(Err(e)) if tls::stream::abandoned(&e) => {
+                        metrics.handshakes_abandoned.fetch_add(1, Ordering::Relaxed);
+                        return;
+                    }
                     Ok(Err(e)) => {
                         tracing::debug!(%peer, error = %e, "TLS handshake failed");
                         return;
@@ -680,6 +686,10 @@ fn metrics_text(
         (
             "canlift_tls_handshakes_resumed_total",
             load(&m.handshakes_resumed),
+        ),
+        (
+            "canlift_tls_handshakes_abandoned_total",
+            load(&m.handshakes_abandoned),
         ),
         ("canlift_memory_trims_total", load(&m.memory_trims)),
         (

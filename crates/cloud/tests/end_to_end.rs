@@ -336,6 +336,35 @@ async fn a_restarted_portal_resumes_its_gateways_tls_sessions() {
     rig.stop().await;
 }
 
+/// docs/PORTAL.md §TLS: clients that gave up while their connections waited (each sent its
+/// ClientHello and closed the connection behind it, as a gateway whose connect timeout ran out)
+/// are dropped unanswered and counted; none of them costs a handshake.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn clients_that_gave_up_get_no_handshake() {
+    let rig = Rig::builder().without_lift().start().await;
+    let full_before = rig.metric("canlift_tls_handshakes_full_total").await;
+    let config = tls::client_config(Some(&rig.ca), None).expect("a client configuration");
+    let name = rustls::pki_types::ServerName::try_from("localhost").expect("a name");
+    const CLIENTS: usize = 20;
+    for _ in 0..CLIENTS {
+        let mut hello = Vec::new();
+        rustls::ClientConnection::new(config.clone(), name.clone())
+            .expect("a client")
+            .write_tls(&mut hello)
+            .expect("a ClientHello");
+        let answer = testkit::net::gave_up(rig.addr, &hello).await;
+        assert!(answer.is_empty(), "answered with {} bytes", answer.len());
+    }
+    assert_eq!(
+        rig.metric("canlift_tls_handshakes_abandoned_total").await,
+        CLIENTS as f64
+    );
+    // The only full handshakes since: the two metric calls' own.
+    let full = rig.metric("canlift_tls_handshakes_full_total").await - full_before;
+    assert_eq!(full, 2.0, "full handshakes");
+    rig.stop().await;
+}
+
 /// docs/PORTAL.md §Memory: once a burst of connections is over, the portal asks the allocator to
 /// give its free pages back, and counts it.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

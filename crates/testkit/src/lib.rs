@@ -13,6 +13,8 @@ pub mod constants;
 pub mod lift;
 #[cfg(feature = "portal")]
 pub mod nats;
+#[cfg(feature = "net")]
+pub mod net;
 #[cfg(feature = "pki")]
 pub mod pki;
 #[cfg(feature = "portal")]

@@ -58,10 +58,7 @@ impl Acceptor {
 
     /// Complete the server side of a handshake on `io` (bound its time with a timeout: a peer
     /// that says nothing keeps it waiting).
-    pub async fn accept<IO>(&self, io: IO) -> io::Result<ServerStream<IO>>
-    where
-        IO: AsyncRead + AsyncWrite + Unpin,
-    {
+    pub async fn accept<IO: Transport>(&self, io: IO) -> io::Result<ServerStream<IO>> {
         let conn = UnbufferedServerConnection::new(self.config.clone()).map_err(tls_error)?;
         let mut stream = ServerStream {
             io,
@@ -74,9 +71,58 @@ impl Acceptor {
             peer_closed: false,
             sent_close_notify: false,
         };
-        poll_fn(|cx| stream.poll_handshake(cx)).await?;
+        let mut first_flight = FirstFlight::Awaited;
+        poll_fn(|cx| stream.poll_handshake(cx, &mut first_flight)).await?;
         Ok(stream)
     }
+}
+
+/// What [`Acceptor::accept`] runs over: a byte stream that can tell, without reading or
+/// waiting, whether its peer has closed it.
+pub trait Transport: AsyncRead + AsyncWrite + Unpin {
+    /// Whether the peer's end of stream (or a reset) is what a read would find next: looked at,
+    /// not consumed. `false` where the transport cannot tell.
+    fn closed_by_peer(&self) -> bool;
+}
+
+/// A look with `MSG_PEEK` (one system call; the socket is non-blocking, so it does not wait):
+/// nothing to read but the FIN is 0 bytes, a reset is an error. tokio's readiness cannot say
+/// it: a short read clears it, though the FIN came in the same segment as the data.
+impl Transport for tokio::net::TcpStream {
+    fn closed_by_peer(&self) -> bool {
+        let mut byte = [std::mem::MaybeUninit::uninit()];
+        match socket2::SockRef::from(self).peek(&mut byte) {
+            Ok(n) => n == 0,
+            Err(e) => e.kind() != io::ErrorKind::WouldBlock,
+        }
+    }
+}
+
+/// An in-memory pipe (tests): cannot tell.
+impl Transport for tokio::io::DuplexStream {
+    fn closed_by_peer(&self) -> bool {
+        false
+    }
+}
+
+/// Whether [`Acceptor::accept`] failed because the peer had closed the connection before its
+/// first flight was answered: no handshake work was spent on it (a storm's clients that gave up
+/// while their connections waited to be accepted).
+pub fn abandoned(e: &io::Error) -> bool {
+    e.get_ref().is_some_and(|inner| inner.is::<Abandoned>())
+}
+
+/// The peer closed (or reset) the connection behind its ClientHello.
+#[derive(Debug, thiserror::Error)]
+#[error("the TLS peer closed the connection before its ClientHello was answered")]
+struct Abandoned;
+
+/// Where the peer's first flight is, for the look behind it (see `poll_handshake`).
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum FirstFlight {
+    Awaited,
+    Arrived,
+    LookedBehind,
 }
 
 /// A TLS connection accepted by [`Acceptor::accept`]: `AsyncRead` and `AsyncWrite` of the
@@ -110,15 +156,31 @@ impl<IO> ServerStream<IO> {
     }
 }
 
-impl<IO> ServerStream<IO>
-where
-    IO: AsyncRead + AsyncWrite + Unpin,
-{
+impl<IO: Transport> ServerStream<IO> {
     /// Drive the handshake: the flights go out while the peer's are read (neither waits for the
     /// other). What follows the handshake (the session ticket) goes out with the first read or
     /// write: a peer that reads nothing until its own handshake is done must not hold it up.
-    fn poll_handshake(&mut self, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+    ///
+    /// Before the peer's first flight is answered — a key agreement, and for a full handshake
+    /// a signature: most of what a connection costs the portal — the transport looks behind it
+    /// ([`Transport::closed_by_peer`]). A client that gave up while its connection waited in the
+    /// listen queue or for a worker (a reconnect storm on a busy machine) has closed it, and its
+    /// end of stream is already there: the connection is dropped unanswered ([`abandoned`]).
+    fn poll_handshake(
+        &mut self,
+        cx: &mut Context<'_>,
+        first_flight: &mut FirstFlight,
+    ) -> Poll<io::Result<()>> {
         loop {
+            if *first_flight == FirstFlight::Arrived {
+                *first_flight = FirstFlight::LookedBehind;
+                if self.io.closed_by_peer() {
+                    return Poll::Ready(Err(io::Error::new(
+                        io::ErrorKind::ConnectionAborted,
+                        Abandoned,
+                    )));
+                }
+            }
             self.process(None)?;
             let _ = self.poll_write_out(cx)?;
             if !self.conn.is_handshaking() {
@@ -133,9 +195,17 @@ where
             if ready!(self.poll_read_in(cx))? == 0 {
                 return Poll::Ready(Err(eof()));
             }
+            if *first_flight == FirstFlight::Awaited {
+                *first_flight = FirstFlight::Arrived;
+            }
         }
     }
+}
 
+impl<IO> ServerStream<IO>
+where
+    IO: AsyncRead + AsyncWrite + Unpin,
+{
     /// Read from the socket into `incoming` (as much as the record being received needs, at
     /// least [`READ_SIZE`]); the number of bytes, 0 at the end of the stream.
     fn poll_read_in(&mut self, cx: &mut Context<'_>) -> Poll<io::Result<usize>> {

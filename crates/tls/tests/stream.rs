@@ -209,6 +209,62 @@ async fn a_peer_that_speaks_no_tls_is_refused() {
     assert_eq!(alert[0], 21, "{alert:?}");
 }
 
+/// The ClientHello a rustls client sends first.
+fn client_hello(pki: &Pki) -> Vec<u8> {
+    let name = ServerName::try_from("localhost").unwrap();
+    let mut client = rustls::ClientConnection::new(pki.client.clone(), name).unwrap();
+    let mut hello = Vec::new();
+    client.write_tls(&mut hello).unwrap();
+    hello
+}
+
+/// A client that gave up while its connection waited (its ClientHello, then its end of stream,
+/// both there before the server looks) is dropped unanswered: no ServerHello, so no key
+/// agreement or signature was made for it. A client that waits is answered, its hello whole or
+/// in two parts.
+#[tokio::test]
+async fn a_client_that_gave_up_behind_its_hello_gets_no_handshake() {
+    let pki = pki();
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let acceptor = Acceptor::new(pki.server.clone());
+    let server = tokio::spawn(async move {
+        let mut outcomes = Vec::new();
+        for _ in 0..3 {
+            let (tcp, _) = listener.accept().await.unwrap();
+            outcomes.push(
+                acceptor
+                    .accept(tcp)
+                    .await
+                    .err()
+                    .map(|e| tls::stream::abandoned(&e)),
+            );
+        }
+        outcomes
+    });
+    let answer = testkit::net::gave_up(addr, &client_hello(&pki)).await;
+    assert!(answer.is_empty(), "{} bytes answered", answer.len());
+    for split in [None, Some(7)] {
+        let hello = client_hello(&pki);
+        let (first, rest) = hello.split_at(split.unwrap_or(hello.len()));
+        let mut tcp = tokio::net::TcpStream::connect(addr).await.unwrap();
+        tcp.write_all(first).await.unwrap();
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        tcp.write_all(rest).await.unwrap();
+        let mut flight = [0u8; 5];
+        tcp.read_exact(&mut flight).await.unwrap();
+        assert_eq!(
+            flight[0], 22,
+            "a handshake record (ServerHello): {flight:?}"
+        );
+    }
+    // Given up behind its hello; the others closed later, in the middle of the handshake.
+    assert_eq!(
+        server.await.unwrap(),
+        [Some(true), Some(false), Some(false)]
+    );
+}
+
 /// A pipe that counts the writes reaching it.
 struct Counted {
     pipe: DuplexStream,
@@ -222,6 +278,12 @@ impl AsyncRead for Counted {
         buf: &mut ReadBuf<'_>,
     ) -> Poll<std::io::Result<()>> {
         Pin::new(&mut self.pipe).poll_read(cx, buf)
+    }
+}
+
+impl tls::stream::Transport for Counted {
+    fn closed_by_peer(&self) -> bool {
+        false
     }
 }
 

@@ -379,6 +379,48 @@ async fn storm(
         "resuming after a portal restart",
     )
     .await?;
+    gave_up(args, portal).await
+}
+
+/// `args.storm` clients that give up behind their ClientHello, as gateways whose timeout ran
+/// out while their connections waited in a storm: each sends the hello and closes the
+/// connection in one segment (corked, so the portal cannot read the one without the other).
+/// What each costs the portal, and how many it dropped unanswered (docs/PORTAL.md §TLS).
+async fn gave_up(args: &PortalBench, portal: &PortalProcess) -> anyhow::Result<()> {
+    use tokio::io::AsyncWriteExt;
+    let config = tls::client_config(Some(&portal.ca), None)?;
+    let mut hello = Vec::new();
+    rustls::ClientConnection::new(
+        config,
+        rustls::pki_types::ServerName::try_from("localhost")?,
+    )?
+    .write_tls(&mut hello)?;
+    let abandoned = || portal.metric("canlift_tls_handshakes_abandoned_total");
+    let before = abandoned().await?;
+    let meter = CpuMeter::start(portal);
+    for _ in 0..args.storm {
+        let mut socket = tokio::net::TcpStream::connect(("127.0.0.1", portal.port)).await?;
+        socket2::SockRef::from(&socket).set_tcp_cork(true)?;
+        socket.write_all(&hello).await?;
+        socket.shutdown().await?;
+    }
+    // Until the portal has looked at all of them: its CPU no longer grows.
+    let mut last = meter.read().0;
+    loop {
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        let now = meter.read().0;
+        if now.saturating_sub(last) < Duration::from_millis(5) {
+            break;
+        }
+        last = now;
+    }
+    let (cpu, _) = meter.read();
+    println!(
+        "clients that gave up  {} sent a ClientHello and closed behind it: {:.0} dropped unanswered; CPU per connection: portal {:.0} µs",
+        args.storm,
+        abandoned().await? - before,
+        cpu.as_secs_f64() * 1e6 / args.storm as f64,
+    );
     Ok(())
 }
 
