@@ -344,14 +344,9 @@ async fn clients_that_gave_up_get_no_handshake() {
     let rig = Rig::builder().without_lift().start().await;
     let full_before = rig.metric("canlift_tls_handshakes_full_total").await;
     let config = tls::client_config(Some(&rig.ca), None).expect("a client configuration");
-    let name = rustls::pki_types::ServerName::try_from("localhost").expect("a name");
     const CLIENTS: usize = 20;
     for _ in 0..CLIENTS {
-        let mut hello = Vec::new();
-        rustls::ClientConnection::new(config.clone(), name.clone())
-            .expect("a client")
-            .write_tls(&mut hello)
-            .expect("a ClientHello");
+        let hello = testkit::net::client_hello(&config);
         let answer = testkit::net::gave_up(rig.addr, &hello).await;
         assert!(answer.is_empty(), "answered with {} bytes", answer.len());
     }

@@ -1,8 +1,20 @@
 //! TCP clients that misbehave on purpose.
 
 use std::net::SocketAddr;
+use std::sync::Arc;
 
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+/// The ClientHello a rustls client of `config` sends first to `localhost`.
+pub fn client_hello(config: &Arc<rustls::ClientConfig>) -> Vec<u8> {
+    let name = rustls::pki_types::ServerName::try_from("localhost").expect("a name");
+    let mut hello = Vec::new();
+    rustls::ClientConnection::new(config.clone(), name)
+        .expect("a client")
+        .write_tls(&mut hello)
+        .expect("a ClientHello");
+    hello
+}
 
 /// A client that gives up on `addr` as a reconnect storm's impatient client does: it sends
 /// `hello` (a TLS ClientHello) and closes the connection behind it. Corked (`TCP_CORK`), both

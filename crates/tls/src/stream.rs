@@ -71,8 +71,8 @@ impl Acceptor {
             peer_closed: false,
             sent_close_notify: false,
         };
-        let mut first_flight = FirstFlight::Awaited;
-        poll_fn(|cx| stream.poll_handshake(cx, &mut first_flight)).await?;
+        let mut looked_behind = false;
+        poll_fn(|cx| stream.poll_handshake(cx, &mut looked_behind)).await?;
         Ok(stream)
     }
 }
@@ -81,8 +81,10 @@ impl Acceptor {
 /// waiting, whether its peer has closed it.
 pub trait Transport: AsyncRead + AsyncWrite + Unpin {
     /// Whether the peer's end of stream (or a reset) is what a read would find next: looked at,
-    /// not consumed. `false` where the transport cannot tell.
-    fn closed_by_peer(&self) -> bool;
+    /// not consumed. `false` where the transport cannot tell (the default).
+    fn closed_by_peer(&self) -> bool {
+        false
+    }
 }
 
 /// A look with `MSG_PEEK` (one system call; the socket is non-blocking, so it does not wait):
@@ -99,11 +101,7 @@ impl Transport for tokio::net::TcpStream {
 }
 
 /// An in-memory pipe (tests): cannot tell.
-impl Transport for tokio::io::DuplexStream {
-    fn closed_by_peer(&self) -> bool {
-        false
-    }
-}
+impl Transport for tokio::io::DuplexStream {}
 
 /// Whether [`Acceptor::accept`] failed because the peer had closed the connection before its
 /// first flight was answered: no handshake work was spent on it (a storm's clients that gave up
@@ -116,14 +114,6 @@ pub fn abandoned(e: &io::Error) -> bool {
 #[derive(Debug, thiserror::Error)]
 #[error("the TLS peer closed the connection before its ClientHello was answered")]
 struct Abandoned;
-
-/// Where the peer's first flight is, for the look behind it (see `poll_handshake`).
-#[derive(Clone, Copy, PartialEq, Eq)]
-enum FirstFlight {
-    Awaited,
-    Arrived,
-    LookedBehind,
-}
 
 /// A TLS connection accepted by [`Acceptor::accept`]: `AsyncRead` and `AsyncWrite` of the
 /// plaintext.
@@ -169,18 +159,9 @@ impl<IO: Transport> ServerStream<IO> {
     fn poll_handshake(
         &mut self,
         cx: &mut Context<'_>,
-        first_flight: &mut FirstFlight,
+        looked_behind: &mut bool,
     ) -> Poll<io::Result<()>> {
         loop {
-            if *first_flight == FirstFlight::Arrived {
-                *first_flight = FirstFlight::LookedBehind;
-                if self.io.closed_by_peer() {
-                    return Poll::Ready(Err(io::Error::new(
-                        io::ErrorKind::ConnectionAborted,
-                        Abandoned,
-                    )));
-                }
-            }
             self.process(None)?;
             let _ = self.poll_write_out(cx)?;
             if !self.conn.is_handshaking() {
@@ -195,8 +176,14 @@ impl<IO: Transport> ServerStream<IO> {
             if ready!(self.poll_read_in(cx))? == 0 {
                 return Poll::Ready(Err(eof()));
             }
-            if *first_flight == FirstFlight::Awaited {
-                *first_flight = FirstFlight::Arrived;
+            if !*looked_behind {
+                *looked_behind = true;
+                if self.io.closed_by_peer() {
+                    return Poll::Ready(Err(io::Error::new(
+                        io::ErrorKind::ConnectionAborted,
+                        Abandoned,
+                    )));
+                }
             }
         }
     }

@@ -209,15 +209,6 @@ async fn a_peer_that_speaks_no_tls_is_refused() {
     assert_eq!(alert[0], 21, "{alert:?}");
 }
 
-/// The ClientHello a rustls client sends first.
-fn client_hello(pki: &Pki) -> Vec<u8> {
-    let name = ServerName::try_from("localhost").unwrap();
-    let mut client = rustls::ClientConnection::new(pki.client.clone(), name).unwrap();
-    let mut hello = Vec::new();
-    client.write_tls(&mut hello).unwrap();
-    hello
-}
-
 /// A client that gave up while its connection waited (its ClientHello, then its end of stream,
 /// both there before the server looks) is dropped unanswered: no ServerHello, so no key
 /// agreement or signature was made for it. A client that waits is answered, its hello whole or
@@ -242,10 +233,10 @@ async fn a_client_that_gave_up_behind_its_hello_gets_no_handshake() {
         }
         outcomes
     });
-    let answer = testkit::net::gave_up(addr, &client_hello(&pki)).await;
+    let answer = testkit::net::gave_up(addr, &testkit::net::client_hello(&pki.client)).await;
     assert!(answer.is_empty(), "{} bytes answered", answer.len());
     for split in [None, Some(7)] {
-        let hello = client_hello(&pki);
+        let hello = testkit::net::client_hello(&pki.client);
         let (first, rest) = hello.split_at(split.unwrap_or(hello.len()));
         let mut tcp = tokio::net::TcpStream::connect(addr).await.unwrap();
         tcp.write_all(first).await.unwrap();
@@ -281,11 +272,7 @@ impl AsyncRead for Counted {
     }
 }
 
-impl tls::stream::Transport for Counted {
-    fn closed_by_peer(&self) -> bool {
-        false
-    }
-}
+impl tls::stream::Transport for Counted {}
 
 impl AsyncWrite for Counted {
     fn poll_write(

@@ -118,20 +118,19 @@ impl NatsAccess {
                 _ => credentials = Some(these),
             }
         }
-        let read = |option: &str, file: &Path| {
-            std::fs::read_to_string(file)
-                .map_err(|e| refuse(&shown, format!("{option} {}: {e}", file.display())))
-        };
         let mut from_files = Vec::new();
-        if let Some(file) = &section.nats_nkey {
-            user_seed(&read("nats_nkey", file)?)
-                .map_err(|why| refuse(&shown, format!("nats_nkey {}: {why}", file.display())))?;
-            from_files.push(Credentials::NKey(file.clone()));
-        }
-        if let Some(file) = &section.nats_creds {
-            user_credentials(&read("nats_creds", file)?)
-                .map_err(|why| refuse(&shown, format!("nats_creds {}: {why}", file.display())))?;
-            from_files.push(Credentials::Jwt(file.clone()));
+        for (kind, file) in [
+            (KeyFile::NKey, &section.nats_nkey),
+            (KeyFile::Creds, &section.nats_creds),
+        ] {
+            let Some(file) = file else { continue };
+            let fault = |why: String| refuse(&shown, kind.fault(file, why));
+            let text = std::fs::read_to_string(file).map_err(|e| fault(e.to_string()))?;
+            kind.key(&text).map_err(fault)?;
+            from_files.push(match kind {
+                KeyFile::NKey => Credentials::NKey(file.clone()),
+                KeyFile::Creds => Credentials::Jwt(file.clone()),
+            });
         }
         if from_files.len() + usize::from(credentials.is_some()) > 1 {
             return Err(refuse(
@@ -209,6 +208,27 @@ enum KeyFile {
     Creds,
 }
 
+impl KeyFile {
+    /// What is wrong with `file`, named by the `[cluster]` option that names it (never its
+    /// content).
+    fn fault(self, file: &Path, why: String) -> String {
+        let option = match self {
+            KeyFile::NKey => "nats_nkey",
+            KeyFile::Creds => "nats_creds",
+        };
+        format!("{option} {}: {why}", file.display())
+    }
+
+    /// The user's key in `text` (the file's content), with the user's JWT for a credentials
+    /// file.
+    fn key(self, text: &str) -> Result<(nkeys::KeyPair, Option<String>), String> {
+        match self {
+            KeyFile::NKey => Ok((user_seed(text)?, None)),
+            KeyFile::Creds => user_credentials(text).map(|(jwt, key)| (key, Some(jwt))),
+        }
+    }
+}
+
 /// Options whose every connection reads `file` again and signs the server's nonce with its key,
 /// as NATS's own clients do: a replaced file (a renewed JWT, a rotated seed) is taken up at the
 /// next connection, without restarting the process.
@@ -223,27 +243,16 @@ fn signing_with(kind: KeyFile, file: &Path) -> ConnectOptions {
 /// What a connection presents from `file`, read now: the server's `nonce` signed with its seed,
 /// with the user's public key (an NKey seed file) or its JWT (a credentials file).
 async fn signed_in(kind: KeyFile, file: &Path, nonce: &[u8]) -> Result<Auth, String> {
-    let option = match kind {
-        KeyFile::NKey => "nats_nkey",
-        KeyFile::Creds => "nats_creds",
-    };
-    let fault = |why: String| format!("{option} {}: {why}", file.display());
     let text = tokio::fs::read_to_string(file)
         .await
-        .map_err(|e| fault(e.to_string()))?;
+        .map_err(|e| kind.fault(file, e.to_string()))?;
+    let (key, jwt) = kind.key(&text).map_err(|why| kind.fault(file, why))?;
     let mut auth = Auth::new();
-    let key = match kind {
-        KeyFile::NKey => {
-            let key = user_seed(&text).map_err(fault)?;
-            auth.nkey = Some(key.public_key());
-            key
-        }
-        KeyFile::Creds => {
-            let (jwt, key) = user_credentials(&text).map_err(fault)?;
-            auth.jwt = Some(jwt);
-            key
-        }
-    };
+    // A JWT names its user; a seed alone, by its public key.
+    match jwt {
+        Some(jwt) => auth.jwt = Some(jwt),
+        None => auth.nkey = Some(key.public_key()),
+    }
     auth.signature = Some(key.sign(nonce).map_err(|e| e.to_string())?);
     Ok(auth)
 }
