@@ -343,7 +343,11 @@ impl Endpoints {
     pub(crate) fn deliver(&self, from: Option<u64>, frame: Frame) {
         let mut any_closed = false;
         {
-            let list = self.list.read().unwrap_or_else(PoisonError::into_inner);
+            // Written, not read: one delivery at a time, so that every endpoint sees the frames
+            // in the same order, as every node on a CAN bus does. Under a shared lock a node
+            // that answers at once (an SDO server on another thread) could reach a third
+            // endpoint before the request it answers did.
+            let list = self.list.write().unwrap_or_else(PoisonError::into_inner);
             for ep in list.iter() {
                 if Some(ep.id) != from || ep.receive_own {
                     any_closed |= !ep.feed.push(BusEvent::Frame(frame));
