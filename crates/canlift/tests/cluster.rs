@@ -948,9 +948,11 @@ async fn nats_with_an_nkey_user() {
 
 /// The documented NATS user without the subscription to the lifts' subjects: the holder cannot
 /// take requests for its lift (the other process gets 503 at once: nobody answers on NATS), and
-/// says why in `/healthz` and `/metrics`.
+/// says why in `/healthz` and `/metrics`. The permission granted and NATS's configuration
+/// reloaded (the processes stay connected), the holder subscribes again by itself and the lift
+/// is read through the other process; neither process was restarted.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_nats_user_without_a_permission_is_degraded() {
+async fn a_nats_user_without_a_permission_is_degraded_until_granted() {
     let dir = testkit::scratch();
     let (public, seed) = cloud::cluster::nats::new_user_nkey().expect("an NKey");
     let documented = documented_nkey_user(&public);
@@ -986,6 +988,24 @@ async fn a_nats_user_without_a_permission_is_degraded() {
             >= 1
     );
     assert_eq!(cluster.read(0).await.0, 200, "the holder serves its lift");
+
+    std::fs::write(dir.path().join("nats.conf"), &documented).expect("written");
+    let granted = std::time::Instant::now();
+    cluster.nats[0].reload();
+    let took = until(LIMIT, "the lift read through p1 once granted", || async {
+        cluster.read(1).await.0 == 200
+    })
+    .await;
+    eprintln!("p0's lift read through p1 {took:?} after NATS took the permission");
+    for index in 0..2 {
+        let health = cluster.call(index, "GET", "/healthz", None).await.1;
+        assert_eq!(
+            health,
+            json!("ok\n"),
+            "p{index}, {:?} after",
+            granted.elapsed()
+        );
+    }
     cluster.stop().await;
 }
 

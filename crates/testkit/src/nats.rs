@@ -68,6 +68,18 @@ impl Nats {
         }
     }
 
+    /// Have the running server read its configuration file again (`nats-server --signal
+    /// reload`): its clients stay connected, under the permissions now configured.
+    pub fn reload(&self) {
+        let pid = self.child.as_ref().expect("a running nats-server").id();
+        let status = Command::new("nats-server")
+            .arg("--signal")
+            .arg(format!("reload={pid}"))
+            .status()
+            .expect("nats-server --signal runs");
+        assert!(status.success(), "nats-server --signal reload={pid}");
+    }
+
     /// Start the stopped server again on the same port, and wait until it listens.
     pub fn start_again(&mut self) {
         self.stop();

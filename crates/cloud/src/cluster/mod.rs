@@ -79,6 +79,10 @@ struct Troubles {
     /// The last publication or subscription NATS refused while connected: the NATS user lacks
     /// a permission the cluster needs (docs/CLUSTER.md §Securing NATS).
     refused: Option<String>,
+    /// When NATS first refused a subscription since the client connected: NATS does not take
+    /// it up by itself when the permission is granted later, the client subscribes again only
+    /// when it connects again ([`Cluster::subscribe_again_when_refused`]).
+    subscription_refused: Option<Instant>,
     /// The last slow consumer reported: logged once per subscription, not shown in `/healthz`
     /// (a drop is over when it is counted).
     slow: Option<String>,
@@ -272,6 +276,7 @@ impl Cluster {
     /// connection is lost.
     pub async fn run(self: Arc<Self>, registry: Weak<Registry>) {
         tokio::spawn(self.clone().every_renewal());
+        tokio::spawn(self.clone().subscribe_again_when_refused());
         let js = jetstream::new(self.client.clone());
         // The bucket's stream as the KV convention (NATS ADR-8) lays it out, created directly:
         // `create_key_value` first reads the account's information, which it cannot parse
@@ -401,6 +406,40 @@ impl Cluster {
             let lapsed = lock(&self.watched).lapsed_all(Instant::now());
             for (lift, processes) in lapsed {
                 self.release_lapsed(lift, processes);
+            }
+        }
+    }
+
+    /// While NATS refuses a subscription of this process, connect again now and then: a NATS
+    /// whose configuration was mended and reloaded (`nats-server --signal reload`) keeps the
+    /// connection with the new permissions but does not take up a subscription it refused, and
+    /// the client sends its subscriptions again only on connecting (docs/CLUSTER.md §Securing
+    /// NATS). Each attempt that is refused again waits longer ([`resubscribe_delay`]).
+    async fn subscribe_again_when_refused(self: Arc<Self>) {
+        let mut attempts = 0;
+        let mut last_refused = None;
+        loop {
+            self.nats_event().await;
+            let Some(since) = lock(&self.troubles).subscription_refused else {
+                // Connected without refusals for a while: the permissions are mended.
+                if last_refused.is_some_and(|t: Instant| t.elapsed() > RESUBSCRIBE_MAX * 2) {
+                    (attempts, last_refused) = (0, None);
+                }
+                continue;
+            };
+            last_refused = Some(Instant::now());
+            let wait = resubscribe_delay(attempts);
+            if since.elapsed() < wait {
+                continue;
+            }
+            tracing::info!(
+                attempt = attempts + 1,
+                "NATS refused a subscription: connecting again to subscribe again (a permission granted meanwhile takes effect)"
+            );
+            attempts += 1;
+            lock(&self.troubles).subscription_refused = None;
+            if self.client.force_reconnect().await.is_err() {
+                return;
             }
         }
     }
@@ -1030,7 +1069,13 @@ fn on_event(
             if e.to_ascii_lowercase().starts_with("permissions violation") =>
         {
             counters.nats_refused.fetch_add(1, Ordering::Relaxed);
-            note(&mut lock(troubles).refused, node, e.clone());
+            let mut troubles = lock(troubles);
+            note(&mut troubles.refused, node, e.clone());
+            if e.to_ascii_lowercase().contains(" for subscription ") {
+                troubles
+                    .subscription_refused
+                    .get_or_insert_with(Instant::now);
+            }
         }
         // A message dropped because its subscription's queue was full (a relayed request then
         // times out, a watcher misses an event, the fleet's watch starts again): the process
@@ -1058,6 +1103,19 @@ fn note(last: &mut Option<String>, node: &str, error: String) {
     }
 }
 
+/// The longest wait between two connections made to have a refused subscription taken up.
+const RESUBSCRIBE_MAX: Duration = Duration::from_secs(60);
+
+/// How long after NATS refused a subscription the client connects again, `attempts` connections
+/// after the first refusal: 5 s, then twice as long each time, at most [`RESUBSCRIBE_MAX`] —
+/// a permission mended is in force within a minute, and a NATS still refusing is not made to
+/// take every subscription of the process again every few seconds.
+fn resubscribe_delay(attempts: u32) -> Duration {
+    Duration::from_secs(5)
+        .saturating_mul(1 << attempts.min(8))
+        .min(RESUBSCRIBE_MAX)
+}
+
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(PoisonError::into_inner)
 }
@@ -1067,6 +1125,40 @@ mod tests {
     use super::*;
 
     const LEASE: Duration = Duration::from_secs(30);
+
+    #[test]
+    fn a_refused_subscription_is_asked_for_again_ever_less_often() {
+        let delays: Vec<u64> = (0..6).map(|a| resubscribe_delay(a).as_secs()).collect();
+        assert_eq!(delays, [5, 10, 20, 40, 60, 60]);
+        assert_eq!(resubscribe_delay(u32::MAX), RESUBSCRIBE_MAX);
+    }
+
+    #[test]
+    fn only_a_refused_subscription_makes_the_client_connect_again() {
+        use async_nats::{Event, ServerError};
+        let (troubles, counters) = (Mutex::new(Troubles::default()), ClusterCounters::default());
+        let report = |e: &str| {
+            let event = Event::ServerError(ServerError::Other(e.into()));
+            on_event(&event, "p0", &troubles, &counters)
+        };
+        report("Permissions Violation for Publish to \"canlift.lift.L.events\"");
+        assert!(lock(&troubles).refused.is_some());
+        assert!(
+            lock(&troubles).subscription_refused.is_none(),
+            "a publication is simply refused again next time"
+        );
+        report("Permissions Violation for Subscription to \"canlift.lift.L.rpc\"");
+        let first = lock(&troubles).subscription_refused;
+        assert!(first.is_some());
+        report("Permissions Violation for Subscription to \"canlift.lift.M.rpc\"");
+        assert_eq!(
+            lock(&troubles).subscription_refused,
+            first,
+            "counted from the first refusal"
+        );
+        on_event(&Event::Connected, "p0", &troubles, &counters);
+        assert!(lock(&troubles).subscription_refused.is_none());
+    }
 
     #[test]
     fn what_nats_reports_is_counted_and_kept_for_health() {
