@@ -417,19 +417,28 @@ impl Cluster {
     /// NATS). Each attempt that is refused again waits longer ([`resubscribe_delay`]).
     async fn subscribe_again_when_refused(self: Arc<Self>) {
         let mut attempts = 0;
-        let mut last_refused = None;
+        let mut last_refused: Option<Instant> = None;
         loop {
-            self.nats_event().await;
+            // Armed before the look, so that a refusal reported in between still wakes this
+            // task; nothing else does while NATS refuses nothing.
+            let event = self.nats_changed.notified();
+            tokio::pin!(event);
+            event.as_mut().enable();
             let Some(since) = lock(&self.troubles).subscription_refused else {
-                // Connected without refusals for a while: the permissions are mended.
-                if last_refused.is_some_and(|t: Instant| t.elapsed() > RESUBSCRIBE_MAX * 2) {
-                    (attempts, last_refused) = (0, None);
-                }
+                event.await;
                 continue;
             };
+            // Refused again after quiet minutes: the permissions were mended in between.
+            if last_refused.is_some_and(|t| t.elapsed() > RESUBSCRIBE_MAX * 2) {
+                attempts = 0;
+            }
             last_refused = Some(Instant::now());
-            let wait = resubscribe_delay(attempts);
-            if since.elapsed() < wait {
+            let due = since + resubscribe_delay(attempts);
+            if Instant::now() < due {
+                tokio::select! {
+                    _ = event => {}
+                    _ = tokio::time::sleep_until(due.into()) => {}
+                }
                 continue;
             }
             tracing::info!(
