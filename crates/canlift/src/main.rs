@@ -10,8 +10,7 @@ use clap::{Parser, Subcommand};
 #[derive(Debug, Parser)]
 #[command(name = "canlift", version, about, long_about = None)]
 struct Cli {
-    /// Log format on stderr (level from RUST_LOG; default info, warn for loadgen and bench; the
-    /// alarm benchmark does not log each alarm it raises).
+    /// Log format on stderr (level from RUST_LOG; default info, warn for loadgen).
     #[arg(long, value_enum, global = true, default_value = "text")]
     log_format: logging::LogFormat,
     #[command(subcommand)]
@@ -75,19 +74,15 @@ enum Command {
     Events(cmd::alarms::EventsArgs),
     /// Simulated CiA 417 lift controller (and I/O node) on a bus.
     Sim(cmd::sim::SimArgs),
-    /// Measure canlift's components.
-    Bench(cmd::bench::BenchArgs),
     /// Many gateways (the real gateway code, embedded mode) against one portal, for load tests.
     Loadgen(cmd::loadgen::LoadgenArgs),
 }
 
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
-    // Thousands of gateways in one process would log every connection, and the alarm benchmark
-    // raises thousands of alarms: quieter by default.
+    // Thousands of gateways in one process would log every connection: quieter by default.
     let level = match cli.command {
         Command::Loadgen(_) => "warn",
-        Command::Bench(_) => "warn,cloud::alarms::service=error",
         _ => "info",
     };
     logging::init(cli.log_format, level);
@@ -125,7 +120,6 @@ fn main() -> std::process::ExitCode {
             Command::Sync(args) => cmd::sync::run(args).await,
             Command::Time(args) => cmd::time::run(args).await,
             Command::Emcy(args) => cmd::emcy::run(args).await,
-            Command::Bench(args) => cmd::bench::run(args).await,
             Command::Loadgen(args) => cmd::loadgen::run(args).await,
             Command::Sim(args) => cmd::sim::run(args).await,
             Command::Gateway(args) => cmd::gateway::run(args).await,

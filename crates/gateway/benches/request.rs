@@ -2,7 +2,7 @@
 //! 0x652001 in each form read, described by an embedded gateway's metadata (the controller's
 //! dictionary as its EDS, the catalog's NXg texts over it), answered and written as JSON.
 //! `cargo bench -p gateway`. The process's whole cost, sockets and TLS included, is
-//! `canlift bench gateway --cpu-only` (docs/BENCHMARKS.md).
+//! `canlift-bench gateway --cpu-only` (docs/BENCHMARKS.md).
 
 use std::hint::black_box;
 use std::sync::Arc;

@@ -16,6 +16,7 @@ pub mod access;
 pub mod config;
 pub mod connection;
 pub mod feed;
+pub mod fleet;
 pub mod lockout;
 pub mod metadata;
 pub mod supervision;

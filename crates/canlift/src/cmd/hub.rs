@@ -110,7 +110,7 @@ pub async fn run(args: HubArgs) -> anyhow::Result<()> {
         Some(b) => format!("{b} bit/s with arbitration"),
         None => "unthrottled".to_owned(),
     };
-    // Tools (and `canlift bench`) read the bound address from this first stdout line.
+    // Tools (and `canlift-bench`) read the bound address from this first stdout line.
     println!("canlift hub listening on {addr} ({mode}); join with socketcand://{addr}/CHANNEL");
     std::io::stdout().flush()?;
     let stats = hub.stats();

@@ -1,8 +1,8 @@
-//! `canlift bench portal --phases curves`: how the portal's costs grow (docs/BENCHMARKS.md
+//! `canlift-bench portal --phases curves`: how the portal's costs grow (docs/BENCHMARKS.md
 //! §Growth curves). Three sweeps on one portal process — its memory while gateways come
 //! online step by step, the reconnect storm's time against the number of gateways (new TLS
 //! sessions and resumed ones), values stored per second against the number of pushing
-//! gateways — each written as CSV and drawn as SVG into `--curves DIR`. (`canlift bench
+//! gateways — each written as CSV and drawn as SVG into `--curves DIR`. (`canlift-bench
 //! gateway --curves DIR` adds the gateway's latency against subscriptions held.)
 
 use std::path::Path;
@@ -11,11 +11,11 @@ use std::time::Duration;
 use anyhow::Context;
 use plotters::prelude::*;
 
-use super::bench_gateway::mib;
-use super::bench_portal::{
+use crate::process::mib;
+use crate::portal::{
     fleet_args, ingest, portal_online, storm_once, PortalBench, PortalProcess,
 };
-use super::loadgen::Fleet;
+use gateway::fleet::Fleet;
 
 /// One line of a plot: its name and its points.
 pub(super) struct Series {

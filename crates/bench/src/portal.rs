@@ -1,4 +1,4 @@
-//! `canlift bench portal`: the cloud portal under load (docs/BENCHMARKS.md). The portal runs as its own
+//! `canlift-bench portal`: the cloud portal under load (docs/BENCHMARKS.md). The portal runs as its own
 //! process (`canlift cloud`), so its memory is its own; the gateways are `canlift loadgen`'s
 //! (the real gateway code in embedded mode) in this process, and the operator-latency figure's
 //! gateway is one in a process of its own.
@@ -14,11 +14,11 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 
-use super::bench::{cpu_time, per_one, schedstat, used_since};
-use super::bench_gateway::{lone_gateway, memory_kib, mib, percentile, Daemon};
-use super::loadgen::{lift_id, Fleet, LoadgenArgs, Sessions};
+use crate::process::{cpu_time, listening, per_one, schedstat, used_since};
+use crate::process::{lone_gateway, memory_kib, mib, percentile, Daemon};
+use gateway::fleet::{Fleet, FleetOptions, Sessions};
 
-/// Arguments of `canlift bench portal`.
+/// Arguments of `canlift-bench portal`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct PortalBench {
     /// Idle gateways held at once (and the largest number of the curves).
@@ -78,13 +78,6 @@ enum Phase {
     Curves,
 }
 
-/// A free TCP port on 127.0.0.1, for a server the benchmark starts as a process.
-pub(crate) fn free_port() -> anyhow::Result<u16> {
-    Ok(std::net::TcpListener::bind("127.0.0.1:0")?
-        .local_addr()?
-        .port())
-}
-
 /// A portal process (`canlift cloud`) of a benchmark.
 pub(crate) struct PortalProcess {
     pub(crate) daemon: Daemon,
@@ -97,7 +90,7 @@ pub(crate) struct PortalProcess {
 /// every change pushed (no inhibit: ingest is limited by the portal, not by the gateways' rate
 /// limiting) and no request limit per key (the latency figures read as fast as it answers).
 pub(crate) fn bench_config(dir: &Path, database: &str) -> anyhow::Result<cloud::config::Config> {
-    let port = free_port()?;
+    let port = testkit::free_port();
     let mut config = cloud::config::Config::default();
     config.server.listen = ([127, 0, 0, 1], port).into();
     config.state.dir = dir.join("portal");
@@ -125,7 +118,7 @@ impl PortalProcess {
         let path = dir.join("portal.toml");
         std::fs::create_dir_all(dir)?;
         std::fs::write(&path, toml::to_string_pretty(config)?)?;
-        let daemon = Daemon::start(&std::env::current_exe()?, "cloud", &path)?;
+        let daemon = Daemon::start(&crate::canlift()?, "cloud", &path)?;
         // The portal writes its development CA before it listens.
         listening(port, "the portal", Duration::from_secs(30)).await?;
         if !ca.exists() {
@@ -172,14 +165,19 @@ impl PortalProcess {
     }
 }
 
+/// The portal's lift id of fleet gateway `number`.
+pub(crate) fn lift_id(number: usize) -> String {
+    cloud::store::lift_id(&gateway::fleet::identity(number, "").connect(None).identity)
+}
+
 /// `n` gateways of the BENCH account, from `args.sources` source addresses, all at once.
 pub(super) fn fleet_args(
     args: &PortalBench,
     portal: &PortalProcess,
     dir: &Path,
     n: usize,
-) -> LoadgenArgs {
-    LoadgenArgs {
+) -> FleetOptions {
+    FleetOptions {
         portal: format!("wss://localhost:{}/ws", portal.port),
         ca: portal.ca.clone(),
         domain: "BENCH".into(),
@@ -187,9 +185,7 @@ pub(super) fn fleet_args(
         first: 1,
         sources: args.sources,
         rate: 0,
-        change_ms: 0,
         state: dir.join("gateways"),
-        until_online: true,
     }
 }
 
@@ -483,7 +479,7 @@ const ROUNDS: usize = 5;
 /// One way to the latency phase's gateway.
 enum Way {
     /// A stand-in portal's end of the gateway's WebSocket (directly, or through `bench relay`).
-    Door(Box<super::bench_gateway::Ws>),
+    Door(Box<crate::gateway::Ws>),
     /// The portal's REST API, one keep-alive HTTPS connection.
     Portal(cloud::client::Connection),
 }
@@ -492,7 +488,7 @@ impl Way {
     /// `n` gets of 0x652001 in `form` one after another; their times.
     async fn gets(&mut self, form: &str, n: usize) -> anyhow::Result<Vec<Duration>> {
         let connection = match self {
-            Way::Door(ws) => return super::bench_gateway::sequential_gets(ws, form, n).await,
+            Way::Door(ws) => return crate::gateway::sequential_gets(ws, form, n).await,
             Way::Portal(connection) => connection,
         };
         let path = path_of(form);
@@ -592,39 +588,23 @@ async fn lift_pages(
     Ok(())
 }
 
-/// Wait until something listens on loopback `port` (a process the benchmark started), at
-/// most `limit`.
-pub(crate) async fn listening(port: u16, what: &str, limit: Duration) -> anyhow::Result<()> {
-    let deadline = Instant::now() + limit;
-    while tokio::net::TcpStream::connect(("127.0.0.1", port))
-        .await
-        .is_err()
-    {
-        if Instant::now() > deadline {
-            bail!("{what} did not start");
-        }
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
-    Ok(())
-}
-
 /// Operator gets of one gateway three ways, every party a process of its own as in the field:
 /// at the gateway's own door (a stand-in portal in this process), through a process that only
 /// copies bytes (`bench relay`: the least any process in the path costs on this machine), and
 /// through the portal (REST over HTTPS). The three gateways are the same embedded gateway
 /// (`canlift loadgen`, local dictionary), each in its own process.
 async fn latency(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyhow::Result<()> {
-    let exe = std::env::current_exe()?;
+    let exe = crate::canlift()?;
     let store = cloud::store::Store::open(&database_url(args, dir)).await?;
     let key = store.add_account("operator", "OPS").await?;
     let pki = cloud::devpki::ensure(&dir.join("stand-in"))?;
-    let harness = super::bench_gateway::Portal::start(&pki).await?;
+    let harness = crate::gateway::Portal::start(&pki).await?;
     let lone = |url: &str, ca: &Path, state: &str| {
         lone_gateway(&exe, url, ca, "OPS", LATENCY_GATEWAY, &dir.join(state))
     };
     let mut daemons = vec![lone(&harness.url()?, &pki.ca, "latency-direct")?];
     let direct = harness.accept().await?;
-    let relay_port = free_port()?;
+    let relay_port = testkit::free_port();
     let (listen, to) = (
         format!("127.0.0.1:{relay_port}"),
         harness.addr()?.to_string(),
@@ -737,7 +717,7 @@ fn database_url(args: &PortalBench, dir: &Path) -> String {
         .unwrap_or_else(|| format!("sqlite://{}", dir.join("bench.db").display()))
 }
 
-/// `canlift bench portal`.
+/// `canlift-bench portal`.
 pub async fn run(args: PortalBench) -> anyhow::Result<()> {
     let dir = tempfile::Builder::new()
         .prefix("canlift-bench-portal-")
@@ -774,7 +754,7 @@ async fn measure(args: &PortalBench, dir: &Path) -> anyhow::Result<()> {
                 }
                 Phase::Latency => latency(args, &portal, dir).await?,
                 Phase::Curves => {
-                    super::bench_curves::curves(args, &portal, dir, &args.curves).await?
+                    crate::curves::curves(args, &portal, dir, &args.curves).await?
                 }
             }
         }

@@ -1,4 +1,4 @@
-//! `canlift bench alarms`: what a bus event costs the portal (docs/PORTAL.md §Alarms) — the
+//! `canlift-bench alarms`: what a bus event costs the portal (docs/PORTAL.md §Alarms) — the
 //! alarm rules alone (evaluation and the index of active alarms, per event), and the whole
 //! alarm service (events stored in batches, alarms raised and cleared in the database) on SQLite
 //! in a temporary directory or on a given database.
@@ -13,7 +13,7 @@ use cloud::gateways::Registry;
 use cloud::store::Store;
 use nxg::msg::{format_time, Event, NodeId, NodeRef, NodeState};
 
-/// Arguments of `canlift bench alarms`.
+/// Arguments of `canlift-bench alarms`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct AlarmsBench {
     /// Events per measurement.

@@ -1,11 +1,10 @@
-//! `canlift bench gateway`: the elevator gateway measured from a portal's seat — request latency
+//! `canlift-bench gateway`: the elevator gateway measured from a portal's seat — request latency
 //! and rate for naked, stripped and full gets (on a local dictionary, the same with the
 //! controller described by an EDS and a vendor file, and by SDO through the hub to the simulated
 //! lift), the cost of one metadata lookup per source, notifications per second, the resident memory of a gateway process
 //! idle and with many subscriptions, and the size of the stripped binary.
 
 use std::path::{Path, PathBuf};
-use std::process::Stdio;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -27,7 +26,9 @@ use tokio_tungstenite::WebSocketStream;
 
 use cloud::devpki::{self, DevPki};
 
-/// Arguments of `canlift bench gateway`.
+use crate::process::{lone_gateway, memory_kib, mib, percentile, Daemon};
+
+/// Arguments of `canlift-bench gateway`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct GatewayBench {
     /// Requests per form for the latency and rate figures.
@@ -67,7 +68,7 @@ impl GatewayBench {
     fn exe(&self) -> anyhow::Result<PathBuf> {
         Ok(match &self.exe {
             Some(e) => e.clone(),
-            None => std::env::current_exe()?,
+            None => crate::canlift()?,
         })
     }
 }
@@ -158,11 +159,6 @@ fn get(id: usize, mplex: &str, form: &str) -> String {
     format!(
         r#"{{"jsonrpc":"2.0","id":{id},"method":"get_canopen_object","params":{{"lang":{{"preferred_language":"en","alternate_language":"de"}},"object":{{"mplex":"{mplex}"{flag}}}}}}}"#
     )
-}
-
-pub(crate) fn percentile(sorted: &[Duration], p: f64) -> f64 {
-    let rank = ((p / 100.0) * (sorted.len().max(1) - 1) as f64).round() as usize;
-    sorted.get(rank).map_or(0.0, |d| d.as_secs_f64() * 1e6)
 }
 
 /// `n` gets of 0x652001 in `form` one after another; their round-trip times, sorted.
@@ -410,110 +406,6 @@ async fn emcy_flood(args: &GatewayBench, pki: &DevPki, dir: &Path) -> anyhow::Re
     Ok(())
 }
 
-/// A canlift daemon (`gateway`, `cloud`) started by a benchmark as a process of its own, so its
-/// memory is its own: quiet, and killed if the benchmark fails.
-pub(crate) struct Daemon {
-    child: tokio::process::Child,
-    /// Its process id.
-    pub(crate) pid: u32,
-}
-
-impl Daemon {
-    /// `exe COMMAND --config CONFIG`, its warnings on the benchmark's standard error.
-    pub(crate) fn start(exe: &Path, command: &str, config: &Path) -> anyhow::Result<Daemon> {
-        Daemon::spawn(
-            exe,
-            &[command.as_ref(), "--config".as_ref(), config.as_os_str()],
-            Stdio::inherit(),
-        )
-    }
-
-    /// `exe ARGS…` with its standard error to `stderr` (a load generator's thousands of
-    /// gateways would each log a reconnect: `Stdio::null()`).
-    pub(crate) fn spawn(
-        exe: &Path,
-        args: &[&std::ffi::OsStr],
-        stderr: Stdio,
-    ) -> anyhow::Result<Daemon> {
-        let command = args
-            .first()
-            .map_or_else(Default::default, |c| c.to_string_lossy());
-        let child = tokio::process::Command::new(exe)
-            .args(args)
-            .env("RUST_LOG", "warn")
-            .stdout(Stdio::null())
-            .stderr(stderr)
-            .kill_on_drop(true)
-            .spawn()?;
-        let pid = child.id().with_context(|| format!("{command} process"))?;
-        Ok(Daemon { child, pid })
-    }
-
-    /// SIGKILL: nothing the process could still do (a crash, a power cut).
-    pub(crate) async fn kill(mut self) {
-        let _ = self.child.start_kill();
-        let _ = self.child.wait().await;
-    }
-
-    /// SIGINT (the daemons' graceful shutdown), then wait up to `limit` for the exit.
-    pub(crate) async fn stop(mut self, limit: Duration) {
-        let _ = std::process::Command::new("kill")
-            .args(["-INT", &self.pid.to_string()])
-            .status();
-        let _ = tokio::time::timeout(limit, self.child.wait()).await;
-    }
-}
-
-/// One embedded gateway on a local dictionary in a process of its own (`canlift loadgen`,
-/// gateway number `number` of `domain`), dialling `url`.
-pub(crate) fn lone_gateway(
-    exe: &Path,
-    url: &str,
-    ca: &Path,
-    domain: &str,
-    number: usize,
-    state: &Path,
-) -> anyhow::Result<Daemon> {
-    let number = number.to_string();
-    Daemon::spawn(
-        exe,
-        &[
-            "loadgen".as_ref(),
-            "--portal".as_ref(),
-            url.as_ref(),
-            "--ca".as_ref(),
-            ca.as_os_str(),
-            "--domain".as_ref(),
-            domain.as_ref(),
-            "--gateways".as_ref(),
-            "1".as_ref(),
-            "--first".as_ref(),
-            number.as_ref(),
-            "--state".as_ref(),
-            state.as_os_str(),
-        ],
-        Stdio::null(),
-    )
-}
-
-/// RSS, PSS and anonymous memory of a process in KiB (`/proc/PID/smaps_rollup`): RSS counts the
-/// binary's pages shared with other canlift processes in full, PSS shares them out, anonymous is
-/// the process's own heap and stacks.
-pub(crate) fn memory_kib(pid: u32) -> Option<[u64; 3]> {
-    let rollup = std::fs::read_to_string(format!("/proc/{pid}/smaps_rollup")).ok()?;
-    let field = |name: &str| {
-        rollup
-            .lines()
-            .find_map(|l| l.strip_prefix(name))
-            .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
-    };
-    Some([field("Rss:")?, field("Pss:")?, field("Anonymous:")?])
-}
-
-pub(crate) fn mib(kib: u64) -> f64 {
-    kib as f64 / 1024.0
-}
-
 /// Readable entries of the simulated controller, for subscriptions.
 fn subscribable(n: usize) -> Vec<String> {
     let mut out = Vec::new();
@@ -595,11 +487,11 @@ async fn cpu_per_request(
             (args.window, Refill::Bursts, ", refilled in bursts"),
         ];
         for (window, refill, how) in runs {
-            let before = super::bench::schedstat(daemon.pid);
+            let before = crate::process::schedstat(daemon.pid);
             let started = Instant::now();
             windowed_gets(&mut ws, "naked", args.requests, window, refill).await?;
             let rate = args.requests as f64 / started.elapsed().as_secs_f64();
-            let (cpu, slices) = super::bench::used_since(daemon.pid, before).unwrap_or_default();
+            let (cpu, slices) = crate::process::used_since(daemon.pid, before).unwrap_or_default();
             let per_request = |n: f64| n / args.requests as f64;
             // Each wake-up costs the same whatever it serves: requests per wake-up say
             // whether a change in CPU per request is the work's or the batching's.
@@ -787,17 +679,17 @@ async fn subscriptions_curve(
     }
     let _ = stop.send(true);
     let _ = task.await;
-    super::bench_curves::Curve {
+    crate::curves::Curve {
         name: "gateway-subscriptions",
         title: "Gateway request latency vs subscriptions held",
         x: "subscriptions held",
         y: "naked get round trip (µs)",
         series: vec![
-            super::bench_curves::Series {
+            crate::curves::Series {
                 name: "p50",
                 points: p50,
             },
-            super::bench_curves::Series {
+            crate::curves::Series {
                 name: "p99",
                 points: p99,
             },

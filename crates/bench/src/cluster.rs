@@ -1,4 +1,4 @@
-//! `canlift bench cluster`: the portal as a cluster (docs/CLUSTER.md) under load. Starts a NATS
+//! `canlift-bench cluster`: the portal as a cluster (docs/CLUSTER.md) under load. Starts a NATS
 //! server (Debian's `nats-server -js`, on a free loopback port), P `canlift cloud` processes on
 //! one PostgreSQL database (an existing URL) and enough `canlift loadgen` processes — each
 //! under the per-process file limit, spread over loopback source addresses — to connect N
@@ -16,12 +16,12 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context};
 use futures_util::StreamExt;
 
-use super::bench::cpu_time;
-use super::bench_gateway::{memory_kib, percentile, Daemon};
-use super::bench_portal::{bench_config, free_port, listening, PortalProcess};
-use super::loadgen::lift_id;
+use crate::process::cpu_time;
+use crate::process::{memory_kib, percentile, Daemon};
+use crate::portal::{bench_config, lift_id, PortalProcess};
+use crate::process::listening;
 
-/// Arguments of `canlift bench cluster`.
+/// Arguments of `canlift-bench cluster`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct ClusterBench {
     /// The processes' shared database: `postgres://…` (a cluster needs PostgreSQL), a fresh
@@ -89,11 +89,11 @@ impl Nats {
     ) -> anyhow::Result<Nats> {
         let (binary, threads, servers) = (&args.nats_server, args.nats_threads, args.nats_servers);
         let ports = (0..servers)
-            .map(|_| free_port())
-            .collect::<Result<Vec<_>, _>>()?;
+            .map(|_| testkit::free_port())
+            .collect::<Vec<_>>();
         let routes = (0..servers)
-            .map(|_| free_port())
-            .collect::<Result<Vec<_>, _>>()?;
+            .map(|_| testkit::free_port())
+            .collect::<Vec<_>>();
         let all_routes = routes
             .iter()
             .map(|port| format!("nats://127.0.0.1:{port}"))
@@ -338,7 +338,7 @@ async fn nats_round_trips(nats: &Nats, n: usize) -> anyhow::Result<Vec<Duration>
     Ok(times)
 }
 
-/// `canlift bench cluster`.
+/// `canlift-bench cluster`.
 pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
     if !args.database.starts_with("postgres") {
         bail!("--database: a cluster needs PostgreSQL (postgres://…)");
@@ -410,7 +410,7 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
         layout.loadgens,
         layout.per
     );
-    let exe = std::env::current_exe()?;
+    let exe = crate::canlift()?;
     let begin = Instant::now();
     let mut loadgens = Vec::new();
     for (j, first) in (1..=args.gateways).step_by(layout.per).enumerate() {

@@ -1,4 +1,4 @@
-//! `canlift bench ingest`: the portal's telemetry writer alone (docs/BENCHMARKS.md §Ingest) —
+//! `canlift-bench ingest`: the portal's telemetry writer alone (docs/BENCHMARKS.md §Ingest) —
 //! values handed to it as fast as it takes them, written in its batches to SQLite in a
 //! temporary directory or to a given database. It measures the database path, without the TLS,
 //! WebSocket and JSON work in front of it that `bench portal` includes.
@@ -11,9 +11,9 @@ use anyhow::bail;
 use cloud::gateways::{telemetry, TelemetryCounters};
 use cloud::store::TelemetryRow;
 
-use super::bench::cpu_time;
+use crate::process::cpu_time;
 
-/// Arguments of `canlift bench ingest`.
+/// Arguments of `canlift-bench ingest`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct IngestBench {
     /// Values per run.
@@ -42,10 +42,10 @@ fn row(i: usize, lifts: usize, at: i64) -> TelemetryRow {
     }
 }
 
-/// `canlift bench ingest`.
+/// `canlift-bench ingest`.
 pub async fn run(args: IngestBench) -> anyhow::Result<()> {
     let (_dir, url, store) =
-        super::bench_alarms::scratch_store("ingest", args.database.as_deref()).await?;
+        crate::alarms::scratch_store("ingest", args.database.as_deref()).await?;
     let kind = if url.starts_with("postgres") {
         "PostgreSQL"
     } else {

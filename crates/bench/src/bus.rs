@@ -1,9 +1,11 @@
-//! `canlift bench hub`: throughput, latency and CPU cost of the hub, measured end to end.
+//! The bus benchmarks: the hub (frames/s, latency and CPU per frame, measured end to end), SDO
+//! transfers (canlift's client and python-canopen's on one server) and a `LocalNode` (change →
+//! TPDO latency, PDO rates, SYNC jitter, idle CPU).
 //!
-//! The hub runs as a separate process (this binary's `hub` subcommand, or one given with
-//! `--hub`), so its CPU time can be read from `/proc` apart from the clients'. Clients are
-//! canlift `socketcand://` endpoints in this process. Every frame carries its sequence number and
-//! send time, so the receivers measure one-way latency and check order and loss.
+//! The hub runs as a separate process (`canlift hub`, or one given with `--hub`), so its CPU
+//! time can be read from `/proc` apart from the clients'. Clients are canlift `socketcand://`
+//! endpoints in this process. Every frame carries its sequence number and send time, so the
+//! receivers measure one-way latency and check order and loss.
 
 use std::net::SocketAddr;
 use std::process::Stdio;
@@ -14,77 +16,10 @@ use canbus::BusOptions;
 use canbus::{Bus, CanId, Frame};
 use tokio::io::{AsyncBufReadExt, BufReader};
 
-/// Command-line arguments of `canlift bench`.
-#[derive(Debug, clap::Args)]
-pub struct BenchArgs {
-    #[command(subcommand)]
-    what: BenchKind,
-}
-
-#[derive(Debug, clap::Subcommand)]
-enum BenchKind {
-    /// Frames/s, latency and CPU per frame through the hub.
-    Hub(HubBench),
-    /// SDO transfer rates through the hub, canlift's client and python-canopen's on one server.
-    Sdo(SdoBench),
-    /// A LocalNode through the hub: change→TPDO latency, PDO frames/s, SYNC jitter, idle CPU.
-    Node(NodeBench),
-    #[cfg(feature = "portal")]
-    /// The elevator gateway from a portal's seat: get latency and rate, notifications/s, RSS.
-    Gateway(super::bench_gateway::GatewayBench),
-    #[cfg(feature = "portal")]
-    /// The cloud portal: idle gateways and memory per connection, reconnect storm, ingest,
-    /// operator latency.
-    Portal(super::bench_portal::PortalBench),
-    #[cfg(feature = "portal")]
-    /// The portal's cost per bus event: alarm rules, and the alarm service with its database.
-    Alarms(super::bench_alarms::AlarmsBench),
-    #[cfg(feature = "portal")]
-    /// The portal's telemetry writer alone: values/s stored and CPU per value.
-    Ingest(super::bench_ingest::IngestBench),
-    #[cfg(feature = "portal")]
-    /// The portal as a cluster: NATS, portal processes on PostgreSQL, load generators.
-    Cluster(super::bench_cluster::ClusterBench),
-    /// A process that copies TCP bytes both ways and does nothing else (`bench portal`'s
-    /// measure of what one more process in a request's path costs at the least).
-    #[command(hide = true)]
-    Relay(RelayArgs),
-}
-
-/// Arguments of the hidden `canlift bench relay`.
-#[derive(Debug, Clone, clap::Args)]
-pub(crate) struct RelayArgs {
-    /// Where to accept connections.
-    #[arg(long)]
-    pub(crate) listen: SocketAddr,
-    /// Where to relay each of them.
-    #[arg(long)]
-    pub(crate) to: SocketAddr,
-}
-
-/// Relay every connection to `args.to`, byte for byte, as a TCP proxy does: no TLS, no
-/// parsing, Nagle off on both sides so that nothing waits to be batched.
-async fn relay(args: RelayArgs) -> anyhow::Result<()> {
-    let listener = tokio::net::TcpListener::bind(args.listen).await?;
-    loop {
-        let (mut inbound, _) = listener.accept().await?;
-        tokio::spawn(async move {
-            // Onward only once the client has spoken: a probe that connects to see whether
-            // the relay listens must not take the place of a real client at the far end.
-            if inbound.peek(&mut [0]).await? == 0 {
-                return Ok(());
-            }
-            let mut outbound = tokio::net::TcpStream::connect(args.to).await?;
-            inbound.set_nodelay(true)?;
-            outbound.set_nodelay(true)?;
-            tokio::io::copy_bidirectional(&mut inbound, &mut outbound).await?;
-            anyhow::Ok(())
-        });
-    }
-}
+use crate::process::cpu_time;
 
 #[derive(Debug, Clone, clap::Args)]
-struct NodeBench {
+pub(crate) struct NodeBench {
     /// Changes timed for the change→TPDO latency.
     #[arg(long, default_value_t = 2000)]
     changes: u32,
@@ -100,7 +35,7 @@ struct NodeBench {
 }
 
 #[derive(Debug, Clone, clap::Args)]
-struct SdoBench {
+pub(crate) struct SdoBench {
     /// Expedited reads to time.
     #[arg(long, default_value_t = 2000)]
     reads: u32,
@@ -117,7 +52,7 @@ struct SdoBench {
 }
 
 #[derive(Debug, Clone, clap::Args)]
-struct HubBench {
+pub(crate) struct HubBench {
     /// Clients on the bus (all receive).
     #[arg(long, default_value_t = 2)]
     clients: usize,
@@ -144,7 +79,7 @@ struct RunningHub {
 }
 
 async fn start_hub(bitrate: Option<u32>) -> anyhow::Result<RunningHub> {
-    let exe = std::env::current_exe().context("locating the canlift binary")?;
+    let exe = crate::canlift()?;
     let mut cmd = tokio::process::Command::new(exe);
     cmd.args(["hub", "--listen", "127.0.0.1:0"])
         .stdout(Stdio::piped())
@@ -234,7 +169,7 @@ async fn pdo_node(
     Ok((node, updates))
 }
 
-async fn run_node_bench(args: NodeBench) -> anyhow::Result<()> {
+pub(crate) async fn run_node_bench(args: NodeBench) -> anyhow::Result<()> {
     use canopen::types::Value;
 
     let hub = start_hub(None).await?;
@@ -402,46 +337,6 @@ async fn run_node_bench(args: NodeBench) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// CPU time (user + system) of process `pid` so far, summed over its threads.
-pub(crate) fn cpu_time(pid: u32) -> Option<Duration> {
-    schedstat(pid).map(|(cpu, _)| cpu)
-}
-
-/// CPU time of process `pid` so far and how many times one of its threads was put on a CPU
-/// (each wake-up at least once), summed over its threads: `/proc/PID/task/*/schedstat`.
-pub(crate) fn schedstat(pid: u32) -> Option<(Duration, u64)> {
-    let tasks = std::fs::read_dir(format!("/proc/{pid}/task")).ok()?;
-    let (mut total, mut slices) = (0u64, 0u64);
-    for task in tasks.flatten() {
-        let text = std::fs::read_to_string(task.path().join("schedstat")).ok()?;
-        let mut fields = text.split_whitespace();
-        total += fields.next()?.parse::<u64>().ok()?;
-        slices += fields.nth(1)?.parse::<u64>().ok()?;
-    }
-    Some((Duration::from_nanos(total), slices))
-}
-
-/// What process `pid` used since `before` (its [`schedstat`] then): CPU time and wake-ups.
-#[cfg(feature = "portal")]
-pub(crate) fn used_since(pid: u32, before: Option<(Duration, u64)>) -> Option<(Duration, u64)> {
-    let (cpu, slices) = before?;
-    let (now, slices_now) = schedstat(pid)?;
-    Some((now.saturating_sub(cpu), slices_now.saturating_sub(slices)))
-}
-
-/// `used` (CPU time, wake-ups) per one of `n` things done, as the benchmarks print it.
-#[cfg(feature = "portal")]
-pub(crate) fn per_one(used: Option<(Duration, u64)>, n: f64) -> String {
-    match used {
-        Some((cpu, slices)) => format!(
-            "{:.1} µs CPU and {:.2} wake-ups",
-            cpu.as_secs_f64() * 1e6 / n,
-            slices as f64 / n
-        ),
-        None => "not measured".to_owned(),
-    }
-}
-
 #[derive(Default)]
 struct ReceiverReport {
     received: u64,
@@ -457,7 +352,7 @@ fn percentile(sorted: &[u32], p: f64) -> u32 {
     sorted[rank.min(sorted.len() - 1)]
 }
 
-async fn run_hub_bench(args: HubBench) -> anyhow::Result<()> {
+pub(crate) async fn run_hub_bench(args: HubBench) -> anyhow::Result<()> {
     if args.clients < 2 || args.senders == 0 || args.senders > args.clients {
         bail!("need at least 2 clients and 1..=clients senders");
     }
@@ -614,7 +509,7 @@ fn kib_s(bytes: usize, elapsed: Duration) -> f64 {
     bytes as f64 / 1024.0 / elapsed.as_secs_f64()
 }
 
-async fn run_sdo_bench(args: SdoBench) -> anyhow::Result<()> {
+pub(crate) async fn run_sdo_bench(args: SdoBench) -> anyhow::Result<()> {
     use canopen::driver::{serve_sdo, SdoClients, TransferOptions};
     use canopen::od::{Access, Object, ObjectDictionary, Variable};
     use canopen::sdo::client::{ClientConfig, Transfer};
@@ -758,24 +653,4 @@ fn parse_json_numbers(text: &str) -> Option<std::collections::HashMap<String, f6
             ))
         })
         .collect()
-}
-
-/// Run a benchmark.
-pub async fn run(args: BenchArgs) -> anyhow::Result<()> {
-    match args.what {
-        BenchKind::Hub(h) => run_hub_bench(h).await,
-        BenchKind::Sdo(s) => run_sdo_bench(s).await,
-        BenchKind::Node(n) => run_node_bench(n).await,
-        #[cfg(feature = "portal")]
-        BenchKind::Gateway(g) => super::bench_gateway::run(g).await,
-        #[cfg(feature = "portal")]
-        BenchKind::Portal(p) => super::bench_portal::run(p).await,
-        #[cfg(feature = "portal")]
-        BenchKind::Alarms(a) => super::bench_alarms::run(a).await,
-        #[cfg(feature = "portal")]
-        BenchKind::Ingest(a) => super::bench_ingest::run(a).await,
-        #[cfg(feature = "portal")]
-        BenchKind::Cluster(c) => super::bench_cluster::run(c).await,
-        BenchKind::Relay(r) => relay(r).await,
-    }
 }
