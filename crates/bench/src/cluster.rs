@@ -16,10 +16,10 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context};
 use futures_util::StreamExt;
 
-use crate::process::cpu_time;
-use crate::process::{memory_kib, percentile, Daemon};
 use crate::portal::{bench_config, lift_id, PortalProcess};
+use crate::process::cpu_time;
 use crate::process::listening;
+use crate::process::{memory_kib, percentile, Daemon};
 
 /// Arguments of `canlift-bench cluster`.
 #[derive(Debug, Clone, clap::Args)]

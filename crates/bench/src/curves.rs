@@ -11,10 +11,8 @@ use std::time::Duration;
 use anyhow::Context;
 use plotters::prelude::*;
 
+use crate::portal::{fleet_args, ingest, portal_online, storm_once, PortalBench, PortalProcess};
 use crate::process::mib;
-use crate::portal::{
-    fleet_args, ingest, portal_online, storm_once, PortalBench, PortalProcess,
-};
 use gateway::fleet::Fleet;
 
 /// One line of a plot: its name and its points.

@@ -52,7 +52,7 @@ pub async fn run(args: IngestBench) -> anyhow::Result<()> {
         "SQLite"
     };
     for run in 1..=args.runs {
-        let base = cloud::store::now_ms();
+        let base = cloud_types::now_ms();
         let rows: Vec<TelemetryRow> = (0..args.values)
             .map(|i| row(i, args.lifts.max(1), base + i as i64))
             .collect();

@@ -167,7 +167,7 @@ impl PortalProcess {
 
 /// The portal's lift id of fleet gateway `number`.
 pub(crate) fn lift_id(number: usize) -> String {
-    cloud::store::lift_id(&gateway::fleet::identity(number, "").connect(None).identity)
+    cloud_types::lifts::lift_id(&gateway::fleet::identity(number, "").connect(None).identity)
 }
 
 /// `n` gateways of the BENCH account, from `args.sources` source addresses, all at once.
@@ -753,9 +753,7 @@ async fn measure(args: &PortalBench, dir: &Path) -> anyhow::Result<()> {
                     ingest(args, &portal, dir).await?;
                 }
                 Phase::Latency => latency(args, &portal, dir).await?,
-                Phase::Curves => {
-                    crate::curves::curves(args, &portal, dir, &args.curves).await?
-                }
+                Phase::Curves => crate::curves::curves(args, &portal, dir, &args.curves).await?,
             }
         }
         anyhow::Ok(())

@@ -417,7 +417,7 @@ async fn pushed(watch: &mut cloud::client::EventStream, value: u8) -> Option<Str
     tokio::time::timeout(Duration::from_secs(3), async {
         while let Some(Ok((name, data))) = watch.next().await {
             if name == "value" && data.contains("0x4112") && data.contains(&wanted) {
-                let event: cloud::rest::ValueEvent =
+                let event: cloud_types::live::ValueMessage =
                     serde_json::from_str(&data).expect("a value event");
                 return Some(event.object.mplex);
             }

@@ -10,8 +10,7 @@ use nxg::msg::EventKind;
 use nxg::portal::Settings;
 use serde::{Deserialize, Serialize};
 
-use crate::alarms::rules::Severities;
-use crate::alarms::Severity;
+use cloud_types::alarms::Severity;
 
 /// `[server]`: the one TLS port.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -258,6 +257,40 @@ pub struct WebhookSection {
 
 fn major() -> Severity {
     Severity::Major
+}
+
+/// The severity of each condition (`[alarms.severity]`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
+pub struct Severities {
+    /// The gateway is gone.
+    pub lift_offline: Severity,
+    /// A network is bus-off.
+    pub bus_off: Severity,
+    /// A network cannot be reached by its gateway.
+    pub bus_offline: Severity,
+    /// A network is error-passive.
+    pub error_passive: Severity,
+    /// A node fell silent.
+    pub node_offline: Severity,
+    /// A node reported an error.
+    pub emcy: Severity,
+    /// The gateway's board changed under its token.
+    pub board_changed: Severity,
+}
+
+impl Default for Severities {
+    fn default() -> Self {
+        Severities {
+            lift_offline: Severity::Critical,
+            bus_off: Severity::Critical,
+            bus_offline: Severity::Critical,
+            error_passive: Severity::Minor,
+            node_offline: Severity::Major,
+            emcy: Severity::Major,
+            board_changed: Severity::Major,
+        }
+    }
 }
 
 /// `[alarms]`.

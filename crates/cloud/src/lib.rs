@@ -16,7 +16,6 @@ pub mod devpki;
 pub mod elevation;
 pub mod gateways;
 mod memory;
-pub mod rest;
 pub mod server;
 pub mod store;
 pub mod throttle;

@@ -294,7 +294,7 @@ async fn a_stopping_portal_records_when_its_gateways_were_last_seen() {
     let connected = seen().await;
     // Apart by more than the clock's resolution.
     tokio::time::sleep(Duration::from_millis(10)).await;
-    let stopping = cloud::store::now_ms();
+    let stopping = cloud_types::now_ms();
     assert!(connected < stopping);
     rig.stop_portal().await;
     assert_eq!(

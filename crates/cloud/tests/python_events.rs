@@ -55,7 +55,7 @@ async fn events_become_alarms_that_reach_people() {
             config.alarms.webhooks.push(cloud::config::WebhookSection {
                 url,
                 secret: SECRET.into(),
-                min_severity: cloud::alarms::Severity::Major,
+                min_severity: cloud_types::alarms::Severity::Major,
                 ca_file: None,
             });
         })

@@ -5,7 +5,7 @@
 use std::time::Duration;
 
 use cloud::client::{Body, Reply};
-use cloud::store::Role;
+use cloud_types::users::Role;
 use serde_json::{json, Value};
 use testkit::constants::{LIFT, SERVICE_PASSWORD, WAIT};
 use testkit::portal::{until, Rig};

@@ -183,7 +183,7 @@ async fn a_token_older_than_token_rotate_days_is_replaced_at_connect() {
         rig.dir().join("portal").join("canlift.db").display()
     );
     let pool = sqlx::AnyPool::connect(&url).await.expect("the database");
-    let month_ago = cloud::store::now_ms() - 31 * 86_400_000;
+    let month_ago = cloud_types::now_ms() - 31 * 86_400_000;
     sqlx::query("UPDATE gateways SET token_set = $1")
         .bind(month_ago)
         .execute(&pool)

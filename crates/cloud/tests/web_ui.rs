@@ -932,11 +932,11 @@ async fn each_role_sees_what_it_may_do() {
     let rig = with_a_drive_fault().await;
     let store = rig.store().await;
     let viewer = store
-        .add_user("masora", "vera", cloud::store::Role::Viewer)
+        .add_user("masora", "vera", cloud_types::users::Role::Viewer)
         .await
         .unwrap();
     let engineer = store
-        .add_user("masora", "enzo", cloud::store::Role::Engineer)
+        .add_user("masora", "enzo", cloud_types::users::Role::Engineer)
         .await
         .unwrap();
 

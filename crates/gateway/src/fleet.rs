@@ -118,7 +118,10 @@ impl Fleet {
     /// Make the gateways, then start them (at `options.rate` per second); returns once all
     /// are started. With the [`Sessions`] of an earlier fleet (see [`Fleet::stop`]) they
     /// resume its TLS sessions.
-    pub async fn start(options: &FleetOptions, sessions: Option<Sessions>) -> Result<Fleet, FleetError> {
+    pub async fn start(
+        options: &FleetOptions,
+        sessions: Option<Sessions>,
+    ) -> Result<Fleet, FleetError> {
         if options.sources == 0 {
             return Err(FleetError::NoSources);
         }

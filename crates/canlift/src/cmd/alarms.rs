@@ -1,8 +1,8 @@
 //! `canlift alarms [ack ID]` and `canlift events LIFT`: the account's alarms and a lift's bus
 //! events through the portal's REST API (docs/PORTAL.md §Alarms).
 
-use cloud::alarms::Alarm;
-use cloud::rest::{AckBody, AlarmList, AlarmState, AlarmsQuery, EventLog, EventLogQuery};
+use cloud_types::alarms::Alarm;
+use cloud_types::api::{AckBody, AlarmList, AlarmState, AlarmsQuery, EventLog, EventLogQuery};
 use nxg::msg::Event;
 use serde_json::Value;
 

@@ -10,7 +10,8 @@ use std::path::PathBuf;
 use anyhow::Context;
 use cloud::config::Config;
 use cloud::server::Portal;
-use cloud::store::{Role, Store};
+use cloud::store::Store;
+use cloud_types::users::Role;
 
 /// Command-line arguments of `canlift cloud`.
 #[derive(Debug, clap::Args)]
@@ -209,7 +210,7 @@ pub async fn run(args: CloudArgs) -> anyhow::Result<()> {
                 .await?
                 .with_context(|| format!("no lift {lift:?} in the registry"))?;
             store
-                .reset_token(&domain, &lift, cloud::store::BY_ADMINISTRATOR)
+                .reset_token(&domain, &lift, cloud_types::audit::BY_ADMINISTRATOR)
                 .await?;
             println!("{lift}: token forgotten; the gateway's next connection is a first contact");
             Ok(())
@@ -328,7 +329,7 @@ async fn keys(config: &Config, what: KeyCommand) -> anyhow::Result<()> {
             json,
         } => {
             let until = expires.map(|d| {
-                cloud::store::now_ms()
+                cloud_types::now_ms()
                     .saturating_add(i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
             });
             let (id, key) = store.add_key(&account, &user, until).await?;

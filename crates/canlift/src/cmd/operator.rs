@@ -5,7 +5,8 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context};
 use cloud::client::Client;
-use cloud::rest::{EventsQuery, Form, GetQuery, LiftSummary, PutBody, ValueEvent};
+use cloud_types::api::{EventsQuery, Form, GetQuery, LiftSummary, PutBody};
+use cloud_types::live::ValueMessage;
 use nxg::msg::{ErrorObject, ObjectAnswer};
 use serde::de::DeserializeOwned;
 use serde_json::Value;
@@ -332,13 +333,13 @@ pub async fn watch(mut args: WatchArgs) -> anyhow::Result<()> {
         let (event, data) = next?;
         match event.as_str() {
             "value" => {
-                let Ok(v) = serde_json::from_str::<ValueEvent>(&data) else {
+                let Ok(v) = serde_json::from_str::<ValueMessage>(&data) else {
                     continue;
                 };
                 if wanted.contains(&v.object.mplex) {
                     println!(
                         "{} {} {}",
-                        cloud::store::now_ms(),
+                        cloud_types::now_ms(),
                         v.object.mplex,
                         v.object.value
                     );
@@ -346,7 +347,7 @@ pub async fn watch(mut args: WatchArgs) -> anyhow::Result<()> {
                 }
             }
             "online" => {
-                if let Ok(o) = serde_json::from_str::<cloud::rest::OnlineEvent>(&data) {
+                if let Ok(o) = serde_json::from_str::<cloud_types::live::OnlineMessage>(&data) {
                     eprintln!("{} online: {}", args.lift, o.online);
                 }
             }

@@ -20,41 +20,9 @@ use std::collections::{BTreeMap, HashMap};
 
 use nxg::msg::{BusState, Event, NodeState};
 
-use super::{Condition, Kind, Place, Severity};
+use cloud_types::alarms::{Condition, Kind, Place, Severity};
 
-/// The severity of each condition (`[alarms.severity]`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-#[serde(default, deny_unknown_fields, rename_all = "kebab-case")]
-pub struct Severities {
-    /// The gateway is gone.
-    pub lift_offline: Severity,
-    /// A network is bus-off.
-    pub bus_off: Severity,
-    /// A network cannot be reached by its gateway.
-    pub bus_offline: Severity,
-    /// A network is error-passive.
-    pub error_passive: Severity,
-    /// A node fell silent.
-    pub node_offline: Severity,
-    /// A node reported an error.
-    pub emcy: Severity,
-    /// The gateway's board changed under its token.
-    pub board_changed: Severity,
-}
-
-impl Default for Severities {
-    fn default() -> Self {
-        Severities {
-            lift_offline: Severity::Critical,
-            bus_off: Severity::Critical,
-            bus_offline: Severity::Critical,
-            error_passive: Severity::Minor,
-            node_offline: Severity::Major,
-            emcy: Severity::Major,
-            board_changed: Severity::Major,
-        }
-    }
-}
+use crate::config::Severities;
 
 /// What to do with the alarms.
 #[derive(Debug, Clone, PartialEq, Eq)]

@@ -15,10 +15,11 @@ use tokio::sync::{mpsc, Notify};
 use tokio::time::Instant;
 
 use super::rules::{Active, Applied, Rules, Verdict};
-use super::{Alarm, AlarmChange, Change, Kind};
 use crate::config::WebhookSection;
-use crate::gateways::{LiftEvent, Registry};
+use crate::gateways::Registry;
 use crate::store::{self, EventRow, Store, StoreError};
+use cloud_types::alarms::{Alarm, AlarmChange, Change, Kind};
+use cloud_types::live::LiftEvent;
 
 /// What a gateway connection reports.
 #[derive(Debug, Clone, PartialEq)]
@@ -138,7 +139,7 @@ impl Alarms {
     ) -> Result<Alarm, AckError> {
         let done = self
             .store
-            .acknowledge_alarm(domain, id, by, comment, store::now_ms())
+            .acknowledge_alarm(domain, id, by, comment, cloud_types::now_ms())
             .await?;
         let alarm = self.store.alarm_of(domain, id).await?;
         match (done, alarm) {
@@ -167,7 +168,7 @@ impl Alarms {
         for hook in self.webhooks.iter().filter(|h| severity >= h.min_severity) {
             match self
                 .store
-                .enqueue_webhook(&hook.url, &lift, &body, store::now_ms())
+                .enqueue_webhook(&hook.url, &lift, &body, cloud_types::now_ms())
                 .await
             {
                 Ok(()) => queued = true,
@@ -337,7 +338,7 @@ impl Service {
             Input::Event { lift, event } => {
                 let verdicts = self.rules.event(&lift, &event);
                 self.batch.push(EventRow {
-                    at: event.time_ms().unwrap_or_else(store::now_ms),
+                    at: event.time_ms().unwrap_or_else(cloud_types::now_ms),
                     kind: event.kind().name().to_owned(),
                     body: serde_json::to_string(&event).unwrap_or_default(),
                     lift,
@@ -462,7 +463,7 @@ impl Service {
 
     /// Update the index of active alarms; the changes wait for the next write.
     fn apply(&mut self, verdicts: Vec<Verdict>) {
-        let now = store::now_ms();
+        let now = cloud_types::now_ms();
         for verdict in verdicts {
             match self.active.apply(verdict, store::new_id) {
                 Applied::Raised {

@@ -20,7 +20,9 @@ use tokio::net::TcpStream;
 
 use super::service::{Alarms, Counters};
 use crate::config::WebhookSection;
-use crate::store::{self, AuditEntry, OutboxEntry, Store};
+use cloud_types::audit::AuditEntry;
+
+use crate::store::{OutboxEntry, Store};
 
 /// How long one attempt may take.
 const ATTEMPT: Duration = Duration::from_secs(10);
@@ -173,7 +175,7 @@ async fn attempt(store: &Store, counters: &Counters, receiver: &Receiver, entry:
     let result = tokio::time::timeout(ATTEMPT, post(receiver, entry.id, &entry.body))
         .await
         .unwrap_or_else(|_| Err(format!("no answer within {} s", ATTEMPT.as_secs())));
-    let now = store::now_ms();
+    let now = cloud_types::now_ms();
     let (outcome, audit) = match &result {
         Ok(status) if (200..300).contains(status) => {
             counters.webhooks_delivered.fetch_add(1, Ordering::Relaxed);
@@ -205,7 +207,7 @@ async fn attempt(store: &Store, counters: &Counters, receiver: &Receiver, entry:
     if let Err(e) = store.webhook_attempt(entry.id, now, outcome).await {
         tracing::error!(error = %e, "webhook attempt not recorded");
     }
-    let change = serde_json::from_str::<super::AlarmChange>(&entry.body)
+    let change = serde_json::from_str::<cloud_types::alarms::AlarmChange>(&entry.body)
         .map(|c| format!("{} alarm {}", c.change.name(), c.alarm.id))
         .unwrap_or_default();
     let entry = AuditEntry {
@@ -229,7 +231,7 @@ pub async fn deliver(alarms: Arc<Alarms>, receivers: Vec<Receiver>) {
     let store = &alarms.store;
     let counters = &alarms.counters;
     loop {
-        match store.due_webhooks(store::now_ms(), 100).await {
+        match store.due_webhooks(cloud_types::now_ms(), 100).await {
             Ok(due) => {
                 for entry in &due {
                     match receivers.iter().find(|r| r.section.url == entry.url) {
@@ -237,7 +239,9 @@ pub async fn deliver(alarms: Arc<Alarms>, receivers: Vec<Receiver>) {
                         None => {
                             // The receiver left the configuration: nothing to deliver to.
                             let gone = Err(("receiver no longer configured", None));
-                            let _ = store.webhook_attempt(entry.id, store::now_ms(), gone).await;
+                            let _ = store
+                                .webhook_attempt(entry.id, cloud_types::now_ms(), gone)
+                                .await;
                         }
                     }
                 }
@@ -250,7 +254,9 @@ pub async fn deliver(alarms: Arc<Alarms>, receivers: Vec<Receiver>) {
                 .store(u64::try_from(pending).unwrap_or(0), Ordering::Relaxed);
         }
         let wait = match store.next_webhook_due().await {
-            Ok(Some(at)) => Duration::from_millis(u64::try_from(at - store::now_ms()).unwrap_or(0)),
+            Ok(Some(at)) => {
+                Duration::from_millis(u64::try_from(at - cloud_types::now_ms()).unwrap_or(0))
+            }
             _ => LONGEST_WAIT,
         };
         tokio::select! {

@@ -10,9 +10,11 @@ use axum::Json;
 
 use super::{allowed, error, lift_of, ApiError, ApiJson, ApiQuery, App, Caller};
 use crate::alarms::service::AckError;
-use crate::alarms::Alarm;
-use crate::rest::{AckBody, AlarmList, AlarmState, AlarmsQuery, EventLog, EventLogQuery};
-use crate::store::{AlarmFilter, Role};
+use cloud_types::alarms::Alarm;
+use cloud_types::api::{AckBody, AlarmList, AlarmState, AlarmsQuery, EventLog, EventLogQuery};
+use cloud_types::users::Role;
+
+use crate::store::AlarmFilter;
 
 /// `GET /api/v1/alarms`.
 pub(super) async fn list(

@@ -29,14 +29,17 @@ use nxg::portal::Failure;
 use serde::de::DeserializeOwned;
 
 use crate::config::Dashboard;
-use crate::gateways::subscriptions::{Holder, Subscriptions, Terms, WhenOffline};
+use crate::gateways::subscriptions::{Subscriptions, WhenOffline};
 use crate::gateways::Registry;
-use crate::rest::{
+use crate::store::{self, Store};
+use crate::web::Sessions;
+use cloud_types::api::{
     EventsQuery, Form, GetQuery, History, HistoryPoint, HistoryQuery, LiftSummary, NameQuery,
     PrivilegeBody, PutBody, SubscriptionBody,
 };
-use crate::store::{self, AuditEntry, Operator, Role, Store};
-use crate::web::Sessions;
+use cloud_types::audit::AuditEntry;
+use cloud_types::subscriptions::{Subscriber, Terms};
+use cloud_types::users::{Operator, Role};
 
 /// What the handlers share.
 pub struct App {
@@ -364,7 +367,7 @@ async fn put_object(
         .as_ref()
         .and_then(|a| a.object.value.first().cloned());
     let mut entry = AuditEntry {
-        at: store::now_ms(),
+        at: cloud_types::now_ms(),
         account: operator.user.clone(),
         lift: id.clone(),
         action: "put".into(),
@@ -419,7 +422,13 @@ async fn may_write(
     }
     let connection = app.registry.connection(lift);
     app.elevations
-        .check(lift, &operator.user, needed, connection, store::now_ms())
+        .check(
+            lift,
+            &operator.user,
+            needed,
+            connection,
+            cloud_types::now_ms(),
+        )
         .await?
         .map_err(|r| error(StatusCode::FORBIDDEN, r.to_string()))
 }
@@ -490,12 +499,12 @@ async fn privilege(
                 params.privilege,
                 std::time::Duration::from_secs(answer.duration),
                 connection,
-                store::now_ms(),
+                cloud_types::now_ms(),
             )
             .await?;
     }
     let entry = AuditEntry {
-        at: store::now_ms(),
+        at: cloud_types::now_ms(),
         account: operator.user,
         lift: id,
         action: "elevate".into(),
@@ -543,7 +552,7 @@ async fn token(
         app.store.set_token(&id, &token).await?;
     }
     let entry = AuditEntry {
-        at: store::now_ms(),
+        at: cloud_types::now_ms(),
         account: operator.user,
         lift: id,
         action: "token rotated".into(),
@@ -570,23 +579,23 @@ async fn subscriptions(
     let operator = lift_of(&app, caller, &id, Role::Technician).await?;
     let objects = objects(&app.names, &body.mplex)?;
     let listed: Vec<String> = objects.iter().map(ToString::to_string).collect();
-    let holder = Holder::User(operator.user.clone());
+    let subscriber = Subscriber::User(operator.user.clone());
     // Recorded for the gateway's next connection, to whichever process (docs/PORTAL.md
     // §Subscriptions): released whatever the gateway answers, held once it took them.
     if method == Method::DELETE {
         app.store
-            .release_objects(&id, &operator.user, &listed)
+            .unsubscribe_objects(&id, &operator.user, &listed)
             .await?;
         app.subscriptions
-            .release(&id, &holder, Some(&objects))
+            .unsubscribe(&id, &subscriber, Some(&objects))
             .await?;
     } else {
         let terms = terms(body.inhibit, body.threshold)?;
         app.subscriptions
-            .hold(&id, &holder, &objects, terms, WhenOffline::Refuse)
+            .subscribe(&id, &subscriber, &objects, terms, WhenOffline::Refuse)
             .await?;
         app.store
-            .hold_objects(&id, &operator.user, &listed, terms.inhibit, terms.threshold)
+            .subscribe_objects(&id, &operator.user, &listed, terms.inhibit, terms.threshold)
             .await?;
     }
     Ok(Json(Done::OK))
@@ -628,19 +637,19 @@ async fn events(
             let list: Vec<String> = list.split(',').map(str::to_owned).collect();
             let objects = objects(&app.names, &list)?;
             let terms = terms(q.inhibit, q.threshold)?;
-            let holder = app.subscriptions.watcher();
+            let subscriber = app.subscriptions.watcher();
             app.subscriptions
-                .hold(&id, &holder, &objects, terms, WhenOffline::Keep)
+                .subscribe(&id, &subscriber, &objects, terms, WhenOffline::Keep)
                 .await?;
             Some(Watching {
                 subscriptions: app.subscriptions.clone(),
                 lift: id.clone(),
-                holder,
+                subscriber,
             })
         }
         None => None,
     };
-    let online = crate::gateways::LiftEvent::Online(app.registry.online(&id));
+    let online = cloud_types::live::LiftEvent::Online(app.registry.online(&id));
     let (kind, data) = online.to_sse(&id);
     let first = Event::default().event(kind).data(data);
     // The watcher's subscriptions live in the stream's state: dropped with it.
@@ -668,18 +677,18 @@ async fn events(
 struct Watching {
     subscriptions: Arc<Subscriptions>,
     lift: String,
-    holder: Holder,
+    subscriber: Subscriber,
 }
 
 impl Drop for Watching {
     fn drop(&mut self) {
         let subscriptions = self.subscriptions.clone();
         let lift = std::mem::take(&mut self.lift);
-        let holder = self.holder.clone();
+        let subscriber = self.subscriber.clone();
         // Dropping cannot wait for the gateway; the release runs on its own.
         if let Ok(runtime) = tokio::runtime::Handle::try_current() {
             runtime.spawn(async move {
-                if let Err(e) = subscriptions.release(&lift, &holder, None).await {
+                if let Err(e) = subscriptions.unsubscribe(&lift, &subscriber, None).await {
                     tracing::debug!(%lift, failure = ?e, "a watcher's subscriptions not released");
                 }
             });

@@ -10,7 +10,9 @@ use axum::Json;
 use serde::{Deserialize, Serialize};
 
 use super::{allowed, error, ApiError, ApiJson, App, Caller};
-use crate::store::{KeyInfo, Role, User, UserError};
+use cloud_types::users::{KeyInfo, Role, User};
+
+use crate::store::UserError;
 
 impl From<UserError> for ApiError {
     fn from(e: UserError) -> Self {
@@ -167,7 +169,7 @@ pub(super) async fn add_key(
     let admin = allowed(caller, Role::Admin)?;
     let expires = body
         .expires_days
-        .map(|days| crate::store::now_ms().saturating_add(i64::from(days) * 86_400_000));
+        .map(|days| cloud_types::now_ms().saturating_add(i64::from(days) * 86_400_000));
     let (id, api_key) = app
         .store
         .add_key(&admin.account.name, &body.user, expires)

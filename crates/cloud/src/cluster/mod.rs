@@ -23,8 +23,11 @@ use nxg::msg::Method;
 use nxg::portal::Failure;
 use tokio::sync::{broadcast, mpsc, oneshot, watch, Notify};
 
-use crate::gateways::subscriptions::{Subscriptions, Terms};
-use crate::gateways::{LiftEvent, Registry};
+use cloud_types::live::LiftEvent;
+use cloud_types::subscriptions::Terms;
+
+use crate::gateways::subscriptions::Subscriptions;
+use crate::gateways::Registry;
 use fleet::Fleet;
 use msgs::{Alive, Holding, Key, Relayed, RelayedAnswer, RelayedWatch};
 use nats::{NatsAccess, NatsConfigError};
@@ -799,7 +802,7 @@ impl Cluster {
         tokio::spawn(async move {
             for process in lapsed {
                 tracing::debug!(%lift, process = process >> 32, "a watching process's lease lapsed");
-                subscriptions.release_process(&lift, process).await;
+                subscriptions.unsubscribe_process(&lift, process).await;
             }
         });
     }
@@ -1022,10 +1025,10 @@ async fn answer(
                     threshold: hold.threshold,
                 };
                 let held = subscriptions
-                    .hold_here(&lift, &hold.holder, &objects, terms)
+                    .subscribe_here(&lift, &hold.subscriber, &objects, terms)
                     .await;
                 // A watcher's terms last as long as its process's watch of the lift.
-                if let (Ok(()), Some(process)) = (&held, hold.holder.process()) {
+                if let (Ok(()), Some(process)) = (&held, hold.subscriber.process()) {
                     let _ = cluster.watch_granted(&lift, process);
                 }
                 held.map(|()| DONE.to_owned())
@@ -1038,7 +1041,7 @@ async fn answer(
                     .mplex
                     .map(|list| list.iter().map(|m| m.mplex).collect());
                 subscriptions
-                    .release_here(&lift, &release.holder, objects.as_deref())
+                    .unsubscribe_here(&lift, &release.subscriber, objects.as_deref())
                     .await
                     .map(|()| DONE.to_owned())
             }

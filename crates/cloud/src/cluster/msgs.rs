@@ -7,7 +7,7 @@ use nxg::portal::Failure;
 use serde::{Deserialize, Serialize};
 use serde_json::value::RawValue;
 
-use crate::gateways::subscriptions::Holder;
+use cloud_types::subscriptions::Subscriber;
 
 /// The KV bucket of holder entries (`lift.<token>`, a [`Holding`]) and of the processes'
 /// leases (`process.<token>`, an [`Alive`]).
@@ -114,7 +114,7 @@ pub enum Relayed {
 #[derive(Debug, Serialize, Deserialize)]
 pub struct RelayedWatch {
     /// The watching process's part of its watchers' ids (their upper 32 bits, see
-    /// [`Holder::Watcher`]).
+    /// [`Subscriber::Watcher`]).
     pub process: u64,
 }
 
@@ -132,7 +132,8 @@ pub struct RelayedCall {
 #[derive(Debug, Serialize, Deserialize)]
 pub struct RelayedHold {
     /// Who asks.
-    pub holder: Holder,
+    #[serde(rename = "holder")]
+    pub subscriber: Subscriber,
     /// The objects.
     pub mplex: Vec<MplexText>,
     /// Minimum gap between two pushes (ms).
@@ -145,7 +146,8 @@ pub struct RelayedHold {
 #[derive(Debug, Serialize, Deserialize)]
 pub struct RelayedRelease {
     /// Who lets go.
-    pub holder: Holder,
+    #[serde(rename = "holder")]
+    pub subscriber: Subscriber,
     /// The objects.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub mplex: Option<Vec<MplexText>>,
@@ -318,7 +320,7 @@ mod tests {
         };
         assert_eq!(back.params.unwrap().get(), "{\"mplex\": \"0x652001\"}");
         let hold = Relayed::Hold(RelayedHold {
-            holder: Holder::Watcher(7 << 32 | 1),
+            subscriber: Subscriber::Watcher(7 << 32 | 1),
             mplex: vec![nxg::mplex::Mplex {
                 index: 0x6520,
                 sub: 1,
@@ -336,7 +338,7 @@ mod tests {
         let Relayed::Release(back) = serde_json::from_str(release).unwrap() else {
             panic!("{release}");
         };
-        assert_eq!(back.holder, Holder::User("masora".into()));
+        assert_eq!(back.subscriber, Subscriber::User("masora".into()));
         assert!(back.mplex.is_none());
         let watch = Relayed::Watch(RelayedWatch { process: 7 << 32 });
         let watch = serde_json::to_string(&watch).unwrap();

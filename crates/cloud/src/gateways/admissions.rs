@@ -157,7 +157,7 @@ mod tests {
                 .record(&[GatewayRecord::connected(&gw, 2)])
                 .await
                 .unwrap();
-            let lift = crate::store::lift_id(&gw.identity);
+            let lift = cloud_types::lifts::lift_id(&gw.identity);
             store.set_token(&lift, &format!("T{n}")).await.unwrap();
         }
         let (admissions, task) = Admissions::start(store.clone());

@@ -14,10 +14,13 @@ use nxg::msg::{Connect, Event, Notification};
 use nxg::portal::{Failure, Output, RequestId, Session};
 
 use super::mailbox::{Letter, Mailbox};
-use super::{dashboard, Calls, LiftEvent, Reply, Shared};
+use super::{dashboard, Calls, Reply, Shared};
 use crate::alarms::Input;
 use crate::config::BoardhashChange;
-use crate::store::{self, Admission, AuditEntry, GatewayRecord, TelemetryRow};
+use cloud_types::audit::AuditEntry;
+use cloud_types::live::LiftEvent;
+
+use crate::store::{self, Admission, GatewayRecord, TelemetryRow};
 use crate::throttle::TokenBucket;
 
 /// The lift a connection serves, once it is admitted.
@@ -211,7 +214,7 @@ impl Connection {
     /// use is due for rotation) or refuse it; a valid token from another board is dealt with
     /// per `[gateways] boardhash_change`.
     async fn identify(&mut self, connect: Connect) -> Vec<Output> {
-        let lift = store::lift_id(&connect.identity);
+        let lift = cloud_types::lifts::lift_id(&connect.identity);
         let peer = self.peer.clone();
         // A token its last connection confirmed is on record first (else: a first contact
         // again, its board unchecked).
@@ -310,7 +313,7 @@ impl Connection {
         let Some(a) = &self.admitted else {
             return Ok(());
         };
-        let at = store::now_ms();
+        let at = cloud_types::now_ms();
         self.shared.registry.observe(&a.lift, &n, at);
         let row = TelemetryRow {
             lift: a.lift.clone(),
@@ -374,7 +377,7 @@ async fn board_changed(
     was: String,
     known: store::Known,
 ) -> Result<Admission, store::StoreError> {
-    let lift = store::lift_id(&connect.identity);
+    let lift = cloud_types::lifts::lift_id(&connect.identity);
     let now = connect.identity.boardhash.clone();
     let policy = shared.boardhash_change;
     let result = match policy {
@@ -386,8 +389,8 @@ async fn board_changed(
     shared
         .store
         .audit(&AuditEntry {
-            at: store::now_ms(),
-            account: store::BY_PORTAL.into(),
+            at: cloud_types::now_ms(),
+            account: cloud_types::audit::BY_PORTAL.into(),
             lift: lift.clone(),
             action: "board changed".into(),
             object: "boardhash".into(),
@@ -416,7 +419,7 @@ async fn token_to_issue(shared: &Shared, lift: &str, admission: &Admission) -> O
         Admission::FirstContact { .. } => Some(store::secret("")),
         Admission::Known(known) => {
             let lifetime = shared.token_lifetime?;
-            let age = store::now_ms().saturating_sub(known.token_set);
+            let age = cloud_types::now_ms().saturating_sub(known.token_set);
             if u128::try_from(age).unwrap_or(0) < lifetime.as_millis() {
                 return None;
             }

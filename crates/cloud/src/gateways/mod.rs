@@ -17,17 +17,16 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 
 use nxg::mplex::Mplex;
-use nxg::msg::{self, Call, Event, Method, Notification};
+use nxg::msg::{self, Call, Method, Notification};
 use nxg::portal::{Failure, Settings};
 use serde_json::value::RawValue;
 use tokio::sync::{broadcast, mpsc, oneshot};
 
-use crate::alarms::AlarmChange;
 use crate::cluster::msgs::Holding;
 use crate::cluster::Cluster;
 use crate::config::Dashboard;
-use crate::rest::{BusEventEvent, OnlineEvent, ValueEvent};
 use crate::store::Store;
+use cloud_types::live::LiftEvent;
 
 pub use connection::serve;
 pub use telemetry::TelemetryCounters;
@@ -49,57 +48,6 @@ pub(crate) async fn next_batch<T>(
     }
     rx.close();
     rx.recv_many(batch, limit).await
-}
-
-/// An event for live viewers of a lift (in a cluster, published by the lift's holder for
-/// the other processes: docs/CLUSTER.md §Subjects).
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(tag = "kind", content = "data", rename_all = "snake_case")]
-pub enum LiftEvent {
-    /// A pushed value.
-    Value(Notification),
-    /// The gateway came online or went offline.
-    Online(bool),
-    /// A bus event (api 2).
-    Bus(Event),
-    /// An alarm changed.
-    Alarm(AlarmChange),
-}
-
-impl LiftEvent {
-    /// The Server-Sent Event of `lift`: its name and its JSON data.
-    pub fn to_sse(&self, lift: &str) -> (&'static str, String) {
-        let lift = lift.to_owned();
-        match self {
-            LiftEvent::Value(n) => (
-                "value",
-                serde_json::to_string(&ValueEvent {
-                    lift,
-                    object: n.clone(),
-                })
-                .unwrap_or_default(),
-            ),
-            LiftEvent::Online(online) => (
-                "online",
-                serde_json::to_string(&OnlineEvent {
-                    lift,
-                    online: *online,
-                })
-                .unwrap_or_default(),
-            ),
-            LiftEvent::Bus(event) => (
-                "event",
-                serde_json::to_string(&BusEventEvent {
-                    lift,
-                    event: event.clone(),
-                })
-                .unwrap_or_default(),
-            ),
-            LiftEvent::Alarm(change) => {
-                ("alarm", serde_json::to_string(change).unwrap_or_default())
-            }
-        }
-    }
 }
 
 /// The answer to an operator request: the raw JSON of its `result`, or why not.

@@ -251,7 +251,7 @@ mod tests {
         let store = Store::open(&url).await.unwrap();
         store.add_account("masora", "MAS").await.unwrap();
         let first = connect("GW1", "v1");
-        let lift = crate::store::lift_id(&first.identity);
+        let lift = cloud_types::lifts::lift_id(&first.identity);
         store
             .record(&[GatewayRecord::connected(&first, 2)])
             .await
@@ -268,7 +268,7 @@ mod tests {
         assert!(tokio::time::timeout(wait, records.settled(&lift))
             .await
             .is_err());
-        let other = crate::store::lift_id(&connect("GW2", "").identity);
+        let other = cloud_types::lifts::lift_id(&connect("GW2", "").identity);
         tokio::time::timeout(wait, records.settled(&other))
             .await
             .expect("another lift does not wait");
@@ -308,7 +308,7 @@ mod tests {
         if store.free_connections().await.unwrap().is_some() {
             assert!(poisoned.is_err(), "PostgreSQL: {poisoned:?}");
         }
-        let lift = crate::store::lift_id(&connect("GW7", "").identity);
+        let lift = cloud_types::lifts::lift_id(&connect("GW7", "").identity);
         let at = |record: &GatewayRecord| match record {
             GatewayRecord::Connected { at, .. }
             | GatewayRecord::Seen { at, .. }

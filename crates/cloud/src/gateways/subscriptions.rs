@@ -5,26 +5,26 @@
 //! everyone). Several parties at the portal want pushes of one lift — the dashboard on every
 //! lift, a user through the API, each live watcher — so the portal keeps who holds what and
 //! registers with the gateway the union: per object the smallest inhibit and the smallest
-//! threshold of its holders. An object leaves the gateway only when its last holder lets go, and
+//! threshold of its subscribers. An object leaves the gateway only when its last subscriber lets go, and
 //! after a reconnect everything held is registered again.
 //!
-//! The dashboard's objects are the same on every lift: they are the [`Base`] of each lift's
-//! [`Holders`] rather than an entry per lift, so an idle lift costs nothing here.
+//! The dashboard's objects are the same on every lift: they are the [`DashboardTerms`] of each lift's
+//! [`Subscribers`] rather than an entry per lift, so an idle lift costs nothing here.
 //!
 //! Users' subscriptions are in the database (the API writes them): the process the gateway
 //! connects to — after a portal restart, or another process of a cluster — reads them at
-//! CONNACK. In a cluster (docs/CLUSTER.md §Subscriptions) the lift's holder keeps the terms of
-//! every holder on any process and registers the union; another process relays its holders'
-//! requests there and hands its own watchers' terms to each new holder of the lift.
+//! CONNACK. In a cluster (docs/CLUSTER.md §Subscriptions) the lift's holder (the process its
+//! gateway is connected to) keeps the terms of every subscriber on any process and registers
+//! the union; another process relays its subscribers' requests there and hands its own watchers' terms to each new holder of the lift.
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 
+use cloud_types::subscriptions::{Subscriber, Terms};
 use nxg::mplex::Mplex;
 use nxg::msg::{RegParams, UnregParams};
 use nxg::portal::Failure;
-use serde::{Deserialize, Serialize};
 
 use super::Registry;
 use crate::cluster::msgs::{Relayed, RelayedHold, RelayedRelease};
@@ -32,49 +32,8 @@ use crate::cluster::Cluster;
 use crate::config::Dashboard;
 use crate::store::Store;
 
-/// Who holds a subscription.
-#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Holder {
-    /// A user (or an account's own key), through `POST /api/v1/lifts/{id}/subscriptions`
-    /// (until its `DELETE`).
-    User(String),
-    /// One live event stream that asked for objects (until the stream ends). The upper 32
-    /// bits are its process's, drawn at random when it starts: unique across a cluster.
-    Watcher(u64),
-}
-
-impl Holder {
-    /// The process of a live watcher (the upper 32 bits of its id); `None` for a user.
-    pub fn process(&self) -> Option<u64> {
-        match self {
-            Holder::Watcher(id) => Some(id & !u64::from(u32::MAX)),
-            Holder::User(_) => None,
-        }
-    }
-}
-
-/// What is asked of the pushes of one object.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Terms {
-    /// Minimum gap between two pushes (ms).
-    pub inhibit: u64,
-    /// Smallest change of a number that is pushed.
-    pub threshold: f64,
-}
-
-impl Terms {
-    /// Pushes that satisfy both: the smaller inhibit and the smaller threshold.
-    fn union(self, other: Terms) -> Terms {
-        Terms {
-            inhibit: self.inhibit.min(other.inhibit),
-            threshold: self.threshold.min(other.threshold),
-        }
-    }
-}
-
 /// The objects every lift holds for the dashboard, with their terms.
-pub type Base = BTreeMap<Mplex, Terms>;
+pub type DashboardTerms = BTreeMap<Mplex, Terms>;
 
 /// What to send to the gateway.
 #[derive(Debug, Clone, PartialEq)]
@@ -85,18 +44,18 @@ pub enum Change {
     Unregister(Vec<Mplex>),
 }
 
-/// The holders of one lift's subscriptions beyond the dashboard.
+/// The subscribers of one lift's objects beyond the dashboard.
 #[derive(Debug, Clone, Default)]
-pub struct Holders {
-    objects: BTreeMap<Mplex, BTreeMap<Holder, Terms>>,
+pub struct Subscribers {
+    objects: BTreeMap<Mplex, BTreeMap<Subscriber, Terms>>,
 }
 
-impl Holders {
-    /// `holder` asks for `objects` with `terms` (replacing what it asked for them before).
+impl Subscribers {
+    /// `subscriber` asks for `objects` with `terms` (replacing what it asked for them before).
     pub fn add(
         &mut self,
-        base: &Base,
-        holder: &Holder,
+        base: &DashboardTerms,
+        subscriber: &Subscriber,
         objects: &[Mplex],
         terms: Terms,
     ) -> Vec<Change> {
@@ -105,17 +64,17 @@ impl Holders {
             self.objects
                 .entry(*mplex)
                 .or_default()
-                .insert(holder.clone(), terms);
+                .insert(subscriber.clone(), terms);
         }
         self.changes(base, before)
     }
 
-    /// `holder` lets go of `objects` (all of its own when `None`); what it did not hold is
+    /// `subscriber` lets go of `objects` (all of its own when `None`); what it did not hold is
     /// left alone.
     pub fn remove(
         &mut self,
-        base: &Base,
-        holder: &Holder,
+        base: &DashboardTerms,
+        subscriber: &Subscriber,
         objects: Option<&[Mplex]>,
     ) -> Vec<Change> {
         let objects: Vec<Mplex> = match objects {
@@ -123,15 +82,15 @@ impl Holders {
             None => self
                 .objects
                 .iter()
-                .filter(|(_, holders)| holders.contains_key(holder))
+                .filter(|(_, subscribers)| subscribers.contains_key(subscriber))
                 .map(|(mplex, _)| *mplex)
                 .collect(),
         };
         let before = self.unions(base, &objects);
         for mplex in &objects {
-            if let Some(holders) = self.objects.get_mut(mplex) {
-                holders.remove(holder);
-                if holders.is_empty() {
+            if let Some(subscribers) = self.objects.get_mut(mplex) {
+                subscribers.remove(subscriber);
+                if subscribers.is_empty() {
                     self.objects.remove(mplex);
                 }
             }
@@ -139,21 +98,25 @@ impl Holders {
         self.changes(base, before)
     }
 
-    /// Every holder `which` says yes to lets go of all it holds.
-    pub fn remove_where(&mut self, base: &Base, which: impl Fn(&Holder) -> bool) -> Vec<Change> {
+    /// Every subscriber `which` says yes to lets go of all it holds.
+    pub fn remove_where(
+        &mut self,
+        base: &DashboardTerms,
+        which: impl Fn(&Subscriber) -> bool,
+    ) -> Vec<Change> {
         let objects: Vec<Mplex> = self
             .objects
             .iter()
-            .filter(|(_, holders)| holders.keys().any(&which))
+            .filter(|(_, subscribers)| subscribers.keys().any(&which))
             .map(|(mplex, _)| *mplex)
             .collect();
         let before = self.unions(base, &objects);
-        self.retain(|holder| !which(holder));
+        self.retain(|subscriber| !which(subscriber));
         self.changes(base, before)
     }
 
     /// Everything held, for a gateway that has just connected (the dashboard's objects too).
-    pub fn all(&self, base: &Base) -> Vec<Change> {
+    pub fn all(&self, base: &DashboardTerms) -> Vec<Change> {
         let objects: Vec<Mplex> = base.keys().chain(self.objects.keys()).copied().collect();
         let before = objects.iter().map(|m| (*m, None)).collect();
         self.changes(base, before)
@@ -164,34 +127,34 @@ impl Holders {
         self.objects.is_empty()
     }
 
-    /// Forget every holder `keep` says no to, without any change at the gateway (for a lift
+    /// Forget every subscriber `keep` says no to, without any change at the gateway (for a lift
     /// whose connection here ended, or that moved to another process).
-    pub fn retain(&mut self, keep: impl Fn(&Holder) -> bool) {
-        self.objects.retain(|_, holders| {
-            holders.retain(|holder, _| keep(holder));
-            !holders.is_empty()
+    pub fn retain(&mut self, keep: impl Fn(&Subscriber) -> bool) {
+        self.objects.retain(|_, subscribers| {
+            subscribers.retain(|subscriber, _| keep(subscriber));
+            !subscribers.is_empty()
         });
     }
 
-    /// What each holder asks for, grouped by terms: one request per holder and terms.
-    pub fn requests(&self) -> Vec<(Holder, Terms, Vec<Mplex>)> {
-        let mut requests: Vec<(Holder, Terms, Vec<Mplex>)> = Vec::new();
-        for (mplex, holders) in &self.objects {
-            for (holder, terms) in holders {
+    /// What each subscriber asks for, grouped by terms: one request per subscriber and terms.
+    pub fn requests(&self) -> Vec<(Subscriber, Terms, Vec<Mplex>)> {
+        let mut requests: Vec<(Subscriber, Terms, Vec<Mplex>)> = Vec::new();
+        for (mplex, subscribers) in &self.objects {
+            for (subscriber, terms) in subscribers {
                 match requests
                     .iter_mut()
-                    .find(|(h, t, _)| h == holder && t == terms)
+                    .find(|(h, t, _)| h == subscriber && t == terms)
                 {
                     Some((_, _, list)) => list.push(*mplex),
-                    None => requests.push((holder.clone(), *terms, vec![*mplex])),
+                    None => requests.push((subscriber.clone(), *terms, vec![*mplex])),
                 }
             }
         }
         requests
     }
 
-    /// The terms registered for `mplex` (the union of its holders'), if anyone holds it.
-    fn union(&self, base: &Base, mplex: &Mplex) -> Option<Terms> {
+    /// The terms registered for `mplex` (the union of its subscribers'), if anyone holds it.
+    fn union(&self, base: &DashboardTerms, mplex: &Mplex) -> Option<Terms> {
         let held = self.objects.get(mplex).into_iter().flat_map(|h| h.values());
         base.get(mplex)
             .into_iter()
@@ -200,13 +163,17 @@ impl Holders {
             .reduce(Terms::union)
     }
 
-    fn unions(&self, base: &Base, objects: &[Mplex]) -> BTreeMap<Mplex, Option<Terms>> {
+    fn unions(&self, base: &DashboardTerms, objects: &[Mplex]) -> BTreeMap<Mplex, Option<Terms>> {
         objects.iter().map(|m| (*m, self.union(base, m))).collect()
     }
 
     /// The gateway calls that take each object from its `before` union to its union now:
     /// registrations grouped by terms (one call per distinct terms), then one unregistration.
-    fn changes(&self, base: &Base, before: BTreeMap<Mplex, Option<Terms>>) -> Vec<Change> {
+    fn changes(
+        &self,
+        base: &DashboardTerms,
+        before: BTreeMap<Mplex, Option<Terms>>,
+    ) -> Vec<Change> {
         let mut register: Vec<(Terms, Vec<Mplex>)> = Vec::new();
         let mut unregister = Vec::new();
         for (mplex, was) in before {
@@ -232,15 +199,15 @@ impl Holders {
     }
 }
 
-/// Every lift's holders with the dashboard's base, and the gateway calls that keep each gateway
+/// Every lift's subscribers with the dashboard's terms, and the gateway calls that keep each gateway
 /// at the union. The changes of one lift are made one at a time — computed, sent, then kept —
 /// so its gateway sees them in the order they were made, and a change the gateway refused is
 /// not kept.
 pub struct Subscriptions {
     registry: Arc<Registry>,
     store: Store,
-    base: Base,
-    lifts: Mutex<HashMap<String, Arc<tokio::sync::Mutex<Holders>>>>,
+    base: DashboardTerms,
+    lifts: Mutex<HashMap<String, Arc<tokio::sync::Mutex<Subscribers>>>>,
     /// This process's part of its watchers' ids (the upper 32 bits).
     process: u64,
     watchers: AtomicU64,
@@ -274,19 +241,19 @@ impl Subscriptions {
         }
     }
 
-    /// A holder for a new live watcher.
-    pub fn watcher(&self) -> Holder {
+    /// A subscriber for a new live watcher.
+    pub fn watcher(&self) -> Subscriber {
         let serial = self.watchers.fetch_add(1, Ordering::Relaxed) & u64::from(u32::MAX);
-        Holder::Watcher(self.process | serial)
+        Subscriber::Watcher(self.process | serial)
     }
 
-    /// Whether `holder` is a watcher of this process (its terms stay here when the lift's
+    /// Whether `subscriber` is a watcher of this process (its terms stay here when the lift's
     /// connection ends or moves; users' are in the database, other processes' with them).
-    fn own(&self, holder: &Holder) -> bool {
-        holder.process() == Some(self.process)
+    fn own(&self, subscriber: &Subscriber) -> bool {
+        subscriber.process() == Some(self.process)
     }
 
-    /// This process's part of its watchers' ids (see [`Holder::process`]).
+    /// This process's part of its watchers' ids (see [`Subscriber::process`]).
     pub(crate) fn process(&self) -> u64 {
         self.process
     }
@@ -298,101 +265,105 @@ impl Subscriptions {
             .filter(|_| !self.registry.connected_here(lift))
     }
 
-    fn holders(&self, lift: &str) -> Arc<tokio::sync::Mutex<Holders>> {
+    fn subscribers(&self, lift: &str) -> Arc<tokio::sync::Mutex<Subscribers>> {
         let mut lifts = self.lifts.lock().unwrap_or_else(PoisonError::into_inner);
         lifts.entry(lift.to_owned()).or_default().clone()
     }
 
-    /// `holder` asks for `objects` of `lift` with `terms`. Kept when the gateway took the
+    /// `subscriber` asks for `objects` of `lift` with `terms`. Kept when the gateway took the
     /// change (or it is offline and `offline` says keep); otherwise the gateway's failure.
     /// For a lift held by another process of the cluster, the request goes to its holder.
-    pub async fn hold(
+    pub async fn subscribe(
         &self,
         lift: &str,
-        holder: &Holder,
+        subscriber: &Subscriber,
         objects: &[Mplex],
         terms: Terms,
         offline: WhenOffline,
     ) -> Result<(), Failure> {
         let Some(cluster) = self.elsewhere(lift) else {
-            return self.hold_local(lift, holder, objects, terms, offline).await;
+            return self
+                .subscribe_local(lift, subscriber, objects, terms, offline)
+                .await;
         };
         match cluster
-            .request(lift, &hold_request(holder.clone(), objects, terms))
+            .request(lift, &subscribe_request(subscriber.clone(), objects, terms))
             .await
         {
             Ok(_) => {}
             Err(Failure::Gone) if offline == WhenOffline::Keep => {}
             Err(failure) => return Err(failure),
         }
-        if self.own(holder) {
+        if self.own(subscriber) {
             // Kept here as well: handed to the lift's next holder.
-            let cell = self.holders(lift);
-            cell.lock().await.add(&self.base, holder, objects, terms);
+            let cell = self.subscribers(lift);
+            cell.lock()
+                .await
+                .add(&self.base, subscriber, objects, terms);
         }
         Ok(())
     }
 
     /// [`Subscriptions::hold`] asked by another process of the cluster of the lift held here.
-    pub(crate) async fn hold_here(
+    pub(crate) async fn subscribe_here(
         &self,
         lift: &str,
-        holder: &Holder,
+        subscriber: &Subscriber,
         objects: &[Mplex],
         terms: Terms,
     ) -> Result<(), Failure> {
         if !self.registry.connected_here(lift) {
             return Err(Failure::Gone);
         }
-        self.hold_local(lift, holder, objects, terms, WhenOffline::Refuse)
+        self.subscribe_local(lift, subscriber, objects, terms, WhenOffline::Refuse)
             .await
     }
 
-    async fn hold_local(
+    async fn subscribe_local(
         &self,
         lift: &str,
-        holder: &Holder,
+        subscriber: &Subscriber,
         objects: &[Mplex],
         terms: Terms,
         offline: WhenOffline,
     ) -> Result<(), Failure> {
-        let cell = self.holders(lift);
-        let mut holders = cell.lock().await;
-        let mut next = holders.clone();
-        let changes = next.add(&self.base, holder, objects, terms);
+        let cell = self.subscribers(lift);
+        let mut subscribers = cell.lock().await;
+        let mut next = subscribers.clone();
+        let changes = next.add(&self.base, subscriber, objects, terms);
         match self.send(lift, changes).await {
             Ok(()) => {}
             Err(Failure::Gone) if offline == WhenOffline::Keep => {}
             Err(failure) => {
-                self.forget_if_empty(lift, &cell, &holders);
+                self.forget_if_empty(lift, &cell, &subscribers);
                 return Err(failure);
             }
         }
-        *holders = next;
+        *subscribers = next;
         Ok(())
     }
 
-    /// `holder` lets go of `objects` of `lift` (all of its own when `None`). The portal forgets
+    /// `subscriber` lets go of `objects` of `lift` (all of its own when `None`). The portal forgets
     /// them whatever the gateway answers (an offline gateway is told by the next connection's
     /// registrations); the gateway's failure is returned. For a lift held by another process
     /// of the cluster, its holder is told.
-    pub async fn release(
+    pub async fn unsubscribe(
         &self,
         lift: &str,
-        holder: &Holder,
+        subscriber: &Subscriber,
         objects: Option<&[Mplex]>,
     ) -> Result<(), Failure> {
         let Some(cluster) = self.elsewhere(lift) else {
-            return self.release_local(lift, holder, objects).await;
+            return self.unsubscribe_local(lift, subscriber, objects).await;
         };
         {
-            let cell = self.holders(lift);
-            let mut holders = cell.lock().await;
-            holders.remove(&self.base, holder, objects);
-            self.forget_if_empty(lift, &cell, &holders);
+            let cell = self.subscribers(lift);
+            let mut subscribers = cell.lock().await;
+            subscribers.remove(&self.base, subscriber, objects);
+            self.forget_if_empty(lift, &cell, &subscribers);
         }
         let request = Relayed::Release(RelayedRelease {
-            holder: holder.clone(),
+            subscriber: subscriber.clone(),
             mplex: objects.map(|list| list.iter().map(|m| (*m).into()).collect()),
         });
         match cluster.request(lift, &request).await {
@@ -403,28 +374,28 @@ impl Subscriptions {
 
     /// [`Subscriptions::release`] asked by another process of the cluster of the lift held
     /// here.
-    pub(crate) async fn release_here(
+    pub(crate) async fn unsubscribe_here(
         &self,
         lift: &str,
-        holder: &Holder,
+        subscriber: &Subscriber,
         objects: Option<&[Mplex]>,
     ) -> Result<(), Failure> {
         if !self.registry.connected_here(lift) {
             return Err(Failure::Gone);
         }
-        self.release_local(lift, holder, objects).await
+        self.unsubscribe_local(lift, subscriber, objects).await
     }
 
-    async fn release_local(
+    async fn unsubscribe_local(
         &self,
         lift: &str,
-        holder: &Holder,
+        subscriber: &Subscriber,
         objects: Option<&[Mplex]>,
     ) -> Result<(), Failure> {
-        let cell = self.holders(lift);
-        let mut holders = cell.lock().await;
-        let changes = holders.remove(&self.base, holder, objects);
-        self.forget_if_empty(lift, &cell, &holders);
+        let cell = self.subscribers(lift);
+        let mut subscribers = cell.lock().await;
+        let changes = subscribers.remove(&self.base, subscriber, objects);
+        self.forget_if_empty(lift, &cell, &subscribers);
         match self.send(lift, changes).await {
             Err(Failure::Gone) => Ok(()),
             other => other,
@@ -434,16 +405,16 @@ impl Subscriptions {
     /// The watch lease of another process on `lift`, held here, lapsed (docs/CLUSTER.md
     /// §Subscriptions): that process died or lost NATS for longer than the lease, so its
     /// watchers let go of everything they hold (they ask again if they are still there).
-    pub(crate) async fn release_process(&self, lift: &str, process: u64) {
+    pub(crate) async fn unsubscribe_process(&self, lift: &str, process: u64) {
         if process == self.process {
             return;
         }
         let Some(cell) = self.existing(lift) else {
             return;
         };
-        let mut holders = cell.lock().await;
-        let changes = holders.remove_where(&self.base, |h| h.process() == Some(process));
-        self.forget_if_empty(lift, &cell, &holders);
+        let mut subscribers = cell.lock().await;
+        let changes = subscribers.remove_where(&self.base, |h| h.process() == Some(process));
+        self.forget_if_empty(lift, &cell, &subscribers);
         if let Err(e) = self.send(lift, changes).await {
             tracing::debug!(%lift, failure = ?e, "a lapsed process's subscriptions not unregistered");
         }
@@ -460,7 +431,7 @@ impl Subscriptions {
     /// since the connection was registered stay (the connection before left none).
     pub async fn resubscribe(&self, lift: &str, stored: bool) {
         let users = match stored {
-            true => match self.store.held_objects(lift).await {
+            true => match self.store.subscribed_objects(lift).await {
                 Ok(users) => Some(users),
                 Err(e) => {
                     tracing::warn!(%lift, error = %e, "users' subscriptions not read: not registered");
@@ -469,10 +440,10 @@ impl Subscriptions {
             },
             false => None,
         };
-        let cell = self.holders(lift);
-        let mut holders = cell.lock().await;
+        let cell = self.subscribers(lift);
+        let mut subscribers = cell.lock().await;
         if users.is_some() {
-            holders.retain(|holder| !matches!(holder, Holder::User(_)));
+            subscribers.retain(|subscriber| !matches!(subscriber, Subscriber::User(_)));
         }
         for held in users.into_iter().flatten() {
             let Ok(mplex) = Mplex::parse(&held.mplex) else {
@@ -483,10 +454,10 @@ impl Subscriptions {
                 inhibit: held.inhibit,
                 threshold: held.threshold,
             };
-            holders.add(&self.base, &Holder::User(held.user), &[mplex], terms);
+            subscribers.add(&self.base, &Subscriber::User(held.user), &[mplex], terms);
         }
-        self.forget_if_empty(lift, &cell, &holders);
-        for change in holders.all(&self.base) {
+        self.forget_if_empty(lift, &cell, &subscribers);
+        for change in subscribers.all(&self.base) {
             let Change::Register(objects, terms) = change else {
                 continue;
             };
@@ -513,9 +484,9 @@ impl Subscriptions {
         let Some(cell) = self.existing(lift) else {
             return;
         };
-        let mut holders = cell.lock().await;
-        holders.retain(|holder| self.own(holder));
-        self.forget_if_empty(lift, &cell, &holders);
+        let mut subscribers = cell.lock().await;
+        subscribers.retain(|subscriber| self.own(subscriber));
+        self.forget_if_empty(lift, &cell, &subscribers);
     }
 
     /// Another process of the cluster now holds `lift`, or its holder may have lost what this
@@ -529,16 +500,16 @@ impl Subscriptions {
         let lift = lift.to_owned();
         tokio::spawn(async move {
             let requests = {
-                let mut holders = cell.lock().await;
-                holders.retain(|holder| self.own(holder));
-                self.forget_if_empty(&lift, &cell, &holders);
-                holders.requests()
+                let mut subscribers = cell.lock().await;
+                subscribers.retain(|subscriber| self.own(subscriber));
+                self.forget_if_empty(&lift, &cell, &subscribers);
+                subscribers.requests()
             };
             let Some(cluster) = self.registry.cluster() else {
                 return;
             };
-            for (holder, terms, objects) in requests {
-                let request = hold_request(holder, &objects, terms);
+            for (subscriber, terms, objects) in requests {
+                let request = subscribe_request(subscriber, &objects, terms);
                 if let Err(e) = cluster.request(&lift, &request).await {
                     tracing::debug!(%lift, failure = ?e, "a watcher's objects not handed to the lift's holder");
                 }
@@ -546,22 +517,22 @@ impl Subscriptions {
         });
     }
 
-    fn existing(&self, lift: &str) -> Option<Arc<tokio::sync::Mutex<Holders>>> {
+    fn existing(&self, lift: &str) -> Option<Arc<tokio::sync::Mutex<Subscribers>>> {
         let lifts = self.lifts.lock().unwrap_or_else(PoisonError::into_inner);
         lifts.get(lift).cloned()
     }
 
-    /// A lift whose holders are all gone takes no memory (only one that anyone holds a
+    /// A lift whose subscribers are all gone takes no memory (only one that anyone holds a
     /// subscription of beyond the dashboard's has an entry). Not while another call has the
     /// entry in hand: copies are taken only under the map's lock, so the map's and `cell`'s
     /// are the only ones when the count is two.
     fn forget_if_empty(
         &self,
         lift: &str,
-        cell: &Arc<tokio::sync::Mutex<Holders>>,
-        holders: &Holders,
+        cell: &Arc<tokio::sync::Mutex<Subscribers>>,
+        subscribers: &Subscribers,
     ) {
-        if holders.is_empty() {
+        if subscribers.is_empty() {
             let mut lifts = self.lifts.lock().unwrap_or_else(PoisonError::into_inner);
             if Arc::strong_count(cell) == 2 {
                 lifts.remove(lift);
@@ -596,10 +567,10 @@ impl Subscriptions {
     }
 }
 
-/// `holder`'s request for `objects` with `terms`, to the lift's holder in the cluster.
-fn hold_request(holder: Holder, objects: &[Mplex], terms: Terms) -> Relayed {
+/// `subscriber`'s request for `objects` with `terms`, to the lift's holder in the cluster.
+fn subscribe_request(subscriber: Subscriber, objects: &[Mplex], terms: Terms) -> Relayed {
     Relayed::Hold(RelayedHold {
-        holder,
+        subscriber,
         mplex: objects.iter().map(|m| (*m).into()).collect(),
         inhibit: terms.inhibit,
         threshold: terms.threshold,
@@ -619,15 +590,15 @@ mod tests {
         Terms { inhibit, threshold }
     }
 
-    fn dashboard() -> Base {
+    fn dashboard() -> DashboardTerms {
         [(m(0x6520, 1), terms(500, 0.0))].into_iter().collect()
     }
 
     #[test]
     fn the_union_is_registered_and_released_holder_by_holder() {
         let base = dashboard();
-        let mut h = Holders::default();
-        let (a, w) = (Holder::User("masora".into()), Holder::Watcher(1));
+        let mut h = Subscribers::default();
+        let (a, w) = (Subscriber::User("masora".into()), Subscriber::Watcher(1));
         let trips = m(0x6520, 1);
         let speed = m(0x6383, 1);
         // A watcher wants the trip counter faster than the dashboard, and the speed (changes
@@ -665,22 +636,22 @@ mod tests {
     }
 
     /// What stays when a lift's connection ends or moves, and what is handed to its next
-    /// holder: one request per holder and terms.
+    /// holder: one request per subscriber and terms.
     #[test]
-    fn holders_are_kept_by_kind_and_asked_for_by_terms() {
+    fn subscribers_are_kept_by_kind_and_asked_for_by_terms() {
         let base = dashboard();
-        let mut h = Holders::default();
+        let mut h = Subscribers::default();
         let (user, mine, theirs) = (
-            Holder::User("masora".into()),
-            Holder::Watcher(1 << 32 | 1),
-            Holder::Watcher(2 << 32 | 1),
+            Subscriber::User("masora".into()),
+            Subscriber::Watcher(1 << 32 | 1),
+            Subscriber::Watcher(2 << 32 | 1),
         );
         let (trips, speed, door) = (m(0x6520, 1), m(0x6383, 1), m(0x6300, 1));
         h.add(&base, &user, &[trips], terms(1000, 0.0));
         h.add(&base, &mine, &[speed, door], terms(100, 0.5));
         h.add(&base, &mine, &[trips], terms(0, 0.0));
         h.add(&base, &theirs, &[speed], terms(10, 0.0));
-        h.retain(|holder| holder == &mine);
+        h.retain(|subscriber| subscriber == &mine);
         assert_eq!(
             h.requests(),
             [
@@ -698,12 +669,12 @@ mod tests {
     #[test]
     fn a_process_lets_go_of_all_its_watchers_at_once() {
         let base = dashboard();
-        let mut h = Holders::default();
-        let user = Holder::User("masora".into());
+        let mut h = Subscribers::default();
+        let user = Subscriber::User("masora".into());
         let (first, second, other) = (
-            Holder::Watcher(2 << 32 | 1),
-            Holder::Watcher(2 << 32 | 2),
-            Holder::Watcher(3 << 32 | 1),
+            Subscriber::Watcher(2 << 32 | 1),
+            Subscriber::Watcher(2 << 32 | 2),
+            Subscriber::Watcher(3 << 32 | 1),
         );
         assert_eq!(first.process(), Some(2 << 32));
         assert_eq!(user.process(), None);
@@ -712,7 +683,7 @@ mod tests {
         h.add(&base, &first, &[trips, speed], terms(100, 0.0));
         h.add(&base, &second, &[door], terms(0, 0.0));
         h.add(&base, &other, &[load], terms(50, 0.0));
-        let changes = h.remove_where(&base, |holder| holder.process() == Some(2 << 32));
+        let changes = h.remove_where(&base, |subscriber| subscriber.process() == Some(2 << 32));
         assert_eq!(
             changes,
             [
@@ -731,7 +702,7 @@ mod tests {
     }
 
     proptest! {
-        /// Whatever holders add and remove, replaying the changes on a model of the gateway
+        /// Whatever subscribers add and remove, replaying the changes on a model of the gateway
         /// leaves it with exactly the union of what is held, as a reconnect would register it.
         #[test]
         fn the_gateway_always_has_the_union(
@@ -741,7 +712,7 @@ mod tests {
             )
         ) {
             let base = dashboard();
-            let mut h = Holders::default();
+            let mut h = Subscribers::default();
             let mut gateway: BTreeMap<Mplex, Terms> = BTreeMap::new();
             let apply = |gateway: &mut BTreeMap<Mplex, Terms>, changes: Vec<Change>| {
                 for change in changes {
@@ -761,12 +732,12 @@ mod tests {
             };
             apply(&mut gateway, h.all(&base));
             for (who, subs, inhibit, threshold, add) in steps {
-                let holder = Holder::Watcher(who);
+                let subscriber = Subscriber::Watcher(who);
                 let objects: Vec<Mplex> = subs.iter().map(|s| m(0x6520, *s)).collect();
                 let changes = if add {
-                    h.add(&base, &holder, &objects, terms(inhibit * 100, f64::from(threshold)))
+                    h.add(&base, &subscriber, &objects, terms(inhibit * 100, f64::from(threshold)))
                 } else {
-                    h.remove(&base, &holder, (!objects.is_empty()).then_some(&objects[..]))
+                    h.remove(&base, &subscriber, (!objects.is_empty()).then_some(&objects[..]))
                 };
                 apply(&mut gateway, changes);
                 let mut fresh = BTreeMap::new();

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use tokio::sync::{mpsc, watch};
 
-use crate::store::{self, Store, TelemetryRow};
+use crate::store::{Store, TelemetryRow};
 
 /// Pushed values stored, and dropped because the database could not keep up (the queue in
 /// front of it stayed full) or failed.
@@ -178,7 +178,7 @@ pub async fn retention(kept: Kept, store: Store, days: u32) {
     let mut hourly = tokio::time::interval(std::time::Duration::from_secs(3600));
     loop {
         hourly.tick().await;
-        let before = store::now_ms() - i64::from(days) * 86_400_000;
+        let before = cloud_types::now_ms() - i64::from(days) * 86_400_000;
         let deleted = match kept {
             Kept::Telemetry => store.forget_telemetry(before).await,
             Kept::Events => store.forget_events(before).await,

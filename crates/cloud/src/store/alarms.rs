@@ -7,7 +7,7 @@ use sqlx::any::AnyRow;
 use sqlx::Row;
 
 use super::{Store, StoreError};
-use crate::alarms::{Acknowledgement, Alarm, Condition, Kind, Place, Severity};
+use cloud_types::alarms::{Acknowledgement, Alarm, Condition, Kind, Place, Severity};
 
 /// A new id for an alarm or an outbox entry: random below 2⁵³ (exact in JSON numbers, no
 /// coordination between portal processes).

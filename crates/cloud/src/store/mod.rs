@@ -12,11 +12,15 @@ mod ticket_keys;
 mod users;
 
 pub use alarms::{new_id, AlarmFilter, EventRow, OutboxEntry};
-pub use subscriptions::HeldObject;
-pub use users::{ElevationGrant, KeyInfo, Operator, Role, SessionRecord, User, UserError};
+pub use subscriptions::StoredSubscription;
+pub use users::{ElevationGrant, SessionRecord, UserError};
 
 use std::collections::HashMap;
-use std::time::{SystemTime, UNIX_EPOCH};
+
+use cloud_types::audit::AuditEntry;
+use cloud_types::lifts::{lift_id, LiftRecord};
+use cloud_types::now_ms;
+use cloud_types::users::Operator;
 
 use nxg::msg::{Connect, Identity};
 use rand::RngCore;
@@ -133,13 +137,6 @@ impl KeyCache {
     }
 }
 
-/// Milliseconds since the Unix epoch.
-pub fn now_ms() -> i64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_millis() as i64)
-}
-
 /// SHA-256 hex of `secret`.
 pub fn digest(secret: &str) -> String {
     hex::encode(ring::digest::digest(
@@ -191,14 +188,6 @@ async fn migrate(pool: &AnyPool, sqlite: bool) -> Result<(), StoreError> {
     Ok(())
 }
 
-/// The id of a lift in the API: `VENDORID-PRODUCTCODE-SERNUM`.
-pub fn lift_id(identity: &Identity) -> String {
-    format!(
-        "{}-{}-{}",
-        identity.vendorid, identity.productcode, identity.sernum
-    )
-}
-
 /// One pushed value to keep: which lift, object and node, the value, when it came.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct TelemetryRow {
@@ -212,40 +201,6 @@ pub struct TelemetryRow {
     pub value: String,
     /// When it arrived (ms since the epoch).
     pub at: i64,
-}
-
-/// An account: who may see the lifts of one domain.
-#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
-pub struct Account {
-    /// Name.
-    pub name: String,
-    /// The domain token its gateways send.
-    pub domain: String,
-}
-
-/// A lift as the registry knows it.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct LiftRecord {
-    /// `VENDORID-PRODUCTCODE-SERNUM`.
-    pub id: String,
-    /// Vendor-ID.
-    pub vendorid: u32,
-    /// Product code.
-    pub productcode: u32,
-    /// Serial number.
-    pub sernum: String,
-    /// The owner's lift number.
-    pub liftnum: String,
-    /// Hardware.
-    pub hardware: String,
-    /// Software.
-    pub software: String,
-    /// Domain token.
-    pub domain: String,
-    /// API version of the last connection.
-    pub api: u32,
-    /// Last time the gateway was heard (ms since the epoch).
-    pub last_seen: i64,
 }
 
 /// What the registry keeps of a gateway's connections ([`Store::record`]).
@@ -343,33 +298,6 @@ pub struct Known {
     pub token_set: i64,
     /// Whether users hold subscriptions of the lift (to register when it connects).
     pub subscribed: bool,
-}
-
-/// The audit's "who" for what the portal does by itself (a board change it saw).
-pub const BY_PORTAL: &str = "(portal)";
-/// The audit's "who" for what an administrator did with `canlift cloud` on the portal's
-/// configuration (a token reset).
-pub const BY_ADMINISTRATOR: &str = "(administrator)";
-
-/// One audit entry.
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub struct AuditEntry {
-    /// When (ms since the epoch).
-    pub at: i64,
-    /// Account name.
-    pub account: String,
-    /// Lift id.
-    pub lift: String,
-    /// `put` or `elevate`.
-    pub action: String,
-    /// The mplex or the privilege.
-    pub object: String,
-    /// Value before (puts, when it could be read).
-    pub old_value: Option<String>,
-    /// Value written, or privilege asked for.
-    pub new_value: String,
-    /// `ok` or the error.
-    pub result: String,
 }
 
 /// The portal's database.
@@ -1421,7 +1349,7 @@ pub(crate) mod tests {
         let lift = lift_id(&gw(None).identity);
         let held = ["0x652001".to_owned()];
         store
-            .hold_objects(&lift, "masora", &held, 0, 0.0)
+            .subscribe_objects(&lift, "masora", &held, 0, 0.0)
             .await
             .unwrap();
         assert!(matches!(
@@ -1431,7 +1359,10 @@ pub(crate) mod tests {
                 ..
             })
         ));
-        store.release_objects(&lift, "masora", &held).await.unwrap();
+        store
+            .unsubscribe_objects(&lift, "masora", &held)
+            .await
+            .unwrap();
         assert!(matches!(
             store.admit(&gw(Some("T0K3N"))).await.unwrap(),
             Admission::Known(Known {

@@ -8,7 +8,7 @@ use super::{Store, StoreError};
 
 /// One object a user holds a subscription of on a lift.
 #[derive(Debug, Clone, PartialEq)]
-pub struct HeldObject {
+pub struct StoredSubscription {
     /// Who holds it.
     pub user: String,
     /// The object (`0x652001`).
@@ -21,7 +21,10 @@ pub struct HeldObject {
 
 impl Store {
     /// Every object users hold on `lift`.
-    pub async fn held_objects(&self, lift: &str) -> Result<Vec<HeldObject>, StoreError> {
+    pub async fn subscribed_objects(
+        &self,
+        lift: &str,
+    ) -> Result<Vec<StoredSubscription>, StoreError> {
         let rows = sqlx::query(
             "SELECT user_name, mplex, inhibit, threshold FROM subscriptions WHERE lift = $1 \
              ORDER BY user_name, mplex",
@@ -31,7 +34,7 @@ impl Store {
         .await?;
         rows.iter()
             .map(|r| {
-                Ok(HeldObject {
+                Ok(StoredSubscription {
                     user: r.try_get("user_name")?,
                     mplex: r.try_get("mplex")?,
                     inhibit: u64::try_from(r.try_get::<i64, _>("inhibit")?).unwrap_or(0),
@@ -43,7 +46,7 @@ impl Store {
     }
 
     /// `user` holds `mplex` of `lift` with these terms (replacing its earlier terms).
-    pub async fn hold_objects(
+    pub async fn subscribe_objects(
         &self,
         lift: &str,
         user: &str,
@@ -71,7 +74,7 @@ impl Store {
     }
 
     /// `user` lets go of `mplex` of `lift`.
-    pub async fn release_objects(
+    pub async fn unsubscribe_objects(
         &self,
         lift: &str,
         user: &str,
@@ -102,7 +105,7 @@ pub(super) mod tests {
         let (lift, other) = ("1050-4096-1", "1050-4096-2");
         let objects = |list: &[&str]| list.iter().map(|s| (*s).to_owned()).collect::<Vec<_>>();
         store
-            .hold_objects(
+            .subscribe_objects(
                 lift,
                 "masora",
                 &objects(&["0x652001", "0x502200"]),
@@ -112,19 +115,19 @@ pub(super) mod tests {
             .await
             .unwrap();
         store
-            .hold_objects(other, "masora", &objects(&["0x652001"]), 0, 0.0)
+            .subscribe_objects(other, "masora", &objects(&["0x652001"]), 0, 0.0)
             .await
             .unwrap();
         // Held again: the new terms replace the old ones.
         store
-            .hold_objects(lift, "masora", &objects(&["0x652001"]), 100, 2.0)
+            .subscribe_objects(lift, "masora", &objects(&["0x652001"]), 100, 2.0)
             .await
             .unwrap();
         store
-            .hold_objects(lift, "tech", &objects(&["0x652001"]), 1000, 0.0)
+            .subscribe_objects(lift, "tech", &objects(&["0x652001"]), 1000, 0.0)
             .await
             .unwrap();
-        let held = store.held_objects(lift).await.unwrap();
+        let held = store.subscribed_objects(lift).await.unwrap();
         let terms: Vec<(&str, &str, u64, f64)> = held
             .iter()
             .map(|h| (h.user.as_str(), h.mplex.as_str(), h.inhibit, h.threshold))
@@ -138,16 +141,16 @@ pub(super) mod tests {
             ]
         );
         store
-            .release_objects(lift, "masora", &objects(&["0x652001"]))
+            .unsubscribe_objects(lift, "masora", &objects(&["0x652001"]))
             .await
             .unwrap();
         store
-            .release_objects(lift, "tech", &objects(&["0x652001", "0x999999"]))
+            .unsubscribe_objects(lift, "tech", &objects(&["0x652001", "0x999999"]))
             .await
             .unwrap();
-        let held = store.held_objects(lift).await.unwrap();
+        let held = store.subscribed_objects(lift).await.unwrap();
         assert_eq!(held.len(), 1, "{held:?}");
         assert_eq!(held[0].mplex, "0x502200");
-        assert_eq!(store.held_objects(other).await.unwrap().len(), 1);
+        assert_eq!(store.subscribed_objects(other).await.unwrap().len(), 1);
     }
 }

@@ -15,9 +15,10 @@ use super::i18n::Locale;
 use super::page::{layout, problem, time, unavailable};
 use super::SignedIn;
 use crate::alarms::service::AckError;
-use crate::alarms::{Alarm, Severity};
 use crate::api::App;
-use crate::store::{AlarmFilter, Role};
+use crate::store::AlarmFilter;
+use cloud_types::alarms::{Alarm, Severity};
+use cloud_types::users::Role;
 
 /// A severity as a coloured badge.
 pub(super) fn severity_badge(severity: Severity, l: Locale) -> Markup {

@@ -16,10 +16,10 @@ use super::alarms::severity_badge;
 use super::i18n::Locale;
 use super::page::{layout, time, unavailable};
 use super::SignedIn;
-use crate::alarms::Alarm;
 use crate::api::App;
 use crate::gateways::LiftStatus;
-use crate::store::LiftRecord;
+use cloud_types::alarms::Alarm;
+use cloud_types::lifts::LiftRecord;
 
 /// Lifts per page.
 const PAGE: usize = 100;

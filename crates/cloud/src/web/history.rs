@@ -43,7 +43,7 @@ struct Period {
 
 impl Period {
     fn of(q: &HistoryQuery) -> Period {
-        let now = store::now_ms();
+        let now = cloud_types::now_ms();
         match (q.from, q.to) {
             (Some(from), Some(to)) if from < to => Period {
                 from,

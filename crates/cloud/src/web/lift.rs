@@ -17,8 +17,10 @@ use super::i18n::Locale;
 use super::page::{layout, online_badge, time, unavailable};
 use super::{owned, SignedIn};
 use crate::api::{read_params, App};
-use crate::rest::Form;
-use crate::store::{AlarmFilter, Role};
+use cloud_types::api::Form;
+use cloud_types::users::Role;
+
+use crate::store::AlarmFilter;
 
 /// Floor level positions (CiA 417 manufacturer area, one element per floor): sub-index 0 is
 /// the lift's number of floors, which sizes the "call the car" buttons.

@@ -25,7 +25,7 @@ use axum::routing::{get, post};
 use axum::Router;
 
 use crate::api::App;
-use crate::store::LiftRecord;
+use cloud_types::lifts::LiftRecord;
 use i18n::Locale;
 use page::Viewer;
 pub use session::{Credential, Session, Sessions};

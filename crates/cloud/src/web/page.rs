@@ -8,7 +8,9 @@ use maud::{html, Markup, PreEscaped, DOCTYPE};
 use super::assets;
 use super::i18n::Locale;
 use super::session::Session;
-use crate::store::{Role, StoreError};
+use cloud_types::users::Role;
+
+use crate::store::StoreError;
 
 /// What every page is rendered for: the signed-in browser (absent: the sign-in page, without
 /// navigation) and its language.

@@ -13,7 +13,9 @@ use std::time::{Duration, Instant};
 
 use axum::http::{header, HeaderMap};
 
-use crate::store::{self, Operator, SessionRecord, Store, StoreError};
+use cloud_types::users::Operator;
+
+use crate::store::{self, SessionRecord, Store, StoreError};
 
 /// The cookie's name.
 pub(super) const COOKIE: &str = "canlift_session";
@@ -113,7 +115,7 @@ impl Sessions {
         };
         if let Some((session, touch)) = cached {
             if touch {
-                store.touch_session(&digest, store::now_ms()).await?;
+                store.touch_session(&digest, cloud_types::now_ms()).await?;
             }
             return Ok(Some(session));
         }
@@ -125,7 +127,7 @@ impl Sessions {
         let Some(record) = store.session(digest).await? else {
             return Ok(None);
         };
-        let now = store::now_ms();
+        let now = cloud_types::now_ms();
         let credential = match (record.key_digest, record.user) {
             (Some(key), _) => Some(Credential::Key(key)),
             (None, Some(user)) => Some(Credential::User(user)),
@@ -206,7 +208,7 @@ impl Sessions {
             Credential::Key(key) => (Some(key.clone()), None),
             Credential::User(name) => (None, Some(name.clone())),
         };
-        let now = store::now_ms();
+        let now = cloud_types::now_ms();
         let record = SessionRecord {
             key_digest,
             user,

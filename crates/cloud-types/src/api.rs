@@ -1,13 +1,12 @@
 //! The operator REST API's bodies as types (docs/PORTAL.md §REST API, `openapi.json`): what
-//! the handlers of [`crate::api`] read and write and what [`crate::client`] and `canlift
-//! lifts|get|put|watch` read back. Objects travel in the connector's own types
+//! the portal's handlers read and write and what its client and `canlift lifts|get|put|watch`
+//! read back. Objects travel in the connector's own types
 //! ([`nxg::msg::ObjectAnswer`], [`nxg::msg::Notification`]); errors as
 //! [`nxg::msg::ErrorObject`].
 
-use nxg::msg::Notification;
 use serde::{Deserialize, Serialize};
 
-use crate::store::LiftRecord;
+use crate::lifts::LiftRecord;
 
 /// One lift of `GET /api/v1/lifts`: the registry's record and whether its gateway is connected.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -152,33 +151,6 @@ pub struct History {
     pub mplex: String,
     /// Oldest first; at most the newest 10,000 of the range.
     pub values: Vec<HistoryPoint>,
-}
-
-/// Server-Sent Event `value`: a pushed value of a lift.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct ValueEvent {
-    /// Lift id.
-    pub lift: String,
-    /// The gateway's notification.
-    pub object: Notification,
-}
-
-/// Server-Sent Event `online`: the lift's gateway connected or went away.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct OnlineEvent {
-    /// Lift id.
-    pub lift: String,
-    /// Connected now.
-    pub online: bool,
-}
-
-/// Server-Sent Event `event`: a bus event of the lift (docs/PROTOCOL.md §Events).
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct BusEventEvent {
-    /// Lift id.
-    pub lift: String,
-    /// The event as the gateway pushed it.
-    pub event: nxg::msg::Event,
 }
 
 /// Which alarms `GET /api/v1/alarms` lists.
