@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 use cloud::alarms::rules::{Active, Applied, Rules};
 use cloud::alarms::{service, Alarms, Input};
 use cloud::gateways::Registry;
-use cloud::store::Store;
+use cloud_store::Store;
 use nxg::msg::{format_time, Event, NodeId, NodeRef, NodeState};
 
 /// Arguments of `canlift-bench alarms`.

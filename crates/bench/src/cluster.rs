@@ -353,7 +353,7 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
     }
     let pki = cloud::devpki::ensure(&dir.path().join("pki"))?;
     let nats = Nats::start(&args, &dir.path().join("nats"), &pki).await?;
-    let store = cloud::store::Store::open(&args.database).await?;
+    let store = cloud_store::Store::open(&args.database).await?;
     let domain = "CLUSTER".to_owned();
     if store.domain_exists(&domain).await? {
         bail!(

@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::bail;
 use cloud::gateways::{telemetry, TelemetryCounters};
-use cloud::store::TelemetryRow;
+use cloud_store::TelemetryRow;
 
 use crate::process::cpu_time;
 

@@ -595,7 +595,7 @@ async fn lift_pages(
 /// (`canlift loadgen`, local dictionary), each in its own process.
 async fn latency(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyhow::Result<()> {
     let exe = crate::canlift()?;
-    let store = cloud::store::Store::open(&database_url(args, dir)).await?;
+    let store = cloud_store::Store::open(&database_url(args, dir)).await?;
     let key = store.add_account("operator", "OPS").await?;
     let pki = cloud::devpki::ensure(&dir.join("stand-in"))?;
     let harness = crate::gateway::Portal::start(&pki).await?;
@@ -728,7 +728,7 @@ pub async fn run(args: PortalBench) -> anyhow::Result<()> {
 
 async fn measure(args: &PortalBench, dir: &Path) -> anyhow::Result<()> {
     let url = database_url(args, dir);
-    let store = cloud::store::Store::open(&url).await?;
+    let store = cloud_store::Store::open(&url).await?;
     if store.domain_exists("BENCH").await? {
         bail!("{url} already has the BENCH account: give a fresh database");
     }

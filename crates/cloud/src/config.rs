@@ -93,7 +93,7 @@ impl Default for DatabaseSection {
             telemetry_days: 30,
             events_days: 90,
             telemetry_queue: 65_536,
-            connections: crate::store::POSTGRES_CONNECTIONS,
+            connections: cloud_store::POSTGRES_CONNECTIONS,
         }
     }
 }

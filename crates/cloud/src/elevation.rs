@@ -9,7 +9,7 @@
 
 use std::time::Duration;
 
-use crate::store::{ElevationGrant, Store, StoreError};
+use cloud_store::{ElevationGrant, Store, StoreError};
 
 /// Why a put above privilege 0 is refused.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

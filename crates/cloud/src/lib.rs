@@ -17,7 +17,6 @@ pub mod elevation;
 pub mod gateways;
 mod memory;
 pub mod server;
-pub mod store;
 pub mod throttle;
 mod timer;
 pub mod web;

@@ -23,14 +23,14 @@ use crate::alarms::{service, webhook, Alarms};
 use crate::api::{self, App};
 use crate::config::Config;
 use crate::gateways::{self, telemetry, Registry, Shared};
-use crate::store::Store;
+use cloud_store::Store;
 
 /// Why the portal cannot start.
 #[derive(Debug, thiserror::Error)]
 pub enum ServerError {
     /// The database.
     #[error(transparent)]
-    Store(#[from] crate::store::StoreError),
+    Store(#[from] cloud_store::StoreError),
     /// TLS material.
     #[error(transparent)]
     Tls(#[from] tls::TlsError),

@@ -142,3 +142,24 @@ pub fn scratch() -> tempfile::TempDir {
         .tempdir()
         .expect("a scratch directory")
 }
+
+/// A CONNECT (NXg §5.2.1) of gateway `sernum` (vendor 1050, product 4096, no board hash) to
+/// the account of `domain`, with a cloud token or without: what the portal's registry and
+/// admission tests ask about.
+#[cfg(feature = "connect")]
+pub fn connect(sernum: &str, domain: &str, token: Option<&str>) -> nxg::msg::Connect {
+    nxg::msg::Connect {
+        identity: nxg::msg::Identity {
+            sernum: sernum.into(),
+            vendorid: 1050,
+            productcode: 4096,
+            liftnum: String::new(),
+            hardware: String::new(),
+            software: String::new(),
+            api: 1,
+            boardhash: String::new(),
+            cloudtoken: token.map(str::to_owned),
+        },
+        domaintoken: domain.into(),
+    }
+}

@@ -14,7 +14,7 @@ use std::time::Duration;
 
 use cloud::config::Config;
 use cloud::server::Portal;
-use cloud::store::Store;
+use cloud_store::Store;
 use serde_json::Value;
 use tokio::sync::watch;
 use tokio::task::JoinHandle;

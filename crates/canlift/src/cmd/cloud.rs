@@ -10,7 +10,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use cloud::config::Config;
 use cloud::server::Portal;
-use cloud::store::Store;
+use cloud_store::Store;
 use cloud_types::users::Role;
 
 /// Command-line arguments of `canlift cloud`.

@@ -10,7 +10,7 @@ use std::time::Duration;
 use anyhow::Context;
 use canbus::hub::{Hub, HubConfig};
 use cloud::server::Portal;
-use cloud::store::Store;
+use cloud_store::Store;
 use gateway::config::{NodeSection, SdoChannel};
 use lift417::catalog::Device;
 use lift417::sim::{export_eds, SimConfig, Simulator};
@@ -106,7 +106,7 @@ fn lift_passwords(dir: &Path) -> anyhow::Result<(String, String)> {
             return Ok((service.trim().to_owned(), setup.trim().to_owned()));
         }
     }
-    let (service, setup) = (cloud::store::secret("svc-"), cloud::store::secret("set-"));
+    let (service, setup) = (cloud_store::secret("svc-"), cloud_store::secret("set-"));
     let (service, setup) = (service[..12].to_owned(), setup[..12].to_owned());
     canopen::storage::write_atomically(&path, &format!("{service}\n{setup}\n"))?;
     Ok((service, setup))
@@ -169,8 +169,8 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
     let mut gw =
         gateway::config::Config::for_portal(identity, &portal_ws, &ca, &bus, &dir.join("gateway"));
     let (service, setup) = lift_passwords(&dir)?;
-    gw.privileges.service_sha1 = Some(cloud::store::passhash(&service));
-    gw.privileges.setup_sha1 = Some(cloud::store::passhash(&setup));
+    gw.privileges.service_sha1 = Some(cloud_store::passhash(&service));
+    gw.privileges.setup_sha1 = Some(cloud_store::passhash(&setup));
     // The gateway reads the controller on SDO channels of its own, two transfers at once, and
     // leaves the default channel to the user's tools (`canlift sdo`, python-canopen) on the
     // same bus: one client per channel (docs/GATEWAY.md §Behaviour).

@@ -17,7 +17,7 @@ use tokio::time::Instant;
 use super::rules::{Active, Applied, Rules, Verdict};
 use crate::config::WebhookSection;
 use crate::gateways::Registry;
-use crate::store::{self, EventRow, Store, StoreError};
+use cloud_store::{EventRow, Store, StoreError};
 use cloud_types::alarms::{Alarm, AlarmChange, Change, Kind};
 use cloud_types::live::LiftEvent;
 
@@ -465,7 +465,7 @@ impl Service {
     fn apply(&mut self, verdicts: Vec<Verdict>) {
         let now = cloud_types::now_ms();
         for verdict in verdicts {
-            match self.active.apply(verdict, store::new_id) {
+            match self.active.apply(verdict, cloud_store::new_id) {
                 Applied::Raised {
                     id,
                     condition,

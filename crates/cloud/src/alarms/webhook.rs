@@ -22,7 +22,7 @@ use super::service::{Alarms, Counters};
 use crate::config::WebhookSection;
 use cloud_types::audit::AuditEntry;
 
-use crate::store::{OutboxEntry, Store};
+use cloud_store::{OutboxEntry, Store};
 
 /// How long one attempt may take.
 const ATTEMPT: Duration = Duration::from_secs(10);

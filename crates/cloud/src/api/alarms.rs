@@ -14,7 +14,7 @@ use cloud_types::alarms::Alarm;
 use cloud_types::api::{AckBody, AlarmList, AlarmState, AlarmsQuery, EventLog, EventLogQuery};
 use cloud_types::users::Role;
 
-use crate::store::AlarmFilter;
+use cloud_store::AlarmFilter;
 
 /// `GET /api/v1/alarms`.
 pub(super) async fn list(

@@ -31,8 +31,8 @@ use serde::de::DeserializeOwned;
 use crate::config::Dashboard;
 use crate::gateways::subscriptions::{Subscriptions, WhenOffline};
 use crate::gateways::Registry;
-use crate::store::{self, Store};
 use crate::web::Sessions;
+use cloud_store::Store;
 use cloud_types::api::{
     EventsQuery, Form, GetQuery, History, HistoryPoint, HistoryQuery, LiftSummary, NameQuery,
     PrivilegeBody, PutBody, SubscriptionBody,
@@ -95,8 +95,8 @@ pub(crate) fn error(status: StatusCode, message: impl Into<String>) -> ApiError 
     )
 }
 
-impl From<store::StoreError> for ApiError {
-    fn from(e: store::StoreError) -> Self {
+impl From<cloud_store::StoreError> for ApiError {
+    fn from(e: cloud_store::StoreError) -> Self {
         tracing::error!(error = %e, "API request failed on the database");
         if e.is_unavailable() {
             error(StatusCode::SERVICE_UNAVAILABLE, "database unavailable")
@@ -195,7 +195,7 @@ impl FromRequestParts<Arc<App>> for Caller {
                 .key_rates
                 .lock()
                 .unwrap_or_else(std::sync::PoisonError::into_inner)
-                .take(&store::digest(key), std::time::Instant::now());
+                .take(&cloud_store::digest(key), std::time::Instant::now());
             return match within {
                 Ok(()) => Ok(Caller(operator)),
                 Err(wait) => {
@@ -488,7 +488,7 @@ async fn privilege(
     let params = ElevateParams {
         sernum,
         privilege: u32::from(body.privilege),
-        passhash: store::passhash(&body.password),
+        passhash: cloud_store::passhash(&body.password),
     };
     let result = app.registry.call(&id, &params).await;
     if let Ok(answer) = &result {
@@ -541,7 +541,7 @@ async fn token(
         };
     }
     let sernum = app.registry.sernum(&id).ok_or(Failure::Gone)?;
-    let token = store::secret("");
+    let token = cloud_store::secret("");
     app.store.set_next_token(&id, &token).await?;
     let params = TokenParams {
         sernum,

@@ -12,7 +12,7 @@ use serde::{Deserialize, Serialize};
 use super::{allowed, error, ApiError, ApiJson, App, Caller};
 use cloud_types::users::{KeyInfo, Role, User};
 
-use crate::store::UserError;
+use cloud_store::UserError;
 
 impl From<UserError> for ApiError {
     fn from(e: UserError) -> Self {

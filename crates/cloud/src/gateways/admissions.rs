@@ -1,6 +1,6 @@
 //! Admissions (NXg §5.2, docs/PORTAL.md §Stores) looked up in batches: each CONNECT waits
 //! for the registry's answer about it, and the CONNECTs that came meanwhile are asked about in
-//! one statement ([`Store::admit_many`]).
+//! one statement ([`Store::gateway_rows`]) and decided here ([`decide`]).
 //!
 //! A reconnect storm asked the database once per gateway, and each question held a pooled
 //! connection for its round trips while thousands of others waited for one: in a cluster of
@@ -15,7 +15,106 @@ use std::sync::Arc;
 use nxg::msg::Connect;
 use tokio::sync::{mpsc, oneshot, Semaphore};
 
-use crate::store::{Admission, Store, StoreError};
+use cloud_store::{GatewayRow, Store, StoreError};
+use cloud_types::lifts::lift_id;
+
+/// What the registry says about a CONNECT.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Admission {
+    /// No token on record (never issued, or reset by an administrator): accept and issue one.
+    FirstContact {
+        /// Whether users hold subscriptions of the lift (after a token reset they may).
+        subscribed: bool,
+    },
+    /// The token matches the one on record (or the one being rotated to, which now is).
+    Known(Known),
+    /// Refused, with the cause to record.
+    Refused(String),
+}
+
+/// What the registry knows of a gateway whose token matched.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Known {
+    /// The boardhash on record when the CONNECT's differs (the gateway's hardware changed, or
+    /// its token was copied to another board).
+    pub board_was: Option<String>,
+    /// When the token in use was confirmed (ms since the epoch; 0 when not recorded).
+    pub token_set: i64,
+    /// Whether users hold subscriptions of the lift (to register when it connects).
+    pub subscribed: bool,
+    /// The gateway sent the token a rotation gave it, whose confirmation the portal did not
+    /// see (NXg §5.4: the answer was lost with the connection): that token is the lift's now,
+    /// and is recorded as confirmed before the gateway is admitted.
+    pub rotation_confirmed: bool,
+}
+
+/// What the registry's `row` says about `connect` (NXg §5.2, §5.4): the registry is keyed by
+/// vendor, product and serial number; the domain token names the account; the token proves
+/// the gateway is the one that was admitted before. Decided here, without the database (the
+/// row is read with others in one statement: [`Store::gateway_rows`]).
+pub fn decide(connect: &Connect, row: &GatewayRow) -> Admission {
+    let identity = &connect.identity;
+    if !row.account {
+        return Admission::Refused(format!(
+            "no account for domain token {:?}",
+            connect.domaintoken
+        ));
+    }
+    let subscribed = row.subscribed;
+    let Some(registered) = &row.registered else {
+        return Admission::FirstContact { subscribed };
+    };
+    if registered.domain != connect.domaintoken {
+        return Admission::Refused("domain token differs from the registered one".into());
+    }
+    let known = |token_set, rotation_confirmed| {
+        Admission::Known(Known {
+            board_was: (registered.boardhash != identity.boardhash)
+                .then(|| registered.boardhash.clone()),
+            token_set,
+            subscribed,
+            rotation_confirmed,
+        })
+    };
+    let matches = |digest: &Option<String>, token: &str| {
+        digest
+            .as_deref()
+            .is_some_and(|d| nxg::digest::matches(d, &cloud_store::digest(token)))
+    };
+    match (&registered.token_hash, identity.cloudtoken.as_deref()) {
+        (None, _) => Admission::FirstContact { subscribed },
+        (hash, Some(t)) if matches(hash, t) => known(registered.token_set, false),
+        // The gateway stored the token of a rotation whose answer the portal did not see.
+        (_, Some(t)) if matches(&registered.token_next, t) => known(cloud_types::now_ms(), true),
+        (Some(_), Some(_)) => Admission::Refused("wrong cloud token".into()),
+        (Some(_), None) => Admission::Refused("no cloud token although one was issued".into()),
+    }
+}
+
+/// The admissions of `connects`, read in one statement and decided; a rotation the gateway
+/// confirmed by using its new token is recorded before the answer.
+async fn admit_all(store: &Store, connects: &[&Connect]) -> Result<Vec<Admission>, StoreError> {
+    let rows = store.gateway_rows(connects).await?;
+    let mut admissions = Vec::with_capacity(rows.len());
+    for (connect, row) in connects.iter().zip(&rows) {
+        let admission = decide(connect, row);
+        if let (Admission::Known(known), Some(token)) = (&admission, &connect.identity.cloudtoken) {
+            if known.rotation_confirmed {
+                store.set_token(&lift_id(&connect.identity), token).await?;
+            }
+        }
+        admissions.push(admission);
+    }
+    Ok(admissions)
+}
+
+/// The admission of one CONNECT, decided now on its own.
+pub async fn admit_alone(store: &Store, connect: &Connect) -> Result<Admission, StoreError> {
+    let mut admissions = admit_all(store, &[connect]).await?;
+    admissions
+        .pop()
+        .ok_or_else(|| sqlx::Error::RowNotFound.into())
+}
 
 /// CONNECTs asked about in one statement at most.
 const BATCH: usize = 256;
@@ -63,7 +162,7 @@ impl Admissions {
         (Admissions { tx, counters }, task)
     }
 
-    /// What the registry says about `connect` ([`Store::admit`]).
+    /// What the registry says about `connect` ([`decide`]).
     pub async fn admit(&self, connect: &Connect) -> Result<Admission, StoreError> {
         let (answer, answered) = oneshot::channel();
         let asked = Asked {
@@ -94,10 +193,10 @@ async fn ask(store: Store, mut rx: mpsc::Receiver<Asked>, counters: Arc<Admissio
         tokio::spawn(async move {
             let connects: Vec<&Connect> = batch.iter().map(|asked| &asked.connect).collect();
             counters.lookups.fetch_add(1, Ordering::Relaxed);
-            let answers = crate::store::timed(
+            let answers = cloud_store::timed(
                 "admission lookup",
                 connects.len(),
-                store.admit_many(&connects),
+                admit_all(&store, &connects),
             )
             .await;
             match answers {
@@ -111,7 +210,7 @@ async fn ask(store: Store, mut rx: mpsc::Receiver<Asked>, counters: Arc<Admissio
                 Err(e) if !e.is_unavailable() && batch.len() > 1 => {
                     for asked in batch {
                         counters.lookups.fetch_add(1, Ordering::Relaxed);
-                        let _ = asked.answer.send(store.admit(&asked.connect).await);
+                        let _ = asked.answer.send(admit_alone(&store, &asked.connect).await);
                     }
                 }
                 Err(e) => {
@@ -128,8 +227,8 @@ async fn ask(store: Store, mut rx: mpsc::Receiver<Asked>, counters: Arc<Admissio
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::store::tests::connect;
-    use crate::store::GatewayRecord;
+    use cloud_store::GatewayRecord;
+    use testkit::connect;
 
     #[tokio::test]
     async fn sqlite() {
@@ -173,7 +272,7 @@ mod tests {
                 };
                 let gw = connect(&format!("GW{n}"), domain, token.as_deref());
                 let batched = admissions.admit(&gw).await;
-                (n, batched, store.admit(&gw).await.unwrap())
+                (n, batched, admit_alone(&store, &gw).await.unwrap())
             }
         });
         // A CONNECT whose lookup the database refuses (PostgreSQL stores no NUL; the session's
@@ -210,5 +309,143 @@ mod tests {
         assert_eq!(kinds["refused"], 215);
         drop(admissions);
         task.await.unwrap();
+    }
+
+    fn registered(token: Option<&str>, next: Option<&str>) -> GatewayRow {
+        GatewayRow {
+            account: true,
+            subscribed: false,
+            registered: Some(cloud_store::Registered {
+                domain: "MAS".into(),
+                boardhash: String::new(),
+                token_hash: token.map(cloud_store::digest),
+                token_next: next.map(cloud_store::digest),
+                token_set: 7,
+            }),
+        }
+    }
+
+    /// The decision alone, from rows as the registry holds them (NXg §5.2, §5.4).
+    #[test]
+    fn admissions_are_decided_from_the_registry_row() {
+        let gw = |token| connect("180917010200000102", "MAS", token);
+        let first = GatewayRow {
+            account: true,
+            ..GatewayRow::default()
+        };
+        assert_eq!(
+            decide(&gw(None), &first),
+            Admission::FirstContact { subscribed: false }
+        );
+        assert!(matches!(
+            decide(&gw(None), &GatewayRow::default()),
+            Admission::Refused(c) if c.contains("no account")
+        ));
+        // Registered, no token confirmed yet (or reset): a first contact again.
+        assert_eq!(
+            decide(&gw(Some("x")), &registered(None, None)),
+            Admission::FirstContact { subscribed: false }
+        );
+        assert_eq!(
+            decide(&gw(Some("T0K3N")), &registered(Some("T0K3N"), None)),
+            Admission::Known(Known {
+                board_was: None,
+                token_set: 7,
+                subscribed: false,
+                rotation_confirmed: false
+            })
+        );
+        assert!(matches!(
+            decide(&gw(Some("T0K3M")), &registered(Some("T0K3N"), None)),
+            Admission::Refused(c) if c.contains("wrong")
+        ));
+        assert!(matches!(
+            decide(&gw(None), &registered(Some("T0K3N"), None)),
+            Admission::Refused(c) if c.contains("no cloud token")
+        ));
+        // Another account's domain token for a registered lift.
+        assert!(matches!(
+            decide(&connect("180917010200000102", "XYZ", Some("T0K3N")), &registered(Some("T0K3N"), None)),
+            Admission::Refused(c) if c.contains("differs")
+        ));
+        // Rotation: old and new token both admitted until one is confirmed.
+        let rotating = registered(Some("T0K3N"), Some("N3XT"));
+        assert!(matches!(
+            decide(&gw(Some("T0K3N")), &rotating),
+            Admission::Known(Known {
+                rotation_confirmed: false,
+                ..
+            })
+        ));
+        assert!(matches!(
+            decide(&gw(Some("N3XT")), &rotating),
+            Admission::Known(Known {
+                rotation_confirmed: true,
+                ..
+            })
+        ));
+        // A valid token from another board: known, the board on record named.
+        let mut swapped = gw(Some("T0K3N"));
+        swapped.identity.boardhash = "B0ARD2".into();
+        assert!(matches!(
+            decide(&swapped, &registered(Some("T0K3N"), None)),
+            Admission::Known(Known { board_was: Some(b), .. }) if b.is_empty()
+        ));
+        let subscribed = GatewayRow {
+            subscribed: true,
+            ..registered(Some("T0K3N"), None)
+        };
+        assert!(matches!(
+            decide(&gw(Some("T0K3N")), &subscribed),
+            Admission::Known(Known {
+                subscribed: true,
+                ..
+            })
+        ));
+    }
+
+    /// Rotation on a real registry: a token confirmed by use is recorded, and the old one is
+    /// over; a reset makes the next CONNECT a first contact.
+    async fn rotation_and_reset(store: Store) {
+        store.add_account("masora", "MAS").await.unwrap();
+        let gw = |token: Option<&str>| connect("180917010200000102", "MAS", token);
+        let lift = cloud_types::lifts::lift_id(&gw(None).identity);
+        store
+            .record(&[GatewayRecord::connected(&gw(None), 1)])
+            .await
+            .unwrap();
+        store.set_token(&lift, "T0K3N").await.unwrap();
+        store.set_next_token(&lift, "N3XT").await.unwrap();
+        let known = |a: Admission| matches!(a, Admission::Known(_));
+        assert!(known(
+            admit_alone(&store, &gw(Some("T0K3N"))).await.unwrap()
+        ));
+        // The gateway stored the new token but its answer was lost: admitted, and it counts.
+        assert!(known(admit_alone(&store, &gw(Some("N3XT"))).await.unwrap()));
+        assert!(
+            matches!(
+                admit_alone(&store, &gw(Some("T0K3N"))).await.unwrap(),
+                Admission::Refused(_)
+            ),
+            "the old token is over once the new one was used"
+        );
+        assert!(store.reset_token("MAS", &lift, "ops").await.unwrap());
+        assert_eq!(
+            admit_alone(&store, &gw(Some("N3XT"))).await.unwrap(),
+            Admission::FirstContact { subscribed: false }
+        );
+    }
+
+    #[tokio::test]
+    async fn rotation_and_reset_on_sqlite() {
+        rotation_and_reset(Store::open("sqlite::memory:").await.unwrap()).await;
+    }
+
+    #[tokio::test]
+    async fn rotation_and_reset_on_postgres() {
+        let Some(url) = testkit::postgres("rotation").await else {
+            return;
+        };
+        rotation_and_reset(Store::open(&url).await.unwrap()).await;
     }
 }

@@ -20,7 +20,9 @@ use crate::config::BoardhashChange;
 use cloud_types::audit::AuditEntry;
 use cloud_types::live::LiftEvent;
 
-use crate::store::{self, Admission, GatewayRecord, TelemetryRow};
+use cloud_store::{GatewayRecord, TelemetryRow};
+
+use super::admissions::{Admission, Known};
 use crate::throttle::TokenBucket;
 
 /// The lift a connection serves, once it is admitted.
@@ -375,8 +377,8 @@ async fn board_changed(
     peer: &str,
     connect: &Connect,
     was: String,
-    known: store::Known,
-) -> Result<Admission, store::StoreError> {
+    known: Known,
+) -> Result<Admission, cloud_store::StoreError> {
     let lift = cloud_types::lifts::lift_id(&connect.identity);
     let now = connect.identity.boardhash.clone();
     let policy = shared.boardhash_change;
@@ -416,14 +418,14 @@ async fn board_changed(
 /// that a lost answer does not lock the gateway out).
 async fn token_to_issue(shared: &Shared, lift: &str, admission: &Admission) -> Option<String> {
     match admission {
-        Admission::FirstContact { .. } => Some(store::secret("")),
+        Admission::FirstContact { .. } => Some(cloud_store::secret("")),
         Admission::Known(known) => {
             let lifetime = shared.token_lifetime?;
             let age = cloud_types::now_ms().saturating_sub(known.token_set);
             if u128::try_from(age).unwrap_or(0) < lifetime.as_millis() {
                 return None;
             }
-            let token = store::secret("");
+            let token = cloud_store::secret("");
             match shared.store.set_next_token(lift, &token).await {
                 Ok(()) => {
                     tracing::info!(%lift, age_days = age / 86_400_000, "token due: rotating");

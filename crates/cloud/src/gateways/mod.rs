@@ -25,7 +25,7 @@ use tokio::sync::{broadcast, mpsc, oneshot};
 use crate::cluster::msgs::Holding;
 use crate::cluster::Cluster;
 use crate::config::Dashboard;
-use crate::store::Store;
+use cloud_store::Store;
 use cloud_types::live::LiftEvent;
 
 pub use connection::serve;

@@ -16,7 +16,7 @@ use std::sync::{Arc, Mutex, PoisonError};
 use tokio::sync::mpsc::error::TrySendError;
 use tokio::sync::{mpsc, oneshot, watch};
 
-use crate::store::{GatewayRecord, Store, StoreError};
+use cloud_store::{GatewayRecord, Store, StoreError};
 
 /// A record in the queue, and whoever waits until it is written.
 struct Queued {
@@ -176,7 +176,7 @@ pub async fn writer(
             records.push(queued.record);
             waiting.push(queued.written);
         }
-        match crate::store::timed("gateway records", records.len(), store.record(&records)).await {
+        match cloud_store::timed("gateway records", records.len(), store.record(&records)).await {
             // One record the database refuses fails the transaction for all: each is written
             // alone, so only that one is lost.
             Err(e) if !e.is_unavailable() && records.len() > 1 => {
@@ -216,7 +216,7 @@ mod tests {
     use super::*;
 
     fn connect(sernum: &str, software: &str) -> nxg::msg::Connect {
-        let mut connect = crate::store::tests::connect(sernum, "MAS", None);
+        let mut connect = testkit::connect(sernum, "MAS", None);
         connect.identity.software = software.into();
         connect
     }
@@ -260,10 +260,12 @@ mod tests {
         records.write(GatewayRecord::token(&lift, "T1")).await;
         let wait = std::time::Duration::from_millis(300);
         // No writer yet: the token is not on record, and the lift's admission waits.
-        let again = crate::store::tests::connect("GW1", "MAS", Some("T1"));
+        let again = testkit::connect("GW1", "MAS", Some("T1"));
         assert!(matches!(
-            store.admit(&again).await.unwrap(),
-            crate::store::Admission::FirstContact { .. }
+            crate::gateways::admissions::admit_alone(&store, &again)
+                .await
+                .unwrap(),
+            crate::gateways::admissions::Admission::FirstContact { .. }
         ));
         assert!(tokio::time::timeout(wait, records.settled(&lift))
             .await
@@ -278,8 +280,10 @@ mod tests {
             .await
             .expect("settled once written");
         assert!(matches!(
-            store.admit(&again).await.unwrap(),
-            crate::store::Admission::Known(_)
+            crate::gateways::admissions::admit_alone(&store, &again)
+                .await
+                .unwrap(),
+            crate::gateways::admissions::Admission::Known(_)
         ));
         stop.send_replace(true);
         task.await.unwrap();

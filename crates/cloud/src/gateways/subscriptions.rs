@@ -30,7 +30,7 @@ use super::Registry;
 use crate::cluster::msgs::{Relayed, RelayedHold, RelayedRelease};
 use crate::cluster::Cluster;
 use crate::config::Dashboard;
-use crate::store::Store;
+use cloud_store::Store;
 
 /// The objects every lift holds for the dashboard, with their terms.
 pub type DashboardTerms = BTreeMap<Mplex, Terms>;

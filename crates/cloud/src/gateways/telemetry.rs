@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use tokio::sync::{mpsc, watch};
 
-use crate::store::{Store, TelemetryRow};
+use cloud_store::{Store, TelemetryRow};
 
 /// Pushed values stored, and dropped because the database could not keep up (the queue in
 /// front of it stayed full) or failed.
@@ -131,7 +131,7 @@ pub async fn writer(
         }
         let mut retry = RETRY_FIRST;
         let counter = loop {
-            match crate::store::timed("telemetry", batch.len(), store.telemetry(&batch)).await {
+            match cloud_store::timed("telemetry", batch.len(), store.telemetry(&batch)).await {
                 Ok(()) => {
                     if retry > RETRY_FIRST {
                         counters.unreachable.store(false, Ordering::Relaxed);

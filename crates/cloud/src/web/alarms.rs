@@ -16,7 +16,7 @@ use super::page::{layout, problem, time, unavailable};
 use super::SignedIn;
 use crate::alarms::service::AckError;
 use crate::api::App;
-use crate::store::AlarmFilter;
+use cloud_store::AlarmFilter;
 use cloud_types::alarms::{Alarm, Severity};
 use cloud_types::users::Role;
 

@@ -17,7 +17,6 @@ use super::lift::{describe, Described};
 use super::page::{layout, problem, time, unavailable, utc};
 use super::{owned, SignedIn};
 use crate::api::App;
-use crate::store;
 
 /// Objects on one page at most.
 const MAX_SERIES: usize = 6;
@@ -115,7 +114,7 @@ async fn shown(
             .store
             .history(id, &mplex, period.from, period.to)
             .await?;
-        Ok::<_, store::StoreError>(Series { mplex, rows })
+        Ok::<_, cloud_store::StoreError>(Series { mplex, rows })
     }))
     .await
     .map_err(|e| unavailable(e, who.viewer()))?;

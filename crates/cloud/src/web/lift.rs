@@ -20,7 +20,7 @@ use crate::api::{read_params, App};
 use cloud_types::api::Form;
 use cloud_types::users::Role;
 
-use crate::store::AlarmFilter;
+use cloud_store::AlarmFilter;
 
 /// Floor level positions (CiA 417 manufacturer area, one element per floor): sub-index 0 is
 /// the lift's number of floors, which sizes the "call the car" buttons.

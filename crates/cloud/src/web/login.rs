@@ -15,7 +15,6 @@ use super::i18n::Locale;
 use super::page::{layout, problem, unavailable, Viewer};
 use super::session::{Credential, COOKIE, IDLE};
 use crate::api::App;
-use crate::store;
 
 pub(super) async fn login_page(locale: Locale) -> Response {
     login_form(None, locale)
@@ -109,7 +108,7 @@ pub(super) async fn login(
         app.store
             .operator_by_key(key)
             .await
-            .map(|o| o.map(|o| (o, Credential::Key(store::digest(key)))))
+            .map(|o| o.map(|o| (o, Credential::Key(cloud_store::digest(key)))))
     };
     match signed_in {
         Ok(Some((operator, credential))) => {
@@ -143,7 +142,7 @@ pub(super) async fn login(
 }
 
 /// The page for a sign-in or sign-out the database failed.
-fn database_down(e: crate::store::StoreError, locale: Locale) -> Response {
+fn database_down(e: cloud_store::StoreError, locale: Locale) -> Response {
     let viewer = Viewer {
         session: None,
         locale,

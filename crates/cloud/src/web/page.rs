@@ -10,7 +10,7 @@ use super::i18n::Locale;
 use super::session::Session;
 use cloud_types::users::Role;
 
-use crate::store::StoreError;
+use cloud_store::StoreError;
 
 /// What every page is rendered for: the signed-in browser (absent: the sign-in page, without
 /// navigation) and its language.

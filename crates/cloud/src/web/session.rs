@@ -15,7 +15,7 @@ use axum::http::{header, HeaderMap};
 
 use cloud_types::users::Operator;
 
-use crate::store::{self, SessionRecord, Store, StoreError};
+use cloud_store::{SessionRecord, Store, StoreError};
 
 /// The cookie's name.
 pub(super) const COOKIE: &str = "canlift_session";
@@ -93,7 +93,7 @@ impl Sessions {
         let Some(id) = cookie(headers) else {
             return Ok(None);
         };
-        let digest = store::digest(id);
+        let digest = cloud_store::digest(id);
         let cached = {
             let mut cache = self.cache();
             match cache.get_mut(&digest) {
@@ -188,7 +188,7 @@ impl Sessions {
         let Some(id) = cookie(headers) else {
             return Ok(None);
         };
-        let digest = store::digest(id);
+        let digest = cloud_store::digest(id);
         self.cache().remove(&digest);
         self.load(&digest, store).await
     }
@@ -202,8 +202,8 @@ impl Sessions {
         epoch: i64,
         store: &Store,
     ) -> Result<String, StoreError> {
-        let id = store::secret("");
-        let digest = store::digest(&id);
+        let id = cloud_store::secret("");
+        let digest = cloud_store::digest(&id);
         let (key_digest, user) = match &credential {
             Credential::Key(key) => (Some(key.clone()), None),
             Credential::User(name) => (None, Some(name.clone())),
@@ -212,7 +212,7 @@ impl Sessions {
         let record = SessionRecord {
             key_digest,
             user,
-            csrf: store::secret(""),
+            csrf: cloud_store::secret(""),
             last_used: now,
         };
         store
@@ -225,7 +225,7 @@ impl Sessions {
     /// Sign the request's session out, here and (through the database) everywhere.
     pub(super) async fn close(&self, headers: &HeaderMap, store: &Store) -> Result<(), StoreError> {
         if let Some(id) = cookie(headers) {
-            let digest = store::digest(id);
+            let digest = cloud_store::digest(id);
             self.cache().remove(&digest);
             store.close_session(&digest).await?;
         }
@@ -264,7 +264,7 @@ mod tests {
         let key = store.add_account("a", "D").await.unwrap();
         let operator = store.operator_by_key(&key).await.unwrap().unwrap();
         let (here, there) = (Sessions::default(), Sessions::default());
-        let credential = Credential::Key(store::digest(&key));
+        let credential = Credential::Key(cloud_store::digest(&key));
         let epoch = store.seen_auth_epoch();
         let id = here
             .open(operator.clone(), credential, epoch, &store)

@@ -97,11 +97,11 @@ impl Store {
 }
 
 #[cfg(test)]
-pub(super) mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// Run by the store's tests on SQLite and PostgreSQL.
-    pub(in crate::store) async fn held_released_and_per_lift(store: &Store) {
+    pub(crate) async fn held_released_and_per_lift(store: &Store) {
         let (lift, other) = ("1050-4096-1", "1050-4096-2");
         let objects = |list: &[&str]| list.iter().map(|s| (*s).to_owned()).collect::<Vec<_>>();
         store

@@ -309,7 +309,7 @@ impl Store {
         lifts: &[String],
     ) -> Result<Vec<(Condition, i64)>, StoreError> {
         let mut active = Vec::new();
-        for lifts in super::chunks_by_binary_digits(lifts, 256) {
+        for lifts in crate::chunks_by_binary_digits(lifts, 256) {
             let sql = format!(
                 "SELECT * FROM alarms WHERE cleared IS NULL AND lift IN ({})",
                 super::parameter_rows(lifts.len(), 1)
@@ -440,13 +440,13 @@ impl Store {
 }
 
 #[cfg(test)]
-pub(super) mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// Run by the store's tests on SQLite and PostgreSQL: a condition has one active alarm,
     /// whichever process raises it (a second raise is no new alarm), and a new one once it
     /// cleared.
-    pub(in crate::store) async fn one_active_alarm_per_condition(store: &Store) {
+    pub(crate) async fn one_active_alarm_per_condition(store: &Store) {
         let condition = Condition {
             lift: "1050-4096-ALARM".into(),
             kind: Kind::LiftOffline,

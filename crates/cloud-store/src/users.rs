@@ -13,10 +13,13 @@ use argon2::Argon2;
 use rand::RngCore;
 use sqlx::Row;
 
+use std::collections::HashMap;
+
 use cloud_types::now_ms;
 use cloud_types::users::{Account, KeyInfo, Operator, Role, User};
 
-use super::{digest, secret, Store, StoreError};
+use crate::secrets::{digest, secret};
+use crate::{Store, StoreError};
 
 /// Why a user or key change did not happen.
 #[derive(Debug, thiserror::Error)]
@@ -41,6 +44,50 @@ pub enum UserError {
 impl From<sqlx::Error> for UserError {
     fn from(e: sqlx::Error) -> Self {
         UserError::Store(StoreError::from(e))
+    }
+}
+
+/// How long an API key's account is taken from memory before the database is asked again, and
+/// how long a remembered key still counts while the database cannot be reached
+/// (docs/SECURITY.md §Bounds).
+const KEY_FRESH: std::time::Duration = std::time::Duration::from_secs(60);
+const KEY_KEPT: std::time::Duration = std::time::Duration::from_secs(3600);
+/// Keys remembered at most (a full memory starts over).
+const KEY_CACHE_ENTRIES: usize = 10_000;
+
+/// Operators of API keys recently looked up, by the key's digest.
+#[derive(Default)]
+pub(crate) struct KeyCache(std::sync::Mutex<HashMap<String, (Operator, std::time::Instant)>>);
+
+impl KeyCache {
+    /// The operator of `digest` if it was looked up less than `age` ago.
+    fn get(&self, digest: &str, age: std::time::Duration) -> Option<Operator> {
+        let keys = self
+            .0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        keys.get(digest)
+            .filter(|(_, at)| at.elapsed() < age)
+            .map(|(account, _)| account.clone())
+    }
+
+    fn put(&self, digest: String, operator: Operator) {
+        let mut keys = self
+            .0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if keys.len() >= KEY_CACHE_ENTRIES {
+            keys.clear();
+        }
+        keys.insert(digest, (operator, std::time::Instant::now()));
+    }
+
+    /// Forget every key (rights were taken away somewhere).
+    fn clear(&self) {
+        self.0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clear();
     }
 }
 
@@ -75,6 +122,61 @@ fn secret_matches(secret: &str, hash: &str) -> bool {
 }
 
 impl Store {
+    /// The operator an API key acts for (found by the key's digest: an index lookup reveals
+    /// nothing of a random 128-bit key): the account's administrator for the account's own key,
+    /// a user with its role for a user's key.
+    ///
+    /// A key found is remembered for a minute, so requests do not each cost a query, and while
+    /// the database is unreachable a key that was valid within the hour still counts: operators
+    /// keep reading lifts, which needs no database, through an outage. What is remembered is
+    /// forgotten when the auth epoch rises (a user disabled, a key revoked: see
+    /// [`Store::follow_auth_epoch`]).
+    pub async fn operator_by_key(&self, key: &str) -> Result<Option<Operator>, StoreError> {
+        let digest = digest(key);
+        if let Some(operator) = self.keys.get(&digest, KEY_FRESH) {
+            return Ok(Some(operator));
+        }
+        let operator = match self.operator_of_key(&digest).await {
+            Ok(operator) => operator,
+            Err(e) if e.is_unavailable() => {
+                return match self.keys.get(&digest, KEY_KEPT) {
+                    Some(operator) => Ok(Some(operator)),
+                    None => Err(e),
+                };
+            }
+            Err(e) => return Err(e),
+        };
+        if let Some(operator) = &operator {
+            self.keys.put(digest, operator.clone());
+        }
+        Ok(operator)
+    }
+
+    /// Check the auth epoch every `period` for as long as the store lives: when it rose, the
+    /// keys remembered are forgotten and sessions are checked again (docs/PORTAL.md §Users and
+    /// roles). Run by the portal.
+    pub async fn follow_auth_epoch(self, period: std::time::Duration) {
+        let mut ticks = tokio::time::interval(period);
+        ticks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        loop {
+            ticks.tick().await;
+            match self.auth_epoch().await {
+                Ok(epoch) => {
+                    let seen = self.epoch.swap(epoch, std::sync::atomic::Ordering::SeqCst);
+                    if seen != epoch {
+                        self.keys.clear();
+                    }
+                }
+                Err(e) => tracing::debug!(error = %e, "auth epoch not read"),
+            }
+        }
+    }
+
+    /// The auth epoch this process has seen.
+    pub fn seen_auth_epoch(&self) -> i64 {
+        self.epoch.load(std::sync::atomic::Ordering::SeqCst)
+    }
+
     /// Add user `name` to `account` with `role`; its sign-in secret (shown only now).
     pub async fn add_user(
         &self,
@@ -294,10 +396,7 @@ impl Store {
 
     /// The operator a key acts for, looked up in the database: the account's own key (its
     /// administrator), or a user's key that is neither revoked nor expired, of an enabled user.
-    pub(crate) async fn operator_of_key(
-        &self,
-        digest: &str,
-    ) -> Result<Option<Operator>, StoreError> {
+    pub async fn operator_of_key(&self, digest: &str) -> Result<Option<Operator>, StoreError> {
         let account = sqlx::query("SELECT name, domain FROM accounts WHERE key_hash = $1")
             .bind(digest)
             .fetch_optional(&self.pool)
@@ -339,7 +438,7 @@ impl Store {
     }
 
     /// Raise the auth epoch: every process forgets the keys and sessions it remembered.
-    async fn raise_auth_epoch(&self) -> Result<(), StoreError> {
+    pub(crate) async fn raise_auth_epoch(&self) -> Result<(), StoreError> {
         sqlx::query("UPDATE auth_epoch SET epoch = epoch + 1 WHERE id = 1")
             .execute(&self.pool)
             .await?;
@@ -360,159 +459,13 @@ impl Store {
 static DUMMY_HASH: std::sync::LazyLock<String> =
     std::sync::LazyLock::new(|| hash_secret("no user has this secret"));
 
-/// A browser session as the database keeps it (docs/PORTAL.md §Web UI): what it was opened
-/// with — an API key's digest or a user's name — its CSRF token, and when it was last used.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct SessionRecord {
-    /// The digest of the API key it was opened with.
-    pub key_digest: Option<String>,
-    /// The user who signed in with name and secret.
-    pub user: Option<String>,
-    /// The session's CSRF token.
-    pub csrf: String,
-    /// ms since the Unix epoch.
-    pub last_used: i64,
-}
-
-impl Store {
-    /// Record a new session under its cookie's `digest`, and forget those idle since before
-    /// `expired` (ms).
-    pub async fn open_session(
-        &self,
-        digest: &str,
-        record: &SessionRecord,
-        expired: i64,
-    ) -> Result<(), StoreError> {
-        sqlx::query("DELETE FROM web_sessions WHERE last_used < $1")
-            .bind(expired)
-            .execute(&self.pool)
-            .await?;
-        sqlx::query(
-            "INSERT INTO web_sessions (digest, key_digest, user_name, csrf, last_used) VALUES ($1, $2, $3, $4, $5)",
-        )
-        .bind(digest)
-        .bind(record.key_digest.clone())
-        .bind(record.user.clone())
-        .bind(&record.csrf)
-        .bind(record.last_used)
-        .execute(&self.pool)
-        .await?;
-        Ok(())
-    }
-
-    /// The session recorded under `digest`.
-    pub async fn session(&self, digest: &str) -> Result<Option<SessionRecord>, StoreError> {
-        let row = sqlx::query(
-            "SELECT key_digest, user_name, csrf, last_used FROM web_sessions WHERE digest = $1",
-        )
-        .bind(digest)
-        .fetch_optional(&self.pool)
-        .await?;
-        row.map(|r| -> Result<SessionRecord, sqlx::Error> {
-            Ok(SessionRecord {
-                key_digest: r.try_get("key_digest")?,
-                user: r.try_get("user_name")?,
-                csrf: r.try_get("csrf")?,
-                last_used: r.try_get("last_used")?,
-            })
-        })
-        .transpose()
-        .map_err(StoreError::from)
-    }
-
-    /// The session was used at `at` (ms).
-    pub async fn touch_session(&self, digest: &str, at: i64) -> Result<(), StoreError> {
-        sqlx::query("UPDATE web_sessions SET last_used = $1 WHERE digest = $2")
-            .bind(at)
-            .bind(digest)
-            .execute(&self.pool)
-            .await?;
-        Ok(())
-    }
-
-    /// The session ended (signed out, or its user or key no longer counts). The auth epoch
-    /// rises, so that every process checks its sessions again and drops this one too.
-    pub async fn close_session(&self, digest: &str) -> Result<(), StoreError> {
-        let closed = sqlx::query("DELETE FROM web_sessions WHERE digest = $1")
-            .bind(digest)
-            .execute(&self.pool)
-            .await?;
-        if closed.rows_affected() > 0 {
-            self.raise_auth_epoch().await?;
-        }
-        Ok(())
-    }
-}
-
-/// A lift's elevation grant (crate::elevation): who elevated, to what, until when (ms since
-/// the Unix epoch), on which connection (its epoch).
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct ElevationGrant {
-    /// The user who entered the password.
-    pub user: String,
-    /// The privilege the gateway granted.
-    pub privilege: u32,
-    /// When it runs out (ms).
-    pub until: i64,
-    /// The connection it was granted on.
-    pub connection: u64,
-}
-
-impl Store {
-    /// The lift's grant, if one is recorded.
-    pub async fn grant(&self, lift: &str) -> Result<Option<ElevationGrant>, StoreError> {
-        let row = sqlx::query(
-            "SELECT user_name, privilege, until, connection FROM elevations WHERE lift = $1",
-        )
-        .bind(lift)
-        .fetch_optional(&self.pool)
-        .await?;
-        row.map(|r| -> Result<ElevationGrant, sqlx::Error> {
-            let number = |column: &str| -> Result<i64, sqlx::Error> { r.try_get(column) };
-            Ok(ElevationGrant {
-                user: r.try_get("user_name")?,
-                privilege: u32::try_from(number("privilege")?).unwrap_or(0),
-                until: number("until")?,
-                connection: u64::try_from(number("connection")?).unwrap_or(0),
-            })
-        })
-        .transpose()
-        .map_err(StoreError::from)
-    }
-
-    /// Record the lift's grant, replacing any other.
-    pub async fn set_grant(&self, lift: &str, grant: &ElevationGrant) -> Result<(), StoreError> {
-        sqlx::query(
-            "INSERT INTO elevations (lift, user_name, privilege, until, connection) VALUES ($1, $2, $3, $4, $5) \
-             ON CONFLICT (lift) DO UPDATE SET user_name = excluded.user_name, privilege = excluded.privilege, until = excluded.until, connection = excluded.connection",
-        )
-        .bind(lift)
-        .bind(&grant.user)
-        .bind(i64::from(grant.privilege))
-        .bind(grant.until)
-        .bind(i64::try_from(grant.connection).unwrap_or(i64::MAX))
-        .execute(&self.pool)
-        .await?;
-        Ok(())
-    }
-
-    /// Forget the lift's grant.
-    pub async fn drop_grant(&self, lift: &str) -> Result<(), StoreError> {
-        sqlx::query("DELETE FROM elevations WHERE lift = $1")
-            .bind(lift)
-            .execute(&self.pool)
-            .await?;
-        Ok(())
-    }
-}
-
 #[cfg(test)]
-pub(super) mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// Run by the store's tests on SQLite and PostgreSQL, with account `masora` (domain MAS)
     /// and `other` made.
-    pub(in crate::store) async fn users_keys_and_the_epoch(store: &Store) {
+    pub(crate) async fn users_keys_and_the_epoch(store: &Store) {
         let epoch = store.auth_epoch().await.unwrap();
         let secret = store
             .add_user("masora", "ann", Role::Engineer)

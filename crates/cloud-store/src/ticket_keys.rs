@@ -50,12 +50,12 @@ impl Store {
 }
 
 #[cfg(test)]
-pub(super) mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// Run by the store's tests on SQLite and PostgreSQL: the first maker wins, a replacement
     /// over a stale version does nothing.
-    pub(in crate::store) async fn made_once_replaced_over_the_version(store: &Store) {
+    pub(crate) async fn made_once_replaced_over_the_version(store: &Store) {
         assert_eq!(store.ticket_keys().await.unwrap(), None);
         assert!(store.replace_ticket_keys("a", None).await.unwrap());
         assert!(!store.replace_ticket_keys("b", None).await.unwrap());

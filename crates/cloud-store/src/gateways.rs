@@ -1,0 +1,342 @@
+//! The gateway registry (NXg §5.2, §5.4): one row per lift — its identity, account, token
+//! digests and when it was last heard — written in batches and read for admissions and for
+//! the operators' lists.
+
+use nxg::msg::{Connect, Identity};
+use sqlx::any::AnyRow;
+use sqlx::Row;
+
+use cloud_types::audit::AuditEntry;
+use cloud_types::lifts::{lift_id, LiftRecord};
+use cloud_types::now_ms;
+
+use crate::secrets::digest;
+use crate::{parameter_rows, Store, StoreError};
+
+/// What the registry keeps of a gateway's connections ([`Store::record`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum GatewayRecord {
+    /// A gateway was admitted (CONNACK) at `at` (ms since the epoch), saying it is `identity`
+    /// (NXg §5.2.1) of `domain` and speaking `api`: its row is made or its identity refreshed.
+    Connected {
+        /// As CONNECT said.
+        identity: Identity,
+        /// The domain token it gave.
+        domain: String,
+        /// The api version agreed.
+        api: u32,
+        /// When.
+        at: i64,
+    },
+    /// A gateway was last heard at `at`: its connection ended.
+    Seen {
+        /// Lift id.
+        lift: String,
+        /// When.
+        at: i64,
+    },
+    /// A gateway confirmed a token at `at` (NXg §5.4): only its digest is kept, with the time
+    /// (for `[gateways] token_rotate_days`); a rotation in progress is over.
+    Token {
+        /// Lift id.
+        lift: String,
+        /// The token's digest.
+        digest: String,
+        /// When.
+        at: i64,
+    },
+}
+
+impl GatewayRecord {
+    /// A gateway admitted now after `connect`, speaking `api`.
+    pub fn connected(connect: &Connect, api: u32) -> GatewayRecord {
+        GatewayRecord::Connected {
+            identity: connect.identity.clone(),
+            domain: connect.domaintoken.clone(),
+            api,
+            at: now_ms(),
+        }
+    }
+
+    /// `lift`'s connection ended now.
+    pub fn seen(lift: &str) -> GatewayRecord {
+        GatewayRecord::Seen {
+            lift: lift.to_owned(),
+            at: now_ms(),
+        }
+    }
+
+    /// The lift the record is of.
+    pub fn lift(&self) -> String {
+        match self {
+            GatewayRecord::Connected { identity, .. } => lift_id(identity),
+            GatewayRecord::Seen { lift, .. } | GatewayRecord::Token { lift, .. } => lift.clone(),
+        }
+    }
+
+    /// `lift`'s gateway confirmed `token` now.
+    pub fn token(lift: &str, token: &str) -> GatewayRecord {
+        GatewayRecord::Token {
+            lift: lift.to_owned(),
+            digest: digest(token),
+            at: now_ms(),
+        }
+    }
+}
+
+/// What the registry holds of a CONNECT's lift ([`Store::gateway_rows`]): all an admission
+/// decides on.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct GatewayRow {
+    /// Whether an account has the CONNECT's domain token.
+    pub account: bool,
+    /// Whether users hold subscriptions of the lift (to register when it connects).
+    pub subscribed: bool,
+    /// The lift's row, if it was ever admitted.
+    pub registered: Option<Registered>,
+}
+
+/// A registered lift's row, as an admission needs it.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Registered {
+    /// The domain token it was admitted with.
+    pub domain: String,
+    /// The boardhash of its last admission.
+    pub boardhash: String,
+    /// The digest of its token, once one was confirmed (none after a reset).
+    pub token_hash: Option<String>,
+    /// The digest of the token a rotation sent and the gateway has not confirmed yet.
+    pub token_next: Option<String>,
+    /// When the token in use was confirmed (ms since the epoch; 0 when not recorded).
+    pub token_set: i64,
+}
+
+impl GatewayRow {
+    fn from_row(row: &AnyRow) -> Result<GatewayRow, sqlx::Error> {
+        let registered = match row.try_get::<Option<String>, _>("domain")? {
+            None => None,
+            Some(domain) => Some(Registered {
+                domain,
+                boardhash: row.try_get("boardhash")?,
+                token_hash: row.try_get("token_hash")?,
+                token_next: row.try_get("token_next")?,
+                token_set: row.try_get("token_set")?,
+            }),
+        };
+        Ok(GatewayRow {
+            account: row.try_get::<i64, _>("accounts")? > 0,
+            subscribed: row.try_get::<i64, _>("subscribed")? > 0,
+            registered,
+        })
+    }
+}
+
+impl Store {
+    /// What the registry holds of each of `connects` (NXg §5.2, §5.4), in their order, read in
+    /// one statement: a reconnect storm's admissions take a pooled connection and a round trip
+    /// per batch instead of per gateway (docs/PORTAL.md §Stores). The decision is the portal's
+    /// (`admissions::decide`), not the database's.
+    pub async fn gateway_rows(&self, connects: &[&Connect]) -> Result<Vec<GatewayRow>, StoreError> {
+        let Some(last) = connects.len().checked_sub(1) else {
+            return Ok(Vec::new());
+        };
+        // Batches padded to a power of two (repeating the last CONNECT) make a few distinct
+        // statements, each prepared once per connection, not one per batch size.
+        let rows = connects.len().next_power_of_two();
+        let values = parameter_rows(rows, 3);
+        // Per CONNECT: whether an account has its domain, the gateway's row (NULLs when there
+        // is none) and whether users hold subscriptions of the lift (most hold none: then
+        // they are not read at CONNACK).
+        let sql = format!(
+            "SELECT v.column1 AS i, \
+             (SELECT COUNT(*) FROM accounts WHERE domain = v.column3) AS accounts, \
+             (SELECT COUNT(*) FROM (SELECT 1 FROM subscriptions WHERE lift = v.column2 LIMIT 1) AS s) AS subscribed, \
+             g.token_hash, g.token_next, g.token_set, g.domain, g.boardhash \
+             FROM (VALUES {values}) AS v LEFT JOIN gateways AS g ON g.id = v.column2"
+        );
+        let mut query = sqlx::query(&sql);
+        for i in 0..rows {
+            let connect = connects[i.min(last)];
+            query = query
+                .bind(i.min(last) as i64)
+                .bind(lift_id(&connect.identity))
+                .bind(&connect.domaintoken);
+        }
+        let mut found: Vec<Option<GatewayRow>> = (0..connects.len()).map(|_| None).collect();
+        for row in query.fetch_all(&self.pool).await? {
+            let i = usize::try_from(row.try_get::<i64, _>("i")?).unwrap_or(usize::MAX);
+            if let Some(slot) = found.get_mut(i) {
+                *slot = Some(GatewayRow::from_row(&row)?);
+            }
+        }
+        found
+            .into_iter()
+            .map(|row| row.ok_or_else(|| sqlx::Error::RowNotFound.into()))
+            .collect()
+    }
+
+    /// Write `records` in order, in one transaction (a storm of reconnects costs one commit
+    /// per batch, not one per gateway). `last_seen` only moves forward, so a record written
+    /// late never takes it back.
+    pub async fn record(&self, records: &[GatewayRecord]) -> Result<(), StoreError> {
+        let mut tx = self.pool.begin().await?;
+        for record in records {
+            match record {
+                GatewayRecord::Connected {
+                    identity,
+                    domain,
+                    api,
+                    at,
+                } => {
+                    sqlx::query(
+                        "INSERT INTO gateways (id, vendorid, productcode, sernum, liftnum, hardware, software, boardhash, domain, api, token_hash, last_seen) \
+                         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, NULL, $11) \
+                         ON CONFLICT (id) DO UPDATE SET liftnum = $5, hardware = $6, software = $7, boardhash = $8, api = $10, \
+                         last_seen = CASE WHEN gateways.last_seen > $11 THEN gateways.last_seen ELSE $11 END",
+                    )
+                    .bind(lift_id(identity))
+                    .bind(i64::from(identity.vendorid))
+                    .bind(i64::from(identity.productcode))
+                    .bind(&identity.sernum)
+                    .bind(&identity.liftnum)
+                    .bind(&identity.hardware)
+                    .bind(&identity.software)
+                    .bind(&identity.boardhash)
+                    .bind(domain)
+                    .bind(i64::from(*api))
+                    .bind(*at)
+                    .execute(&mut *tx)
+                    .await?;
+                }
+                GatewayRecord::Seen { lift, at } => {
+                    sqlx::query(
+                        "UPDATE gateways SET last_seen = $1 WHERE id = $2 AND last_seen < $1",
+                    )
+                    .bind(*at)
+                    .bind(lift)
+                    .execute(&mut *tx)
+                    .await?;
+                }
+                GatewayRecord::Token { lift, digest, at } => {
+                    sqlx::query(
+                        "UPDATE gateways SET token_hash = $1, token_set = $2, token_next = NULL WHERE id = $3",
+                    )
+                    .bind(digest)
+                    .bind(*at)
+                    .bind(lift)
+                    .execute(&mut *tx)
+                    .await?;
+                }
+            }
+        }
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// The gateway of `lift` confirmed `token` ([`GatewayRecord::Token`]), written at once.
+    pub async fn set_token(&self, lift: &str, token: &str) -> Result<(), StoreError> {
+        self.record(&[GatewayRecord::token(lift, token)]).await
+    }
+
+    /// `token` is about to be sent to the gateway in place of its current one (NXg §5.4): until
+    /// the gateway confirms it, a CONNECT with either is the gateway's, so an answer lost with
+    /// the connection does not lock the gateway out.
+    pub async fn set_next_token(&self, lift: &str, token: &str) -> Result<(), StoreError> {
+        sqlx::query("UPDATE gateways SET token_next = $1 WHERE id = $2")
+            .bind(digest(token))
+            .bind(lift)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
+    /// Forget the token of `lift` (of `domain`) for `by`, audited: its next CONNECT is a first
+    /// contact and gets a new one, for a gateway that was replaced or wiped. False when there
+    /// is no such lift.
+    pub async fn reset_token(
+        &self,
+        domain: &str,
+        lift: &str,
+        by: &str,
+    ) -> Result<bool, StoreError> {
+        let done = sqlx::query(
+            "UPDATE gateways SET token_hash = NULL, token_next = NULL, token_set = 0 WHERE id = $1 AND domain = $2",
+        )
+        .bind(lift)
+        .bind(domain)
+        .execute(&self.pool)
+        .await?;
+        if done.rows_affected() == 0 {
+            return Ok(false);
+        }
+        self.audit(&AuditEntry {
+            at: now_ms(),
+            account: by.to_owned(),
+            lift: lift.to_owned(),
+            action: "token reset".into(),
+            object: "cloud token".into(),
+            old_value: None,
+            new_value: "(none: first contact next)".into(),
+            result: "ok".into(),
+        })
+        .await?;
+        Ok(true)
+    }
+
+    /// The domain (account) a registered lift belongs to.
+    pub async fn domain_of(&self, lift: &str) -> Result<Option<String>, StoreError> {
+        let row = sqlx::query("SELECT domain FROM gateways WHERE id = $1")
+            .bind(lift)
+            .fetch_optional(&self.pool)
+            .await?;
+        Ok(row.map(|r| r.try_get("domain")).transpose()?)
+    }
+
+    fn lift_from(row: &AnyRow) -> Result<LiftRecord, sqlx::Error> {
+        Ok(LiftRecord {
+            id: row.try_get("id")?,
+            vendorid: row.try_get::<i64, _>("vendorid")? as u32,
+            productcode: row.try_get::<i64, _>("productcode")? as u32,
+            sernum: row.try_get("sernum")?,
+            liftnum: row.try_get("liftnum")?,
+            hardware: row.try_get("hardware")?,
+            software: row.try_get("software")?,
+            domain: row.try_get("domain")?,
+            api: row.try_get::<i64, _>("api")? as u32,
+            last_seen: row.try_get("last_seen")?,
+        })
+    }
+
+    /// The id of every lift on record.
+    pub async fn lift_ids(&self) -> Result<Vec<String>, StoreError> {
+        let rows = sqlx::query("SELECT id FROM gateways")
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter()
+            .map(|r| r.try_get("id"))
+            .collect::<Result<_, _>>()
+            .map_err(StoreError::from)
+    }
+
+    /// The lifts of `domain`.
+    pub async fn lifts(&self, domain: &str) -> Result<Vec<LiftRecord>, StoreError> {
+        let rows = sqlx::query("SELECT * FROM gateways WHERE domain = $1 ORDER BY id")
+            .bind(domain)
+            .fetch_all(&self.pool)
+            .await?;
+        Ok(rows
+            .iter()
+            .map(Store::lift_from)
+            .collect::<Result<_, _>>()?)
+    }
+
+    /// One lift, if `domain` owns it.
+    pub async fn lift(&self, domain: &str, id: &str) -> Result<Option<LiftRecord>, StoreError> {
+        let row = sqlx::query("SELECT * FROM gateways WHERE id = $1 AND domain = $2")
+            .bind(id)
+            .bind(domain)
+            .fetch_optional(&self.pool)
+            .await?;
+        Ok(row.as_ref().map(Store::lift_from).transpose()?)
+    }
+}
