@@ -146,11 +146,11 @@ impl Nats {
 
     /// A client of server `url`, connected as the portals connect (`[cluster] nats_ca`).
     async fn client(&self, url: &str) -> anyhow::Result<async_nats::Client> {
-        let section = cloud::config::ClusterSection {
+        let section = cloud_cluster::ClusterSection {
             nats_ca: self.ca.clone(),
             ..Default::default()
         };
-        let access = cloud::cluster::nats::NatsAccess::from_config(&section, url)?;
+        let access = cloud_cluster::nats::NatsAccess::from_config(&section, url)?;
         let options = access.options();
         Ok(options.connect(access.servers()).await?)
     }

@@ -901,7 +901,7 @@ fn documented_nkey_user(public: &str) -> String {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn nats_with_an_nkey_user() {
     let dir = testkit::scratch();
-    let (public, seed) = cloud::cluster::nats::new_user_nkey().expect("an NKey");
+    let (public, seed) = cloud_cluster::nats::new_user_nkey().expect("an NKey");
     let conf = documented_nkey_user(&public);
     let Some((mut cluster, seed_file, monitor)) =
         cluster_on_secured_nats(dir.path(), &conf, ("portal.nk", &seed, "nats_nkey")).await
@@ -927,7 +927,7 @@ async fn nats_with_an_nkey_user() {
         );
     }
     // The key rotated: NATS's configuration names the new user, the file holds its seed.
-    let (second, rotated_seed) = cloud::cluster::nats::new_user_nkey().expect("an NKey");
+    let (second, rotated_seed) = cloud_cluster::nats::new_user_nkey().expect("an NKey");
     std::fs::write(dir.path().join("nats.conf"), documented_nkey_user(&second)).expect("written");
     rotated(
         &mut cluster,
@@ -936,7 +936,7 @@ async fn nats_with_an_nkey_user() {
         [&public, &second],
     )
     .await;
-    let (_, stranger) = cloud::cluster::nats::new_user_nkey().expect("an NKey");
+    let (_, stranger) = cloud_cluster::nats::new_user_nkey().expect("an NKey");
     refused_after_restart(
         &mut cluster,
         |_| std::fs::write(&seed_file, &stranger).expect("written"),
@@ -954,7 +954,7 @@ async fn nats_with_an_nkey_user() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_nats_user_without_a_permission_is_degraded_until_granted() {
     let dir = testkit::scratch();
-    let (public, seed) = cloud::cluster::nats::new_user_nkey().expect("an NKey");
+    let (public, seed) = cloud_cluster::nats::new_user_nkey().expect("an NKey");
     let documented = documented_nkey_user(&public);
     let conf = documented.replace(
         r#"subscribe: ["canlift.lift.>", "_INBOX.>"]"#,

@@ -10,7 +10,6 @@
 pub mod alarms;
 pub mod api;
 pub mod client;
-pub mod cluster;
 pub mod config;
 pub mod devpki;
 pub mod elevation;

@@ -22,7 +22,10 @@ use crate::alarms::rules::Rules;
 use crate::alarms::{service, webhook, Alarms};
 use crate::api::{self, App};
 use crate::config::Config;
+use crate::gateways::local::LocalLifts;
 use crate::gateways::{self, telemetry, Registry, Shared};
+use cloud_cluster::nats::{NatsAccess, NatsConfigError};
+use cloud_cluster::Cluster;
 use cloud_store::Store;
 
 /// Why the portal cannot start.
@@ -123,6 +126,9 @@ pub struct Portal {
     tls: tls::stream::Acceptor,
     router: Router,
     registry: Arc<Registry>,
+    /// This process's lifts as the other processes of a cluster reach them: the cluster holds
+    /// them weakly (they hold the cluster), the portal for as long as it runs.
+    local: Arc<LocalLifts>,
     /// Background work (retention, events, alarms, webhooks), ended with the portal.
     tasks: Vec<tokio::task::JoinHandle<()>>,
     /// The batch writers (telemetry, the gateways' records): when the portal stops they write
@@ -257,8 +263,8 @@ impl Portal {
         let store = Store::open_pooled(&config.database_url(), config.database.connections).await?;
         let (tickets, follow_tickets) = ticket_keys(config, &store).await?;
         let tls = server_tls(config, tickets)?;
-        let registry = Arc::new(Registry::default());
         let mut tasks: Vec<_> = follow_tickets.into_iter().collect();
+        let mut cluster = None;
         if let Some(url) = &config.cluster.nats {
             // Told at start: past PostgreSQL's limit the pools fail under load, not now.
             let wanted = i64::from(config.database.connections) + 2;
@@ -272,16 +278,22 @@ impl Portal {
                     );
                 }
             }
-            join_cluster(config, url, &registry, &mut tasks).await?;
+            cluster = Some(join_cluster(config, url).await?);
         }
+        let registry = Arc::new(Registry::new(cluster.as_ref().map(|(c, _)| c.clone())));
         let dashboard = Arc::new(config.dashboard.dashboard().map_err(ServerError::Other)?);
         let subscriptions = Arc::new(gateways::subscriptions::Subscriptions::new(
             registry.clone(),
             store.clone(),
             &dashboard,
         ));
-        if let Some(cluster) = registry.cluster() {
-            cluster.serve_subscriptions(&subscriptions);
+        // What the other processes reach here; the cluster holds it weakly, the portal keeps it.
+        let local = Arc::new(LocalLifts::new(registry.clone(), subscriptions.clone()));
+        if let Some((cluster, events)) = cluster {
+            let weak: std::sync::Weak<dyn cloud_cluster::Local> = Arc::downgrade(&local) as _;
+            cluster.serve(weak);
+            tasks.push(tokio::spawn(cluster.clone().run()));
+            tasks.push(tokio::spawn(cluster.publish_events(events)));
         }
         let (telemetry, telemetry_rx) =
             telemetry::Queue::new(config.database.telemetry_queue, Arc::default());
@@ -392,6 +404,7 @@ impl Portal {
             tls: tls::stream::Acceptor::new(tls),
             router,
             registry,
+            local,
             tasks,
             writers,
             stop_writers,
@@ -419,6 +432,7 @@ impl Portal {
             tls,
             router,
             registry,
+            local,
             tasks,
             writers,
             stop_writers,
@@ -515,6 +529,8 @@ impl Portal {
         for task in tasks {
             task.abort();
         }
+        // Nothing is relayed here any more.
+        drop(local);
         tracing::info!("portal stopped");
     }
 }
@@ -553,14 +569,13 @@ fn accept_retry(last: Option<Duration>) -> Duration {
 /// queued to be written.
 const STOP_WITHIN: std::time::Duration = std::time::Duration::from_secs(5);
 
-/// Join the cluster of `[cluster] nats`: one PostgreSQL database for all processes, the
-/// registry following the holder entries, live events published.
+/// Join the cluster of `[cluster] nats`: one PostgreSQL database for all processes. Returns
+/// the cluster and the queue of live events to publish; it runs once it has this process's
+/// lifts to serve.
 async fn join_cluster(
     config: &Config,
     url: &str,
-    registry: &Arc<Registry>,
-    tasks: &mut Vec<tokio::task::JoinHandle<()>>,
-) -> Result<(), ServerError> {
+) -> Result<(Arc<Cluster>, mpsc::Receiver<(String, Vec<u8>)>), ServerError> {
     let database = config.database_url();
     if !(database.starts_with("postgres://") || database.starts_with("postgresql://")) {
         return Err(ServerError::Other(format!(
@@ -570,28 +585,23 @@ async fn join_cluster(
     let ttl = std::time::Duration::from_secs(config.cluster.holder_ttl_s);
     // The holder's own request timeout answers first; this one covers a holder that died.
     let timeout = config.gateways.settings().request_timeout + std::time::Duration::from_secs(1);
-    let failed = |e: crate::cluster::nats::NatsConfigError| ServerError::Other(e.to_string());
-    let access =
-        crate::cluster::nats::NatsAccess::from_config(&config.cluster, url).map_err(failed)?;
+    let failed = |e: NatsConfigError| ServerError::Other(e.to_string());
+    let access = NatsAccess::from_config(&config.cluster, url).map_err(failed)?;
     let replicas = config.cluster.nats_replicas;
     if !(1..=5).contains(&replicas) {
         return Err(ServerError::Other(format!(
             "[cluster] nats_replicas = {replicas}: NATS keeps 1 to 5 copies of a bucket"
         )));
     }
-    let (cluster, events) =
-        crate::cluster::Cluster::connect(&access, config.node_name(), ttl, timeout, replicas)
-            .await
-            .map_err(failed)?;
+    let (cluster, events) = Cluster::connect(&access, config.node_name(), ttl, timeout, replicas)
+        .await
+        .map_err(failed)?;
     tracing::info!(
         node = cluster.node(),
         nats = access.shown(),
         "portal process of a cluster"
     );
-    registry.join(cluster.clone());
-    tasks.push(tokio::spawn(cluster.clone().run(Arc::downgrade(registry))));
-    tasks.push(tokio::spawn(cluster.publish_events(events)));
-    Ok(())
+    Ok((cluster, events))
 }
 
 /// `/healthz`: `ok`, or in a cluster without NATS, or with a NATS that refuses part of its

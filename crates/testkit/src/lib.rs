@@ -11,7 +11,7 @@ pub mod balancer;
 pub mod constants;
 #[cfg(feature = "lift")]
 pub mod lift;
-#[cfg(feature = "portal")]
+#[cfg(feature = "nats")]
 pub mod nats;
 #[cfg(feature = "net")]
 pub mod net;

@@ -171,7 +171,7 @@ pub fn monitoring(monitor: u16, path: &str) -> String {
 
 /// NATS's decentralized authentication for tests: keys, JWTs signed as `nsc` signs them, and
 /// the server configuration and credentials files that go with them (an NKey alone:
-/// `cloud::cluster::nats::new_user_nkey`).
+/// `cloud_cluster::nats::new_user_nkey`).
 #[cfg(feature = "nats-auth")]
 pub mod auth {
     use base64::engine::general_purpose::URL_SAFE_NO_PAD;

@@ -237,7 +237,7 @@ pub async fn run(args: CloudArgs) -> anyhow::Result<()> {
 fn nats_nkey(file: &std::path::Path) -> anyhow::Result<()> {
     use std::io::Write;
     use std::os::unix::fs::OpenOptionsExt;
-    let (public, seed) = cloud::cluster::nats::new_user_nkey()?;
+    let (public, seed) = cloud_cluster::nats::new_user_nkey()?;
     // Created for its owner alone, never over an existing seed (which a NATS server may list).
     let mut out = std::fs::OpenOptions::new()
         .write(true)

@@ -7,6 +7,7 @@
 pub mod admissions;
 pub mod connection;
 mod dashboard;
+pub mod local;
 mod mailbox;
 pub mod records;
 pub mod subscriptions;
@@ -14,7 +15,7 @@ pub mod telemetry;
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, OnceLock, PoisonError};
+use std::sync::{Arc, Mutex, PoisonError};
 
 use nxg::mplex::Mplex;
 use nxg::msg::{self, Call, Method, Notification};
@@ -22,9 +23,9 @@ use nxg::portal::{Failure, Settings};
 use serde_json::value::RawValue;
 use tokio::sync::{broadcast, mpsc, oneshot};
 
-use crate::cluster::msgs::Holding;
-use crate::cluster::Cluster;
 use crate::config::Dashboard;
+use cloud_cluster::msgs::HolderEntry;
+use cloud_cluster::Cluster;
 use cloud_store::Store;
 use cloud_types::live::LiftEvent;
 
@@ -118,23 +119,27 @@ pub struct Registry {
     events: Mutex<HashMap<String, broadcast::Sender<LiftEvent>>>,
     /// The newest connection epoch given out (µs since the Unix epoch, strictly rising).
     serial: AtomicU64,
-    cluster: OnceLock<Arc<Cluster>>,
+    cluster: Option<Arc<Cluster>>,
 }
 
 impl Registry {
-    /// Serve as one process of `cluster`: lifts held elsewhere become reachable through it.
-    pub fn join(&self, cluster: Arc<Cluster>) {
-        let _ = self.cluster.set(cluster);
+    /// The registry of a process of `cluster` (lifts held elsewhere are reachable through it),
+    /// or of a portal of its own.
+    pub fn new(cluster: Option<Arc<Cluster>>) -> Registry {
+        Registry {
+            cluster,
+            ..Registry::default()
+        }
     }
 
     /// The cluster this process is one of, if any.
     pub fn cluster(&self) -> Option<&Arc<Cluster>> {
-        self.cluster.get()
+        self.cluster.as_ref()
     }
 
     /// The holder entry of a lift another process of the cluster holds.
-    fn elsewhere(&self, lift: &str) -> Option<Holding> {
-        self.cluster.get()?.holding(lift)
+    fn elsewhere(&self, lift: &str) -> Option<HolderEntry> {
+        self.cluster.as_ref()?.holder(lift)
     }
 
     /// `f` of the lift's connection to this process, if it has one.
@@ -211,7 +216,7 @@ impl Registry {
             Ok(LIFT_STATE) => status.lift_state = value,
             _ => return,
         }
-        if let Some(cluster) = self.cluster.get() {
+        if let Some(cluster) = self.cluster.as_ref() {
             cluster.status(lift, status.error_register, status.lift_state);
         }
     }
@@ -225,7 +230,7 @@ impl Registry {
             let tx = events
                 .entry(lift.to_owned())
                 .or_insert_with(|| broadcast::channel(1024).0);
-            let forwarding = self.cluster.get().and_then(|c| c.forward(lift, tx));
+            let forwarding = self.cluster.as_ref().and_then(|c| c.forward(lift, tx));
             (tx.subscribe(), forwarding)
         };
         if let Some(subscribed) = forwarding {
@@ -238,7 +243,7 @@ impl Registry {
     /// (its 1024 slots are allocated up front: one per idle gateway would cost more than the
     /// connection itself).
     pub(crate) fn publish(&self, lift: &str, event: LiftEvent) {
-        if let Some(cluster) = self.cluster.get() {
+        if let Some(cluster) = self.cluster.as_ref() {
             cluster.publish(lift, &event);
         }
         let mut events = self.events.lock().unwrap_or_else(PoisonError::into_inner);
@@ -267,14 +272,14 @@ impl Registry {
         params: Option<Box<RawValue>>,
     ) -> Result<String, Failure> {
         let here = self.here(lift, |_| ()).is_some();
-        match self.cluster.get() {
+        match self.cluster.as_ref() {
             Some(cluster) if !here => {
-                let call = crate::cluster::msgs::RelayedCall {
+                let call = cloud_cluster::msgs::RelayedCall {
                     method: method.name().into(),
                     params,
                 };
                 cluster
-                    .request(lift, &crate::cluster::msgs::Relayed::Call(call))
+                    .request(lift, &cloud_cluster::msgs::Relayed::Call(call))
                     .await
             }
             _ => self.send_local(lift, method, params).await,
@@ -319,15 +324,15 @@ impl Registry {
 
     /// A connection is in service for `lift`: it replaces an earlier one (here, or in a
     /// cluster on any process). Returns the serial that [`Registry::unregister`] needs.
-    fn register(self: &Arc<Self>, lift: &str, connect: &nxg::msg::Connect, calls: Calls) -> u64 {
+    fn register(&self, lift: &str, connect: &nxg::msg::Connect, calls: Calls) -> u64 {
         let serial = self.next_epoch();
-        if let Some(cluster) = self.cluster.get() {
-            let holding = cluster.entry(
+        if let Some(cluster) = self.cluster.as_ref() {
+            let entry = cluster.entry(
                 serial,
                 connect.domaintoken.clone(),
                 connect.identity.sernum.clone(),
             );
-            cluster.hold(self.clone(), lift, holding);
+            cluster.hold(lift, entry);
         }
         let old = self
             .live
@@ -355,7 +360,7 @@ impl Registry {
         let mut live = self.live.lock().unwrap_or_else(PoisonError::into_inner);
         if live.get(lift).is_some_and(|l| l.serial == serial) {
             live.remove(lift);
-            if let Some(cluster) = self.cluster.get() {
+            if let Some(cluster) = self.cluster.as_ref() {
                 cluster.release(lift, serial);
             }
             return true;
@@ -363,17 +368,17 @@ impl Registry {
         false
     }
 
-    /// Another process of the cluster admitted a connection of `lift` (`holding`): the one
+    /// Another process of the cluster admitted a connection of `lift` (`newer`): the one
     /// here, if older, is closed without the lift going offline. Whether one was.
-    pub(crate) fn taken_over(&self, lift: &str, holding: &Holding) -> bool {
+    pub(crate) fn taken_over(&self, lift: &str, newer: &HolderEntry) -> bool {
         let mut live = self.live.lock().unwrap_or_else(PoisonError::into_inner);
-        let older = live.get(lift).is_some_and(|l| l.serial < holding.epoch);
+        let older = live.get(lift).is_some_and(|l| l.serial < newer.epoch);
         if !older {
             return false;
         }
         if let Some(old) = live.remove(lift) {
-            tracing::info!(lift, node = %holding.node, "the lift connected to another portal process: closing it here");
-            if let Some(cluster) = self.cluster.get() {
+            tracing::info!(lift, node = %newer.node, "the lift connected to another portal process: closing it here");
+            if let Some(cluster) = self.cluster.as_ref() {
                 cluster.release(lift, old.serial);
             }
             old.calls.close();

@@ -27,9 +27,9 @@ use nxg::msg::{RegParams, UnregParams};
 use nxg::portal::Failure;
 
 use super::Registry;
-use crate::cluster::msgs::{Relayed, RelayedHold, RelayedRelease};
-use crate::cluster::Cluster;
 use crate::config::Dashboard;
+use cloud_cluster::msgs::{Relayed, RelayedHold, RelayedRelease};
+use cloud_cluster::Cluster;
 use cloud_store::Store;
 
 /// The objects every lift holds for the dashboard, with their terms.

@@ -2,13 +2,16 @@
 //! PostgreSQL database and one NATS server. Which process holds which lift's gateway is a
 //! JetStream KV entry per lift, written by its holder when it admits the connection and
 //! standing while the holder's one lease in the same bucket is renewed; every process watches
-//! the bucket (its view: `fleet::Fleet`). An operator request for a lift held elsewhere travels
+//! the bucket (its view: `holders::Holders`). An operator request for a lift held elsewhere travels
 //! as NATS request/reply on the lift's own subject, which only its holder subscribes to; live events
 //! go out on the lift's events subject to whoever watches it on any process. Without NATS a
 //! process goes on serving the gateways it holds, answers 503 for the others, and writes its
 //! entries again when NATS is back.
 
-mod fleet;
+#![warn(missing_docs)]
+
+pub mod config;
+mod holders;
 pub mod msgs;
 pub mod nats;
 
@@ -25,11 +28,14 @@ use tokio::sync::{broadcast, mpsc, oneshot, watch, Notify};
 
 use cloud_types::live::LiftEvent;
 use cloud_types::subscriptions::Terms;
+use futures_util::future::BoxFuture;
+use nxg::mplex::Mplex;
+use serde_json::value::RawValue;
 
-use crate::gateways::subscriptions::Subscriptions;
-use crate::gateways::Registry;
-use fleet::Fleet;
-use msgs::{Alive, Holding, Key, Relayed, RelayedAnswer, RelayedWatch};
+use cloud_types::subscriptions::Subscriber;
+pub use config::ClusterSection;
+use holders::Holders;
+use msgs::{Alive, HolderEntry, Key, Relayed, RelayedAnswer, RelayedWatch};
 use nats::{NatsAccess, NatsConfigError};
 
 /// The result of a relayed hold or release the holder made (a JSON `null` would read back as
@@ -46,6 +52,52 @@ const EVENT_QUEUE: usize = 65_536;
 /// How long a watching process waits for the holder to take its watch before it listens
 /// anyway (no holder, or no NATS, answers at once).
 const WATCH_ASK: Duration = Duration::from_secs(2);
+
+/// What this process serves itself, as the cluster reaches it: the gateways connected here
+/// and the subscriptions held on them (the portal's registry). Requests other processes relay
+/// for lifts held here arrive through it, and it is told when a lift moves.
+pub trait Local: Send + Sync {
+    /// Another process admitted a connection of `lift` (`newer`): the one here, if older, is
+    /// closed without the lift going offline. Whether one was.
+    fn taken_over(&self, lift: &str, newer: &HolderEntry) -> bool;
+
+    /// Send a request to the gateway of `lift` connected here, and wait for its answer (the
+    /// raw JSON of its `result`).
+    fn call<'a>(
+        &'a self,
+        lift: &'a str,
+        method: Method,
+        params: Option<Box<RawValue>>,
+    ) -> BoxFuture<'a, Result<String, Failure>>;
+
+    /// `subscriber` (of any process) asks for `objects` of `lift`, connected here, with `terms`.
+    fn subscribe<'a>(
+        &'a self,
+        lift: &'a str,
+        subscriber: &'a Subscriber,
+        objects: &'a [Mplex],
+        terms: Terms,
+    ) -> BoxFuture<'a, Result<(), Failure>>;
+
+    /// `subscriber` lets go of `objects` of `lift` (all of its own when `None`).
+    fn unsubscribe<'a>(
+        &'a self,
+        lift: &'a str,
+        subscriber: &'a Subscriber,
+        objects: Option<&'a [Mplex]>,
+    ) -> BoxFuture<'a, Result<(), Failure>>;
+
+    /// The watchers of `process` let go of what they held of `lift` (their process's watch
+    /// lapsed: it died, or lost NATS for too long).
+    fn unsubscribe_process<'a>(&'a self, lift: &'a str, process: u64) -> BoxFuture<'a, ()>;
+
+    /// Another process holds `lift` now, or its holder may have lost what this process's
+    /// watchers asked for: hand their terms to it (in the background).
+    fn moved(&self, lift: &str);
+
+    /// This process's part of its watchers' ids ([`Subscriber::Watcher`]).
+    fn process(&self) -> u64;
+}
 
 /// What `/metrics` shows of the cluster.
 #[derive(Debug, Default)]
@@ -104,9 +156,9 @@ pub struct Cluster {
     /// Copies of the bucket in a NATS cluster (`[cluster] nats_replicas`).
     replicas: usize,
     /// The other processes and the lifts they hold.
-    fleet: Mutex<Fleet>,
+    holders: Mutex<Holders>,
     /// The lifts held here: dropping a sender ends its holder task.
-    held: Mutex<HashMap<String, watch::Sender<Holding>>>,
+    held: Mutex<HashMap<String, watch::Sender<HolderEntry>>>,
     /// The event forwarders running, by lift.
     forwarded: Mutex<HashMap<String, broadcast::Sender<LiftEvent>>>,
     /// Lifts held here that other processes watch: each watching process (its part of its
@@ -119,7 +171,7 @@ pub struct Cluster {
     generation: watch::Sender<u64>,
     events: mpsc::Sender<(String, Vec<u8>)>,
     /// Who holds which subscriptions here: told when a lift moves, asked by other processes.
-    subscriptions: std::sync::OnceLock<Weak<Subscriptions>>,
+    local: std::sync::OnceLock<Weak<dyn Local>>,
     /// What went wrong with NATS since the client last connected.
     troubles: Arc<Mutex<Troubles>>,
     /// Counted for `/metrics`.
@@ -174,7 +226,7 @@ impl Cluster {
         let (events, events_rx) = mpsc::channel(EVENT_QUEUE);
         let ttl = ttl.max(Duration::from_secs(3));
         let cluster = Arc::new(Cluster {
-            fleet: Mutex::new(Fleet::new(&node, ttl, Instant::now())),
+            holders: Mutex::new(Holders::new(&node, ttl, Instant::now())),
             node,
             incarnation: rand::random(),
             client,
@@ -188,7 +240,7 @@ impl Cluster {
             nats_changed,
             generation: watch::channel(0).0,
             events,
-            subscriptions: std::sync::OnceLock::new(),
+            local: std::sync::OnceLock::new(),
             troubles,
             counters,
         });
@@ -224,18 +276,18 @@ impl Cluster {
 
     /// How many lifts other processes hold, as far as this one knows.
     pub fn known_count(&self) -> usize {
-        lock(&self.fleet).held_elsewhere(Instant::now())
+        lock(&self.holders).held_elsewhere(Instant::now())
     }
 
     /// How many processes of the cluster live, this one included (as far as it knows).
     pub fn processes(&self) -> usize {
-        1 + lock(&self.fleet).others_alive(Instant::now())
+        1 + lock(&self.holders).others_alive(Instant::now())
     }
 
     /// The holder entry of a lift another process holds (`None`: not held elsewhere, or its
     /// holder's lease lapsed: the holder died).
-    pub fn holding(&self, lift: &str) -> Option<Holding> {
-        lock(&self.fleet).holding(lift, Instant::now()).cloned()
+    pub fn holder(&self, lift: &str) -> Option<HolderEntry> {
+        lock(&self.holders).holder(lift, Instant::now()).cloned()
     }
 
     fn kv(&self) -> Option<kv::Store> {
@@ -246,14 +298,15 @@ impl Cluster {
     }
 
     /// Wait until NATS's connection state may have changed (at most half a second).
-    /// The subscriptions of this process: the holder keeps other processes' watchers' terms
-    /// in them, and each process hands its watchers' terms to a lift's new holder.
-    pub fn serve_subscriptions(&self, subscriptions: &Arc<Subscriptions>) {
-        let _ = self.subscriptions.set(Arc::downgrade(subscriptions));
+    /// Serve `local`: the gateways connected to this process and the subscriptions held on
+    /// them, which requests relayed by other processes reach and which are told when a lift
+    /// moves. Given once, before [`Cluster::run`]; held weakly (it holds the cluster).
+    pub fn serve(&self, local: Weak<dyn Local>) {
+        let _ = self.local.set(local);
     }
 
-    fn subscriptions(&self) -> Option<Arc<Subscriptions>> {
-        self.subscriptions.get().and_then(Weak::upgrade)
+    fn local(&self) -> Option<Arc<dyn Local>> {
+        self.local.get().and_then(Weak::upgrade)
     }
 
     /// How long a holder publishes a lift's live events, and keeps the subscriptions of the
@@ -277,7 +330,7 @@ impl Cluster {
     /// Keep the bucket and this process's view of it: create the bucket whenever NATS is
     /// (again) reachable, renew this process's lease, then follow every entry until the
     /// connection is lost.
-    pub async fn run(self: Arc<Self>, registry: Weak<Registry>) {
+    pub async fn run(self: Arc<Self>) {
         tokio::spawn(self.clone().every_renewal());
         tokio::spawn(self.clone().subscribe_again_when_refused());
         let js = jetstream::new(self.client.clone());
@@ -363,7 +416,7 @@ impl Cluster {
             if std::mem::take(&mut reconnected) {
                 self.generation.send_modify(|g| *g += 1);
             }
-            lock(&self.fleet).rewatch(Instant::now());
+            lock(&self.holders).rewatch(Instant::now());
             let mut catching_up = true;
             // Every key's last entry first (`watch_all` would deliver only what is written
             // from now on), then each change.
@@ -375,9 +428,9 @@ impl Cluster {
                                 // The first entry past the bucket's contents when the watch
                                 // began (there is one: this process's lease).
                                 let current = entry.seen_current;
-                                self.learn(entry, &registry);
+                                self.learn(entry);
                                 if current && std::mem::take(&mut catching_up) {
-                                    lock(&self.fleet).caught_up();
+                                    lock(&self.holders).caught_up();
                                 }
                             }
                             Some(Err(e)) => {
@@ -475,10 +528,10 @@ impl Cluster {
     }
 
     /// Delete the entries left of processes that died, when this process is the one that
-    /// sweeps ([`Fleet::sweep`]), each at the revision it saw (a lift that connected again
+    /// sweeps ([`Holders::sweep`]), each at the revision it saw (a lift that connected again
     /// meanwhile keeps its new entry).
     fn sweep(self: &Arc<Self>, kv: &kv::Store) {
-        let dead = lock(&self.fleet).sweep(Instant::now());
+        let dead = lock(&self.holders).sweep(Instant::now());
         if dead.is_empty() {
             return;
         }
@@ -497,19 +550,19 @@ impl Cluster {
         });
     }
 
-    /// An entry changed. Another process's lease: noted. Another process's holding of a lift:
+    /// An entry changed. Another process's lease: noted. Another process's entry of a lift:
     /// remembered; if it is of a newer connection than one held here, that one is closed (the
     /// gateway moved), if of an older one, the holder here writes its entry again. This
     /// process's own entry that is not of a connection it holds (left from before NATS was
     /// lost, or from an earlier life): deleted.
-    fn learn(self: &Arc<Self>, entry: kv::Entry, registry: &Weak<Registry>) {
+    fn learn(self: &Arc<Self>, entry: kv::Entry) {
         let lift = match Key::decode(&entry.key) {
             Some(Key::Lift(lift)) => lift,
             Some(Key::Process(node)) => {
                 if entry.operation == kv::Operation::Put {
                     if let Ok(alive) = serde_json::from_slice::<Alive>(&entry.value) {
                         let written = self.written(&entry);
-                        lock(&self.fleet).lease(&node, alive.incarnation, written);
+                        lock(&self.holders).lease(&node, alive.incarnation, written);
                     }
                 }
                 return;
@@ -517,44 +570,43 @@ impl Cluster {
             None => return,
         };
         if entry.operation != kv::Operation::Put {
-            lock(&self.fleet).remove(&lift);
+            lock(&self.holders).remove(&lift);
             // Deleted while held here (by a sweep that took this process for dead): again.
             self.rewrite(&lift);
             return;
         }
-        let Ok(holding) = serde_json::from_slice::<Holding>(&entry.value) else {
+        let Ok(held) = serde_json::from_slice::<HolderEntry>(&entry.value) else {
             tracing::warn!(%lift, "NATS: a holder entry that is not one");
             return;
         };
-        if holding.node == self.node {
-            lock(&self.fleet).remove(&lift);
+        if held.node == self.node {
+            lock(&self.holders).remove(&lift);
             let ours = lock(&self.held).get(&lift).map(|h| h.borrow().epoch);
             match ours {
-                Some(epoch)
-                    if epoch == holding.epoch && holding.incarnation == self.incarnation => {}
+                Some(epoch) if epoch == held.epoch && held.incarnation == self.incarnation => {}
                 Some(_) => self.rewrite(&lift),
                 None => self.delete_stale(&entry),
             }
             return;
         }
-        if let Some(registry) = registry.upgrade() {
-            if registry.taken_over(&lift, &holding) {
+        if let Some(local) = self.local() {
+            if local.taken_over(&lift, &held) {
                 self.counters.replaced.fetch_add(1, Ordering::Relaxed);
             } else {
                 // An older connection's late entry over the one of a lift held here.
                 self.rewrite(&lift);
             }
         }
-        let connection = (holding.node.clone(), holding.epoch);
-        let before = lock(&self.fleet).put(&lift, holding, entry.revision);
+        let connection = (held.node.clone(), held.epoch);
+        let before = lock(&self.holders).put(&lift, held, entry.revision);
         // A new connection (not a status change): the watchers here ask its holder for their
         // live events and their objects — the objects when the holder answers that the watch
         // is new to it, which a new holder always does (one hand-over per move, not two).
         if before.is_none_or(|b| (b.node, b.epoch) != connection) {
             if lock(&self.forwarded).contains_key(&lift) {
                 tokio::spawn(self.clone().ask_to_publish(lift));
-            } else if let Some(subscriptions) = self.subscriptions() {
-                subscriptions.moved(&lift);
+            } else if let Some(local) = self.local() {
+                local.moved(&lift);
             }
         }
     }
@@ -573,8 +625,8 @@ impl Cluster {
 
     /// The holder of `lift` here, if any, writes its entry again (over what it finds).
     fn rewrite(&self, lift: &str) {
-        if let Some(holding) = lock(&self.held).get(lift) {
-            holding.send_modify(|_| {});
+        if let Some(held) = lock(&self.held).get(lift) {
+            held.send_modify(|_| {});
         }
     }
 
@@ -591,8 +643,8 @@ impl Cluster {
 
     /// The entry of a connection admitted here at `epoch`, of a lift of account `domain`
     /// whose gateway has serial number `sernum`.
-    pub(crate) fn entry(&self, epoch: u64, domain: String, sernum: String) -> Holding {
-        Holding {
+    pub fn entry(&self, epoch: u64, domain: String, sernum: String) -> HolderEntry {
+        HolderEntry {
             node: self.node.clone(),
             incarnation: self.incarnation,
             epoch,
@@ -605,15 +657,15 @@ impl Cluster {
 
     /// A connection of `lift` was admitted here: claim the lift in the bucket and answer its
     /// relayed requests until [`Cluster::release`].
-    pub(crate) fn hold(self: &Arc<Self>, registry: Arc<Registry>, lift: &str, holding: Holding) {
-        let (tx, rx) = watch::channel(holding);
+    pub fn hold(self: &Arc<Self>, lift: &str, entry: HolderEntry) {
+        let (tx, rx) = watch::channel(entry);
         lock(&self.held).insert(lift.to_owned(), tx);
-        tokio::spawn(self.clone().holder(registry, lift.to_owned(), rx));
+        tokio::spawn(self.clone().serve_held(lift.to_owned(), rx));
     }
 
     /// The connection of `epoch` no longer serves `lift`: its holder task ends (and deletes
     /// the entry, unless another process wrote it since).
-    pub(crate) fn release(&self, lift: &str, epoch: u64) {
+    pub fn release(&self, lift: &str, epoch: u64) {
         let mut held = lock(&self.held);
         if held.get(lift).is_some_and(|h| h.borrow().epoch == epoch) {
             held.remove(lift);
@@ -622,9 +674,9 @@ impl Cluster {
     }
 
     /// The held lift's condition changed: other processes' fleet pages show it.
-    pub(crate) fn status(&self, lift: &str, error_register: Option<u8>, lift_state: Option<u8>) {
-        if let Some(holding) = lock(&self.held).get(lift) {
-            holding.send_if_modified(|h| {
+    pub fn status(&self, lift: &str, error_register: Option<u8>, lift_state: Option<u8>) {
+        if let Some(held) = lock(&self.held).get(lift) {
+            held.send_if_modified(|h| {
                 let changed = (h.error_register, h.lift_state) != (error_register, lift_state);
                 h.error_register = error_register;
                 h.lift_state = lift_state;
@@ -636,12 +688,7 @@ impl Cluster {
     /// A held lift's task: its entry written (again when its status changes, when NATS is
     /// back, when another write got over it, and after a write that failed), its requests
     /// answered.
-    async fn holder(
-        self: Arc<Self>,
-        registry: Arc<Registry>,
-        lift: String,
-        mut holding: watch::Receiver<Holding>,
-    ) {
+    async fn serve_held(self: Arc<Self>, lift: String, mut held: watch::Receiver<HolderEntry>) {
         let key = Key::Lift(lift.clone()).encode();
         let mut generation = self.generation.subscribe();
         let mut rpc = match self.client.subscribe(msgs::rpc_subject(&lift)).await {
@@ -651,7 +698,7 @@ impl Cluster {
                 None
             }
         };
-        let current = holding.borrow_and_update().clone();
+        let current = held.borrow_and_update().clone();
         let mut written = self.write(&key, &current, None).await;
         loop {
             // A write that failed on a live connection is tried again (after NATS was lost,
@@ -659,21 +706,23 @@ impl Cluster {
             let retry = matches!(written, Written::Not) && self.connected();
             let pause = Duration::from_millis(1_000 + rand::random::<u64>() % 1_000);
             let write_from = tokio::select! {
-                changed = holding.changed() => match changed {
+                changed = held.changed() => match changed {
                     Ok(()) => written,
                     Err(_) => break,
                 },
                 _ = tokio::time::sleep(pause), if retry => Written::Not,
                 _ = generation.changed() => Written::Not,
                 Some(message) = next_message(&mut rpc) => {
-                    tokio::spawn(answer(self.clone(), registry.clone(), lift.clone(), message));
+                    tokio::spawn(answer(self.clone(), lift.clone(), message));
                     continue;
                 }
             };
-            let current = holding.borrow_and_update().clone();
+            let current = held.borrow_and_update().clone();
             written = self.write(&key, &current, write_from.revision()).await;
             if let Written::Superseded(newer) = &written {
-                registry.taken_over(&lift, newer);
+                if let Some(local) = self.local() {
+                    local.taken_over(&lift, newer);
+                }
                 break;
             }
         }
@@ -688,11 +737,11 @@ impl Cluster {
 
     /// Write the entry: over `revision` when given (so that another process's newer entry
     /// is never overwritten), else unconditionally.
-    async fn write(&self, key: &str, holding: &Holding, revision: Option<u64>) -> Written {
+    async fn write(&self, key: &str, held: &HolderEntry, revision: Option<u64>) -> Written {
         let Some(kv) = self.kv() else {
             return Written::Not;
         };
-        let Ok(value) = serde_json::to_vec(holding) else {
+        let Ok(value) = serde_json::to_vec(held) else {
             return Written::Not;
         };
         let value = bytes::Bytes::from(value);
@@ -710,11 +759,11 @@ impl Cluster {
             Err(e) if e.kind() == kv::UpdateErrorKind::WrongLastRevision => {
                 let other = kv.entry(key).await.ok().flatten().and_then(|entry| {
                     (entry.operation == kv::Operation::Put)
-                        .then(|| serde_json::from_slice::<Holding>(&entry.value).ok())
+                        .then(|| serde_json::from_slice::<HolderEntry>(&entry.value).ok())
                         .flatten()
                 });
                 match other {
-                    Some(other) if other.newer_than(holding) => Written::Superseded(other),
+                    Some(other) if other.newer_than(held) => Written::Superseded(other),
                     // An older connection's late write, or the entry expired: ours stands.
                     _ => match kv.put(key, value).await {
                         Ok(revision) => Written::At(revision),
@@ -729,9 +778,9 @@ impl Cluster {
         }
     }
 
-    /// Send a request to the process holding `lift`, and wait for its answer: no holder (or
+    /// Send a request to the process held `lift`, and wait for its answer: no holder (or
     /// no NATS) is [`Failure::Gone`] (503), no answer in time [`Failure::Timeout`].
-    pub(crate) async fn request(&self, lift: &str, relayed: &Relayed) -> Result<String, Failure> {
+    pub async fn request(&self, lift: &str, relayed: &Relayed) -> Result<String, Failure> {
         self.counters.relayed.fetch_add(1, Ordering::Relaxed);
         let outcome = self.relay(lift, relayed).await;
         if matches!(outcome, Err(Failure::Gone | Failure::Timeout)) {
@@ -763,7 +812,7 @@ impl Cluster {
 
     /// Hand a held lift's live event to the other processes that watch it (dropped and
     /// counted when NATS lags far behind); an event nobody elsewhere watches is not published.
-    pub(crate) fn publish(&self, lift: &str, event: &LiftEvent) {
+    pub fn publish(&self, lift: &str, event: &LiftEvent) {
         if !self.watched_elsewhere(lift) {
             self.counters
                 .events_unwatched
@@ -796,13 +845,13 @@ impl Cluster {
         self.counters
             .watch_lapsed
             .fetch_add(lapsed.len() as u64, Ordering::Relaxed);
-        let Some(subscriptions) = self.subscriptions() else {
+        let Some(local) = self.local() else {
             return;
         };
         tokio::spawn(async move {
             for process in lapsed {
                 tracing::debug!(%lift, process = process >> 32, "a watching process's lease lapsed");
-                subscriptions.unsubscribe_process(&lift, process).await;
+                local.unsubscribe_process(&lift, process).await;
             }
         });
     }
@@ -814,15 +863,15 @@ impl Cluster {
         if lock(&self.held).contains_key(&lift) {
             return;
         }
-        let Some(subscriptions) = self.subscriptions() else {
+        let Some(local) = self.local() else {
             return;
         };
         let watch = Relayed::Watch(RelayedWatch {
-            process: subscriptions.process(),
+            process: local.process(),
         });
         match tokio::time::timeout(WATCH_ASK, self.relay(&lift, &watch)).await {
             // The holder has none of this process's watchers' subscriptions: hand them over.
-            Ok(Ok(answer)) if answer == NEW_LEASE => subscriptions.moved(&lift),
+            Ok(Ok(answer)) if answer == NEW_LEASE => local.moved(&lift),
             Ok(Err(e)) => tracing::debug!(%lift, error = ?e, "NATS: watch not taken"),
             _ => {}
         }
@@ -850,7 +899,7 @@ impl Cluster {
     /// Someone on this process watches `lift` (`tx` is its channel): pass on the events other
     /// processes publish for it, until nobody here watches. The receiver (`None`: already
     /// forwarding) tells when the NATS server has the subscription.
-    pub(crate) fn forward(
+    pub fn forward(
         self: &Arc<Self>,
         lift: &str,
         tx: &broadcast::Sender<LiftEvent>,
@@ -908,8 +957,8 @@ impl Cluster {
                     // with it the watchers' subscriptions there; holds relayed meanwhile failed.
                     Ok(()) = generation.changed() => {
                         if !lock(&self.held).contains_key(&lift) {
-                            if let Some(subscriptions) = self.subscriptions() {
-                                subscriptions.moved(&lift);
+                            if let Some(local) = self.local() {
+                                local.moved(&lift);
                             }
                         }
                         tokio::spawn(self.clone().ask_to_publish(lift.clone()));
@@ -982,7 +1031,7 @@ enum Written {
     /// Not written (no NATS, or the bucket is new): the next write is unconditional.
     Not,
     /// Another process holds a newer connection of the lift.
-    Superseded(Holding),
+    Superseded(HolderEntry),
 }
 
 impl Written {
@@ -1002,51 +1051,43 @@ async fn next_message(rpc: &mut Option<async_nats::Subscriber>) -> Option<async_
 }
 
 /// Answer one relayed request from the lift's connection here.
-async fn answer(
-    cluster: Arc<Cluster>,
-    registry: Arc<Registry>,
-    lift: String,
-    message: async_nats::Message,
-) {
+async fn answer(cluster: Arc<Cluster>, lift: String, message: async_nats::Message) {
     let Some(reply) = message.reply else {
         return;
     };
     cluster.counters.served.fetch_add(1, Ordering::Relaxed);
+    let Some(local) = cluster.local() else {
+        return;
+    };
     let outcome = match serde_json::from_slice::<Relayed>(&message.payload) {
         Ok(Relayed::Call(call)) => match Method::from_name(&call.method) {
-            Some(method) => registry.send_local(&lift, method, call.params).await,
+            Some(method) => local.call(&lift, method, call.params).await,
             None => Err(Failure::Invalid(format!("no method {:?}", call.method))),
         },
-        Ok(Relayed::Hold(hold)) => match cluster.subscriptions() {
-            Some(subscriptions) => {
-                let objects: Vec<_> = hold.mplex.iter().map(|m| m.mplex).collect();
-                let terms = Terms {
-                    inhibit: hold.inhibit,
-                    threshold: hold.threshold,
-                };
-                let held = subscriptions
-                    .subscribe_here(&lift, &hold.subscriber, &objects, terms)
-                    .await;
-                // A watcher's terms last as long as its process's watch of the lift.
-                if let (Ok(()), Some(process)) = (&held, hold.subscriber.process()) {
-                    let _ = cluster.watch_granted(&lift, process);
-                }
-                held.map(|()| DONE.to_owned())
+        Ok(Relayed::Hold(hold)) => {
+            let objects: Vec<_> = hold.mplex.iter().map(|m| m.mplex).collect();
+            let terms = Terms {
+                inhibit: hold.inhibit,
+                threshold: hold.threshold,
+            };
+            let held = local
+                .subscribe(&lift, &hold.subscriber, &objects, terms)
+                .await;
+            // A watcher's terms last as long as its process's watch of the lift.
+            if let (Ok(()), Some(process)) = (&held, hold.subscriber.process()) {
+                let _ = cluster.watch_granted(&lift, process);
             }
-            None => Err(Failure::Gone),
-        },
-        Ok(Relayed::Release(release)) => match cluster.subscriptions() {
-            Some(subscriptions) => {
-                let objects: Option<Vec<_>> = release
-                    .mplex
-                    .map(|list| list.iter().map(|m| m.mplex).collect());
-                subscriptions
-                    .unsubscribe_here(&lift, &release.subscriber, objects.as_deref())
-                    .await
-                    .map(|()| DONE.to_owned())
-            }
-            None => Err(Failure::Gone),
-        },
+            held.map(|()| DONE.to_owned())
+        }
+        Ok(Relayed::Release(release)) => {
+            let objects: Option<Vec<_>> = release
+                .mplex
+                .map(|list| list.iter().map(|m| m.mplex).collect());
+            local
+                .unsubscribe(&lift, &release.subscriber, objects.as_deref())
+                .await
+                .map(|()| DONE.to_owned())
+        }
         Ok(Relayed::Watch(watch)) => {
             let renewed = cluster.watch_granted(&lift, watch.process);
             Ok(if renewed { DONE } else { NEW_LEASE }.to_owned())

@@ -9,7 +9,7 @@ use serde_json::value::RawValue;
 
 use cloud_types::subscriptions::Subscriber;
 
-/// The KV bucket of holder entries (`lift.<token>`, a [`Holding`]) and of the processes'
+/// The KV bucket of holder entries (`lift.<token>`, a [`HolderEntry`]) and of the processes'
 /// leases (`process.<token>`, an [`Alive`]).
 pub const BUCKET: &str = "canlift-holders";
 
@@ -19,7 +19,7 @@ pub const ORIGIN: &str = "Canlift-Node";
 /// The value of a lift's key in [`BUCKET`]: which process holds its gateway's connection now,
 /// and what every process needs to know of a lift it does not hold.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct Holding {
+pub struct HolderEntry {
     /// The holding process (`[cluster] node`).
     pub node: String,
     /// Which life of that process: the entry stands while the process's lease ([`Alive`])
@@ -40,10 +40,10 @@ pub struct Holding {
     pub lift_state: Option<u8>,
 }
 
-impl Holding {
+impl HolderEntry {
     /// Whether this entry is of a newer connection than `other` (ties: the larger node name,
     /// so that every process decides alike).
-    pub fn newer_than(&self, other: &Holding) -> bool {
+    pub fn newer_than(&self, other: &HolderEntry) -> bool {
         (self.epoch, &self.node) > (other.epoch, &other.node)
     }
 }
@@ -370,7 +370,7 @@ mod tests {
 
     #[test]
     fn the_newer_holding_wins_everywhere_alike() {
-        let a = Holding {
+        let a = HolderEntry {
             node: "a".into(),
             incarnation: 1,
             epoch: 5,
@@ -379,12 +379,12 @@ mod tests {
             error_register: None,
             lift_state: None,
         };
-        let b = Holding {
+        let b = HolderEntry {
             node: "b".into(),
             ..a.clone()
         };
         assert!(b.newer_than(&a) && !a.newer_than(&b));
-        let c = Holding {
+        let c = HolderEntry {
             epoch: 6,
             ..a.clone()
         };

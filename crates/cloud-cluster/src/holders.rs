@@ -8,15 +8,15 @@
 use std::collections::HashMap;
 use std::time::{Duration, Instant};
 
-use super::msgs::Holding;
+use crate::msgs::HolderEntry;
 
 /// A lift another process holds, by its entry.
 #[derive(Debug, Clone)]
-struct Entry {
-    holding: Holding,
+struct Held {
+    entry: HolderEntry,
     /// The entry's revision in the bucket (a sweep deletes only that one).
     revision: u64,
-    /// The watch that last delivered it ([`Fleet::rewatch`]).
+    /// The watch that last delivered it ([`Holders::rewatch`]).
     watch: u64,
     /// Handed to a sweep already: not again.
     swept: bool,
@@ -37,22 +37,27 @@ impl Lease {
     }
 }
 
-/// Whether the process that wrote `holding` lives, by `leases`: its lease is fresh and of the
+/// Whether the process that wrote `entry` lives, by `leases`: its lease is fresh and of the
 /// same incarnation.
-fn lives(leases: &HashMap<String, Lease>, holding: &Holding, now: Instant, ttl: Duration) -> bool {
+fn lives(
+    leases: &HashMap<String, Lease>,
+    entry: &HolderEntry,
+    now: Instant,
+    ttl: Duration,
+) -> bool {
     leases
-        .get(&holding.node)
-        .is_some_and(|l| l.incarnation == holding.incarnation && l.fresh(now, ttl))
+        .get(&entry.node)
+        .is_some_and(|l| l.incarnation == entry.incarnation && l.fresh(now, ttl))
 }
 
 /// This process's view of the other processes and the lifts they hold.
 #[derive(Debug)]
-pub(crate) struct Fleet {
+pub(crate) struct Holders {
     /// This process's node name: its own entries and lease are not kept here.
     node: String,
     /// How long a lease stands unrenewed (`[cluster] holder_ttl_s`).
     ttl: Duration,
-    lifts: HashMap<String, Entry>,
+    lifts: HashMap<String, Held>,
     leases: HashMap<String, Lease>,
     /// The current watch of the bucket (counted from 1), since when it runs, and whether it
     /// has delivered what the bucket held when it began.
@@ -61,10 +66,10 @@ pub(crate) struct Fleet {
     caught_up: bool,
 }
 
-impl Fleet {
+impl Holders {
     /// An empty view for process `node` whose leases last `ttl`.
-    pub(crate) fn new(node: &str, ttl: Duration, now: Instant) -> Fleet {
-        Fleet {
+    pub(crate) fn new(node: &str, ttl: Duration, now: Instant) -> Holders {
+        Holders {
             node: node.to_owned(),
             ttl,
             lifts: HashMap::new(),
@@ -75,15 +80,15 @@ impl Fleet {
         }
     }
 
-    fn alive(&self, holding: &Holding, now: Instant) -> bool {
-        lives(&self.leases, holding, now, self.ttl)
+    fn alive(&self, entry: &HolderEntry, now: Instant) -> bool {
+        lives(&self.leases, entry, now, self.ttl)
     }
 
     /// The entry of `lift` when another process holds it and lives.
-    pub(crate) fn holding(&self, lift: &str, now: Instant) -> Option<&Holding> {
+    pub(crate) fn holder(&self, lift: &str, now: Instant) -> Option<&HolderEntry> {
         self.lifts
             .get(lift)
-            .map(|e| &e.holding)
+            .map(|e| &e.entry)
             .filter(|h| self.alive(h, now))
     }
 
@@ -91,7 +96,7 @@ impl Fleet {
     pub(crate) fn held_elsewhere(&self, now: Instant) -> usize {
         self.lifts
             .values()
-            .filter(|e| self.alive(&e.holding, now))
+            .filter(|e| self.alive(&e.entry, now))
             .count()
     }
 
@@ -104,14 +109,19 @@ impl Fleet {
     }
 
     /// Another process's entry of `lift` at `revision`; returns the one it replaces.
-    pub(crate) fn put(&mut self, lift: &str, holding: Holding, revision: u64) -> Option<Holding> {
-        let entry = Entry {
-            holding,
+    pub(crate) fn put(
+        &mut self,
+        lift: &str,
+        entry: HolderEntry,
+        revision: u64,
+    ) -> Option<HolderEntry> {
+        let entry = Held {
+            entry,
             revision,
             watch: self.watch,
             swept: false,
         };
-        self.lifts.insert(lift.to_owned(), entry).map(|e| e.holding)
+        self.lifts.insert(lift.to_owned(), entry).map(|e| e.entry)
     }
 
     /// The entry of `lift` was deleted (or is this process's own).
@@ -133,7 +143,7 @@ impl Fleet {
     }
 
     /// A new watch of the bucket begins (after NATS was lost, or the watch broke): what it
-    /// delivers replaces what the last one did, once it has delivered all ([`Fleet::caught_up`]).
+    /// delivers replaces what the last one did, once it has delivered all ([`Holders::caught_up`]).
     pub(crate) fn rewatch(&mut self, now: Instant) {
         self.watch += 1;
         self.watching_since = now;
@@ -158,7 +168,7 @@ impl Fleet {
         if !self.caught_up || now.saturating_duration_since(self.watching_since) < self.ttl {
             return Vec::new();
         }
-        let Fleet {
+        let Holders {
             node,
             ttl,
             lifts,
@@ -174,7 +184,7 @@ impl Fleet {
         }
         let mut dead = Vec::new();
         for (lift, entry) in lifts {
-            if !entry.swept && !lives(leases, &entry.holding, now, *ttl) {
+            if !entry.swept && !lives(leases, &entry.entry, now, *ttl) {
                 entry.swept = true;
                 dead.push((lift.clone(), entry.revision));
             }
@@ -189,8 +199,8 @@ mod tests {
 
     const TTL: Duration = Duration::from_secs(15);
 
-    fn holding(node: &str, incarnation: u64, epoch: u64) -> Holding {
-        Holding {
+    fn written(node: &str, incarnation: u64, epoch: u64) -> HolderEntry {
+        HolderEntry {
             node: node.into(),
             incarnation,
             epoch,
@@ -202,114 +212,121 @@ mod tests {
     }
 
     /// A view of `p1` watching since `t0`, which knows `p2` (incarnation 7) alive at `t0`.
-    fn fleet(t0: Instant) -> Fleet {
-        let mut fleet = Fleet::new("p1", TTL, t0);
-        fleet.rewatch(t0);
-        fleet.lease("p2", 7, t0);
-        fleet.caught_up();
-        fleet
+    fn holders(t0: Instant) -> Holders {
+        let mut holders = Holders::new("p1", TTL, t0);
+        holders.rewatch(t0);
+        holders.lease("p2", 7, t0);
+        holders.caught_up();
+        holders
     }
 
     #[test]
     fn a_lift_is_held_while_its_process_renews_its_lease() {
         let t0 = Instant::now();
         let at = |s: u64| t0 + Duration::from_secs(s);
-        let mut fleet = fleet(t0);
-        fleet.put("L", holding("p2", 7, 1), 1);
-        assert_eq!(fleet.holding("L", at(14)).map(|h| h.epoch), Some(1));
-        assert_eq!(fleet.held_elsewhere(at(14)), 1);
-        assert!(fleet.holding("L", at(15)).is_none(), "the lease lapsed");
-        assert_eq!(fleet.held_elsewhere(at(15)), 0);
-        assert_eq!(fleet.others_alive(at(15)), 0);
-        fleet.lease("p2", 7, at(16));
+        let mut holders = holders(t0);
+        holders.put("L", written("p2", 7, 1), 1);
+        assert_eq!(holders.holder("L", at(14)).map(|h| h.epoch), Some(1));
+        assert_eq!(holders.held_elsewhere(at(14)), 1);
+        assert!(holders.holder("L", at(15)).is_none(), "the lease lapsed");
+        assert_eq!(holders.held_elsewhere(at(15)), 0);
+        assert_eq!(holders.others_alive(at(15)), 0);
+        holders.lease("p2", 7, at(16));
         assert!(
-            fleet.holding("L", at(16)).is_some(),
+            holders.holder("L", at(16)).is_some(),
             "renewed late: held again"
         );
-        fleet.remove("L");
-        assert!(fleet.holding("L", at(16)).is_none());
+        holders.remove("L");
+        assert!(holders.holder("L", at(16)).is_none());
     }
 
     #[test]
     fn a_process_started_again_holds_none_of_its_earlier_lifts() {
         let t0 = Instant::now();
-        let mut fleet = fleet(t0);
-        fleet.put("old", holding("p2", 7, 1), 1);
-        fleet.lease("p2", 8, t0);
-        assert!(fleet.holding("old", t0).is_none());
-        fleet.put("new", holding("p2", 8, 2), 2);
-        assert!(fleet.holding("new", t0).is_some());
-        assert_eq!(fleet.others_alive(t0), 1);
+        let mut holders = holders(t0);
+        holders.put("old", written("p2", 7, 1), 1);
+        holders.lease("p2", 8, t0);
+        assert!(holders.holder("old", t0).is_none());
+        holders.put("new", written("p2", 8, 2), 2);
+        assert!(holders.holder("new", t0).is_some());
+        assert_eq!(holders.others_alive(t0), 1);
     }
 
     #[test]
     fn a_lift_without_a_lease_seen_is_not_held() {
         let t0 = Instant::now();
-        let mut fleet = fleet(t0);
-        fleet.put("L", holding("p3", 1, 1), 1);
-        assert!(fleet.holding("L", t0).is_none());
-        fleet.lease("p1", 1, t0);
-        assert_eq!(fleet.others_alive(t0), 1, "its own lease is not kept");
+        let mut holders = holders(t0);
+        holders.put("L", written("p3", 1, 1), 1);
+        assert!(holders.holder("L", t0).is_none());
+        holders.lease("p1", 1, t0);
+        assert_eq!(holders.others_alive(t0), 1, "its own lease is not kept");
     }
 
     #[test]
     fn the_first_living_process_by_name_sweeps_the_dead_ones_entries_once() {
         let t0 = Instant::now();
         let at = |s: u64| t0 + Duration::from_secs(s);
-        let mut fleet = fleet(t0);
-        fleet.lease("p0", 1, t0);
-        fleet.put("a", holding("p2", 7, 1), 11);
-        fleet.put("b", holding("p3", 1, 1), 12);
-        fleet.put("c", holding("p0", 1, 1), 13);
-        assert!(fleet.sweep(at(10)).is_empty(), "not before a lease's time");
+        let mut holders = holders(t0);
+        holders.lease("p0", 1, t0);
+        holders.put("a", written("p2", 7, 1), 11);
+        holders.put("b", written("p3", 1, 1), 12);
+        holders.put("c", written("p0", 1, 1), 13);
+        assert!(
+            holders.sweep(at(10)).is_empty(),
+            "not before a lease's time"
+        );
         // p0 lives and comes first: it sweeps, not p1.
-        fleet.lease("p0", 1, at(14));
-        assert!(fleet.sweep(at(16)).is_empty());
+        holders.lease("p0", 1, at(14));
+        assert!(holders.sweep(at(16)).is_empty());
         // p0's lease lapsed too: p1 is the first alive, and p2 and p3 are dead.
-        let mut dead = fleet.sweep(at(30));
+        let mut dead = holders.sweep(at(30));
         dead.sort();
         assert_eq!(
             dead,
             vec![("a".into(), 11), ("b".into(), 12), ("c".into(), 13)]
         );
-        assert!(fleet.sweep(at(31)).is_empty(), "each once");
-        fleet.put("a", holding("p2", 7, 1), 14);
-        assert_eq!(fleet.sweep(at(32)), vec![("a".into(), 14)], "written again");
+        assert!(holders.sweep(at(31)).is_empty(), "each once");
+        holders.put("a", written("p2", 7, 1), 14);
+        assert_eq!(
+            holders.sweep(at(32)),
+            vec![("a".into(), 14)],
+            "written again"
+        );
         // A new watch sweeps nothing before it has caught up and run for a lease's time.
-        fleet.rewatch(at(40));
-        fleet.put("d", holding("p2", 7, 1), 15);
-        assert!(fleet.sweep(at(60)).is_empty(), "not caught up");
-        fleet.caught_up();
-        assert!(fleet.sweep(at(50)).is_empty(), "not a lease's time");
-        assert_eq!(fleet.sweep(at(60)), vec![("d".into(), 15)]);
+        holders.rewatch(at(40));
+        holders.put("d", written("p2", 7, 1), 15);
+        assert!(holders.sweep(at(60)).is_empty(), "not caught up");
+        holders.caught_up();
+        assert!(holders.sweep(at(50)).is_empty(), "not a lease's time");
+        assert_eq!(holders.sweep(at(60)), vec![("d".into(), 15)]);
     }
 
     #[test]
     fn a_new_watch_replaces_what_the_last_one_delivered_once_caught_up() {
         let t0 = Instant::now();
-        let mut fleet = fleet(t0);
-        fleet.put("gone", holding("p2", 7, 1), 1);
-        fleet.put("kept", holding("p2", 7, 2), 2);
-        fleet.rewatch(t0);
+        let mut holders = holders(t0);
+        holders.put("gone", written("p2", 7, 1), 1);
+        holders.put("kept", written("p2", 7, 2), 2);
+        holders.rewatch(t0);
         assert!(
-            fleet.holding("gone", t0).is_some(),
+            holders.holder("gone", t0).is_some(),
             "served until caught up"
         );
-        fleet.lease("p2", 7, t0);
-        fleet.put("kept", holding("p2", 7, 2), 2);
-        fleet.caught_up();
-        assert!(fleet.holding("gone", t0).is_none());
+        holders.lease("p2", 7, t0);
+        holders.put("kept", written("p2", 7, 2), 2);
+        holders.caught_up();
+        assert!(holders.holder("gone", t0).is_none());
         assert!(
-            fleet.put("gone", holding("p2", 7, 1), 3).is_none(),
+            holders.put("gone", written("p2", 7, 1), 3).is_none(),
             "forgotten"
         );
-        fleet.remove("gone");
-        assert!(fleet.holding("kept", t0).is_some());
-        fleet.rewatch(t0);
-        fleet.put("kept", holding("p2", 7, 2), 2);
-        fleet.caught_up();
+        holders.remove("gone");
+        assert!(holders.holder("kept", t0).is_some());
+        holders.rewatch(t0);
+        holders.put("kept", written("p2", 7, 2), 2);
+        holders.caught_up();
         assert!(
-            fleet.holding("kept", t0).is_none(),
+            holders.holder("kept", t0).is_none(),
             "p2's lease was not delivered again"
         );
     }
