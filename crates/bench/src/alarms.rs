@@ -8,7 +8,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use cloud::alarms::rules::{Active, Applied, Rules};
-use cloud::alarms::{service, Alarms, Input};
+use cloud::alarms::{service, Alarms};
+use cloud::gateways::reports::Report;
 use cloud::gateways::Registry;
 use cloud_store::Store;
 use nxg::msg::{format_time, Event, NodeId, NodeRef, NodeState};
@@ -112,11 +113,12 @@ pub async fn run(args: AlarmsBench) -> anyhow::Result<()> {
     );
     // The whole service on a database.
     let (_dir, _, store) = scratch_store("alarms", args.database.as_deref()).await?;
-    let (inputs, inputs_rx) = tokio::sync::mpsc::channel(65536);
+    let (reports, reports_rx) = tokio::sync::mpsc::channel(65536);
+    let (acknowledged, acknowledged_rx) = tokio::sync::mpsc::channel(1);
     let alarms = Arc::new(Alarms {
         store,
         registry: Arc::new(Registry::default()),
-        inputs: inputs.clone(),
+        acknowledged,
         webhooks: Vec::new(),
         outbox: Arc::default(),
         counters: Arc::default(),
@@ -125,12 +127,13 @@ pub async fn run(args: AlarmsBench) -> anyhow::Result<()> {
         alarms.clone(),
         rules,
         Duration::from_secs(3600),
-        inputs_rx,
+        reports_rx,
+        acknowledged_rx,
     ));
     let started = Instant::now();
     for (lift, event) in events.iter().cloned() {
         // Waiting for room: the measurement counts stored events, not dropped ones.
-        inputs.send(Input::Event { lift, event }).await?;
+        reports.send(Report::Event { lift, event }).await?;
     }
     let counters = alarms.counters.clone();
     while counters.events_stored.load(Ordering::Relaxed)
@@ -149,7 +152,7 @@ pub async fn run(args: AlarmsBench) -> anyhow::Result<()> {
         counters.events_dropped.load(Ordering::Relaxed),
         if args.database.is_some() { "the given database" } else { "SQLite" }
     );
-    drop(inputs);
+    drop(reports);
     task.abort();
     Ok(())
 }

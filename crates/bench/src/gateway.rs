@@ -679,17 +679,17 @@ async fn subscriptions_curve(
     }
     let _ = stop.send(true);
     let _ = task.await;
-    crate::curves::Curve {
+    crate::plot::Curve {
         name: "gateway-subscriptions",
         title: "Gateway request latency vs subscriptions held",
         x: "subscriptions held",
         y: "naked get round trip (µs)",
         series: vec![
-            crate::curves::Series {
+            crate::plot::Series {
                 name: "p50",
                 points: p50,
             },
-            crate::curves::Series {
+            crate::plot::Series {
                 name: "p99",
                 points: p99,
             },

@@ -7,9 +7,9 @@
 mod alarms;
 mod bus;
 mod cluster;
-mod curves;
 mod gateway;
 mod ingest;
+mod plot;
 mod portal;
 mod process;
 mod relay;

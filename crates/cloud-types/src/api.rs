@@ -4,6 +4,7 @@
 //! ([`nxg::msg::ObjectAnswer`], [`nxg::msg::Notification`]); errors as
 //! [`nxg::msg::ErrorObject`].
 
+use nxg::msg::{GetObject, GetParams, Lang, MplexText};
 use serde::{Deserialize, Serialize};
 
 use crate::lifts::LiftRecord;
@@ -66,6 +67,23 @@ pub enum Form {
     Stripped,
     /// Only the value.
     Naked,
+}
+
+impl Form {
+    /// The `get_canopen_object` parameters (NXg §6.1) that read `mplex` in this form, names
+    /// and hints in `lang`.
+    pub fn get(self, mplex: MplexText, lang: Lang) -> GetParams {
+        GetParams {
+            lang: Some(lang),
+            node: None,
+            object: GetObject {
+                mplex,
+                compact: false,
+                stripped: self == Form::Stripped,
+                naked: self == Form::Naked,
+            },
+        }
+    }
 }
 
 /// The body of `PUT /api/v1/lifts/{id}/objects/{mplex}`.

@@ -9,13 +9,15 @@
 
 pub mod alarms;
 pub mod api;
+pub mod auth;
 pub mod client;
 pub mod config;
 pub mod devpki;
-pub mod elevation;
+pub mod errors;
 pub mod gateways;
 mod memory;
 pub mod server;
+pub mod state;
 pub mod throttle;
 mod timer;
 pub mod web;

@@ -20,10 +20,13 @@ use tokio::sync::{mpsc, watch};
 
 use crate::alarms::rules::Rules;
 use crate::alarms::{service, webhook, Alarms};
-use crate::api::{self, App};
+use crate::api;
+use crate::auth::Auth;
 use crate::config::Config;
 use crate::gateways::local::LocalLifts;
+use crate::gateways::reports::Reports;
 use crate::gateways::{self, telemetry, Registry, Shared};
+use crate::state::AppState;
 use cloud_cluster::nats::{NatsAccess, NatsConfigError};
 use cloud_cluster::Cluster;
 use cloud_store::Store;
@@ -327,7 +330,7 @@ impl Portal {
                 config.database.events_days,
             )),
         ]);
-        let alarms = start_alarms(config, &store, &registry, &mut tasks)?;
+        let (alarms, reports) = start_alarms(config, &store, &registry, &mut tasks)?;
         // Rights taken away anywhere reach this process within a second.
         tasks.push(tokio::spawn(
             store
@@ -352,7 +355,7 @@ impl Portal {
                 records,
                 dashboard: dashboard.clone(),
                 subscriptions: subscriptions.clone(),
-                alarms: alarms.clone(),
+                reports: reports.clone(),
                 closing: closing_rx,
                 max_messages_per_s: config.gateways.max_messages_per_s,
                 boardhash_change: config.gateways.boardhash_change,
@@ -371,22 +374,24 @@ impl Portal {
                 "/metrics",
                 get(move || {
                     let (m, r, t, a) = (m.clone(), r.clone(), telemetry.clone(), a.clone());
-                    let admitted = admitted.clone();
-                    async move { metrics_text(&m, &r, &t, &a, &admitted) }
+                    let (admitted, reports) = (admitted.clone(), reports.clone());
+                    async move { metrics_text(&m, &r, &t, &a, &reports, &admitted) }
                 }),
             )
             .merge({
-                let app = Arc::new(App {
-                    elevations: crate::elevation::Elevations::new(store.clone()),
+                let app = Arc::new(AppState {
+                    auth: Auth {
+                        elevations: crate::auth::elevation::Elevations::new(store.clone()),
+                        sessions: crate::auth::sessions::Sessions::default(),
+                        key_rates: std::sync::Mutex::new(crate::throttle::KeyRates::new(
+                            config.server.requests_per_key_s,
+                        )),
+                        sign_ins: std::sync::Mutex::default(),
+                    },
                     store,
                     registry: registry.clone(),
-                    sessions: crate::web::Sessions::default(),
                     dashboard,
                     subscriptions,
-                    key_rates: std::sync::Mutex::new(crate::throttle::KeyRates::new(
-                        config.server.requests_per_key_s,
-                    )),
-                    sign_ins: std::sync::Mutex::default(),
                     alarms,
                     names: Arc::new(names),
                 });
@@ -629,13 +634,14 @@ async fn health(State(registry): State<Arc<Registry>>) -> String {
 /// (docs/SECURITY.md §Bounds): a connection that says nothing, or says it slowly, is closed.
 pub const HANDSHAKE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(10);
 
-/// The alarm service and the webhook worker, started.
+/// The alarm service and the webhook worker, started, and the queue the gateway connections
+/// report into.
 fn start_alarms(
     config: &Config,
     store: &Store,
     registry: &Arc<Registry>,
     tasks: &mut Vec<tokio::task::JoinHandle<()>>,
-) -> Result<Arc<Alarms>, ServerError> {
+) -> Result<(Arc<Alarms>, Reports), ServerError> {
     let receivers = config
         .alarms
         .webhooks
@@ -643,11 +649,12 @@ fn start_alarms(
         .map(webhook::Receiver::new)
         .collect::<Result<Vec<_>, _>>()
         .map_err(ServerError::Other)?;
-    let (inputs, inputs_rx) = mpsc::channel(65536);
+    let (reports, reports_rx) = Reports::channel(65536);
+    let (acknowledged, acknowledged_rx) = mpsc::channel(1024);
     let alarms = Arc::new(Alarms {
         store: store.clone(),
         registry: registry.clone(),
-        inputs,
+        acknowledged,
         webhooks: config.alarms.webhooks.clone(),
         outbox: Arc::default(),
         counters: Arc::default(),
@@ -660,10 +667,11 @@ fn start_alarms(
         alarms.clone(),
         rules,
         offline_after,
-        inputs_rx,
+        reports_rx,
+        acknowledged_rx,
     )));
     tasks.push(tokio::spawn(webhook::deliver(alarms.clone(), receivers)));
-    Ok(alarms)
+    Ok((alarms, reports))
 }
 
 fn metrics_text(
@@ -671,6 +679,7 @@ fn metrics_text(
     r: &Registry,
     telemetry: &telemetry::Queue,
     a: &service::Counters,
+    reports: &Reports,
     admitted: &gateways::admissions::AdmissionCounters,
 ) -> String {
     let t = telemetry.counters();
@@ -710,7 +719,10 @@ fn metrics_text(
         ("canlift_telemetry_dropped_total", load(&t.dropped)),
         ("canlift_telemetry_waits_total", load(&t.waits)),
         ("canlift_events_stored_total", load(&a.events_stored)),
-        ("canlift_events_dropped_total", load(&a.events_dropped)),
+        (
+            "canlift_events_dropped_total",
+            load(&a.events_dropped) + reports.dropped(),
+        ),
         ("canlift_alarms_raised_total", load(&a.raised)),
         ("canlift_alarms_cleared_total", load(&a.cleared)),
         (

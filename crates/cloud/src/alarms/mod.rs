@@ -12,4 +12,4 @@ pub mod rules;
 pub mod service;
 pub mod webhook;
 
-pub use service::{Alarms, Input};
+pub use service::Alarms;

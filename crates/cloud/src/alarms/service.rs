@@ -1,64 +1,34 @@
-//! The alarm service: one task takes what the gateway connections report — bus events, a
-//! lift coming online or going offline — stores the events in batches, applies [`Rules`] to an
+//! The alarm service: one task takes what the gateway connections report
+//! ([`crate::gateways::reports`]: bus events, a lift coming online or going offline) and the
+//! acknowledgements of alarms only a person ends, stores the events in batches, applies [`Rules`] to an
 //! index of the active alarms (so that an event costs a look-up, and the database is written
 //! only when an alarm changes), runs the `lift-offline` timers, and announces every change to
-//! the lift's live viewers and to the webhook outbox. [`Alarms`] is the handle the connections
-//! and the API share.
+//! the lift's live viewers and to the webhook outbox. [`Alarms`] is the handle the API and the
+//! web UI use.
 
 use std::collections::{BTreeSet, HashMap};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use nxg::msg::Event;
 use tokio::sync::{mpsc, Notify};
 use tokio::time::Instant;
 
 use super::rules::{Active, Applied, Rules, Verdict};
 use crate::config::WebhookSection;
+use crate::gateways::reports::Report;
 use crate::gateways::Registry;
 use cloud_store::{EventRow, Store, StoreError};
 use cloud_types::alarms::{Alarm, AlarmChange, Change, Kind};
 use cloud_types::live::LiftEvent;
-
-/// What a gateway connection reports.
-#[derive(Debug, Clone, PartialEq)]
-pub enum Input {
-    /// A bus event of the lift.
-    Event {
-        /// The lift.
-        lift: String,
-        /// The event.
-        event: Event,
-    },
-    /// The lift's gateway is connected.
-    Online(String),
-    /// The lift's gateway went away.
-    Offline(String),
-    /// The lift's gateway connected from another board (boardhashes `was` → `now`).
-    BoardChanged {
-        /// The lift.
-        lift: String,
-        /// The boardhash on record.
-        was: String,
-        /// The one the gateway sent.
-        now: String,
-    },
-    /// Someone acknowledged an alarm of `kind` that only a person ends.
-    Acknowledged {
-        /// The lift.
-        lift: String,
-        /// The kind.
-        kind: Kind,
-    },
-}
 
 /// Counts for `/metrics`.
 #[derive(Debug, Default)]
 pub struct Counters {
     /// Events stored.
     pub events_stored: AtomicU64,
-    /// Events lost (the service's queue was full, or the database failed).
+    /// Events lost because the database failed (those the report queue had no room for are
+    /// counted by [`crate::gateways::reports::Reports`]).
     pub events_dropped: AtomicU64,
     /// Alarms raised.
     pub raised: AtomicU64,
@@ -74,14 +44,23 @@ pub struct Counters {
     pub webhooks_pending: AtomicU64,
 }
 
-/// What the connections and the API share.
+/// An alarm of `kind` on `lift` that only a person ends was acknowledged.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Acknowledged {
+    /// The lift.
+    pub lift: String,
+    /// The kind.
+    pub kind: Kind,
+}
+
+/// What the API, the web UI and the webhook worker share.
 pub struct Alarms {
     /// The database.
     pub store: Store,
     /// Live viewers.
     pub registry: Arc<Registry>,
-    /// Where connections report.
-    pub inputs: mpsc::Sender<Input>,
+    /// Where acknowledgements that end an alarm go to the service.
+    pub acknowledged: mpsc::Sender<Acknowledged>,
     /// Webhook receivers.
     pub webhooks: Vec<WebhookSection>,
     /// Wakes the webhook worker.
@@ -108,27 +87,6 @@ impl From<StoreError> for AckError {
 }
 
 impl Alarms {
-    /// Hand `input` to the service; an event the service cannot take now is dropped and
-    /// counted (the queue is bounded, see [`Alarms::event`]), a change of a lift's connection
-    /// always waits.
-    pub async fn report(&self, input: Input) {
-        match input {
-            Input::Event { lift, event } => self.event(lift, event),
-            other => {
-                let _ = self.inputs.send(other).await;
-            }
-        }
-    }
-
-    /// Hand a bus event of `lift` to the service, or drop and count it when the queue is full.
-    /// Not `async`: a gateway connection's task calls it for every event it receives, and an
-    /// awaited call would size that long-lived task by its future.
-    pub fn event(&self, lift: String, event: Event) {
-        if self.inputs.try_send(Input::Event { lift, event }).is_err() {
-            self.counters.events_dropped.fetch_add(1, Ordering::Relaxed);
-        }
-    }
-
     /// Acknowledge alarm `id` of a lift of `domain` for `by`.
     pub async fn acknowledge(
         &self,
@@ -148,7 +106,7 @@ impl Alarms {
                 if alarm.kind.cleared_by_acknowledgement() {
                     let lift = alarm.lift.clone();
                     let kind = alarm.kind;
-                    let _ = self.inputs.send(Input::Acknowledged { lift, kind }).await;
+                    let _ = self.acknowledged.send(Acknowledged { lift, kind }).await;
                 }
                 Ok(alarm)
             }
@@ -243,14 +201,15 @@ struct Service {
     flush_at: Option<Instant>,
 }
 
-/// Run the service until every sender is gone. At start it learns the active alarms and
+/// Run the service until every reporting connection is gone. At start it learns the active alarms and
 /// starts the `lift-offline` timer of every known lift (a lift that does not come back within
 /// `offline_after` of the portal's start has the alarm).
 pub async fn run(
     alarms: Arc<Alarms>,
     rules: Rules,
     offline_after: Duration,
-    mut inputs: mpsc::Receiver<Input>,
+    mut reports: mpsc::Receiver<Report>,
+    mut acknowledged: mpsc::Receiver<Acknowledged>,
 ) {
     let mut active = Active::default();
     match alarms.store.active_alarms().await {
@@ -292,13 +251,17 @@ pub async fn run(
             .min();
         let timer = crate::timer::sleep_until(next);
         tokio::select! {
-            n = inputs.recv_many(&mut received, BATCH) => {
+            n = reports.recv_many(&mut received, BATCH) => {
                 if n == 0 {
                     service.flush().await;
                     return;
                 }
-                service.inputs(&mut received).await;
+                service.reports(&mut received).await;
             },
+            Some(Acknowledged { lift, kind }) = acknowledged.recv() => {
+                let verdict = service.rules.acknowledged(&lift, kind);
+                service.apply(vec![verdict]);
+            }
             _ = timer => service.timers().await,
         }
     }
@@ -306,14 +269,14 @@ pub async fn run(
 
 impl Service {
     /// `received` in order, a run of lifts coming online at once (a reconnect storm) as one.
-    async fn inputs(&mut self, received: &mut Vec<Input>) {
+    async fn reports(&mut self, received: &mut Vec<Report>) {
         let mut online = Vec::new();
-        for input in received.drain(..) {
-            match input {
-                Input::Online(lift) => online.push(lift),
+        for report in received.drain(..) {
+            match report {
+                Report::Online(lift) => online.push(lift),
                 other => {
                     self.online(std::mem::take(&mut online)).await;
-                    self.input(other).await;
+                    self.report(other).await;
                 }
             }
         }
@@ -333,9 +296,9 @@ impl Service {
         self.apply(verdicts);
     }
 
-    async fn input(&mut self, input: Input) {
-        match input {
-            Input::Event { lift, event } => {
+    async fn report(&mut self, report: Report) {
+        match report {
+            Report::Event { lift, event } => {
                 let verdicts = self.rules.event(&lift, &event);
                 self.batch.push(EventRow {
                     at: event.time_ms().unwrap_or_else(cloud_types::now_ms),
@@ -349,17 +312,13 @@ impl Service {
                     self.flush().await;
                 }
             }
-            Input::Online(lift) => self.online(vec![lift]).await,
-            Input::Offline(lift) => {
+            Report::Online(lift) => self.online(vec![lift]).await,
+            Report::Offline(lift) => {
                 self.offline
                     .start(lift, Instant::now() + self.offline_after);
             }
-            Input::BoardChanged { lift, was, now } => {
+            Report::BoardChanged { lift, was, now } => {
                 let verdict = self.rules.board_changed(&lift, &was, &now);
-                self.apply(vec![verdict]);
-            }
-            Input::Acknowledged { lift, kind } => {
-                let verdict = self.rules.acknowledged(&lift, kind);
                 self.apply(vec![verdict]);
             }
         }

@@ -8,8 +8,11 @@ use axum::extract::{Path, State};
 use axum::http::StatusCode;
 use axum::Json;
 
-use super::{allowed, error, lift_of, ApiError, ApiJson, ApiQuery, App, Caller};
+use super::lift_of;
 use crate::alarms::service::AckError;
+use crate::auth::{allowed, Caller};
+use crate::errors::{error, ApiError, ApiJson, ApiQuery};
+use crate::state::AppState;
 use cloud_types::alarms::Alarm;
 use cloud_types::api::{AckBody, AlarmList, AlarmState, AlarmsQuery, EventLog, EventLogQuery};
 use cloud_types::users::Role;
@@ -18,7 +21,7 @@ use cloud_store::AlarmFilter;
 
 /// `GET /api/v1/alarms`.
 pub(super) async fn list(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     caller: Caller,
     ApiQuery(q): ApiQuery<AlarmsQuery>,
 ) -> Result<Json<AlarmList>, ApiError> {
@@ -35,7 +38,7 @@ pub(super) async fn list(
 /// `POST /api/v1/alarms/{id}/ack`: 404 for an alarm of another account, 409 for one taken on
 /// before.
 pub(super) async fn acknowledge(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     caller: Caller,
     Path(id): Path<String>,
     ApiJson(body): ApiJson<AckBody>,
@@ -70,7 +73,7 @@ pub(super) async fn acknowledge(
 
 /// `GET /api/v1/lifts/{id}/event-log`.
 pub(super) async fn event_log(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     caller: Caller,
     Path(id): Path<String>,
     ApiQuery(q): ApiQuery<EventLogQuery>,

@@ -2,7 +2,8 @@
 //! `VENDORID-PRODUCTCODE-SERNUM`; an account sees only the lifts of its own domain (404 for
 //! others). NXg errors come back as 4xx with the gateway's error object; an offline gateway
 //! gives 503, a gateway that does not answer in time 504. Puts and elevations are audited. The
-//! bodies are the types of [`crate::rest`]; alarms and the event log are in `alarms`.
+//! bodies are the types of [`cloud_types::api`]; alarms and the event log are in `alarms`, users
+//! and keys in `users`; who the caller is and what it may do in [`crate::auth`].
 
 mod alarms;
 mod users;
@@ -10,29 +11,24 @@ mod users;
 use std::convert::Infallible;
 use std::sync::Arc;
 
-use axum::extract::rejection::{JsonRejection, QueryRejection};
-use axum::extract::{FromRequest, FromRequestParts, Path, Request, State};
-use axum::http::request::Parts;
+use axum::extract::{Path, State};
 use axum::http::{Method, StatusCode};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::{Json, Router};
 use futures_util::Stream;
-use nxg::errors::ErrorCode;
 use nxg::msg::{
-    Done, ElevateAnswer, ElevateParams, ErrorObject, GetObject, GetParams, Lang, MplexText, NodeId,
-    NodeRef, ObjectAnswer, PutAnswer, PutObject, PutParams, TokenParams,
+    Done, ElevateAnswer, ElevateParams, Lang, MplexText, NodeId, NodeRef, ObjectAnswer, PutAnswer,
+    PutObject, PutParams, TokenParams,
 };
 use nxg::names::ObjectNames;
 use nxg::portal::Failure;
-use serde::de::DeserializeOwned;
 
-use crate::config::Dashboard;
+use crate::auth::{allowed, Caller};
+use crate::errors::{error, ApiError, ApiJson, ApiQuery};
 use crate::gateways::subscriptions::{Subscriptions, WhenOffline};
-use crate::gateways::Registry;
-use crate::web::Sessions;
-use cloud_store::Store;
+use crate::state::AppState;
 use cloud_types::api::{
     EventsQuery, Form, GetQuery, History, HistoryPoint, HistoryQuery, LiftSummary, NameQuery,
     PrivilegeBody, PutBody, SubscriptionBody,
@@ -41,193 +37,14 @@ use cloud_types::audit::AuditEntry;
 use cloud_types::subscriptions::{Subscriber, Terms};
 use cloud_types::users::{Operator, Role};
 
-/// What the handlers share.
-pub struct App {
-    /// The database.
-    pub store: Store,
-    /// Live gateways.
-    pub registry: Arc<Registry>,
-    /// Signed-in browsers of the web UI.
-    pub sessions: Sessions,
-    /// What the web UI shows.
-    pub dashboard: Arc<Dashboard>,
-    /// Who holds which subscriptions.
-    pub subscriptions: Arc<crate::gateways::subscriptions::Subscriptions>,
-    /// Who elevated which lift.
-    pub elevations: crate::elevation::Elevations,
-    /// Requests per API key (`[server] requests_per_key_s`).
-    pub key_rates: std::sync::Mutex<crate::throttle::KeyRates>,
-    /// Failed web sign-ins per user name and source address.
-    pub sign_ins: std::sync::Mutex<crate::throttle::SignIns>,
-    /// Alarms.
-    pub alarms: Arc<crate::alarms::Alarms>,
-    /// Object names operators may use instead of an mplex (`?name=`, path, web forms).
-    pub names: Arc<ObjectNames>,
-}
-
-/// An error answer: the status and an error object (and, for 429, when to try again).
-pub struct ApiError(StatusCode, ErrorObject, Option<std::time::Duration>);
-
-impl IntoResponse for ApiError {
-    fn into_response(self) -> Response {
-        let mut response = (self.0, Json(self.1)).into_response();
-        if let Some(wait) = self.2 {
-            response
-                .headers_mut()
-                .insert(axum::http::header::RETRY_AFTER, retry_after(wait));
-        }
-        response
-    }
-}
-
-/// `Retry-After` in whole seconds, rounded up (RFC 9110 §10.2.3).
-pub(crate) fn retry_after(wait: std::time::Duration) -> axum::http::HeaderValue {
-    let seconds = wait.as_secs() + u64::from(wait.subsec_nanos() > 0);
-    axum::http::HeaderValue::from(seconds.max(1))
-}
-
-/// An error of the portal itself: the status as its code.
-pub(crate) fn error(status: StatusCode, message: impl Into<String>) -> ApiError {
-    ApiError(
-        status,
-        ErrorObject::rpc(i64::from(status.as_u16()), message),
-        None,
-    )
-}
-
-impl From<cloud_store::StoreError> for ApiError {
-    fn from(e: cloud_store::StoreError) -> Self {
-        tracing::error!(error = %e, "API request failed on the database");
-        if e.is_unavailable() {
-            error(StatusCode::SERVICE_UNAVAILABLE, "database unavailable")
-        } else {
-            error(StatusCode::INTERNAL_SERVER_ERROR, "database error")
-        }
-    }
-}
-
-/// The HTTP status of a gateway's NXg error: a missing object is 404, a refusal of rights or
-/// identity 403, a node on the lift's bus that did not answer (SDO timeout) 504, anything else
-/// the caller's mistake (400).
-fn status_of(code: Option<ErrorCode>) -> StatusCode {
-    match code {
-        Some(ErrorCode::TIMEOUT) => StatusCode::GATEWAY_TIMEOUT,
-        Some(ErrorCode::NO_OBJECT | ErrorCode::NO_SUB_INDEX) => StatusCode::NOT_FOUND,
-        Some(ErrorCode::IDENTITY | ErrorCode::PRIVILEGE | ErrorCode::DEVICE_STATE) => {
-            StatusCode::FORBIDDEN
-        }
-        _ => StatusCode::BAD_REQUEST,
-    }
-}
-
-impl From<Failure> for ApiError {
-    fn from(f: Failure) -> Self {
-        match f {
-            Failure::Error(e) => ApiError(status_of(e.abort_code()), e, None),
-            Failure::Invalid(why) => error(
-                StatusCode::BAD_GATEWAY,
-                format!("the gateway's answer is not valid: {why}"),
-            ),
-            Failure::Timeout => error(
-                StatusCode::GATEWAY_TIMEOUT,
-                "the gateway did not answer in time",
-            ),
-            Failure::Busy => {
-                let mut e = error(
-                    StatusCode::TOO_MANY_REQUESTS,
-                    "too many requests for this gateway",
-                );
-                e.2 = Some(std::time::Duration::from_secs(1));
-                e
-            }
-            Failure::Gone => error(StatusCode::SERVICE_UNAVAILABLE, "the gateway is offline"),
-        }
-    }
-}
-
-/// A query string read into `T`; a malformed one answers 400 with an error object.
-pub struct ApiQuery<T>(pub T);
-
-impl<T: DeserializeOwned + Send, S: Send + Sync> FromRequestParts<S> for ApiQuery<T> {
-    type Rejection = ApiError;
-
-    async fn from_request_parts(parts: &mut Parts, state: &S) -> Result<Self, ApiError> {
-        axum::extract::Query::<T>::from_request_parts(parts, state)
-            .await
-            .map(|q| ApiQuery(q.0))
-            .map_err(|e: QueryRejection| error(StatusCode::BAD_REQUEST, e.body_text()))
-    }
-}
-
-/// A JSON body read into `T`; a malformed one answers with an error object (400, or 415 without
-/// a JSON content type, 422 for a body of the wrong shape).
-pub struct ApiJson<T>(pub T);
-
-impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for ApiJson<T> {
-    type Rejection = ApiError;
-
-    async fn from_request(request: Request, state: &S) -> Result<Self, ApiError> {
-        Json::<T>::from_request(request, state)
-            .await
-            .map(|j| ApiJson(j.0))
-            .map_err(|e: JsonRejection| error(e.status(), e.body_text()))
-    }
-}
-
-/// The operator a request acts for: `Authorization: Bearer API_KEY`, or the web UI's session
-/// cookie. A cookie alone never authorises a change: requests other than GET must also carry
-/// the session's `X-CSRF-Token`, which another site cannot read.
-pub struct Caller(pub Operator);
-
-impl FromRequestParts<Arc<App>> for Caller {
-    type Rejection = ApiError;
-
-    async fn from_request_parts(parts: &mut Parts, app: &Arc<App>) -> Result<Self, ApiError> {
-        let header = |name: &str| parts.headers.get(name).and_then(|v| v.to_str().ok());
-        if let Some(key) = header("authorization").and_then(|v| v.strip_prefix("Bearer ")) {
-            let key = key.trim();
-            let operator = app
-                .store
-                .operator_by_key(key)
-                .await?
-                .ok_or_else(|| error(StatusCode::UNAUTHORIZED, "unknown API key"))?;
-            let within = app
-                .key_rates
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner)
-                .take(&cloud_store::digest(key), std::time::Instant::now());
-            return match within {
-                Ok(()) => Ok(Caller(operator)),
-                Err(wait) => {
-                    let mut e = error(
-                        StatusCode::TOO_MANY_REQUESTS,
-                        "too many requests with this API key ([server] requests_per_key_s)",
-                    );
-                    e.2 = Some(wait);
-                    Err(e)
-                }
-            };
-        }
-        let Some(session) = app.sessions.current(&parts.headers, &app.store).await? else {
-            return Err(error(
-                StatusCode::UNAUTHORIZED,
-                "Authorization: Bearer API_KEY is required",
-            ));
-        };
-        let reads = parts.method == Method::GET || parts.method == Method::HEAD;
-        if !reads && !session.csrf_matches(header("x-csrf-token")) {
-            return Err(error(
-                StatusCode::FORBIDDEN,
-                "X-CSRF-Token missing or wrong",
-            ));
-        }
-        Ok(Caller(session.operator))
-    }
-}
-
 /// The caller, if its role includes `role` (403 otherwise) and the lift is one of its
 /// account's (404 otherwise).
-async fn lift_of(app: &App, caller: Caller, id: &str, role: Role) -> Result<Operator, ApiError> {
+pub async fn lift_of(
+    app: &AppState,
+    caller: Caller,
+    id: &str,
+    role: Role,
+) -> Result<Operator, ApiError> {
     let operator = allowed(caller, role)?;
     // A connected lift's domain is known without the database (and without a query per request).
     if app.registry.serves(&operator.account.domain, id) {
@@ -242,27 +59,6 @@ async fn lift_of(app: &App, caller: Caller, id: &str, role: Role) -> Result<Oper
         return Err(error(StatusCode::NOT_FOUND, "no such lift"));
     }
     Ok(operator)
-}
-
-/// The caller, if its role includes `role` (docs/PORTAL.md §Users and roles); 403 otherwise.
-pub(crate) fn allowed(caller: Caller, role: Role) -> Result<Operator, ApiError> {
-    let operator = caller.0;
-    if operator.may(role) {
-        return Ok(operator);
-    }
-    Err(error(
-        StatusCode::FORBIDDEN,
-        format!(
-            "{} is {} {}; this needs the role {role}",
-            operator.user,
-            if operator.role == Role::Admin {
-                "an"
-            } else {
-                "a"
-            },
-            operator.role
-        ),
-    ))
 }
 
 /// The object of a path or `?name=`: an mplex as the gateway spells it is passed on as written
@@ -293,7 +89,7 @@ fn node(node: Option<u8>, net: Option<u8>) -> Result<Option<NodeRef>, ApiError> 
 }
 
 async fn lifts(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     caller: Caller,
 ) -> Result<Json<Vec<LiftSummary>>, ApiError> {
     let operator = allowed(caller, Role::Viewer)?;
@@ -310,22 +106,8 @@ async fn lifts(
     Ok(Json(lifts))
 }
 
-/// `get_canopen_object` parameters (NXg §6.1) for `mplex` in `form`.
-pub(crate) fn read_params(mplex: MplexText, lang: Lang, form: Form) -> GetParams {
-    GetParams {
-        lang: Some(lang),
-        node: None,
-        object: GetObject {
-            mplex,
-            compact: false,
-            stripped: form == Form::Stripped,
-            naked: form == Form::Naked,
-        },
-    }
-}
-
 async fn get_object(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     caller: Caller,
     Path((id, text)): Path<(String, String)>,
     ApiQuery(q): ApiQuery<GetQuery>,
@@ -335,7 +117,10 @@ async fn get_object(
         q.lang.as_deref().unwrap_or("en"),
         q.alt_lang.as_deref().unwrap_or("en"),
     );
-    let mut params = read_params(mplex(&app.names, &text)?, lang, q.form.unwrap_or_default());
+    let mut params = q
+        .form
+        .unwrap_or_default()
+        .get(mplex(&app.names, &text)?, lang);
     params.object.compact = q.compact.unwrap_or(false);
     params.node = node(q.node, q.net)?.map(|n| NodeRef {
         datatype: q.datatype,
@@ -345,7 +130,7 @@ async fn get_object(
 }
 
 async fn put_object(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     caller: Caller,
     Path((id, text)): Path<(String, String)>,
     ApiJson(body): ApiJson<PutBody>,
@@ -356,7 +141,7 @@ async fn put_object(
     let node = node(body.node, body.net)?;
     // The value before, for the audit log, and the privilege writing needs (best effort: a
     // write-only object has no value, an object without metadata no privilege).
-    let mut read = read_params(object.clone(), Lang::default(), Form::Stripped);
+    let mut read = Form::Stripped.get(object.clone(), Lang::default());
     read.lang = None;
     read.node = node.map(|n| NodeRef {
         datatype: Some(body.datatype),
@@ -404,7 +189,7 @@ async fn put_object(
 /// only an engineer, and only the one who elevated the lift's connection (docs/PORTAL.md
 /// §Users and roles).
 async fn may_write(
-    app: &App,
+    app: &AppState,
     operator: &Operator,
     lift: &str,
     needed: u32,
@@ -421,7 +206,8 @@ async fn may_write(
         ));
     }
     let connection = app.registry.connection(lift);
-    app.elevations
+    app.auth
+        .elevations
         .check(
             lift,
             &operator.user,
@@ -445,7 +231,7 @@ fn named(name: Option<String>) -> Result<String, ApiError> {
 
 /// `GET …/objects?name=Trip%20counter`: [`get_object`] by name.
 async fn get_named(
-    app: State<Arc<App>>,
+    app: State<Arc<AppState>>,
     caller: Caller,
     Path(id): Path<String>,
     ApiQuery(q): ApiQuery<GetQuery>,
@@ -456,7 +242,7 @@ async fn get_named(
 
 /// `PUT …/objects?name=Trip%20counter`: [`put_object`] by name.
 async fn put_named(
-    app: State<Arc<App>>,
+    app: State<Arc<AppState>>,
     caller: Caller,
     Path(id): Path<String>,
     ApiQuery(q): ApiQuery<NameQuery>,
@@ -476,7 +262,7 @@ fn outcome<T>(result: &Result<T, Failure>) -> String {
 }
 
 async fn privilege(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     caller: Caller,
     Path(id): Path<String>,
     ApiJson(body): ApiJson<PrivilegeBody>,
@@ -492,7 +278,8 @@ async fn privilege(
     };
     let result = app.registry.call(&id, &params).await;
     if let Ok(answer) = &result {
-        app.elevations
+        app.auth
+            .elevations
             .granted(
                 &id,
                 &operator.user,
@@ -523,7 +310,7 @@ async fn privilege(
 /// is a first contact that gets a new one — for a gateway that was replaced or wiped. Both are
 /// audited; neither shows a token.
 async fn token(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     method: Method,
     caller: Caller,
     Path(id): Path<String>,
@@ -570,7 +357,7 @@ async fn token(
 /// asked for the union of what everyone holds on the lift (docs/PORTAL.md §Subscriptions), so
 /// one holder's terms or `DELETE` never change another's pushes.
 async fn subscriptions(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     method: Method,
     caller: Caller,
     Path(id): Path<String>,
@@ -625,7 +412,7 @@ fn terms(inhibit: Option<u64>, threshold: Option<f64>) -> Result<Terms, ApiError
 /// subscriptions of those objects for as long as it is open — kept while the gateway is
 /// offline and registered when it connects — and lets go of them when it ends.
 async fn events(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     caller: Caller,
     Path(id): Path<String>,
     ApiQuery(q): ApiQuery<EventsQuery>,
@@ -697,7 +484,7 @@ impl Drop for Watching {
 }
 
 async fn history(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     caller: Caller,
     Path((id, text)): Path<(String, String)>,
     ApiQuery(q): ApiQuery<HistoryQuery>,
@@ -720,7 +507,7 @@ async fn history(
 }
 
 async fn audit(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     caller: Caller,
 ) -> Result<Json<Vec<AuditEntry>>, ApiError> {
     let operator = allowed(caller, Role::Viewer)?;
@@ -739,7 +526,7 @@ async fn openapi() -> Response {
 pub const OPENAPI: &str = include_str!("openapi.json");
 
 /// The `/api/v1` routes.
-pub fn routes(app: Arc<App>) -> Router {
+pub fn routes(app: Arc<AppState>) -> Router {
     Router::new()
         .route("/api/v1/openapi.json", get(openapi))
         .route("/api/v1/lifts", get(lifts))

@@ -9,7 +9,9 @@ use axum::http::StatusCode;
 use axum::Json;
 use serde::{Deserialize, Serialize};
 
-use super::{allowed, error, ApiError, ApiJson, App, Caller};
+use crate::auth::{allowed, Caller};
+use crate::errors::{error, ApiError, ApiJson};
+use crate::state::AppState;
 use cloud_types::users::{KeyInfo, Role, User};
 
 use cloud_store::UserError;
@@ -72,7 +74,7 @@ const NAME_MAX: usize = 64;
 
 /// `GET /api/v1/users`.
 pub(super) async fn list(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     caller: Caller,
 ) -> Result<Json<Vec<User>>, ApiError> {
     let admin = allowed(caller, Role::Admin)?;
@@ -81,7 +83,7 @@ pub(super) async fn list(
 
 /// `POST /api/v1/users`: 201 with the secret; 409 when the name is taken.
 pub(super) async fn add(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     caller: Caller,
     ApiJson(body): ApiJson<NewUser>,
 ) -> Result<(StatusCode, Json<UserSecret>), ApiError> {
@@ -108,7 +110,7 @@ pub(super) async fn add(
 
 /// `PUT /api/v1/users/{name}/role`.
 pub(super) async fn role(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     caller: Caller,
     Path(name): Path<String>,
     ApiJson(body): ApiJson<NewRole>,
@@ -123,7 +125,7 @@ pub(super) async fn role(
 
 /// `POST /api/v1/users/{name}/disable`: its keys and sessions stop working.
 pub(super) async fn disable(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     caller: Caller,
     Path(name): Path<String>,
 ) -> Result<StatusCode, ApiError> {
@@ -135,7 +137,7 @@ pub(super) async fn disable(
 
 /// `POST /api/v1/users/{name}/reset`: a new sign-in secret, shown once.
 pub(super) async fn reset(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     caller: Caller,
     Path(name): Path<String>,
 ) -> Result<Json<UserSecret>, ApiError> {
@@ -153,7 +155,7 @@ pub(super) async fn reset(
 
 /// `GET /api/v1/keys`.
 pub(super) async fn keys(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     caller: Caller,
 ) -> Result<Json<Vec<KeyInfo>>, ApiError> {
     let admin = allowed(caller, Role::Admin)?;
@@ -162,7 +164,7 @@ pub(super) async fn keys(
 
 /// `POST /api/v1/keys`: 201 with the key, shown once.
 pub(super) async fn add_key(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     caller: Caller,
     ApiJson(body): ApiJson<NewKey>,
 ) -> Result<(StatusCode, Json<KeySecret>), ApiError> {
@@ -180,7 +182,7 @@ pub(super) async fn add_key(
 
 /// `DELETE /api/v1/keys/{id}`: it stops working.
 pub(super) async fn revoke(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     caller: Caller,
     Path(id): Path<String>,
 ) -> Result<StatusCode, ApiError> {

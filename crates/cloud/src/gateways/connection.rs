@@ -14,8 +14,8 @@ use nxg::msg::{Connect, Event, Notification};
 use nxg::portal::{Failure, Output, RequestId, Session};
 
 use super::mailbox::{Letter, Mailbox};
+use super::reports::Report;
 use super::{dashboard, Calls, Reply, Shared};
-use crate::alarms::Input;
 use crate::config::BoardhashChange;
 use cloud_types::audit::AuditEntry;
 use cloud_types::live::LiftEvent;
@@ -267,7 +267,7 @@ impl Connection {
                 self.register(&lift, &connect, api, subscribed);
                 tracing::info!(%lift, %peer, api, first, "gateway online");
                 self.shared.registry.publish(&lift, LiftEvent::Online(true));
-                self.shared.alarms.report(Input::Online(lift)).await;
+                self.shared.reports.report(Report::Online(lift)).await;
                 out
             }
         }
@@ -328,7 +328,7 @@ impl Connection {
         self.shared.telemetry.offer(row)
     }
 
-    /// A bus event: to live viewers, and to the alarm service, which stores it.
+    /// A bus event: to live viewers, and reported (the alarm service stores it).
     fn event(&self, event: Event) {
         let Some(a) = &self.admitted else {
             return;
@@ -336,7 +336,7 @@ impl Connection {
         self.shared
             .registry
             .publish(&a.lift, LiftEvent::Bus(event.clone()));
-        self.shared.alarms.event(a.lift.clone(), event);
+        self.shared.reports.event(a.lift.clone(), event);
     }
 
     /// The connection is over: open requests fail, the lift goes offline (unless a newer
@@ -362,8 +362,8 @@ impl Connection {
                 .registry
                 .publish(&a.lift, LiftEvent::Online(false));
             self.shared
-                .alarms
-                .report(Input::Offline(a.lift.clone()))
+                .reports
+                .report(Report::Offline(a.lift.clone()))
                 .await;
         }
         tracing::info!(lift = %a.lift, %peer, %cause, "gateway offline");
@@ -407,8 +407,8 @@ async fn board_changed(
         )));
     }
     if policy == BoardhashChange::Alarm {
-        let input = Input::BoardChanged { lift, was, now };
-        shared.alarms.report(input).await;
+        let report = Report::BoardChanged { lift, was, now };
+        shared.reports.report(report).await;
     }
     Ok(Admission::Known(known))
 }

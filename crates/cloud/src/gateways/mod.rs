@@ -10,6 +10,7 @@ mod dashboard;
 pub mod local;
 mod mailbox;
 pub mod records;
+pub mod reports;
 pub mod subscriptions;
 pub mod telemetry;
 
@@ -406,8 +407,8 @@ pub struct Shared {
     pub dashboard: Arc<Dashboard>,
     /// Who holds which subscriptions, registered again on every connection.
     pub subscriptions: Arc<subscriptions::Subscriptions>,
-    /// Where bus events and connection changes go to become alarms.
-    pub alarms: Arc<crate::alarms::Alarms>,
+    /// Where bus events and connection changes are reported (to become alarms).
+    pub reports: reports::Reports,
     /// Turns true when the portal stops: every connection closes.
     pub closing: tokio::sync::watch::Receiver<bool>,
     /// Messages per second a gateway may send (`[gateways] max_messages_per_s`).

@@ -15,7 +15,7 @@ use super::i18n::Locale;
 use super::page::{layout, problem, time, unavailable};
 use super::SignedIn;
 use crate::alarms::service::AckError;
-use crate::api::App;
+use crate::state::AppState;
 use cloud_store::AlarmFilter;
 use cloud_types::alarms::{Alarm, Severity};
 use cloud_types::users::Role;
@@ -115,7 +115,7 @@ pub(super) fn event_log(events: &[Event], l: Locale) -> Markup {
     }
 }
 
-pub(super) async fn alarms_page(State(app): State<Arc<App>>, who: SignedIn) -> Response {
+pub(super) async fn alarms_page(State(app): State<Arc<AppState>>, who: SignedIn) -> Response {
     let l = who.locale;
     let domain = &who.session.operator.account.domain;
     let active = AlarmFilter {
@@ -165,7 +165,7 @@ pub(super) struct AckForm {
 
 /// `POST /alarms/{id}/ack` from the acknowledge form; back to the page it came from.
 pub(super) async fn acknowledge(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     who: SignedIn,
     Path(id): Path<String>,
     Form(form): Form<AckForm>,

@@ -9,7 +9,7 @@ use maud::html;
 use super::i18n::Locale;
 use super::page::{layout, time, unavailable};
 use super::SignedIn;
-use crate::api::App;
+use crate::state::AppState;
 
 /// An audit result as people read it: `error 134217761` is stored (the gateway's code), the
 /// page says `08000021h: Access denied …`; JSON-RPC's negative codes get their meaning.
@@ -33,7 +33,7 @@ fn result_text(result: &str, l: Locale) -> String {
     }
 }
 
-pub(super) async fn audit_page(State(app): State<Arc<App>>, who: SignedIn) -> Response {
+pub(super) async fn audit_page(State(app): State<Arc<AppState>>, who: SignedIn) -> Response {
     let l = who.locale;
     let entries = match app
         .store

@@ -16,8 +16,8 @@ use super::alarms::severity_badge;
 use super::i18n::Locale;
 use super::page::{layout, time, unavailable};
 use super::SignedIn;
-use crate::api::App;
 use crate::gateways::LiftStatus;
+use crate::state::AppState;
 use cloud_types::alarms::Alarm;
 use cloud_types::lifts::LiftRecord;
 
@@ -160,7 +160,7 @@ struct Row<'a> {
 }
 
 pub(super) async fn fleet(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     who: SignedIn,
     Query(query): Query<FleetQuery>,
 ) -> Response {

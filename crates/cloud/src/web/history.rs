@@ -16,7 +16,7 @@ use super::i18n::Locale;
 use super::lift::{describe, Described};
 use super::page::{layout, problem, time, unavailable, utc};
 use super::{owned, SignedIn};
-use crate::api::App;
+use crate::state::AppState;
 
 /// Objects on one page at most.
 const MAX_SERIES: usize = 6;
@@ -83,7 +83,7 @@ struct Series {
 /// The objects of `q` on lift `id` with their values in its period, or the page that says why
 /// not.
 async fn shown(
-    app: &App,
+    app: &AppState,
     who: &SignedIn,
     id: &str,
     q: &HistoryQuery,
@@ -124,7 +124,7 @@ async fn shown(
 /// `GET /lifts/{id}/history.csv?mplex=&minutes=` (or `from`/`to`): what the page shows, as CSV
 /// (RFC 4180): `time,object,value` with UTC times (ISO 8601).
 pub(super) async fn history_csv(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     who: SignedIn,
     Path(id): Path<String>,
     Query(q): Query<HistoryQuery>,
@@ -277,7 +277,7 @@ fn state_chart(
 }
 
 pub(super) async fn history_page(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     who: SignedIn,
     Path(id): Path<String>,
     Query(q): Query<HistoryQuery>,

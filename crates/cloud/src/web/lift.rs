@@ -16,7 +16,7 @@ use serde::Deserialize;
 use super::i18n::Locale;
 use super::page::{layout, online_badge, time, unavailable};
 use super::{owned, SignedIn};
-use crate::api::{read_params, App};
+use crate::state::AppState;
 use cloud_types::api::Form;
 use cloud_types::users::Role;
 
@@ -233,11 +233,11 @@ fn unit(u: PhysUnit, l: Locale) -> &'static str {
 
 /// Read full metadata of `mplexes` from the lift's gateway, all at once, each waiting at most
 /// [`READ_TIMEOUT`].
-async fn read_all(app: &App, lift: &str, mplexes: &[Mplex], l: Locale) -> Vec<Object> {
+async fn read_all(app: &AppState, lift: &str, mplexes: &[Mplex], l: Locale) -> Vec<Object> {
     let online = app.registry.online(lift);
     let reads = mplexes.iter().map(|&mplex| async move {
         let answer = if online {
-            let params = read_params(mplex.into(), Lang::new(l.code(), "en"), Form::Full);
+            let params = Form::Full.get(mplex.into(), Lang::new(l.code(), "en"));
             match tokio::time::timeout(READ_TIMEOUT, app.registry.call(lift, &params)).await {
                 Ok(Ok(v)) => Ok(v),
                 Ok(Err(Failure::Error(e))) => Err(e.to_string()),
@@ -267,7 +267,7 @@ pub(super) struct Described {
 /// Names, units and choices of `mplexes` from the lift's gateway (the mplex itself where the
 /// lift is offline or does not say).
 pub(super) async fn describe(
-    app: &App,
+    app: &AppState,
     lift: &str,
     mplexes: &[Mplex],
     l: Locale,
@@ -350,7 +350,7 @@ fn edit_dialog(l: Locale) -> Markup {
 }
 
 pub(super) async fn lift_page(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     who: SignedIn,
     Path(id): Path<String>,
     Query(q): Query<LiftQuery>,

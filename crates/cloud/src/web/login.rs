@@ -13,8 +13,8 @@ use serde::Deserialize;
 
 use super::i18n::Locale;
 use super::page::{layout, problem, unavailable, Viewer};
-use super::session::{Credential, COOKIE, IDLE};
-use crate::api::App;
+use crate::auth::sessions::{Credential, COOKIE, IDLE};
+use crate::state::AppState;
 
 pub(super) async fn login_page(locale: Locale) -> Response {
     login_form(None, locale)
@@ -66,7 +66,7 @@ pub(super) struct LoginForm {
 }
 
 pub(super) async fn login(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     ConnectInfo(peer): ConnectInfo<SocketAddr>,
     locale: Locale,
     Form(form): Form<LoginForm>,
@@ -80,7 +80,12 @@ pub(super) async fn login(
         "(API key)"
     };
     let address = peer.ip().to_string();
-    let sign_ins = || app.sign_ins.lock().unwrap_or_else(PoisonError::into_inner);
+    let sign_ins = || {
+        app.auth
+            .sign_ins
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+    };
     let waiting = sign_ins().check(name, &address, Instant::now());
     if let Err(wait) = waiting {
         tracing::warn!(user = name, %address, wait_s = wait.as_secs(), "sign-in throttled");
@@ -95,7 +100,7 @@ pub(super) async fn login(
             .into_response();
         response
             .headers_mut()
-            .insert(header::RETRY_AFTER, crate::api::retry_after(wait));
+            .insert(header::RETRY_AFTER, crate::errors::retry_after(wait));
         return response;
     }
     let signed_in = if key.is_empty() {
@@ -115,6 +120,7 @@ pub(super) async fn login(
             sign_ins().succeeded(name, &address);
             tracing::info!(user = %operator.user, account = %operator.account.name, "web sign-in");
             let id = match app
+                .auth
                 .sessions
                 .open(operator, credential, epoch, &app.store)
                 .await
@@ -156,12 +162,12 @@ pub(super) struct LogoutForm {
 }
 
 pub(super) async fn logout(
-    State(app): State<Arc<App>>,
+    State(app): State<Arc<AppState>>,
     locale: Locale,
     headers: HeaderMap,
     Form(form): Form<LogoutForm>,
 ) -> Response {
-    let session = match app.sessions.get(&headers, &app.store).await {
+    let session = match app.auth.sessions.get(&headers, &app.store).await {
         Ok(session) => session,
         Err(e) => return database_down(e, locale),
     };
@@ -173,7 +179,7 @@ pub(super) async fn logout(
             };
             return problem(StatusCode::FORBIDDEN, viewer, locale.t("Wrong CSRF token."));
         }
-        if let Err(e) = app.sessions.close(&headers, &app.store).await {
+        if let Err(e) = app.auth.sessions.close(&headers, &app.store).await {
             return database_down(e, locale);
         }
     }

@@ -13,7 +13,6 @@ mod i18n;
 mod lift;
 mod login;
 mod page;
-pub mod session;
 
 use std::sync::Arc;
 
@@ -24,11 +23,11 @@ use axum::response::{Redirect, Response};
 use axum::routing::{get, post};
 use axum::Router;
 
-use crate::api::App;
+use crate::auth::sessions::Session;
+use crate::state::AppState;
 use cloud_types::lifts::LiftRecord;
 use i18n::Locale;
 use page::Viewer;
-pub use session::{Credential, Session, Sessions};
 
 /// A page's signed-in browser and its language; without a session, the page redirects to the
 /// sign-in form.
@@ -46,12 +45,12 @@ impl SignedIn {
     }
 }
 
-impl FromRequestParts<Arc<App>> for SignedIn {
+impl FromRequestParts<Arc<AppState>> for SignedIn {
     type Rejection = Redirect;
 
-    async fn from_request_parts(parts: &mut Parts, app: &Arc<App>) -> Result<Self, Redirect> {
+    async fn from_request_parts(parts: &mut Parts, app: &Arc<AppState>) -> Result<Self, Redirect> {
         let Ok(locale) = Locale::from_request_parts(parts, app).await;
-        match app.sessions.current(&parts.headers, &app.store).await {
+        match app.auth.sessions.current(&parts.headers, &app.store).await {
             Ok(Some(session)) => Ok(SignedIn { session, locale }),
             // Rights changed and could not be checked again: sign in anew.
             Ok(None) | Err(_) => Err(Redirect::to("/login")),
@@ -60,7 +59,7 @@ impl FromRequestParts<Arc<App>> for SignedIn {
 }
 
 /// The lift, if it is one of the signed-in account's (a 404 page otherwise).
-async fn owned(app: &App, who: &SignedIn, id: &str) -> Result<LiftRecord, Response> {
+async fn owned(app: &AppState, who: &SignedIn, id: &str) -> Result<LiftRecord, Response> {
     match app
         .store
         .lift(&who.session.operator.account.domain, id)
@@ -100,7 +99,7 @@ async fn harden(mut response: Response) -> Response {
 }
 
 /// The UI's routes.
-pub fn routes(app: Arc<App>) -> Router {
+pub fn routes(app: Arc<AppState>) -> Router {
     Router::new()
         .route("/", get(fleet::fleet))
         .route("/login", get(login::login_page).post(login::login))

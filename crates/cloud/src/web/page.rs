@@ -7,7 +7,7 @@ use maud::{html, Markup, PreEscaped, DOCTYPE};
 
 use super::assets;
 use super::i18n::Locale;
-use super::session::Session;
+use crate::auth::sessions::Session;
 use cloud_types::users::Role;
 
 use cloud_store::StoreError;

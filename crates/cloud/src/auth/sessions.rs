@@ -3,7 +3,7 @@
 //! SHA-256 digest, in the database (so that every process of a cluster, and the portal after a
 //! restart, knows it) and cached in memory; ended after 12 h without a request. Changes through
 //! the REST API with the cookie also need the session's CSRF token (see
-//! [`crate::api::Caller`]). When rights change anywhere, or a session is signed out anywhere,
+//! [`crate::auth::Caller`]). When rights change anywhere, or a session is signed out anywhere,
 //! the auth epoch rises and each session is checked again before its next request: a disabled
 //! user's, a revoked key's or a signed-out session ends on every process.
 
@@ -18,9 +18,9 @@ use cloud_types::users::Operator;
 use cloud_store::{SessionRecord, Store, StoreError};
 
 /// The cookie's name.
-pub(super) const COOKIE: &str = "canlift_session";
+pub const COOKIE: &str = "canlift_session";
 /// A session ends after this long without a request.
-pub(super) const IDLE: Duration = Duration::from_secs(12 * 3600);
+pub const IDLE: Duration = Duration::from_secs(12 * 3600);
 /// How often a session in use has its time of last use written to the database.
 const TOUCH: Duration = Duration::from_secs(60);
 /// Sessions cached at most; the least recently used go first (they stay in the database).
@@ -33,7 +33,7 @@ pub struct Session {
     pub operator: Operator,
     /// The auth epoch it was last checked in.
     epoch: i64,
-    pub(super) csrf: String,
+    pub(crate) csrf: String,
     last_used: Instant,
     /// When its last use was written to the database.
     touched: Instant,
@@ -195,7 +195,7 @@ impl Sessions {
 
     /// Open a session for `operator`, signed in with `credential` in auth epoch `epoch`; the
     /// cookie value to set.
-    pub(super) async fn open(
+    pub async fn open(
         &self,
         operator: Operator,
         credential: Credential,
@@ -223,7 +223,7 @@ impl Sessions {
     }
 
     /// Sign the request's session out, here and (through the database) everywhere.
-    pub(super) async fn close(&self, headers: &HeaderMap, store: &Store) -> Result<(), StoreError> {
+    pub async fn close(&self, headers: &HeaderMap, store: &Store) -> Result<(), StoreError> {
         if let Some(id) = cookie(headers) {
             let digest = cloud_store::digest(id);
             self.cache().remove(&digest);

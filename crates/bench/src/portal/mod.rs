@@ -8,6 +8,8 @@
 //! ingest into the database (stored and dropped per second); operator get latency through the
 //! portal against the same gateway read directly and through a bare relay process.
 
+mod curves;
+
 use std::path::{Path, PathBuf};
 use std::process::Stdio;
 use std::time::{Duration, Instant};
@@ -753,7 +755,7 @@ async fn measure(args: &PortalBench, dir: &Path) -> anyhow::Result<()> {
                     ingest(args, &portal, dir).await?;
                 }
                 Phase::Latency => latency(args, &portal, dir).await?,
-                Phase::Curves => crate::curves::curves(args, &portal, dir, &args.curves).await?,
+                Phase::Curves => curves::curves(args, &portal, dir, &args.curves).await?,
             }
         }
         anyhow::Ok(())

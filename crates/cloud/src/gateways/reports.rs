@@ -1,0 +1,75 @@
+//! What gateway connections report beyond their values: bus events (api 2, docs/PROTOCOL.md
+//! §Events) and changes of their connection, on a bounded queue to whoever keeps alarms
+//! (docs/PORTAL.md §Alarms). The connections know nothing of alarms; the alarm service reads
+//! the queue.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+
+use nxg::msg::Event;
+use tokio::sync::mpsc;
+
+/// What a gateway connection reports.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Report {
+    /// A bus event of the lift.
+    Event {
+        /// The lift.
+        lift: String,
+        /// The event.
+        event: Event,
+    },
+    /// The lift's gateway is connected.
+    Online(String),
+    /// The lift's gateway went away.
+    Offline(String),
+    /// The lift's gateway connected from another board (boardhashes `was` → `now`).
+    BoardChanged {
+        /// The lift.
+        lift: String,
+        /// The boardhash on record.
+        was: String,
+        /// The one the gateway sent.
+        now: String,
+    },
+}
+
+/// The connections' end of the queue of reports.
+#[derive(Clone)]
+pub struct Reports {
+    tx: mpsc::Sender<Report>,
+    dropped: Arc<AtomicU64>,
+}
+
+impl Reports {
+    /// A queue of `capacity` reports, and its reading end.
+    pub fn channel(capacity: usize) -> (Reports, mpsc::Receiver<Report>) {
+        let (tx, rx) = mpsc::channel(capacity.max(1));
+        let dropped = Arc::default();
+        (Reports { tx, dropped }, rx)
+    }
+
+    /// Report a change of a lift's connection: it always waits for room (there are few).
+    pub async fn report(&self, report: Report) {
+        match report {
+            Report::Event { lift, event } => self.event(lift, event),
+            other => {
+                let _ = self.tx.send(other).await;
+            }
+        }
+    }
+
+    /// Report a bus event of `lift`, or drop and count it when the queue is full. Not `async`:
+    /// a gateway connection's task calls it for every event it receives, and an awaited call
+    /// would size that long-lived task by its future.
+    pub fn event(&self, lift: String, event: Event) {
+        if self.tx.try_send(Report::Event { lift, event }).is_err() {
+            self.dropped.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    /// Events dropped because the queue was full.
+    pub fn dropped(&self) -> u64 {
+        self.dropped.load(Ordering::Relaxed)
+    }
+}
