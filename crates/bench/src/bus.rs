@@ -279,7 +279,7 @@ pub(crate) async fn run_node_bench(args: NodeBench) -> anyhow::Result<()> {
     mem_node.stop().await;
 
     // 4. SYNC producer jitter at 1 ms.
-    let sdo = canopen::driver::SdoClients::new(Bus::open(&url).await?, Default::default());
+    let sdo = canopen::sdo::clients::SdoClients::new(Bus::open(&url).await?, Default::default());
     sdo.write(5, 0x1006, 0, 1000u32).await?;
     sdo.write(5, 0x1005, 0, 0x4000_0080u32).await?;
     while peer.receiver.try_recv().is_some() {}
@@ -510,9 +510,10 @@ fn kib_s(bytes: usize, elapsed: Duration) -> f64 {
 }
 
 pub(crate) async fn run_sdo_bench(args: SdoBench) -> anyhow::Result<()> {
-    use canopen::driver::{serve_sdo, SdoClients, TransferOptions};
     use canopen::od::{Access, Object, ObjectDictionary, Variable};
     use canopen::sdo::client::{ClientConfig, Transfer};
+    use canopen::sdo::clients::{SdoClients, TransferOptions};
+    use canopen::sdo::serve::serve_sdo;
     use canopen::sdo::server::ServerConfig;
     use canopen::types::{DataType, Value};
 

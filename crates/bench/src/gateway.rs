@@ -245,7 +245,7 @@ async fn requests(ws: &mut Ws, what: &str, args: &GatewayBench) -> anyhow::Resul
 
 async fn notifications(
     ws: &mut Ws,
-    od: canopen::driver::SharedDictionary,
+    od: canopen::od::SharedDictionary,
     seconds: u64,
 ) -> anyhow::Result<()> {
     let reg = r#"{"jsonrpc":"2.0","id":"r","method":"reg_canopen_object","params":{"mplex":["0x652001"],"inhibit":0,"threshold":0}}"#;

@@ -12,17 +12,13 @@
 //! communication objects.
 //!
 //! The tokio edge (feature `tokio`, on by default): `node::LocalNode` runs a device,
-//! [`master::Master`] commands a network, [`driver::SdoClients`] and [`driver::serve_sdo`] do SDO
-//! alone.
+//! [`master::Master`] commands a network, `sdo::clients::SdoClients` and `sdo::serve::serve_sdo`
+//! do SDO alone, [`wake`] wakes their loops at their cores' deadlines.
 
 #![warn(missing_docs)]
 
-#[cfg(feature = "tokio")]
-mod alarm;
 pub mod ascii;
 pub mod cob;
-#[cfg(feature = "tokio")]
-pub mod driver;
 pub mod eds;
 pub mod emcy;
 pub mod guarding;
@@ -43,3 +39,5 @@ pub mod sync;
 mod tick;
 pub mod time;
 pub mod types;
+#[cfg(feature = "tokio")]
+pub mod wake;

@@ -28,12 +28,13 @@ use canbus::{Bus, BusError, BusSender, CanId};
 use tokio::sync::broadcast;
 use tokio::task::JoinHandle;
 
-use crate::driver::{sleep_until, SdoClients};
 use crate::emcy::EmcyMessage;
 use crate::heartbeat::{HeartbeatConsumer, HeartbeatEvent, NodeState};
 use crate::nmt::NmtCommand;
 use crate::pdo::{MapEntry, PdoValues};
 use crate::sdo::client::ClientConfig;
+use crate::sdo::clients::SdoClients;
+use crate::wake::sleep_until;
 
 /// What the master hears.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -224,7 +225,7 @@ impl Master {
         &self,
         node: u8,
         id: crate::pdo::remote::PdoId,
-    ) -> Result<Option<crate::pdo::remote::RemotePdo>, crate::driver::ClientError> {
+    ) -> Result<Option<crate::pdo::remote::RemotePdo>, crate::sdo::clients::ClientError> {
         crate::pdo::remote::read(&self.sdo, node, id).await
     }
 

@@ -356,6 +356,9 @@ impl Object {
     }
 }
 
+/// A dictionary shared between the protocol tasks and the application.
+pub type SharedDictionary = Arc<std::sync::Mutex<ObjectDictionary>>;
+
 /// Called with (index, sub-index) after every successful write or set.
 pub type Watcher = Arc<dyn Fn(u16, u8) + Send + Sync>;
 

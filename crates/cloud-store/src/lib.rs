@@ -47,7 +47,7 @@ const PING_IDLE: std::time::Duration = std::time::Duration::from_secs(1);
 const SLOW: std::time::Duration = std::time::Duration::from_secs(1);
 
 /// `statement` (`rows` rows of `what`), with one short warning when it took longer than a second.
-/// sqlx's own warning about slow statements is turned down to debug ([`quiet`]): it
+/// sqlx's own warning about slow statements is turned down to debug (`quiet`): it
 /// carries the statement's whole text, kilobytes for a batch, once per batch while the database
 /// is slow.
 pub async fn timed<T>(

@@ -1,9 +1,9 @@
 //! The cloud portal: the server side of the NXg CANopen-Lift Connector — the gateways'
 //! connections and registry ([`gateways`]), bus events and alarms with their webhooks
-//! ([`alarms`]), the store ([`store`]) with users and roles, who elevated which lift
-//! ([`elevation`]), the operator REST API
-//! ([`api`], its bodies in [`rest`]) with its client ([`client`]), the web UI ([`web`]), the
-//! one TLS port serving them all ([`server`]) and the processes of a cluster ([`cluster`]).
+//! ([`alarms`]), who may do what ([`auth`]), the operator REST API ([`api`]) and the web UI
+//! ([`web`]) over one shared [`state`], the operators' client ([`client`]), and the one TLS
+//! port serving them all ([`server`]). Beneath it: its vocabulary (`cloud-types`), its
+//! database (`cloud-store`) and the processes of a cluster (`cloud-cluster`).
 
 #![warn(missing_docs)]
 
@@ -19,5 +19,4 @@ mod memory;
 pub mod server;
 pub mod state;
 pub mod throttle;
-mod timer;
 pub mod web;

@@ -320,12 +320,12 @@ impl Portal {
         ];
         tasks.extend([
             tokio::spawn(telemetry::retention(
-                telemetry::Kept::Telemetry,
+                telemetry::Retained::Telemetry,
                 store.clone(),
                 config.database.telemetry_days,
             )),
             tokio::spawn(telemetry::retention(
-                telemetry::Kept::Events,
+                telemetry::Retained::Events,
                 store.clone(),
                 config.database.events_days,
             )),

@@ -33,7 +33,7 @@ fn session(now: Instant) -> (Session, Vec<u8>) {
     );
     let connack = r#"{"jsonrpc":"2.0","id":1,"result":"CONNACK","api":2}"#;
     let _ = session.connect();
-    let _ = session.text(connack, now);
+    let _ = session.handle_text(connack, now);
     assert!(matches!(session.phase(), Phase::Connected(_)));
     (session, value)
 }
@@ -54,10 +54,10 @@ fn bench(c: &mut Criterion) {
             let (mut session, value) = session(now);
             b.iter(|| {
                 let mut answer = None;
-                for output in session.text(black_box(&request), now) {
+                for output in session.handle_text(black_box(&request), now) {
                     if let Output::Start(id, _) = output {
                         let read = JobResult::Read(vec![value.clone()]);
-                        answer = session.complete(id, read, now).into_iter().next();
+                        answer = session.handle_job(id, read, now).into_iter().next();
                     }
                 }
                 match answer {

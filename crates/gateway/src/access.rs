@@ -4,13 +4,14 @@
 use std::collections::HashMap;
 use std::sync::PoisonError;
 
-use canopen::driver::{SdoClients, SharedDictionary};
+use canopen::od::SharedDictionary;
 use canopen::sdo::abort::AbortCode;
+use canopen::sdo::clients::SdoClients;
 use nxg::gateway::{Job, JobResult, Target};
 
-/// Where values come from.
+/// The objects the gateway serves, and how it reaches them.
 #[derive(Clone)]
-pub enum Backend {
+pub enum Objects {
     /// SDO clients per `net`.
     Bus(HashMap<u8, SdoClients>),
     /// The dictionary of the controller the gateway is linked into; `node` is its node-ID.
@@ -22,7 +23,7 @@ pub enum Backend {
     },
 }
 
-impl Backend {
+impl Objects {
     /// Run `job` (not `StoreToken`, which the connection handles).
     pub async fn run(&self, job: Job) -> JobResult {
         match job {
@@ -60,14 +61,14 @@ impl Backend {
     /// Where requests for `target` go.
     fn route(&self, target: Target) -> Result<Route<'_>, AbortCode> {
         match self {
-            Backend::Bus(nets) => nets
+            Objects::Bus(nets) => nets
                 .get(&target.net)
                 .map(Route::Sdo)
                 .ok_or(AbortCode::NO_OBJECT),
-            Backend::Local { od, node } if target.node == *node && target.net == 1 => {
+            Objects::Local { od, node } if target.node == *node && target.net == 1 => {
                 Ok(Route::Local(od))
             }
-            Backend::Local { .. } => Err(AbortCode::NO_OBJECT),
+            Objects::Local { .. } => Err(AbortCode::NO_OBJECT),
         }
     }
 

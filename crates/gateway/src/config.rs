@@ -136,7 +136,7 @@ impl SdoChannel {
 }
 
 impl NodeSection {
-    /// The node's SDO client channels for [`canopen::driver::SdoClients::with_channels`].
+    /// The node's SDO client channels for [`canopen::sdo::clients::SdoClients::with_channels`].
     pub fn client_channels(&self) -> impl Iterator<Item = (u8, CanId, CanId)> + '_ {
         self.sdo_channels.iter().map(|c| {
             let (request, response) = c.ids();

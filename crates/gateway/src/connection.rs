@@ -17,7 +17,7 @@ use tokio_tungstenite::tungstenite::protocol::frame::coding::CloseCode;
 use tokio_tungstenite::tungstenite::protocol::{CloseFrame, WebSocketConfig};
 use tokio_tungstenite::tungstenite::Message;
 
-use crate::access::Backend;
+use crate::access::Objects;
 use crate::feed::{Feed, Update};
 use crate::Shared;
 
@@ -193,7 +193,7 @@ where
             message = self.ws.next() => Wake::Message(message),
             Some((id, result)) = self.jobs.recv() => Wake::Job(id, result),
             Some(update) = self.feed.recv() => Wake::Update(update),
-            _ = canopen::driver::sleep_until(deadline) => Wake::Timer,
+            _ = canopen::wake::sleep_until(deadline) => Wake::Timer,
             _ = self.shared.events_ready.notified() => Wake::Events,
             _ = self.ping.tick() => Wake::Ping,
             _ = self.shutdown.changed() => Wake::Shutdown,
@@ -294,7 +294,7 @@ where
                 break;
             };
             match start_job(shared, id, job, job_tx.clone()) {
-                Some(result) => outputs.extend(session.complete(id, result, Instant::now())),
+                Some(result) => outputs.extend(session.handle_job(id, result, Instant::now())),
                 None => running += 1,
             }
         }
@@ -334,13 +334,13 @@ where
             Wake::Message(message) => {
                 let now = Instant::now();
                 match message {
-                    Some(Ok(Message::Text(text))) => session.text(text.as_str(), now),
+                    Some(Ok(Message::Text(text))) => session.handle_text(text.as_str(), now),
                     Some(Ok(Message::Ping(_) | Message::Pong(_))) => {
-                        session.activity(now);
+                        session.handle_activity(now);
                         Vec::new()
                     }
                     Some(Ok(Message::Binary(_))) => {
-                        session.activity(now);
+                        session.handle_activity(now);
                         tracing::warn!("binary message ignored: the connector speaks JSON text");
                         Vec::new()
                     }
@@ -367,12 +367,12 @@ where
             }
             Wake::Job(id, result) => {
                 running -= 1;
-                session.complete(id, result, Instant::now())
+                session.handle_job(id, result, Instant::now())
             }
             Wake::Update((target, index, sub, bytes)) => {
-                session.bytes(target, index, sub, &bytes, Instant::now())
+                session.handle_bytes(target, index, sub, &bytes, Instant::now())
             }
-            Wake::Timer => session.timeout(Instant::now()),
+            Wake::Timer => session.handle_timeout(Instant::now()),
             Wake::Events => session.deliver_events(),
             Wake::Ping => {
                 if let Err(e) = ws.send(Message::Ping(Vec::new().into())).await {
@@ -424,12 +424,12 @@ fn start_job(
             None
         }
         job => {
-            let backend = shared.backend.clone();
-            let mut run = Box::pin(async move { backend.run(job).await });
+            let objects = shared.objects.clone();
+            let mut run = Box::pin(async move { objects.run(job).await });
             // The local dictionary answers at once: in this round, with no task and no wake-up.
             // An SDO transfer is polled first in a task of its own, so its wake-ups go there
             // alone.
-            if matches!(shared.backend, Backend::Local { .. }) {
+            if matches!(shared.objects, Objects::Local { .. }) {
                 if let Some(result) = futures_util::FutureExt::now_or_never(run.as_mut()) {
                     return Some(result);
                 }

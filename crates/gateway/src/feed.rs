@@ -8,12 +8,13 @@ use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
 use canbus::{BusReceiver, CanId, Filter, Interface};
-use canopen::driver::{SdoClients, SharedDictionary};
+use canopen::od::SharedDictionary;
+use canopen::sdo::clients::SdoClients;
 use nxg::gateway::Target;
 use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
 
-use crate::access::Backend;
+use crate::access::Objects;
 
 /// A value for the session: which sub-object, and its bytes.
 pub type Update = (Target, u16, u8, Vec<u8>);
@@ -116,7 +117,7 @@ impl Feed {
     /// TPDOs of the lift controller on `bus` (an endpoint of its own) and SDO polling
     /// (bus-node mode).
     pub async fn bus(
-        backend: Backend,
+        objects: Objects,
         sdo: Option<SdoClients>,
         bus: Option<Interface>,
         controller: Target,
@@ -152,7 +153,7 @@ impl Feed {
                     if by_pdo {
                         continue;
                     }
-                    if let Ok(bytes) = backend.read(target, index, sub).await {
+                    if let Ok(bytes) = objects.read(target, index, sub).await {
                         if tx.send((target, index, sub, bytes)).await.is_err() {
                             return;
                         }

@@ -10,7 +10,7 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
-use canopen::driver::SharedDictionary;
+use canopen::od::SharedDictionary;
 use lift417::catalog::{Catalog, Device};
 use tokio::sync::watch;
 use tokio::task::JoinHandle;

@@ -28,15 +28,16 @@ use std::time::{Duration, Instant};
 
 use canbus::backoff::Backoff;
 use canbus::{Bus, Interface};
-use canopen::driver::{SdoClients, SharedDictionary};
 use canopen::node::{LocalNode, NodeConfig};
 use canopen::od::ObjectDictionary;
+use canopen::od::SharedDictionary;
 use canopen::sdo::client::ClientConfig;
+use canopen::sdo::clients::SdoClients;
 use nxg::gateway::{Context, Target};
 use tokio::sync::{mpsc, watch};
 use tracing::Instrument;
 
-use crate::access::Backend;
+use crate::access::Objects;
 use crate::config::{Config, NodeSection};
 use crate::feed::{Feed, LocalChanges, Update};
 use crate::metadata::BusMetadata;
@@ -85,7 +86,7 @@ pub struct Shared {
     token: TokenStore,
     context: Context,
     lockout: lockout::LockoutStore,
-    backend: Backend,
+    objects: Objects,
     mode: Mode,
     /// Whether a connection is in service (CONNACK came), for [`Gateway::online`].
     online: watch::Sender<bool>,
@@ -105,7 +106,7 @@ impl Shared {
         match &self.mode {
             Mode::Bus { sdo, bus } => {
                 Feed::bus(
-                    self.backend.clone(),
+                    self.objects.clone(),
                     Some(sdo.clone()),
                     Some(bus.clone()),
                     self.controller(),
@@ -221,7 +222,7 @@ impl Gateway {
         }
         let mode = Mode::Bus { sdo, bus };
         let mut gateway =
-            Gateway::assemble(config, tls, metadata, Backend::Bus(nets), mode, Some(node));
+            Gateway::assemble(config, tls, metadata, Objects::Bus(nets), mode, Some(node));
         let sink = supervision::Sink {
             queue: gateway.shared.context.events.clone(),
             ready: gateway.shared.events_ready.clone(),
@@ -263,7 +264,7 @@ impl Gateway {
             },
             description,
         );
-        let backend = Backend::Local {
+        let objects = Objects::Local {
             od: od.clone(),
             node: config.bus.lift_controller,
         };
@@ -272,7 +273,7 @@ impl Gateway {
             od,
         };
         Ok(Gateway::assemble(
-            config, tls, metadata, backend, mode, None,
+            config, tls, metadata, objects, mode, None,
         ))
     }
 
@@ -280,7 +281,7 @@ impl Gateway {
         config: Config,
         tls: Arc<rustls::ClientConfig>,
         metadata: BusMetadata,
-        backend: Backend,
+        objects: Objects,
         mode: Mode,
         node: Option<LocalNode>,
     ) -> Gateway {
@@ -301,7 +302,7 @@ impl Gateway {
                 lockout,
                 config,
                 tls,
-                backend,
+                objects,
                 mode,
                 online: watch::channel(false).0,
                 events_ready: Arc::default(),

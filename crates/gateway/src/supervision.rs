@@ -8,8 +8,9 @@ use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use canbus::{Bus, BusEvent as Link, CanId, Filter, ERR_FLAG};
-use canopen::driver::{sleep_until, SdoClients};
+use canopen::sdo::clients::SdoClients;
 use canopen::supervisor::{BusCondition, NodeStatus, Supervision, Supervisor};
+use canopen::wake::sleep_until;
 use nxg::gateway::{BusEvent, EventQueue, Happening};
 use nxg::msg::{BusState, NodeId, NodeRef, NodeState};
 use tokio::sync::{mpsc, Notify};

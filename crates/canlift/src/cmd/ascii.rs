@@ -10,10 +10,10 @@ use anyhow::Context;
 use canopen::ascii::{
     format_address, AsciiType, Failure, Internal, Job, LssJob, Outcome, Reply, Session, Step,
 };
-use canopen::driver::{ClientError, TransferOptions};
 use canopen::lss::{FastscanMaster, FastscanPart};
 use canopen::master::{LssError, Master};
 use canopen::sdo::client::{ClientConfig, Transfer};
+use canopen::sdo::clients::{ClientError, TransferOptions};
 use tokio::io::{AsyncBufReadExt, AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt, BufReader};
 use tokio::net::TcpListener;
 use tokio::sync::Semaphore;

@@ -6,11 +6,11 @@ use std::time::{Duration, UNIX_EPOCH};
 
 use anyhow::Context;
 use canbus::{Bus, BusEvent, BusUrl, CanId, Frame};
-use canopen::driver::SdoClients;
 use canopen::monitor::{decode_pdo, pdo_layouts, Meaning, PdoLayout, SdoTracker};
 use canopen::nmt::NmtState;
 use canopen::od::ObjectDictionary;
 use canopen::sdo::client::ClientConfig;
+use canopen::sdo::clients::SdoClients;
 
 /// Command-line arguments of `canlift dump`.
 #[derive(Debug, clap::Args)]

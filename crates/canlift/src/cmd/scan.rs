@@ -6,10 +6,10 @@
 use std::time::Duration;
 
 use anyhow::Context;
-use canopen::driver::SdoClients;
 use canopen::heartbeat::NodeState;
 use canopen::master::Master;
 use canopen::sdo::client::ClientConfig;
+use canopen::sdo::clients::SdoClients;
 use futures_util::future::join_all;
 use serde::Serialize;
 

@@ -9,8 +9,8 @@ use canbus::Bus;
 use canopen::ascii::AsciiType;
 
 use super::address::{Names, Resolved};
-use canopen::driver::{SdoClients, TransferOptions};
 use canopen::sdo::client::{ClientConfig, DownloadSource, FileSource, Transfer};
+use canopen::sdo::clients::{SdoClients, TransferOptions};
 use canopen::types::DataType;
 
 /// Command-line arguments of `canlift sdo`.

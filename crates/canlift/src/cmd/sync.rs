@@ -48,7 +48,7 @@ pub async fn run(args: SyncArgs) -> anyhow::Result<()> {
     let mut sent = 0u64;
     let produce = async {
         while args.count.is_none_or(|n| sent < n) {
-            canopen::driver::sleep_until(producer.poll_timeout()).await;
+            canopen::wake::sleep_until(producer.poll_timeout()).await;
             producer.handle_timeout(Instant::now(), &mut frames);
             for frame in frames.drain(..) {
                 bus.send(frame).await?;

@@ -11,11 +11,12 @@ use tokio::task::JoinHandle;
 
 use super::core::{Node, NodeOutput};
 use super::{NodeCommand, NodeConfig, NodeEvent, PdoSetup};
-use crate::driver::{sleep_until, SharedDictionary};
 use crate::nmt::{NmtCommand, NmtState};
 use crate::od::ObjectDictionary;
+use crate::od::SharedDictionary;
 use crate::sdo::abort::AbortCode;
 use crate::types::Value;
+use crate::wake::sleep_until;
 
 /// A CANopen device running on a bus.
 pub struct LocalNode {
@@ -206,7 +207,8 @@ impl Shell {
     ) {
         let (sender, mut receiver) = bus.split();
         // Microsecond wake-ups for SYNC periods and inhibit times; tokio's timer as fallback.
-        let alarm = crate::alarm::Alarm::new(&format!("canopen-node-{}", self.node.node_id())).ok();
+        let alarm =
+            crate::wake::PreciseWake::new(&format!("canopen-node-{}", self.node.node_id())).ok();
         self.step(|node, od, out| node.start(od, Instant::now(), out));
         loop {
             // What the last step changed (a communication parameter written by SDO) takes

@@ -6,8 +6,8 @@
 use std::fmt;
 
 use super::MapEntry;
-use crate::driver::{ClientError, SdoClients};
 use crate::sdo::abort::AbortCode;
+use crate::sdo::clients::{ClientError, SdoClients};
 
 /// Receive or transmit.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]

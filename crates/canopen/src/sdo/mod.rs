@@ -5,12 +5,17 @@
 //! Both machines take an 8-byte frame payload and the current time, and push the payloads to
 //! send into an output vector; [`server::SdoServer::poll_timeout`] /
 //! [`client::SdoClient::poll_timeout`] say when to call `handle_timeout`. The COB-IDs are the
-//! driver's business.
+//! business of the tasks that run them (feature `tokio`): `serve` runs the server on a bus,
+//! `clients` the async client.
 
 pub mod abort;
 pub mod client;
+#[cfg(feature = "tokio")]
+pub mod clients;
 pub mod crc;
 pub mod msg;
+#[cfg(feature = "tokio")]
+pub mod serve;
 pub mod server;
 
 use std::time::Duration;

@@ -249,7 +249,6 @@ pub async fn run(
             .into_iter()
             .chain(service.flush_at)
             .min();
-        let timer = crate::timer::sleep_until(next);
         tokio::select! {
             n = reports.recv_many(&mut received, BATCH) => {
                 if n == 0 {
@@ -262,7 +261,9 @@ pub async fn run(
                 let verdict = service.rules.acknowledged(&lift, kind);
                 service.apply(vec![verdict]);
             }
-            _ = timer => service.timers().await,
+            _ = tokio::time::sleep_until(next.unwrap_or_else(Instant::now)), if next.is_some() => {
+                service.timers().await
+            }
         }
     }
 }

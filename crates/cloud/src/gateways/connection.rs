@@ -148,7 +148,7 @@ impl Connection {
     /// Wait for the next thing to happen: a message, an operator request, replacement by a
     /// newer connection, or the session's timer.
     async fn next(&mut self) -> Result<Vec<Output>, String> {
-        let timer = crate::timer::sleep_until(self.session.poll_timeout());
+        let deadline = self.session.poll_timeout();
         tokio::select! {
             message = self.socket.recv() => {
                 let now = Instant::now();
@@ -163,7 +163,7 @@ impl Connection {
                 }
                 match message {
                     Some(Ok(Message::Text(text))) => {
-                        let out = self.session.text(text.as_str(), now);
+                        let out = self.session.handle_text(text.as_str(), now);
                         // An answer to one of the portal's own requests is not a message the
                         // gateway chose to send: those requests are limited where they are
                         // made (`max_in_flight`, the API keys' rates), and operators reading a
@@ -174,7 +174,7 @@ impl Connection {
                         Ok(out)
                     }
                     Some(Ok(Message::Ping(_) | Message::Pong(_))) => {
-                        self.session.activity(now);
+                        self.session.handle_activity(now);
                         Ok(Vec::new())
                     }
                     Some(Ok(Message::Binary(_))) => Err("binary message".into()),
@@ -208,7 +208,9 @@ impl Connection {
                 let _ = self.socket.send(Message::Close(None)).await;
                 Err("the portal is shutting down".into())
             }
-            _ = timer => Ok(self.session.timeout(Instant::now())),
+            _ = tokio::time::sleep_until(deadline.unwrap_or_else(Instant::now).into()), if deadline.is_some() => {
+                Ok(self.session.handle_timeout(Instant::now()))
+            }
         }
     }
 

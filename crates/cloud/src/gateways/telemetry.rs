@@ -163,7 +163,7 @@ const RETRY_LAST: std::time::Duration = std::time::Duration::from_secs(5);
 
 /// What is deleted after its retention time.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Kept {
+pub enum Retained {
     /// Pushed values (`[database] telemetry_days`).
     Telemetry,
     /// Bus events (`[database] events_days`).
@@ -171,7 +171,7 @@ pub enum Kept {
 }
 
 /// Delete `kept` rows older than `days` once an hour (and at start); 0 days keeps everything.
-pub async fn retention(kept: Kept, store: Store, days: u32) {
+pub async fn retention(kept: Retained, store: Store, days: u32) {
     if days == 0 {
         return;
     }
@@ -180,8 +180,8 @@ pub async fn retention(kept: Kept, store: Store, days: u32) {
         hourly.tick().await;
         let before = cloud_types::now_ms() - i64::from(days) * 86_400_000;
         let deleted = match kept {
-            Kept::Telemetry => store.forget_telemetry(before).await,
-            Kept::Events => store.forget_events(before).await,
+            Retained::Telemetry => store.forget_telemetry(before).await,
+            Retained::Events => store.forget_events(before).await,
         };
         match deleted {
             Ok(0) => {}

@@ -1,7 +1,7 @@
 //! The web UI: pages rendered on the server (maud templates: text is escaped unless a template
 //! says otherwise), one small script (`web/app.js`) for live values, local times and the edit
-//! dialog, one style sheet, no build step. One file per page; [`session`] keeps the signed-in
-//! browsers. Every response carries a Content-Security-Policy that allows only this origin's
+//! dialog, one style sheet, no build step. One file per page; [`crate::auth::sessions`] keeps the
+//! signed-in browsers. Every response carries a Content-Security-Policy that allows only this origin's
 //! script and style.
 
 mod alarms;

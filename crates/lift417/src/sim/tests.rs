@@ -125,7 +125,7 @@ async fn the_controller_serves_its_further_sdo_channels() {
         ..SimConfig::default()
     };
     let sim = Simulator::start(bus, config).await.unwrap();
-    let sdo = canopen::driver::SdoClients::with_channels(
+    let sdo = canopen::sdo::clients::SdoClients::with_channels(
         Bus::open(bus).await.unwrap(),
         Default::default(),
         &[(1, id(0x6A1), id(0x6C1))],
@@ -135,20 +135,20 @@ async fn the_controller_serves_its_further_sdo_channels() {
     assert_eq!(sdo.read::<u32>(1, 0x1201, 2).await.unwrap(), 0x6C1);
     // A client on the default channel moves it (CiA 301 §7.5.2.33): not while it is valid;
     // closed, moved, opened again, it answers on its new identifier only.
-    let default = canopen::driver::SdoClients::new(Bus::open(bus).await.unwrap(), fast());
+    let default = canopen::sdo::clients::SdoClients::new(Bus::open(bus).await.unwrap(), fast());
     assert!(default.write::<u32>(1, 0x1201, 1, 0x6A5).await.is_err());
     default
         .write::<u32>(1, 0x1201, 1, 0x8000_06A1)
         .await
         .unwrap();
     default.write::<u32>(1, 0x1201, 1, 0x6A5).await.unwrap();
-    let moved = canopen::driver::SdoClients::with_channels(
+    let moved = canopen::sdo::clients::SdoClients::with_channels(
         Bus::open(bus).await.unwrap(),
         fast(),
         &[(1, id(0x6A5), id(0x6C1))],
     );
     assert_eq!(moved.read::<u32>(1, 0x1201, 1).await.unwrap(), 0x6A5);
-    let old = canopen::driver::SdoClients::with_channels(
+    let old = canopen::sdo::clients::SdoClients::with_channels(
         Bus::open(bus).await.unwrap(),
         fast(),
         &[(1, id(0x6A1), id(0x6C1))],

@@ -28,7 +28,7 @@ use crate::msg::{
     RegParams, TokenParams, UnregEventParams, UnregParams,
 };
 
-/// A dictionary access the driver runs and reports back with [`Session::complete`].
+/// A dictionary access the driver runs and reports back with [`Session::handle_job`].
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Job {
     /// Read one sub-object.
@@ -107,9 +107,9 @@ pub enum Output {
     Send(String),
     /// Close the connection.
     Close(CloseReason),
-    /// Run a job and call [`Session::complete`] with its result.
+    /// Run a job and call [`Session::handle_job`] with its result.
     Start(JobId, Job),
-    /// Start feeding [`Session::value`] with changes of this sub-object.
+    /// Start feeding [`Session::handle_value`] with changes of this sub-object.
     Watch(Target, u16, u8),
     /// Stop feeding it.
     Unwatch(Target, u16, u8),
@@ -267,7 +267,7 @@ impl Session {
         }
     }
 
-    /// When to call [`Session::timeout`] next.
+    /// When to call [`Session::handle_timeout`] next.
     pub fn poll_timeout(&self) -> Option<Instant> {
         if self.phase == Phase::Closed {
             return None;
@@ -281,12 +281,12 @@ impl Session {
     }
 
     /// Something arrived (a text, a ping or pong): the connection is alive.
-    pub fn activity(&mut self, now: Instant) {
+    pub fn handle_activity(&mut self, now: Instant) {
         self.last_rx = now;
     }
 
     /// Time passed: pushes whose inhibit gap ended, or the end of a silent connection.
-    pub fn timeout(&mut self, now: Instant) -> Vec<Output> {
+    pub fn handle_timeout(&mut self, now: Instant) -> Vec<Output> {
         match self.phase {
             Phase::Closed => return Vec::new(),
             Phase::Connecting if now >= self.silence_deadline() => {
@@ -328,7 +328,7 @@ impl Session {
     }
 
     /// A text message from the portal.
-    pub fn text(&mut self, text: &str, now: Instant) -> Vec<Output> {
+    pub fn handle_text(&mut self, text: &str, now: Instant) -> Vec<Output> {
         self.last_rx = now;
         let message = match msg::parse(text) {
             Ok(m) => m,
@@ -910,7 +910,7 @@ impl Session {
     }
 
     /// A job finished.
-    pub fn complete(&mut self, job: JobId, result: JobResult, now: Instant) -> Vec<Output> {
+    pub fn handle_job(&mut self, job: JobId, result: JobResult, now: Instant) -> Vec<Output> {
         if let Some((target, index, sub)) = self.baselines.remove(&job) {
             // A burst of registrations does not keep its table for the rest of the connection.
             if self.baselines.is_empty() && self.baselines.capacity() > 64 {
@@ -919,7 +919,7 @@ impl Session {
             return match result {
                 JobResult::Read(values) => values
                     .first()
-                    .map(|bytes| self.bytes(target, index, sub, bytes, now))
+                    .map(|bytes| self.handle_bytes(target, index, sub, bytes, now))
                     .unwrap_or_default(),
                 _ => Vec::new(),
             };
@@ -984,7 +984,7 @@ impl Session {
     }
 
     /// The raw bytes of a watched sub-object (read or received in a PDO).
-    pub fn bytes(
+    pub fn handle_bytes(
         &mut self,
         target: Target,
         index: u16,
@@ -998,14 +998,14 @@ impl Session {
         match types::decode(s.datatype, bytes) {
             Ok(v) => {
                 let text = types::to_text(s.datatype, &v);
-                self.value(target, index, sub, text, now)
+                self.handle_value(target, index, sub, text, now)
             }
             Err(_) => Vec::new(),
         }
     }
 
     /// A watched sub-object has this value now (text form).
-    pub fn value(
+    pub fn handle_value(
         &mut self,
         target: Target,
         index: u16,

@@ -203,7 +203,7 @@ impl Session {
         self.last_rx + crate::silence_limit(self.settings.heartbeat)
     }
 
-    /// When to call [`Session::timeout`] next.
+    /// When to call [`Session::handle_timeout`] next.
     pub fn poll_timeout(&self) -> Option<Instant> {
         match self.phase {
             Phase::Closed => None,
@@ -230,7 +230,7 @@ impl Session {
     }
 
     /// Time passed.
-    pub fn timeout(&mut self, now: Instant) -> Vec<Output> {
+    pub fn handle_timeout(&mut self, now: Instant) -> Vec<Output> {
         match self.phase {
             Phase::Closed => Vec::new(),
             Phase::AwaitConnect | Phase::Identifying => {
@@ -276,12 +276,12 @@ impl Session {
     }
 
     /// A WebSocket ping or pong arrived.
-    pub fn activity(&mut self, now: Instant) {
+    pub fn handle_activity(&mut self, now: Instant) {
         self.last_rx = now;
     }
 
     /// A text message from the gateway.
-    pub fn text(&mut self, text: &str, now: Instant) -> Vec<Output> {
+    pub fn handle_text(&mut self, text: &str, now: Instant) -> Vec<Output> {
         self.last_rx = now;
         let message = match msg::parse(text) {
             Ok(m) => m,

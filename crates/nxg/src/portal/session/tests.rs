@@ -28,7 +28,7 @@ fn sent(out: &[Output]) -> Vec<Value> {
 /// A session that has accepted the sample gateway (without issuing a token).
 fn serving(now: Instant) -> Session {
     let mut s = Session::new(settings(), now);
-    let out = s.text(CONNECT, now);
+    let out = s.handle_text(CONNECT, now);
     let [Output::Identify(hello)] = &out[..] else {
         panic!("{out:?}")
     };
@@ -40,7 +40,7 @@ fn serving(now: Instant) -> Session {
 fn connect_identify_connack_and_token() {
     let now = Instant::now();
     let mut s = Session::new(settings(), now);
-    let out = s.text(CONNECT, now);
+    let out = s.handle_text(CONNECT, now);
     let [Output::Identify(hello)] = &out[..] else {
         panic!("{out:?}")
     };
@@ -70,7 +70,7 @@ fn connect_identify_connack_and_token() {
         messages[1]["id"]
     );
     assert_eq!(
-        s.text(&answer, now),
+        s.handle_text(&answer, now),
         [Output::TokenConfirmed("T0K3N".into())]
     );
 }
@@ -79,26 +79,26 @@ fn connect_identify_connack_and_token() {
 fn refusals_close_without_an_answer() {
     let now = Instant::now();
     let mut s = Session::new(settings(), now);
-    let out = s.text(CONNECT, now);
+    let out = s.handle_text(CONNECT, now);
     assert!(matches!(out[0], Output::Identify(_)));
     assert!(
         matches!(&s.refuse("wrong token".into())[..], [Output::Close(CloseReason::Refused(c))] if c == "wrong token")
     );
     // Anything but CONNECT first.
     let mut s = Session::new(settings(), now);
-    let out = s.text(r#"{"jsonrpc":"2.0","id":1,"method":"get_heartbeat"}"#, now);
+    let out = s.handle_text(r#"{"jsonrpc":"2.0","id":1,"method":"get_heartbeat"}"#, now);
     assert!(matches!(&out[..], [Output::Close(_)]));
     // Garbage first.
     let mut s = Session::new(settings(), now);
     assert!(matches!(
-        &s.text("GET / HTTP/1.1", now)[..],
+        &s.handle_text("GET / HTTP/1.1", now)[..],
         [Output::Close(_)]
     ));
     // Malformed identity.
     let mut s = Session::new(settings(), now);
     let bad = CONNECT.replace(r#""vendorid":1050"#, r#""vendorid":"1050""#);
     assert!(
-        matches!(&s.text(&bad, now)[..], [Output::Close(CloseReason::InvalidConnect(c))] if c.contains("vendorid"))
+        matches!(&s.handle_text(&bad, now)[..], [Output::Close(CloseReason::InvalidConnect(c))] if c.contains("vendorid"))
     );
     let mut s = Session::new(settings(), now);
     let long = CONNECT.replace(
@@ -106,14 +106,14 @@ fn refusals_close_without_an_answer() {
         &format!(r#""cloudtoken":"{}""#, "x".repeat(129)),
     );
     assert!(
-        matches!(&s.text(&long, now)[..], [Output::Close(CloseReason::InvalidConnect(c))] if c.contains("cloudtoken"))
+        matches!(&s.handle_text(&long, now)[..], [Output::Close(CloseReason::InvalidConnect(c))] if c.contains("cloudtoken"))
     );
     // No CONNECT in time.
     let mut s = Session::new(settings(), now);
     assert_eq!(s.poll_timeout(), Some(now + Duration::from_secs(10)));
-    assert!(s.timeout(now + Duration::from_secs(9)).is_empty());
+    assert!(s.handle_timeout(now + Duration::from_secs(9)).is_empty());
     assert!(matches!(
-        &s.timeout(now + Duration::from_secs(10))[..],
+        &s.handle_timeout(now + Duration::from_secs(10))[..],
         [Output::Close(CloseReason::NoConnect)]
     ));
 }
@@ -139,7 +139,7 @@ fn requests_are_correlated_bounded_and_time_out() {
         r#"{{"jsonrpc":"2.0","id":{},"error":{{"code":1,"message":"m"}}}}"#,
         second["id"]
     );
-    let out = s.text(&answer, now);
+    let out = s.handle_text(&answer, now);
     assert_eq!(
         out[0],
         Output::Answer(b, Err(Failure::Error(ErrorObject::rpc(1, "m"))))
@@ -150,20 +150,23 @@ fn requests_are_correlated_bounded_and_time_out() {
         first["id"]
     );
     assert_eq!(
-        s.text(&answer, now),
+        s.handle_text(&answer, now),
         [Output::Answer(a, Ok(r#"{"object":{}}"#.to_owned()))]
     );
     // The queued one times out.
     let later = now + Duration::from_secs(10);
     assert_eq!(s.poll_timeout(), Some(later));
-    assert_eq!(s.timeout(later), [Output::Answer(c, Err(Failure::Timeout))]);
+    assert_eq!(
+        s.handle_timeout(later),
+        [Output::Answer(c, Err(Failure::Timeout))]
+    );
     // Unknown ids and notifications.
     assert!(s
-        .text(r#"{"jsonrpc":"2.0","id":999,"result":{}}"#, later)
+        .handle_text(r#"{"jsonrpc":"2.0","id":999,"result":{}}"#, later)
         .is_empty());
     let note = r#"{"jsonrpc":"2.0","method":"canopen_object","result":{"mplex":"0x652001","value":"2511"}}"#;
     assert_eq!(
-        s.text(note, later),
+        s.handle_text(note, later),
         [Output::Notification(Notification {
             mplex: "0x652001".into(),
             value: "2511".into(),
@@ -177,11 +180,11 @@ fn heartbeats_and_silence() {
     let now = Instant::now();
     let mut s = serving(now);
     assert_eq!(s.poll_timeout(), Some(now + Duration::from_secs(300)));
-    let out = s.timeout(now + Duration::from_secs(300));
+    let out = s.handle_timeout(now + Duration::from_secs(300));
     assert_eq!(sent(&out)[0]["method"], "get_heartbeat");
     // No frame at all for 630 s: closed, and open requests fail.
     let (r, _) = s.request(Method::GetHeartbeat, None, now + Duration::from_secs(300));
-    let out = s.timeout(now + Duration::from_secs(630));
+    let out = s.handle_timeout(now + Duration::from_secs(630));
     assert!(matches!(out[0], Output::Close(_)));
     assert!(out.contains(&Output::Answer(r, Err(Failure::Gone))));
     assert_eq!(s.poll_timeout(), None);
@@ -198,7 +201,7 @@ fn string_ids_go_out_and_answers_match_them_by_value() {
     let number: u64 = id.as_str().unwrap().parse().unwrap();
     let answer = format!(r#"{{"jsonrpc":"2.0","id":{number},"result":{{"done":0}}}}"#);
     assert_eq!(
-        s.text(&answer, now),
+        s.handle_text(&answer, now),
         [Output::Answer(a, Ok(r#"{"done":0}"#.to_owned()))]
     );
     // Error codes as strings, as §6.3.3 shows them.
@@ -207,7 +210,7 @@ fn string_ids_go_out_and_answers_match_them_by_value() {
     let answer = format!(
         r#"{{"jsonrpc":"2.0","id":{id},"error":{{"code":"0x08000021","message":"m","data":"0x502200"}}}}"#
     );
-    let out = s.text(&answer, now);
+    let out = s.handle_text(&answer, now);
     let [Output::Answer(r, Err(Failure::Error(e)))] = &out[..] else {
         panic!("{out:?}")
     };

@@ -1,0 +1,154 @@
+//! The README's first command, as CI runs it: `canlift demo` with a temporary state directory;
+//! the lift comes online through the REST API, 0x652001 reads, a passenger call to floor 3 makes
+//! the trip counter rise, Ctrl-C stops everything cleanly, and a second run keeps the counters.
+
+use std::collections::HashMap;
+use std::process::Stdio;
+use std::time::Duration;
+
+use cloud::client::Client;
+use serde_json::json;
+use tokio::io::{AsyncBufReadExt, BufReader};
+
+use crate::common;
+use common::{canlift, interrupt};
+
+const LIFT: &str = "1050-4096-DEMO-0001";
+
+struct Demo {
+    child: tokio::process::Child,
+    client: Client,
+}
+
+async fn start(state: &std::path::Path) -> Demo {
+    let mut child = canlift()
+        .args(["demo", "--speed", "10", "--passengers", "0"])
+        .args([
+            "--hub-listen",
+            "127.0.0.1:0",
+            "--portal-listen",
+            "127.0.0.1:0",
+            "--state",
+        ])
+        .arg(state)
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
+    let mut printed = HashMap::new();
+    let mut example = None;
+    while printed.len() < 3 || example.is_none() {
+        let line = tokio::time::timeout(Duration::from_secs(60), lines.next_line())
+            .await
+            .expect("the demo prints its summary")
+            .unwrap()
+            .expect("the demo is running");
+        if line.contains(" get ") {
+            example = Some(line.clone());
+        }
+        let mut words = line.split_whitespace();
+        if let (Some(k @ ("portal" | "API" | "CA")), Some(v)) = (words.next(), words.next()) {
+            let v = if k == "API" {
+                words.next().unwrap_or_default()
+            } else {
+                v
+            };
+            printed.insert(k.to_owned(), v.to_owned());
+        }
+    }
+    tokio::spawn(async move { while let Ok(Some(_)) = lines.next_line().await {} });
+    // The example commands name a binary the user can run: `canlift` on the PATH, else its path.
+    let example = example.unwrap_or_default();
+    let command = example.split_whitespace().next().unwrap_or_default();
+    let runs_this = command == "canlift"
+        || std::fs::canonicalize(command).ok()
+            == std::fs::canonicalize(env!("CARGO_BIN_EXE_canlift")).ok();
+    assert!(
+        runs_this,
+        "the banner's example does not run this binary: {example}"
+    );
+    let ca = std::path::PathBuf::from(&printed["CA"]);
+    let client = Client::new(&printed["portal"], Some(&printed["API"]), Some(&ca)).unwrap();
+    Demo { child, client }
+}
+
+async fn trips(client: &Client) -> u64 {
+    let (status, v) = client
+        .call(
+            "GET",
+            &format!("/api/v1/lifts/{LIFT}/objects/0x652001?form=naked"),
+            None,
+        )
+        .await
+        .unwrap();
+    assert_eq!(status, 200, "{v}");
+    v["object"]["value"][0].as_str().unwrap().parse().unwrap()
+}
+
+async fn online(client: &Client) {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+    loop {
+        let (status, lifts) = client.call("GET", "/api/v1/lifts", None).await.unwrap();
+        if status == 200 && lifts[0]["online"] == true {
+            return;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the demo lift never came online: {lifts}"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
+
+async fn stop(mut demo: Demo) {
+    let status = interrupt(&mut demo.child, Duration::from_secs(20)).await;
+    assert!(status.success(), "the demo stops after Ctrl-C: {status:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_demo_runs_a_lift_end_to_end() {
+    let scratch = testkit::scratch();
+    let state = scratch.path();
+    let demo = start(state).await;
+    online(&demo.client).await;
+    // The web UI is served on the same port: the sign-in page.
+    let (status, page) = demo.client.call("GET", "/login", None).await.unwrap();
+    assert_eq!(status, 200);
+    assert!(
+        page.as_str().is_some_and(|p| p.contains("Sign in")),
+        "{page}"
+    );
+    let before = trips(&demo.client).await;
+    let put = json!({"value": "3", "datatype": 7, "physunit": 0});
+    let (status, answer) = demo
+        .client
+        .call(
+            "PUT",
+            &format!("/api/v1/lifts/{LIFT}/objects/0x502200"),
+            Some(put),
+        )
+        .await
+        .unwrap();
+    assert_eq!(
+        (status, answer),
+        (200, json!({"object": {"mplex": "0x502200"}}))
+    );
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+    let after = loop {
+        let now = trips(&demo.client).await;
+        if now > before {
+            break now;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the trip counter did not rise"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
+    stop(demo).await;
+    // Later runs reuse the state: same account, same token, the counters keep counting.
+    let demo = start(state).await;
+    online(&demo.client).await;
+    assert!(trips(&demo.client).await >= after);
+    stop(demo).await;
+}

@@ -1,0 +1,360 @@
+//! The operator CLI against a running portal, gateway and simulated lift: `lifts`, `get`, `put`
+//! (learning datatype and unit first), `watch` until the trip counter rises, `alarms`, `events`,
+//! and the cloud token: `token rotate|reset`, `cloud token reset` on the portal's machine; a
+//! cluster's NATS user key: `cloud nats-nkey`.
+
+use std::time::Duration;
+
+use testkit::constants::LIFT;
+use testkit::portal::Rig;
+use tokio::io::{AsyncBufReadExt, BufReader};
+
+use crate::common;
+
+/// `canlift` for the rig's portal, key and CA.
+fn canlift(rig: &Rig) -> tokio::process::Command {
+    let mut cmd = common::canlift();
+    cmd.env("CANLIFT_PORTAL", rig.url())
+        .env("CANLIFT_API_KEY", &rig.key)
+        .env("CANLIFT_CA", &rig.ca);
+    cmd
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lifts_get_put_watch() {
+    let rig = Rig::builder().start().await;
+    let lift = LIFT;
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    loop {
+        let out = canlift(&rig)
+            .args(["lifts", "--json"])
+            .output()
+            .await
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let lifts: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        if lifts[0]["online"] == true {
+            break;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "not online: {lifts}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let table = canlift(&rig).arg("lifts").output().await.unwrap();
+    assert!(String::from_utf8_lossy(&table.stdout).contains(LIFT));
+    let get = canlift(&rig)
+        .args(["get", lift, "0x652001", "--naked"])
+        .output()
+        .await
+        .unwrap();
+    let answer: serde_json::Value = serde_json::from_slice(&get.stdout).unwrap();
+    assert_eq!(answer["object"]["value"][0], "0");
+    // The same object by its address form and by its catalog name.
+    for object in ["0x6520:1", "trip counter"] {
+        let get = canlift(&rig)
+            .args(["get", lift, object, "--naked"])
+            .output()
+            .await
+            .unwrap();
+        assert!(
+            get.status.success(),
+            "{object}: {}",
+            String::from_utf8_lossy(&get.stderr)
+        );
+        let by_name: serde_json::Value = serde_json::from_slice(&get.stdout).unwrap();
+        assert_eq!(by_name["object"]["mplex"], "0x652001", "{object}");
+    }
+    // watch first, then call the car: the baseline and the new trip count come out.
+    let mut watch = canlift(&rig)
+        .args(["watch", lift, "0x652001", "--count", "2"])
+        .spawn()
+        .unwrap();
+    let mut lines = BufReader::new(watch.stdout.take().unwrap()).lines();
+    let first = tokio::time::timeout(Duration::from_secs(10), lines.next_line())
+        .await
+        .unwrap()
+        .unwrap()
+        .unwrap();
+    assert!(first.ends_with(" 0x652001 0"), "{first}");
+    let put = canlift(&rig)
+        .args(["put", lift, "0x502200", "2"])
+        .output()
+        .await
+        .unwrap();
+    assert!(
+        put.status.success(),
+        "{}",
+        String::from_utf8_lossy(&put.stderr)
+    );
+    let second = tokio::time::timeout(Duration::from_secs(15), lines.next_line())
+        .await
+        .unwrap()
+        .unwrap()
+        .unwrap();
+    assert!(second.ends_with(" 0x652001 1"), "{second}");
+    assert!(tokio::time::timeout(Duration::from_secs(5), watch.wait())
+        .await
+        .unwrap()
+        .unwrap()
+        .success());
+    // Errors are reported with the abort code.
+    let refused = canlift(&rig)
+        .args(["put", lift, "0x652001", "5"])
+        .output()
+        .await
+        .unwrap();
+    assert!(!refused.status.success());
+    assert!(
+        String::from_utf8_lossy(&refused.stderr).contains("06010002h"),
+        "{}",
+        String::from_utf8_lossy(&refused.stderr)
+    );
+    rig.stop().await;
+}
+
+/// Run `canlift ARGS` for the rig; its standard output.
+async fn output(rig: &Rig, args: &[&str]) -> String {
+    let out = canlift(rig).args(args).output().await.unwrap();
+    assert!(
+        out.status.success(),
+        "canlift {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn alarms_ack_and_events() {
+    let rig = Rig::builder().gateway(|g| g.identity.api = 2).start().await;
+    rig.online().await;
+    assert!(output(&rig, &["alarms"]).await.contains("no active alarm"));
+    // A drive fault in the simulator (setup rights for 5030h).
+    let privilege =
+        serde_json::json!({"privilege": 2, "password": testkit::constants::SETUP_PASSWORD});
+    let (status, _) = rig
+        .call(
+            "POST",
+            &format!("/api/v1/lifts/{LIFT}/privilege"),
+            Some(&rig.key),
+            Some(privilege),
+        )
+        .await;
+    assert_eq!(status, 200);
+    assert!(output(&rig, &["put", LIFT, "0x503000", "4"])
+        .await
+        .contains("= 4"));
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(20);
+    let alarms: serde_json::Value = loop {
+        let list: serde_json::Value =
+            serde_json::from_str(&output(&rig, &["alarms", "--json"]).await).unwrap();
+        if !list["alarms"].as_array().unwrap().is_empty() {
+            break list;
+        }
+        assert!(tokio::time::Instant::now() < deadline, "no alarm: {list}");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
+    let id = alarms["alarms"][0]["id"].as_i64().unwrap().to_string();
+    let table = output(&rig, &["alarms"]).await;
+    assert!(
+        table.contains(&id) && table.contains("major") && table.contains("Drive fault"),
+        "{table}"
+    );
+    let acked = output(&rig, &["alarms", "ack", &id, "--comment", "checked"]).await;
+    assert!(acked.contains("acknowledged by masora"), "{acked}");
+    let events = output(&rig, &["events", LIFT]).await;
+    assert!(events.contains("EMCY  node 1/1 0xF001"), "{events}");
+    let json: serde_json::Value =
+        serde_json::from_str(&output(&rig, &["events", LIFT, "--json", "--limit", "1"]).await)
+            .unwrap();
+    assert_eq!(json["events"].as_array().unwrap().len(), 1);
+    rig.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn token_rotate_and_reset() {
+    let rig = Rig::builder().start().await;
+    rig.online().await;
+    let tokens = || rig.gateway_token();
+    testkit::portal::until(Duration::from_secs(10), "a token", || async {
+        tokens().is_some()
+    })
+    .await;
+    let first = tokens();
+    let rotated = output(&rig, &["token", "rotate", LIFT]).await;
+    assert!(rotated.contains("stored a new token"), "{rotated}");
+    assert_ne!(tokens(), first);
+    let reset = output(&rig, &["token", "reset", LIFT]).await;
+    assert!(reset.contains("first contact"), "{reset}");
+    let unknown = canlift(&rig)
+        .args(["token", "rotate", "1-2-3"])
+        .output()
+        .await
+        .unwrap();
+    assert!(!unknown.status.success());
+    assert!(String::from_utf8_lossy(&unknown.stderr).contains("404"));
+
+    // On the portal's machine, with its configuration and no API key.
+    let config = rig.dir().join("cloud.toml");
+    let state = rig.dir().join("portal");
+    std::fs::write(
+        &config,
+        format!("[state]\ndir = {:?}\n", state.display().to_string()),
+    )
+    .unwrap();
+    let config = config.display().to_string();
+    let local = |lift: &'static str| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_canlift"))
+            .args(["cloud", "token", "reset", lift, "--config", &config])
+            .output()
+            .unwrap()
+    };
+    let out = local(LIFT);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("token forgotten"));
+    let out = local("1-2-3");
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("no lift"));
+    let (_, audit) = rig.call("GET", "/api/v1/audit", Some(&rig.key), None).await;
+    let actions: Vec<(&str, &str)> = audit
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| {
+            (
+                e["action"].as_str().unwrap(),
+                e["account"].as_str().unwrap(),
+            )
+        })
+        .collect();
+    assert_eq!(
+        actions,
+        [
+            ("token reset", "(administrator)"),
+            ("token reset", "masora"),
+            ("token rotated", "masora")
+        ]
+    );
+    rig.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn users_and_keys_on_the_command_line() {
+    let rig = Rig::builder().start().await;
+    rig.online().await;
+    let config = rig.dir().join("cloud.toml");
+    let state = rig.dir().join("portal").display().to_string();
+    std::fs::write(&config, format!("[state]\ndir = {state:?}\n")).unwrap();
+    let config = config.display().to_string();
+    let admin = |args: &str| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_canlift"))
+            .arg("cloud")
+            .args(args.split_whitespace())
+            .args(["--config", &config])
+            .output()
+            .unwrap();
+        let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+        let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+        (out.status.success(), stdout, stderr)
+    };
+    let (ok, out, err) = admin("user add tess --account masora --role technician --json");
+    assert!(ok, "{err}");
+    let added: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(
+        (&added["user"], &added["account"], &added["role"]),
+        (&"tess".into(), &"masora".into(), &"technician".into())
+    );
+    assert!(added["secret"].as_str().unwrap().starts_with("cls_"));
+    let (ok, _, err) = admin("user add tess --account masora --role viewer");
+    assert!(!ok && err.contains("taken"), "{err}");
+    let (ok, _, err) = admin("user add x --account masora --role boss");
+    assert!(!ok && err.contains("no role"), "{err}");
+
+    let (ok, out, err) = admin("key add --account masora --user tess --expires 90d --json");
+    assert!(ok, "{err}");
+    let key: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let (api_key, id) = (
+        key["api_key"].as_str().unwrap(),
+        key["id"].as_str().unwrap(),
+    );
+    let lifts = |key: &str| {
+        let mut cmd = common::canlift();
+        cmd.env("CANLIFT_PORTAL", rig.url())
+            .env("CANLIFT_API_KEY", key)
+            .env("CANLIFT_CA", &rig.ca)
+            .args(["lifts", "--json"]);
+        cmd
+    };
+    assert!(lifts(api_key).output().await.unwrap().status.success());
+    let (ok, out, _) = admin("user list --account masora");
+    assert!(ok && out.contains("tess") && out.contains("technician") && out.contains("enabled"));
+    let (ok, out, _) = admin("key list --account masora");
+    assert!(ok && out.contains(id) && out.contains("valid"), "{out}");
+
+    // Revoked: refused by the running portal within a second or two.
+    let (ok, _, err) = admin(&format!("key revoke {id} --account masora"));
+    assert!(ok, "{err}");
+    testkit::portal::until(
+        Duration::from_secs(5),
+        "the revoked key refused",
+        || async {
+            let out = lifts(api_key).output().await.unwrap();
+            !out.status.success() && String::from_utf8_lossy(&out.stderr).contains("401")
+        },
+    )
+    .await;
+    let (ok, out, _) = admin("user reset tess --account masora --json");
+    assert!(ok && out.contains("cls_"), "{out}");
+    let (ok, _, _) = admin("user role tess --account masora --role engineer");
+    assert!(ok);
+    let (ok, _, _) = admin("user disable tess --account masora");
+    assert!(ok);
+    let (ok, out, _) = admin("user list --account masora --json");
+    assert!(ok);
+    let users: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(users[0]["role"], "engineer");
+    assert_eq!(users[0]["disabled"], true);
+    rig.stop().await;
+}
+
+/// `canlift cloud nats-nkey FILE` writes a NATS user's seed that its owner alone may read and
+/// prints the public key it signs as (what the NATS server lists); an existing file is kept.
+#[tokio::test]
+async fn a_nats_user_key_for_its_owner_alone() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = testkit::scratch();
+    let file = dir.path().join("nats.nk");
+    let make = || {
+        common::canlift()
+            .args(["cloud", "nats-nkey"])
+            .arg(&file)
+            .output()
+    };
+    let made = make().await.expect("canlift runs");
+    assert!(made.status.success(), "{made:?}");
+    let public = String::from_utf8_lossy(&made.stdout).trim().to_owned();
+    let seed = std::fs::read_to_string(&file).expect("the seed file");
+    let pair = nkeys::KeyPair::from_seed(seed.trim()).expect("an NKey seed");
+    assert_eq!(pair.key_pair_type(), nkeys::KeyPairType::User);
+    assert_eq!(pair.public_key(), public);
+    let mode = std::fs::metadata(&file)
+        .expect("metadata")
+        .permissions()
+        .mode();
+    assert_eq!(mode & 0o777, 0o600, "{mode:o}");
+
+    let again = make().await.expect("canlift runs");
+    assert!(!again.status.success());
+    let said = String::from_utf8_lossy(&again.stderr);
+    assert!(said.contains("an existing file is kept"), "{said}");
+    assert_eq!(std::fs::read_to_string(&file).expect("the seed file"), seed);
+}

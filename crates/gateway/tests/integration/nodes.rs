@@ -1,0 +1,287 @@
+//! Other nodes and networks, EDS metadata, and mutual TLS.
+
+use crate::common;
+
+use canopen::sdo::client::ClientConfig;
+use canopen::sdo::clients::SdoClients;
+use common::*;
+use gateway::config::{Config, NetworkSection, NodeSection, SdoChannel};
+use gateway::Gateway;
+use lift417::catalog::Device;
+use lift417::sim::{export_eds, SimConfig, Simulator};
+use serde_json::json;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn eds_metadata_and_a_second_network() {
+    let dir = testkit::scratch();
+    let pki = pki(dir.path());
+    let portal = Portal::start(&pki).await;
+    let sim1 = Simulator::start("mem://nodes-1", SimConfig::default())
+        .await
+        .unwrap();
+    let lifts2 = SimConfig {
+        io_node: None,
+        lifts: 2,
+        ..SimConfig::default()
+    };
+    let sim2 = Simulator::start("mem://nodes-2", lifts2).await.unwrap();
+    let eds = dir.path().join("io-node.eds");
+    std::fs::write(&eds, export_eds(&SimConfig::default(), Device::Io).unwrap()).unwrap();
+    let mut config = config(&portal.url(), &pki, "mem://nodes-1", dir.path());
+    config.bus.nodes = vec![NodeSection::with_eds(12, eds)];
+    config.networks = vec![NetworkSection {
+        net: 2,
+        url: "mem://nodes-2".into(),
+        nodes: vec![],
+    }];
+    let gateway = Gateway::bus_node(config).await.unwrap();
+    let running = spawn(gateway);
+    let (mut ws, ..) = portal.accept().await;
+    connack(&mut ws).await;
+    let mut notes = Vec::new();
+    // Node 12 has an EDS: no datatype needed, names and access from it.
+    let get = r#"{"jsonrpc":"2.0","id":1,"method":"get_canopen_object","params":{"node":{"id":12,"net":1},"object":{"mplex":"0x610001"}}}"#;
+    let answer = ask(&mut ws, get, &mut notes).await;
+    let object = &answer["result"]["object"];
+    assert_eq!(object["name"], "Virtual input 1");
+    assert_eq!(object["datatype"], 25);
+    assert_eq!(object["access"], "ro");
+    let missing = get.replace("0x610001", "0x5FFF00");
+    assert_eq!(
+        ask(&mut ws, &missing, &mut notes).await["error"]["code"],
+        0x0602_0000
+    );
+    // The EDS says read-only: refused without a bus round trip, even with setup rights.
+    let elevate = format!(
+        r#"{{"jsonrpc":"2.0","id":2,"method":"elevate_privilege","params":{{"sernum":"{SERNUM}","privilege":2,"passhash":"{SETUP_SHA1}"}}}}"#
+    );
+    assert_eq!(
+        ask(&mut ws, &elevate, &mut notes).await["result"],
+        json!({"duration": 300})
+    );
+    let put = format!(
+        r#"{{"jsonrpc":"2.0","id":3,"method":"put_canopen_object","params":{{"sernum":"{SERNUM}","node":{{"id":12,"net":1}},"object":{{"mplex":"0x610001","datatype":25,"physunit":0,"value":"1"}}}}}}"#
+    );
+    assert_eq!(
+        ask(&mut ws, &put, &mut notes).await["error"]["code"],
+        0x0601_0002
+    );
+    // Net 2: the lift-2 trip counter of the second controller (at +800h).
+    let net2 = r#"{"jsonrpc":"2.0","id":4,"method":"get_canopen_object","params":{"node":{"id":1,"net":2,"datatype":7},"object":{"mplex":"0x6D2001","naked":true}}}"#;
+    assert_eq!(
+        ask(&mut ws, net2, &mut notes).await["result"],
+        json!({"object": {"mplex": "0x6D2001", "value": ["0"]}})
+    );
+    // Subscriptions on another node are pushed with the node.
+    let reg = r#"{"jsonrpc":"2.0","id":5,"method":"reg_canopen_object","params":{"node":{"id":1,"net":2,"datatype":7},"mplex":["0x6D2001"]}}"#;
+    assert_eq!(
+        ask(&mut ws, reg, &mut notes).await["result"],
+        json!({"done": 0})
+    );
+    while notes.is_empty() {
+        notes.push(recv(&mut ws).await);
+    }
+    assert_eq!(
+        notes[0]["result"],
+        json!({"mplex": "0x6D2001", "value": "0", "node": {"id": 1, "net": 2}})
+    );
+    running.stop().await;
+    sim1.stop().await;
+    sim2.stop().await;
+}
+
+/// The simulated controller on `bus`, offering `further` as its SDO server channels 1201h ff.
+async fn controller_offering(bus: &str, further: &[SdoChannel]) -> Simulator {
+    let config = SimConfig {
+        sdo_servers: further.iter().map(SdoChannel::ids).collect(),
+        ..SimConfig::default()
+    };
+    Simulator::start(bus, config).await.unwrap()
+}
+
+/// `config` with the controller (node 1) read on `channels`.
+fn reading_on(mut config: Config, channels: &[SdoChannel]) -> Config {
+    config.bus.nodes = vec![NodeSection {
+        sdo_channels: channels.to_vec(),
+        ..NodeSection::new(1)
+    }];
+    config
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_controller_with_further_sdo_channels_is_read_on_all_of_them() {
+    let dir = testkit::scratch();
+    let pki = pki(dir.path());
+    let portal = Portal::start(&pki).await;
+    let bus = "mem://nodes-sdo-channels";
+    let channel = |request, response| SdoChannel { request, response };
+    let channels = [
+        channel(0x601, 0x581),
+        channel(0x6A1, 0x6C1),
+        channel(0x6A2, 0x6C2),
+    ];
+    let sim = controller_offering(bus, &channels[1..]).await;
+    let mut monitor = canbus::Bus::open(bus).await.unwrap();
+    let config = reading_on(config(&portal.url(), &pki, bus, dir.path()), &channels);
+    let gateway = Gateway::bus_node(config).await.unwrap();
+    let running = spawn(gateway);
+    let (mut ws, ..) = portal.accept().await;
+    connack(&mut ws).await;
+    // 24 reads at once of the controller's identity (1018h sub 4 is its node-ID: 1) and
+    // device name, every answer checked.
+    for i in 0..24 {
+        let mplex = if i % 2 == 0 { "0x101804" } else { "0x100800" };
+        send(
+            &mut ws,
+            &format!(
+                r#"{{"jsonrpc":"2.0","id":{i},"method":"get_canopen_object","params":{{"object":{{"mplex":"{mplex}","naked":true}}}}}}"#
+            ),
+        )
+        .await;
+    }
+    let mut answered = 0;
+    while answered < 24 {
+        let v = recv(&mut ws).await;
+        let Some(i) = v["id"].as_u64() else { continue };
+        let expected = if i % 2 == 0 {
+            json!(["1"])
+        } else {
+            json!(["canlift simulated lift controller"])
+        };
+        assert_eq!(v["result"]["object"]["value"], expected, "{v}");
+        answered += 1;
+    }
+    let mut requests = std::collections::BTreeSet::new();
+    while let Ok(Some(f)) = tokio::time::timeout(
+        std::time::Duration::from_millis(100),
+        monitor.receiver.recv_frame(),
+    )
+    .await
+    {
+        requests.insert(f.id());
+    }
+    for (request, _) in channels.iter().map(SdoChannel::ids) {
+        assert!(requests.contains(&request), "no request on {request}");
+    }
+    running.stop().await;
+    sim.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_channel_closed_on_the_controller_is_set_aside_and_reads_go_on() {
+    let dir = testkit::scratch();
+    let pki = pki(dir.path());
+    let portal = Portal::start(&pki).await;
+    let bus = "mem://nodes-sdo-channel-closed";
+    let channels = [(0x6A1, 0x6C1), (0x6A2, 0x6C2)]
+        .map(|(request, response)| SdoChannel { request, response });
+    let sim = controller_offering(bus, &channels).await;
+    let mut config = reading_on(config(&portal.url(), &pki, bus, dir.path()), &channels);
+    config.bus.sdo_timeout_ms = 100;
+    config.bus.sdo_probe_ms = 200;
+    let running = spawn(Gateway::bus_node(config).await.unwrap());
+    let (mut ws, ..) = portal.accept().await;
+    connack(&mut ws).await;
+    // The controller's node-ID (1018h sub 4) read through the gateway: whether it answered.
+    async fn read(ws: &mut Ws, i: u32) -> bool {
+        let request = format!(
+            r#"{{"jsonrpc":"2.0","id":{i},"method":"get_canopen_object","params":{{"object":{{"mplex":"0x101804","naked":true}}}}}}"#
+        );
+        send(ws, &request).await;
+        recv(ws).await["result"]["object"]["value"] == json!(["1"])
+    }
+    assert!(
+        read(&mut ws, 0).await && read(&mut ws, 1).await,
+        "both channels answer"
+    );
+    // A service tool on the default channel (the gateway does not use it) closes 1202h as
+    // CiA 301 §7.5.2.33 has it.
+    let tool = SdoClients::new(
+        canbus::Bus::open(bus).await.unwrap(),
+        ClientConfig::default(),
+    );
+    // Twelve reads from `first` on: taken in turn, a channel that closed fails every other
+    // one until its third timeout sets it aside.
+    async fn set_aside_after_three(ws: &mut Ws, first: u32) {
+        let mut answered = Vec::new();
+        for i in first..first + 12 {
+            answered.push(read(ws, i).await);
+        }
+        assert_eq!(
+            answered.iter().filter(|ok| !**ok).count(),
+            3,
+            "{answered:?}"
+        );
+        assert!(answered[6..].iter().all(|ok| *ok), "{answered:?}");
+    }
+    tool.write::<u32>(1, 0x1202, 1, 0x8000_06A2).await.unwrap();
+    set_aside_after_three(&mut ws, 2).await;
+    // Opened again, it is asked at the next probe (`sdo_probe_ms`) and back in service; then
+    // 1201h closing in turn is set aside too, which needs 1202h serving (a node's last channel
+    // in service is never set aside): reads go on.
+    tool.write::<u32>(1, 0x1202, 1, 0x06A2).await.unwrap();
+    tokio::time::sleep(std::time::Duration::from_secs(2)).await;
+    tool.write::<u32>(1, 0x1201, 1, 0x8000_06A1).await.unwrap();
+    set_aside_after_three(&mut ws, 14).await;
+    running.stop().await;
+    sim.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_configured_sdo_channel_the_node_does_not_serve_is_named_once_it_answers() {
+    let bus = "mem://nodes-sdo-channels-checked";
+    let id = canbus::CanId::Standard;
+    let config = ClientConfig {
+        timeout: std::time::Duration::from_millis(100),
+        ..ClientConfig::default()
+    };
+    let channels = [(0x601, 0x581), (0x6A1, 0x6C1), (0x6A2, 0x6C2)]
+        .map(|(request, response)| (1, id(request), id(response)));
+    let sdo = SdoClients::with_channels(canbus::Bus::open(bus).await.unwrap(), config, &channels);
+    // Nobody answers yet (the controller has not booted): asked again until it does.
+    let check = tokio::spawn(gateway::supervision::check_sdo_channels(
+        sdo,
+        1,
+        1,
+        std::time::Duration::from_millis(100),
+    ));
+    tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+    assert!(
+        !check.is_finished(),
+        "named channels of a node that is not there"
+    );
+    let offered = SdoChannel {
+        request: 0x6A1,
+        response: 0x6C1,
+    };
+    let sim = controller_offering(bus, &[offered]).await;
+    let silent = tokio::time::timeout(WAIT, check).await.unwrap().unwrap();
+    assert_eq!(silent, vec![(id(0x6A2), id(0x6C2))]);
+    sim.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn mutual_tls_needs_the_client_certificate() {
+    let dir = testkit::scratch();
+    let pki = pki(dir.path());
+    let portal = Portal::start_with(&pki, true).await;
+    let sim = Simulator::start("mem://mtls", SimConfig::default())
+        .await
+        .unwrap();
+    // Without a client certificate the handshake fails.
+    let config = config(&portal.url(), &pki, "mem://mtls", dir.path());
+    let gateway = Gateway::bus_node(config.clone()).await.unwrap();
+    let running = spawn(gateway);
+    assert!(!portal.try_tls().await, "no client certificate, no TLS");
+    running.stop().await;
+    // With it the gateway gets through to CONNECT.
+    let mut config = config;
+    config.cloud.client_cert = Some(pki.client_cert.clone());
+    config.cloud.client_key = Some(pki.client_key.clone());
+    let gateway = Gateway::bus_node(config).await.unwrap();
+    let running = spawn(gateway);
+    let (mut ws, ..) = portal.accept().await;
+    connack(&mut ws).await;
+    running.stop().await;
+    sim.stop().await;
+}
