@@ -30,7 +30,7 @@ fn settle(session: &mut Session, mut out: Vec<Output>, now: Instant) -> Vec<Stri
                 Job::ReadArray { .. } => JobResult::Read(vec![vec![2], vec![3]]),
                 Job::Write { .. } | Job::StoreToken(_) => JobResult::Done,
             };
-            out.extend(session.complete(id, result, now));
+            out.extend(session.handle_job(id, result, now));
         }
     }
     panic!("jobs never end");
@@ -40,21 +40,21 @@ fuzz_target!(|data: &[u8]| {
     let mut now = Instant::now();
     let mut session = Session::new(gateway_settings(), gateway_context(), None, now);
     let connack = r#"{"jsonrpc":"2.0","id":"1","result":"CONNACK","api":2}"#;
-    assert!(session.text(connack, now).is_empty());
+    assert!(session.handle_text(connack, now).is_empty());
     for text in messages(data) {
-        let out = session.text(&text, now);
+        let out = session.handle_text(&text, now);
         settle(&mut session, out, now);
         let events = session.deliver_events();
         settle(&mut session, events, now);
         now += Duration::from_millis(7);
-        let out = session.timeout(now);
+        let out = session.handle_timeout(now);
         settle(&mut session, out, now);
     }
     if session.phase() == Phase::Closed {
         return;
     }
     let get = r#"{"jsonrpc":"2.0","id":"fuzz-final","method":"get_canopen_object","params":{"object":{"mplex":"0x652001","naked":true}}}"#;
-    let out = session.text(get, now);
+    let out = session.handle_text(get, now);
     let sent = settle(&mut session, out, now);
     assert!(
         sent.iter().any(|t| t.contains("\"fuzz-final\"")),

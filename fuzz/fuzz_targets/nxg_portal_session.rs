@@ -32,14 +32,14 @@ fuzz_target!(|data: &[u8]| {
         }
     };
     if identify_first {
-        let out = session.text(CONNECT, now);
+        let out = session.handle_text(CONNECT, now);
         accept(&mut session, out, now);
     }
     for text in messages(data.get(1..).unwrap_or_default()) {
-        let out = session.text(&text, now);
+        let out = session.handle_text(&text, now);
         accept(&mut session, out, now);
         now += Duration::from_millis(7);
-        let _ = session.timeout(now);
+        let _ = session.handle_timeout(now);
     }
     if !session.serving() {
         return;
@@ -69,7 +69,7 @@ fuzz_target!(|data: &[u8]| {
         let reply = format!(
             r#"{{"jsonrpc":"2.0","id":{id},"result":{{"object":{{"mplex":"0x652001","value":["1"]}}}}}}"#
         );
-        for o in session.text(&reply, now) {
+        for o in session.handle_text(&reply, now) {
             match o {
                 Output::Send(t) => to_answer.push(t),
                 Output::Answer(id, _) if id == request => answered = true,

@@ -9,7 +9,7 @@ use axum::http::request::Parts;
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use axum::Json;
-use nxg::errors::ErrorCode;
+use nxg::codes::ErrorCode;
 use nxg::msg::ErrorObject;
 use nxg::portal::Failure;
 use serde::de::DeserializeOwned;

@@ -1,6 +1,6 @@
 //! The NXg CANopen-Lift Connector (NXg SW003 v1.0.0) with the readings of docs/PROTOCOL.md:
 //! the messages as types ([`msg`]), the multiplexer text ([`mplex`]), the metadata vocabulary
-//! ([`meta`]), abort codes with their messages per language ([`errors`]), and both sides of a
+//! ([`meta`]), abort codes with their messages per language ([`codes`]), and both sides of a
 //! connection as sans-IO state machines: the gateway's ([`gateway`], feature `gateway`, which
 //! brings the CiA 301 data types of the `canopen` crate) and the portal's ([`portal`]).
 //!
@@ -8,8 +8,8 @@
 
 #![warn(missing_docs)]
 
+pub mod codes;
 pub mod digest;
-pub mod errors;
 #[cfg(feature = "gateway")]
 pub mod gateway;
 pub mod meta;

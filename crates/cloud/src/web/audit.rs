@@ -14,7 +14,7 @@ use crate::state::AppState;
 /// An audit result as people read it: `error 134217761` is stored (the gateway's code), the
 /// page says `08000021h: Access denied …`; JSON-RPC's negative codes get their meaning.
 fn result_text(result: &str, l: Locale) -> String {
-    use nxg::errors::{rpc_codes, ErrorCode};
+    use nxg::codes::{rpc_codes, ErrorCode};
     let Some(code) = result
         .strip_prefix("error ")
         .and_then(|c| c.parse::<i64>().ok())

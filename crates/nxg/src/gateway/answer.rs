@@ -7,7 +7,7 @@ use std::borrow::Cow;
 use canopen::types::{self, Value as CoValue};
 
 use super::metadata::Metadata;
-use crate::errors::ErrorCode;
+use crate::codes::ErrorCode;
 use crate::meta::{Bound, Description};
 use crate::msg::{AnswerLang, ErrorObject, Lang, ObjectAnswer, ObjectData};
 

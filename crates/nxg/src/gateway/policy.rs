@@ -19,7 +19,7 @@ use std::ops::RangeInclusive;
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
 use super::metadata::Target;
-use crate::errors::ErrorCode;
+use crate::codes::ErrorCode;
 use crate::meta::Privilege;
 
 /// Whether the cloud may write at all.

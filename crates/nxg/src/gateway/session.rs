@@ -19,8 +19,8 @@ use super::lockout::{Failed, LockoutState};
 use super::metadata::{bare, Lookup, Target};
 use super::settings::Settings;
 use super::Context;
+use crate::codes::{rpc_codes, ErrorCode};
 use crate::digest;
-use crate::errors::{rpc_codes, ErrorCode};
 use crate::meta::{Access, DataType, Description, Privilege};
 use crate::msg::{
     self, Done, ElevateAnswer, ElevateParams, ErrorObject, EventKind, EventNotification, GetParams,

@@ -9,7 +9,7 @@ use serde::{Deserialize, Deserializer, Serialize};
 use serde_json::value::RawValue;
 
 use super::{to_json, ErrorObject, Method};
-use crate::errors::rpc_codes;
+use crate::codes::rpc_codes;
 
 /// A JSON-RPC id: any string or number, echoed unchanged (docs/PROTOCOL.md §Messages).
 #[derive(Debug, Clone, PartialEq, Eq, Hash, Serialize)]
@@ -422,7 +422,7 @@ mod tests {
         let v: Value = serde_json::from_str(&response(Some(&id), &Done::OK)).unwrap();
         assert_eq!(v, json!({"jsonrpc":"2.0","id":"a","result":{"done":0}}));
         let e = ErrorObject::new(
-            crate::errors::ErrorCode::NO_OBJECT,
+            crate::codes::ErrorCode::NO_OBJECT,
             "Object does not exist.".into(),
             Some("0x652099"),
         );

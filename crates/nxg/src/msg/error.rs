@@ -4,7 +4,7 @@
 
 use serde::{Deserialize, Deserializer, Serialize};
 
-use crate::errors::{rpc_codes, ErrorCode};
+use crate::codes::{rpc_codes, ErrorCode};
 
 /// `{"code", "message", "data"}`. `code` is written as a number; read as a number or as a
 /// string in decimal or `0x` hex, since the specification shows both (docs/PROTOCOL.md

@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 
 use serde_json::value::RawValue;
 
-use crate::errors::rpc_codes;
+use crate::codes::rpc_codes;
 use crate::msg::{
     self, Connect, ErrorObject, Event, EventNotification, Id, Incoming, Method, Notification,
     TokenParams,

@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use canopen::sdo::abort::AbortCode;
 use lift417::catalog::Catalog;
-use nxg::errors::rpc_codes;
+use nxg::codes::rpc_codes;
 use nxg::gateway::{
     BusEvent, CloseReason, Context, Happening, Identity, Job, JobResult, LevelState, Lookup,
     Metadata, Output, Phase, Policy, Session, Settings, Target,
