@@ -86,6 +86,16 @@ impl From<sqlx::Error> for StoreError {
 }
 
 impl StoreError {
+    /// The store is closed: the portal is stopping and nobody is left to ask.
+    pub fn closed() -> StoreError {
+        StoreError::from(sqlx::Error::PoolClosed)
+    }
+
+    /// A statement found no row where one was expected.
+    pub fn no_row() -> StoreError {
+        StoreError::from(sqlx::Error::RowNotFound)
+    }
+
     /// Whether the database could not be reached (down, restarting, no connection free in
     /// time) rather than refusing the statement: worth trying again later.
     pub fn is_unavailable(&self) -> bool {

@@ -113,7 +113,7 @@ pub async fn admit_alone(store: &Store, connect: &Connect) -> Result<Admission, 
     let mut admissions = admit_all(store, &[connect]).await?;
     admissions
         .pop()
-        .ok_or_else(|| sqlx::Error::RowNotFound.into())
+        .ok_or_else(StoreError::no_row)
 }
 
 /// CONNECTs asked about in one statement at most.
@@ -170,7 +170,7 @@ impl Admissions {
             answer,
         };
         // Without the task (the portal stops) there is nobody to ask.
-        let closed = || StoreError::from(sqlx::Error::PoolClosed);
+        let closed = StoreError::closed;
         self.tx.send(asked).await.map_err(|_| closed())?;
         answered.await.unwrap_or_else(|_| Err(closed()))
     }

@@ -124,7 +124,7 @@ impl Records {
         self.send(self.queued(record, Some(written))).await?;
         // The writer dropped the batch unanswered only if it ended mid-way: the portal stops.
         done.await
-            .unwrap_or_else(|_| Err(sqlx::Error::PoolClosed.into()))
+            .unwrap_or_else(|_| Err(cloud_store::StoreError::closed()))
     }
 
     /// Into the queue; without a writer (the portal is stopping) written at once.
