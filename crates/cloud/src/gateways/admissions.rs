@@ -111,9 +111,7 @@ async fn admit_all(store: &Store, connects: &[&Connect]) -> Result<Vec<Admission
 /// The admission of one CONNECT, decided now on its own.
 pub async fn admit_alone(store: &Store, connect: &Connect) -> Result<Admission, StoreError> {
     let mut admissions = admit_all(store, &[connect]).await?;
-    admissions
-        .pop()
-        .ok_or_else(StoreError::no_row)
+    admissions.pop().ok_or_else(StoreError::no_row)
 }
 
 /// CONNECTs asked about in one statement at most.
