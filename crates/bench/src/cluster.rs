@@ -541,7 +541,7 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
             back.as_secs_f64()
         );
     }
-    for loadgen in loadgens {
+    for mut loadgen in loadgens {
         loadgen.stop(Duration::from_secs(30)).await;
     }
     for p in portals.processes {

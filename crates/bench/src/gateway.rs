@@ -454,7 +454,7 @@ async fn cpu_per_request(
     for (mode, channels) in modes {
         let portal = Portal::start(pki).await?;
         let url = portal.url()?;
-        let daemon = if channels == 0 {
+        let mut daemon = if channels == 0 {
             lone_gateway(&exe, &url, &pki.ca, "BENCH", 1, &dir.join("cpu-local"))?
         } else {
             let mut config = config(&url, pki, bus, &dir.join("cpu-bus"));
@@ -512,7 +512,7 @@ async fn memory(args: &GatewayBench, pki: &DevPki, bus: &str, dir: &Path) -> any
     let config = config(&portal.url()?, pki, bus, &dir.join("process"));
     let path = dir.join("gateway.toml");
     std::fs::write(&path, toml::to_string_pretty(&config)?)?;
-    let daemon = Daemon::start(&args.exe()?, "gateway", &path)?;
+    let mut daemon = Daemon::start(&args.exe()?, "gateway", &path)?;
     let pid = daemon.pid;
     let mut ws = portal.accept().await?;
     tokio::time::sleep(Duration::from_secs(2)).await;

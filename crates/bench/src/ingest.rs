@@ -80,7 +80,7 @@ pub async fn run(args: IngestBench) -> anyhow::Result<()> {
             .saturating_sub(cpu0);
         let (stored, dropped) = (
             counters.stored.load(Ordering::Relaxed),
-            counters.dropped.load(Ordering::Relaxed),
+            counters.dropped_total(),
         );
         if dropped > 0 || stored != args.values as u64 {
             bail!("{stored} stored, {dropped} dropped of {}", args.values);

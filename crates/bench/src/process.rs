@@ -97,7 +97,7 @@ impl Daemon {
     }
 
     /// SIGINT (the daemons' graceful shutdown), then wait up to `limit` for the exit.
-    pub(crate) async fn stop(mut self, limit: Duration) {
+    pub(crate) async fn stop(&mut self, limit: Duration) {
         if let Ok(pid) = libc::pid_t::try_from(self.pid) {
             // SAFETY: signalling a process id of a child this process started and has not
             // reaped (`self.child` holds it), so the id is not another process's.

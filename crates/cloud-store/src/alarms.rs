@@ -120,7 +120,9 @@ impl Store {
         raised: &[Alarm],
         cleared: &[(i64, i64)],
     ) -> Result<(Vec<bool>, Vec<Alarm>), StoreError> {
-        let mut tx = self.pool.begin().await?;
+        let mut conn = self.writer().await?;
+        let outcome: Result<_, sqlx::Error> = async {
+        let mut tx = sqlx::Connection::begin(&mut *conn).await?;
         for rows in events.chunks(100) {
             let sql = format!(
                 "INSERT INTO events (lift, at, kind, body) VALUES {}",
@@ -171,6 +173,9 @@ impl Store {
         }
         tx.commit().await?;
         Ok((new, done))
+        }
+        .await;
+        self.settle(conn, outcome).await
     }
 
     /// A lift's events, oldest first: from `since` (ms) on, or the newest `limit` without it.

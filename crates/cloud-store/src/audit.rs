@@ -1,17 +1,56 @@
 //! The audit log: every write to a lift, elevation and token operation (docs/PORTAL.md §Audit).
+//! What an operator asks of a lift is written as intended before the lift is asked
+//! ([`Store::audit_intent`]) and completed with its outcome afterwards
+//! ([`Store::audit_outcome`]); what the portal or an administrator does alone is written once
+//! ([`Store::audit`]).
 
 use sqlx::Row;
 
 use cloud_types::audit::AuditEntry;
 
-use crate::{Store, StoreError};
+use crate::{new_id, Store, StoreError};
 
 impl Store {
     /// Add an audit entry.
     pub async fn audit(&self, e: &AuditEntry) -> Result<(), StoreError> {
-        sqlx::query(
-            "INSERT INTO audit (at, account, lift, action, object, old_value, new_value, result) VALUES ($1, $2, $3, $4, $5, $6, $7, $8)",
+        self.insert_audit(new_id(), e).await
+    }
+
+    /// Write `e` as intended, before the lift is asked; its id, for [`Store::audit_outcome`].
+    /// When this fails nothing may be sent to the lift.
+    pub async fn audit_intent(&self, e: &AuditEntry) -> Result<i64, StoreError> {
+        let id = new_id();
+        self.insert_audit(id, e).await?;
+        Ok(id)
+    }
+
+    /// Complete entry `id` with what became of it (`result`), and the value before where it
+    /// was read only then.
+    pub async fn audit_outcome(
+        &self,
+        id: i64,
+        result: &str,
+        old_value: Option<&str>,
+    ) -> Result<(), StoreError> {
+        let done = sqlx::query(
+            "UPDATE audit SET result = $1, old_value = COALESCE($2, old_value) WHERE id = $3",
         )
+        .bind(result)
+        .bind(old_value)
+        .bind(id)
+        .execute(&self.pool)
+        .await
+        .map(|_| ())
+        .map_err(StoreError::from);
+        self.health().note(&done);
+        done
+    }
+
+    async fn insert_audit(&self, id: i64, e: &AuditEntry) -> Result<(), StoreError> {
+        let done = sqlx::query(
+            "INSERT INTO audit (id, at, account, lift, action, object, old_value, new_value, result) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9)",
+        )
+        .bind(id)
         .bind(e.at)
         .bind(&e.account)
         .bind(&e.lift)
@@ -21,8 +60,11 @@ impl Store {
         .bind(&e.new_value)
         .bind(&e.result)
         .execute(&self.pool)
-        .await?;
-        Ok(())
+        .await
+        .map(|_| ())
+        .map_err(StoreError::from);
+        self.health().note(&done);
+        done
     }
 
     /// The audit entries of `domain`'s lifts, newest first.

@@ -6,7 +6,6 @@ use nxg::msg::{Connect, Identity};
 use sqlx::any::AnyRow;
 use sqlx::Row;
 
-use cloud_types::audit::AuditEntry;
 use cloud_types::lifts::{lift_id, LiftRecord};
 use cloud_types::now_ms;
 
@@ -179,7 +178,9 @@ impl Store {
     /// per batch, not one per gateway). `last_seen` only moves forward, so a record written
     /// late never takes it back.
     pub async fn record(&self, records: &[GatewayRecord]) -> Result<(), StoreError> {
-        let mut tx = self.pool.begin().await?;
+        let mut conn = self.writer().await?;
+        let outcome: Result<_, sqlx::Error> = async {
+        let mut tx = sqlx::Connection::begin(&mut *conn).await?;
         for record in records {
             match record {
                 GatewayRecord::Connected {
@@ -231,6 +232,9 @@ impl Store {
         }
         tx.commit().await?;
         Ok(())
+        }
+        .await;
+        self.settle(conn, outcome).await
     }
 
     /// The gateway of `lift` confirmed `token` ([`GatewayRecord::Token`]), written at once.
@@ -259,28 +263,36 @@ impl Store {
         lift: &str,
         by: &str,
     ) -> Result<bool, StoreError> {
-        let done = sqlx::query(
-            "UPDATE gateways SET token_hash = NULL, token_next = NULL, token_set = 0 WHERE id = $1 AND domain = $2",
-        )
-        .bind(lift)
-        .bind(domain)
-        .execute(&self.pool)
-        .await?;
-        if done.rows_affected() == 0 {
-            return Ok(false);
+        let mut conn = self.writer().await?;
+        let outcome: Result<_, sqlx::Error> = async {
+            // The reset and its audit entry together, or neither.
+            let mut tx = sqlx::Connection::begin(&mut *conn).await?;
+            let done = sqlx::query(
+                "UPDATE gateways SET token_hash = NULL, token_next = NULL, token_set = 0 WHERE id = $1 AND domain = $2",
+            )
+            .bind(lift)
+            .bind(domain)
+            .execute(&mut *tx)
+            .await?;
+            if done.rows_affected() == 0 {
+                tx.rollback().await?;
+                return Ok(false);
+            }
+            sqlx::query(
+                "INSERT INTO audit (id, at, account, lift, action, object, old_value, new_value, result) \
+                 VALUES ($1, $2, $3, $4, 'token reset', 'cloud token', NULL, '(none: first contact next)', 'ok')",
+            )
+            .bind(crate::new_id())
+            .bind(now_ms())
+            .bind(by)
+            .bind(lift)
+            .execute(&mut *tx)
+            .await?;
+            tx.commit().await?;
+            Ok(true)
         }
-        self.audit(&AuditEntry {
-            at: now_ms(),
-            account: by.to_owned(),
-            lift: lift.to_owned(),
-            action: "token reset".into(),
-            object: "cloud token".into(),
-            old_value: None,
-            new_value: "(none: first contact next)".into(),
-            result: "ok".into(),
-        })
-        .await?;
-        Ok(true)
+        .await;
+        self.settle(conn, outcome).await
     }
 
     /// The domain (account) a registered lift belongs to.

@@ -16,9 +16,14 @@
 pub mod accounts;
 pub mod alarms;
 pub mod audit;
+pub mod backup;
 pub mod elevations;
 pub mod gateways;
+pub mod health;
+pub mod history;
+pub mod idempotency;
 pub mod refused;
+pub mod rollups;
 pub mod schema;
 pub mod secrets;
 pub mod sessions;
@@ -30,6 +35,11 @@ pub mod users;
 pub use alarms::{new_id, AlarmFilter, EventRow, OutboxEntry};
 pub use elevations::ElevationGrant;
 pub use gateways::{GatewayRecord, GatewayRow, Registered};
+pub use health::{Health, Trouble};
+pub use history::{Buckets, Source};
+pub use idempotency::Idempotent;
+pub use refused::Refusal;
+pub use rollups::{Bucket, Grain, RolledUp};
 pub use secrets::{digest, passhash, secret};
 pub use sessions::SessionRecord;
 pub use subscriptions::StoredSubscription;
@@ -96,21 +106,15 @@ impl StoreError {
         StoreError::from(sqlx::Error::RowNotFound)
     }
 
-    /// Whether the database could not be reached (down, restarting, no connection free in
-    /// time) rather than refusing the statement: worth trying again later.
+    /// The trouble the database is in, if the failure is one that passes (a full disk, a busy
+    /// or unreachable database) rather than a refusal of the statement.
+    pub fn trouble(&self) -> Option<Trouble> {
+        Trouble::of(&self.0)
+    }
+
+    /// Whether the failure passes ([`StoreError::trouble`]): worth trying again later.
     pub fn is_unavailable(&self) -> bool {
-        matches!(
-            *self.0,
-            sqlx::Error::Io(_)
-                | sqlx::Error::Tls(_)
-                | sqlx::Error::PoolTimedOut
-                | sqlx::Error::PoolClosed
-                | sqlx::Error::WorkerCrashed
-                | sqlx::Error::Protocol(_)
-        ) || matches!(&*self.0, sqlx::Error::Database(e) if e.code().is_some_and(|c| {
-            // PostgreSQL: admin shutdown, crash shutdown, cannot connect now.
-            matches!(c.as_ref(), "57P01" | "57P02" | "57P03")
-        }))
+        self.trouble().is_some()
     }
 }
 
@@ -125,6 +129,11 @@ pub struct Store {
     /// The auth epoch this process has seen (see `users`); sessions older than it are checked
     /// again.
     epoch: std::sync::Arc<std::sync::atomic::AtomicI64>,
+    /// Whether the database takes writes now.
+    health: std::sync::Arc<Health>,
+    /// The earliest time (ms) of values stored late since the last roll-up (`i64::MAX`: none):
+    /// their minutes are rolled up again ([`Store::rewind_roll_ups`]).
+    rewind: std::sync::Arc<std::sync::atomic::AtomicI64>,
 }
 
 /// Connections to PostgreSQL a store opens at most by default (`[database] connections`).
@@ -179,6 +188,10 @@ impl Store {
             // admissions, a few connections): sqlx's warning after 2 s would write a line per
             // gateway. A wait that fails is logged by whoever waited.
             .acquire_slow_threshold(std::time::Duration::from_secs(5))
+            // A connection still in a transaction (one whose end failed) is closed, not given
+            // to the next caller inside a transaction it did not begin ([`Store::settle`]
+            // closes the ones it knows of; this catches the rest).
+            .after_release(|conn, _| Box::pin(async move { Ok(!conn.is_in_transaction()) }))
             .after_connect(move |conn, _| {
                 Box::pin(async move {
                     if sqlite {
@@ -205,10 +218,7 @@ impl Store {
                 .execute(&pool)
                 .await?;
         }
-        for statement in schema::SCHEMA {
-            sqlx::query(statement).execute(&pool).await?;
-        }
-        schema::migrate(&pool, sqlite).await?;
+        schema::create(&pool, sqlite).await?;
         let copy = match sqlite {
             true => None,
             false => Some(
@@ -223,7 +233,71 @@ impl Store {
             copy,
             keys: std::sync::Arc::default(),
             epoch: std::sync::Arc::default(),
+            health: std::sync::Arc::default(),
+            rewind: std::sync::Arc::new(std::sync::atomic::AtomicI64::new(i64::MAX)),
         })
+    }
+
+    /// Whether the database takes writes now, as the writers and the probe saw last.
+    pub fn health(&self) -> &Health {
+        &self.health
+    }
+
+    /// A pooled connection to write on (a failure to get one is noted for [`Store::health`]).
+    pub(crate) async fn writer(&self) -> Result<sqlx::pool::PoolConnection<sqlx::Any>, StoreError> {
+        let conn = self.pool.acquire().await.map_err(StoreError::from);
+        if conn.is_err() {
+            self.health.note(&conn);
+        }
+        conn
+    }
+
+    /// The end of a transaction on `conn` (`outcome`: its work and its commit): on a failure
+    /// the connection is closed rather than returned to the pool. A COMMIT that failed on a
+    /// full disk had left a connection whose transaction never ended: every other writer then
+    /// found the database locked, and the later "commits" on it only released savepoints of
+    /// that transaction — values counted as stored that were not. Noted for [`Store::health`].
+    pub(crate) async fn settle<T>(
+        &self,
+        conn: sqlx::pool::PoolConnection<sqlx::Any>,
+        outcome: Result<T, sqlx::Error>,
+    ) -> Result<T, StoreError> {
+        if outcome.is_err() {
+            let _ = conn.close().await;
+        }
+        let outcome = outcome.map_err(StoreError::from);
+        self.health.note(&outcome);
+        outcome
+    }
+
+    /// Write the probe row now: whether the database takes a write ([`Store::watch_writes`]).
+    pub async fn probe_write(&self) -> Result<(), StoreError> {
+        let outcome = sqlx::query(
+            "INSERT INTO write_probe (id, at) VALUES (1, $1) ON CONFLICT (id) DO UPDATE SET at = excluded.at",
+        )
+        .bind(cloud_types::now_ms())
+        .execute(&self.pool)
+        .await
+        .map(|_| ())
+        .map_err(StoreError::from);
+        self.health.note(&outcome);
+        outcome
+    }
+
+    /// Probe whether the database takes writes, every `every` while it does and every second
+    /// while it does not, for as long as the store lives: a full disk or an outage is noticed
+    /// when nothing else writes, and its end within a second of space or the server returning.
+    pub async fn watch_writes(self, every: std::time::Duration) {
+        loop {
+            let wait = match self.probe_write().await {
+                Ok(()) => every,
+                Err(e) => {
+                    tracing::debug!(error = %e, "the database takes no write");
+                    std::time::Duration::from_secs(1)
+                }
+            };
+            tokio::time::sleep(wait).await;
+        }
     }
 
     /// How many more client connections PostgreSQL takes now (`max_connections` less those
@@ -241,6 +315,31 @@ impl Store {
         .await?;
         Ok(Some(row.try_get::<i64, _>("free")?))
     }
+}
+
+/// `url` as it may be shown in logs and errors: a password in its userinfo
+/// (`postgres://USER:PASSWORD@HOST/DB`) or its query (`?password=…`) replaced by `***`.
+pub fn shown_url(url: &str) -> String {
+    let mut shown = url.to_owned();
+    if let Some((scheme, rest)) = url.split_once("://") {
+        let end = rest.find(['/', '?']).unwrap_or(rest.len());
+        if let Some((userinfo, host)) = rest[..end].rsplit_once('@') {
+            if let Some((user, _)) = userinfo.split_once(':') {
+                shown = format!("{scheme}://{user}:***@{host}{}", &rest[end..]);
+            }
+        }
+    }
+    if let Some((head, query)) = shown.clone().split_once('?') {
+        let query: Vec<String> = query
+            .split('&')
+            .map(|pair| match pair.split_once('=') {
+                Some((key, _)) if key.eq_ignore_ascii_case("password") => format!("{key}=***"),
+                _ => pair.to_owned(),
+            })
+            .collect();
+        shown = format!("{head}?{}", query.join("&"));
+    }
+    shown
 }
 
 /// `rows` rows of `columns` numbered parameters for a statement's `VALUES` or `IN` list:
@@ -368,6 +467,28 @@ pub(crate) mod tests {
     }
 
     #[test]
+    fn urls_are_shown_without_passwords() {
+        assert_eq!(
+            shown_url("postgres://canlift:s3cret@db.example:5432/portal"),
+            "postgres://canlift:***@db.example:5432/portal"
+        );
+        assert_eq!(
+            shown_url("postgresql://u:p@h/d?sslmode=require&password=x"),
+            "postgresql://u:***@h/d?sslmode=require&password=***"
+        );
+        assert_eq!(shown_url("postgres://u@h/d"), "postgres://u@h/d");
+        assert_eq!(
+            shown_url("sqlite://state/canlift.db"),
+            "sqlite://state/canlift.db"
+        );
+        assert_eq!(
+            shown_url("postgres://u:p@ss@h/d"),
+            "postgres://u:***@h/d",
+            "an @ in the password"
+        );
+    }
+
+    #[test]
     fn parameter_rows_are_numbered_across_rows() {
         assert_eq!(parameter_rows(2, 3), "($1, $2, $3), ($4, $5, $6)");
         assert_eq!(parameter_rows(3, 1), "($1), ($2), ($3)");
@@ -429,7 +550,10 @@ pub(crate) mod tests {
             })
             .collect();
         store.telemetry(&batch).await.unwrap();
-        let stored = store.history(lift, "0x652001", 0, i64::MAX).await.unwrap();
+        let stored = store
+            .values(lift, "0x652001", 0, i64::MAX, 100_000)
+            .await
+            .unwrap();
         let sent: Vec<(i64, String)> = batch.iter().map(|r| (r.at, r.value.clone())).collect();
         assert_eq!(stored, sent);
         let nodes: Vec<i64> = sqlx::query("SELECT node FROM telemetry WHERE lift = $1 ORDER BY at")
@@ -602,7 +726,7 @@ pub(crate) mod tests {
             .await
             .unwrap();
         let h = store
-            .history("1050-4096-180917010200000102", "0x652001", 0, 200)
+            .values("1050-4096-180917010200000102", "0x652001", 0, 200, 100)
             .await
             .unwrap();
         assert_eq!(h, [(100, "7".to_owned())]);
@@ -624,11 +748,13 @@ pub(crate) mod tests {
         assert_eq!(latest["0x630101"], (250, "3".to_owned()));
         assert!(store.latest(lift, &[]).await.unwrap().is_empty());
         assert_eq!(store.forget_telemetry(200).await.unwrap(), 1);
-        let h = store.history(lift, "0x652001", 0, 1000).await.unwrap();
+        let h = store.values(lift, "0x652001", 0, 1000, 100).await.unwrap();
         assert_eq!(h, [(300, "8".to_owned())]);
         users::tests::users_keys_and_the_epoch(&store).await;
         subscriptions::tests::held_released_and_per_lift(&store).await;
         ticket_keys::tests::made_once_replaced_over_the_version(&store).await;
         alarms::tests::one_active_alarm_per_condition(&store).await;
+        idempotency::tests::a_key_answers_its_first_outcome(&store).await;
+        history::tests::a_week_in_a_thousand_buckets(&store).await;
     }
 }

@@ -1,10 +1,51 @@
 //! The tables (`SCHEMA`) and the changes to them since (`MIGRATIONS`), applied when a store
 //! opens.
 
-use sqlx::{AnyPool, Row};
+use sqlx::{AnyConnection, AnyPool, Connection, Executor, Row};
 
 use crate::StoreError;
 use cloud_types::now_ms;
+
+/// The key of the PostgreSQL advisory lock under which a process creates and migrates the
+/// schema: processes starting together take turns (CREATE … IF NOT EXISTS is not safe against
+/// a concurrent creation of the same table: two of three processes started at once died of
+/// `duplicate key value violates unique constraint "pg_type_typname_nsp_index"`).
+const SCHEMA_LOCK: i64 = 0x6361_6e6c_6966_7401;
+
+/// Create the tables and apply the migrations not yet applied, on one connection: on
+/// PostgreSQL under an advisory lock, with notices silenced (each start had logged a
+/// `relation "…" already exists, skipping` per table).
+pub(crate) async fn create(pool: &AnyPool, sqlite: bool) -> Result<(), StoreError> {
+    let mut conn = pool.acquire().await?;
+    if !sqlite {
+        conn.execute("SET client_min_messages = warning").await?;
+        sqlx::query("SELECT pg_advisory_lock($1)")
+            .bind(SCHEMA_LOCK)
+            .execute(&mut *conn)
+            .await?;
+    }
+    let created = create_on(&mut conn).await;
+    if !sqlite {
+        let unlocked = sqlx::query("SELECT pg_advisory_unlock($1)")
+            .bind(SCHEMA_LOCK)
+            .execute(&mut *conn)
+            .await;
+        let reset = conn.execute("RESET client_min_messages").await;
+        if created.is_err() || unlocked.is_err() || reset.is_err() {
+            // Not back into the pool with a lock or a setting of its own.
+            let _ = conn.detach().close().await;
+        }
+    }
+    created?;
+    Ok(())
+}
+
+async fn create_on(conn: &mut AnyConnection) -> Result<(), StoreError> {
+    for statement in SCHEMA {
+        conn.execute(*statement).await?;
+    }
+    migrate(conn).await
+}
 
 /// The tables and indexes of a new database (each statement leaves an existing one alone).
 pub(crate) const SCHEMA: &[&str] = &[
@@ -35,6 +76,19 @@ pub(crate) const SCHEMA: &[&str] = &[
     "CREATE TABLE IF NOT EXISTS web_sessions (digest TEXT PRIMARY KEY, key_digest TEXT, user_name TEXT, csrf TEXT NOT NULL, last_used BIGINT NOT NULL)",
     // A cluster's TLS session-ticket keys (one row): every process resumes every session.
     "CREATE TABLE IF NOT EXISTS tls_ticket_keys (id BIGINT PRIMARY KEY, keys TEXT NOT NULL, version BIGINT NOT NULL)",
+    // Roll-ups of pushed values per object, minute and hour (docs/PORTAL.md §History): what a
+    // chart of a day or a week reads instead of millions of raw rows.
+    "CREATE TABLE IF NOT EXISTS telemetry_minute (lift TEXT NOT NULL, mplex TEXT NOT NULL, at BIGINT NOT NULL, min DOUBLE PRECISION, max DOUBLE PRECISION, last TEXT NOT NULL, last_at BIGINT NOT NULL, count BIGINT NOT NULL, PRIMARY KEY (lift, mplex, at))",
+    "CREATE INDEX IF NOT EXISTS telemetry_minute_by_time ON telemetry_minute (at)",
+    "CREATE TABLE IF NOT EXISTS telemetry_hour (lift TEXT NOT NULL, mplex TEXT NOT NULL, at BIGINT NOT NULL, min DOUBLE PRECISION, max DOUBLE PRECISION, last TEXT NOT NULL, last_at BIGINT NOT NULL, count BIGINT NOT NULL, PRIMARY KEY (lift, mplex, at))",
+    "CREATE INDEX IF NOT EXISTS telemetry_hour_by_time ON telemetry_hour (at)",
+    // Until when every minute is rolled up (one row).
+    "CREATE TABLE IF NOT EXISTS rollup_state (id BIGINT PRIMARY KEY, done BIGINT NOT NULL)",
+    // Outcomes of writes made with an Idempotency-Key, by whose credential and key.
+    "CREATE TABLE IF NOT EXISTS idempotency (scope TEXT NOT NULL, key TEXT NOT NULL, fingerprint TEXT NOT NULL, status BIGINT, body TEXT, created BIGINT NOT NULL, PRIMARY KEY (scope, key))",
+    "CREATE INDEX IF NOT EXISTS idempotency_by_time ON idempotency (created)",
+    // One row a process writes now and then: whether the database takes writes.
+    "CREATE TABLE IF NOT EXISTS write_probe (id BIGINT PRIMARY KEY, at BIGINT NOT NULL)",
     // Users' subscriptions, registered again by whichever process the lift's gateway connects to.
     "CREATE TABLE IF NOT EXISTS subscriptions (lift TEXT NOT NULL, user_name TEXT NOT NULL, mplex TEXT NOT NULL, inhibit BIGINT NOT NULL, threshold DOUBLE PRECISION NOT NULL, PRIMARY KEY (lift, user_name, mplex))",
 ];
@@ -59,18 +113,21 @@ const MIGRATIONS: &[(i64, &str)] = &[
         4,
         "CREATE UNIQUE INDEX IF NOT EXISTS alarms_one_active ON alarms (lift, kind, net, node, code) WHERE cleared IS NULL",
     ),
+    // Audit first: an entry is written as intended before the lift is asked, and completed
+    // with its outcome by its id.
+    (5, "ALTER TABLE audit ADD COLUMN id BIGINT"),
+    (6, "CREATE INDEX IF NOT EXISTS audit_by_id ON audit (id)"),
+    // Refused CONNECTs: a digest of the token offered (never the token), pruned by age.
+    (7, "ALTER TABLE refused ADD COLUMN token_digest TEXT"),
+    (8, "CREATE INDEX IF NOT EXISTS refused_by_time ON refused (at)"),
+    (9, "CREATE INDEX IF NOT EXISTS audit_by_time ON audit (at)"),
 ];
 
-/// Apply the [`MIGRATIONS`] not yet recorded, each with its record in one transaction (on
-/// PostgreSQL under a table lock, so that portal processes starting together apply each once).
-pub(crate) async fn migrate(pool: &AnyPool, sqlite: bool) -> Result<(), StoreError> {
+/// Apply the [`MIGRATIONS`] not yet recorded, each with its record in one transaction (under
+/// the schema lock on PostgreSQL, so that processes starting together apply each once).
+async fn migrate(conn: &mut AnyConnection) -> Result<(), StoreError> {
     for (version, statement) in MIGRATIONS {
-        let mut tx = pool.begin().await?;
-        if !sqlite {
-            sqlx::query("LOCK TABLE schema_migrations IN EXCLUSIVE MODE")
-                .execute(&mut *tx)
-                .await?;
-        }
+        let mut tx = conn.begin().await?;
         let applied = sqlx::query("SELECT COUNT(*) AS n FROM schema_migrations WHERE version = $1")
             .bind(version)
             .fetch_one(&mut *tx)

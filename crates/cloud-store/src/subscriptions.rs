@@ -54,23 +54,28 @@ impl Store {
         inhibit: u64,
         threshold: f64,
     ) -> Result<(), StoreError> {
-        let mut tx = self.pool.begin().await?;
-        for object in mplex {
-            sqlx::query(
-                "INSERT INTO subscriptions (lift, user_name, mplex, inhibit, threshold) \
+        let mut conn = self.writer().await?;
+        let outcome: Result<_, sqlx::Error> = async {
+            let mut tx = sqlx::Connection::begin(&mut *conn).await?;
+            for object in mplex {
+                sqlx::query(
+                    "INSERT INTO subscriptions (lift, user_name, mplex, inhibit, threshold) \
                  VALUES ($1, $2, $3, $4, $5) ON CONFLICT (lift, user_name, mplex) \
                  DO UPDATE SET inhibit = excluded.inhibit, threshold = excluded.threshold",
-            )
-            .bind(lift)
-            .bind(user)
-            .bind(object)
-            .bind(i64::try_from(inhibit).unwrap_or(i64::MAX))
-            .bind(threshold)
-            .execute(&mut *tx)
-            .await?;
+                )
+                .bind(lift)
+                .bind(user)
+                .bind(object)
+                .bind(i64::try_from(inhibit).unwrap_or(i64::MAX))
+                .bind(threshold)
+                .execute(&mut *tx)
+                .await?;
+            }
+            tx.commit().await?;
+            Ok(())
         }
-        tx.commit().await?;
-        Ok(())
+        .await;
+        self.settle(conn, outcome).await
     }
 
     /// `user` lets go of `mplex` of `lift`.
@@ -80,19 +85,24 @@ impl Store {
         user: &str,
         mplex: &[String],
     ) -> Result<(), StoreError> {
-        let mut tx = self.pool.begin().await?;
-        for object in mplex {
-            sqlx::query(
-                "DELETE FROM subscriptions WHERE lift = $1 AND user_name = $2 AND mplex = $3",
-            )
-            .bind(lift)
-            .bind(user)
-            .bind(object)
-            .execute(&mut *tx)
-            .await?;
+        let mut conn = self.writer().await?;
+        let outcome: Result<_, sqlx::Error> = async {
+            let mut tx = sqlx::Connection::begin(&mut *conn).await?;
+            for object in mplex {
+                sqlx::query(
+                    "DELETE FROM subscriptions WHERE lift = $1 AND user_name = $2 AND mplex = $3",
+                )
+                .bind(lift)
+                .bind(user)
+                .bind(object)
+                .execute(&mut *tx)
+                .await?;
+            }
+            tx.commit().await?;
+            Ok(())
         }
-        tx.commit().await?;
-        Ok(())
+        .await;
+        self.settle(conn, outcome).await
     }
 }
 

@@ -28,14 +28,20 @@ impl Store {
     /// multi-row INSERTs in one transaction.
     pub async fn telemetry(&self, batch: &[TelemetryRow]) -> Result<(), StoreError> {
         if let Some(pg) = &self.copy {
-            let mut copy = pg
-                .copy_in_raw(
-                    "COPY telemetry (lift, mplex, node, value, at) FROM STDIN (FORMAT binary)",
-                )
-                .await?;
-            copy.send(copy_binary(batch)).await?;
-            copy.finish().await?;
-            return Ok(());
+            let copied = async {
+                let mut copy = pg
+                    .copy_in_raw(
+                        "COPY telemetry (lift, mplex, node, value, at) FROM STDIN (FORMAT binary)",
+                    )
+                    .await?;
+                copy.send(copy_binary(batch)).await?;
+                copy.finish().await
+            }
+            .await
+            .map(|_| ())
+            .map_err(StoreError::from);
+            self.health().note(&copied);
+            return copied;
         }
         // SQLite: multi-row INSERTs of 512 rows (2,560 parameters: far within SQLite's 32,766)
         // and the rest in chunks of 256, 128, … 1 by its binary digits: sqlx keeps each
@@ -43,42 +49,50 @@ impl Store {
         // remainder of any length had been one more, each a VM of tens of KiB, up to sqlx's
         // 100 per connection). Anonymous parameters, because sqlx looks every numbered one up
         // by name, a linear search in SQLite: quadratic per statement.
-        let mut tx = self.pool.begin().await?;
-        for rows in crate::chunks_by_binary_digits(batch, 512) {
-            let mut sql =
-                String::from("INSERT INTO telemetry (lift, mplex, node, value, at) VALUES ");
-            sql.push_str(&vec!["(?, ?, ?, ?, ?)"; rows.len()].join(", "));
-            let mut query = sqlx::query(&sql);
-            for row in rows {
-                query = query
-                    .bind(&row.lift)
-                    .bind(&row.mplex)
-                    .bind(i64::from(row.node))
-                    .bind(&row.value)
-                    .bind(row.at);
+        let mut conn = self.writer().await?;
+        let outcome: Result<_, sqlx::Error> = async {
+            let mut tx = sqlx::Connection::begin(&mut *conn).await?;
+            for rows in crate::chunks_by_binary_digits(batch, 512) {
+                let mut sql =
+                    String::from("INSERT INTO telemetry (lift, mplex, node, value, at) VALUES ");
+                sql.push_str(&vec!["(?, ?, ?, ?, ?)"; rows.len()].join(", "));
+                let mut query = sqlx::query(&sql);
+                for row in rows {
+                    query = query
+                        .bind(&row.lift)
+                        .bind(&row.mplex)
+                        .bind(i64::from(row.node))
+                        .bind(&row.value)
+                        .bind(row.at);
+                }
+                query.execute(&mut *tx).await?;
             }
-            query.execute(&mut *tx).await?;
+            tx.commit().await?;
+            Ok(())
         }
-        tx.commit().await?;
-        Ok(())
+        .await;
+        self.settle(conn, outcome).await
     }
 
-    /// Stored values of one object between `from` and `to` (ms), oldest first: (at, value). At
-    /// most the newest 10,000 of the range.
-    pub async fn history(
+    /// Stored values of one object from `from` to `to` (ms, both included), oldest first: (at,
+    /// value); the first `limit` of them (a caller that must know whether there were more asks
+    /// for one more).
+    pub async fn values(
         &self,
         lift: &str,
         mplex: &str,
         from: i64,
         to: i64,
+        limit: usize,
     ) -> Result<Vec<(i64, String)>, StoreError> {
         let rows = sqlx::query(
-            "SELECT at, value FROM (SELECT at, value FROM telemetry WHERE lift = $1 AND mplex = $2 AND at >= $3 AND at <= $4 ORDER BY at DESC LIMIT 10000) newest ORDER BY at",
+            "SELECT at, value FROM telemetry WHERE lift = $1 AND mplex = $2 AND at >= $3 AND at <= $4 ORDER BY at LIMIT $5",
         )
         .bind(lift)
         .bind(mplex)
         .bind(from)
         .bind(to)
+        .bind(i64::try_from(limit).unwrap_or(i64::MAX))
         .fetch_all(&self.pool)
         .await?;
         rows.iter()

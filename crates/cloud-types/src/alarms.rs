@@ -21,6 +21,9 @@ pub enum Kind {
     /// The lift's gateway connected with its valid token from another board (`boardhash`);
     /// it stays until someone acknowledges it (nothing on the lift ends it).
     BoardChanged,
+    /// The lift pushed more than it may store per hour (`[gateways]
+    /// max_stored_bytes_per_hour`): values are not stored; cleared after an hour within it.
+    StorageQuota,
 }
 
 impl Kind {
@@ -32,12 +35,16 @@ impl Kind {
             Kind::Bus => "bus",
             Kind::LiftOffline => "lift-offline",
             Kind::BoardChanged => "board-changed",
+            Kind::StorageQuota => "storage-quota",
         }
     }
 
     /// Whether it concerns the lift as a whole rather than a node or network.
     pub fn is_lift_wide(self) -> bool {
-        matches!(self, Kind::LiftOffline | Kind::BoardChanged)
+        matches!(
+            self,
+            Kind::LiftOffline | Kind::BoardChanged | Kind::StorageQuota
+        )
     }
 
     /// Whether acknowledging it also clears it: nothing the lift reports ends it, a person
@@ -54,6 +61,7 @@ impl Kind {
             Kind::Bus,
             Kind::LiftOffline,
             Kind::BoardChanged,
+            Kind::StorageQuota,
         ]
         .into_iter()
         .find(|k| k.name() == name)

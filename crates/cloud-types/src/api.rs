@@ -143,32 +143,61 @@ pub struct EventsQuery {
 /// The query of `GET …/objects/{mplex}/history` (ms since the epoch).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct HistoryQuery {
-    /// From (default: the beginning).
+    /// From (default: a day before `to`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub from: Option<i64>,
     /// To (default: now).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub to: Option<i64>,
+    /// Buckets at most (default [`HISTORY_POINTS`], at most [`HISTORY_POINTS_MAX`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub points: Option<u32>,
 }
 
-/// One stored value.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+/// Buckets of a history answer unless the query says otherwise.
+pub const HISTORY_POINTS: u32 = 1000;
+
+/// Buckets of a history answer at most.
+pub const HISTORY_POINTS_MAX: u32 = 10_000;
+
+/// An object's values over one bucket of a history answer.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct HistoryPoint {
-    /// When it arrived (ms since the epoch).
+    /// The bucket's start (ms since the epoch).
     pub at: i64,
-    /// The value in text form.
-    pub value: String,
+    /// The smallest value that is a number (absent when none is).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub min: Option<f64>,
+    /// The largest.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max: Option<f64>,
+    /// The last value in text form.
+    pub last: String,
+    /// When the last value came.
+    pub last_at: i64,
+    /// How many values came.
+    pub count: i64,
 }
 
-/// The answer of `GET …/objects/{mplex}/history`.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+/// The answer of `GET …/objects/{mplex}/history`: the period in at most `points` buckets of
+/// equal length spanning all of it, the empty ones left out (docs/PORTAL.md §History).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct History {
     /// Lift id.
     pub lift: String,
     /// The object (the gateway's spelling).
     pub mplex: String,
-    /// Oldest first; at most the newest 10,000 of the range.
-    pub values: Vec<HistoryPoint>,
+    /// The period's start (ms since the epoch).
+    pub from: i64,
+    /// Its end.
+    pub to: i64,
+    /// The length of a bucket (ms).
+    pub width: i64,
+    /// What the buckets were made from: `raw` (every value), `minute` or `hour` (the
+    /// roll-ups, raw values at the edges).
+    pub source: String,
+    /// The buckets holding values, oldest first.
+    pub points: Vec<HistoryPoint>,
 }
 
 /// Which alarms `GET /api/v1/alarms` lists.

@@ -7,6 +7,10 @@ pub const BY_PORTAL: &str = "(portal)";
 /// configuration (a token reset).
 pub const BY_ADMINISTRATOR: &str = "(administrator)";
 
+/// The result of an entry written as intended, before the lift was asked: it stays so only if
+/// the portal stopped before the lift answered (docs/PORTAL.md §Audit).
+pub const PENDING: &str = "pending";
+
 /// One audit entry.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct AuditEntry {
@@ -24,6 +28,6 @@ pub struct AuditEntry {
     pub old_value: Option<String>,
     /// Value written, or privilege asked for.
     pub new_value: String,
-    /// `ok` or the error.
+    /// `ok`, the error, or [`PENDING`] while the lift has not answered.
     pub result: String,
 }

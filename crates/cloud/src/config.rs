@@ -75,6 +75,9 @@ pub struct DatabaseSection {
     pub telemetry_days: u32,
     /// Days bus events are kept (the same way); 0 keeps them forever.
     pub events_days: u32,
+    /// Days the roll-ups of pushed values (per minute and per hour: what charts of long periods
+    /// read, docs/PORTAL.md §History) are kept; 0 keeps them forever.
+    pub rollup_days: u32,
     /// Pushed values that may wait for the database. When they fill it, a connection waits for
     /// room (at most 2 s; meanwhile it reads nothing from its gateway, which TCP slows down);
     /// while the database is unreachable further values are dropped and counted
@@ -93,6 +96,7 @@ impl Default for DatabaseSection {
             url: None,
             telemetry_days: 30,
             events_days: 90,
+            rollup_days: 400,
             telemetry_queue: 65_536,
             connections: cloud_store::POSTGRES_CONNECTIONS,
         }
@@ -123,6 +127,17 @@ pub struct GatewaysSection {
     pub boardhash_change: BoardhashChange,
     /// Days after which a gateway's token is replaced when it connects (NXg §5.4); 0: never.
     pub token_rotate_days: u32,
+    /// Longest value stored (bytes of its text form); a longer one is not stored and counted
+    /// (`canlift_telemetry_dropped_total{reason="too_large"}`).
+    pub max_value_bytes: usize,
+    /// Bytes of values one lift may store per hour (on average: a burst of up to an hour's
+    /// worth); beyond it values are not stored, counted (`reason="quota"`), and the lift gets
+    /// a `storage-quota` alarm, cleared after an hour within the quota.
+    pub max_stored_bytes_per_hour: u64,
+    /// Days refused CONNECTs are kept (docs/PORTAL.md §Refused gateways).
+    pub refused_keep_days: u32,
+    /// Refused CONNECTs kept at most (the newest).
+    pub refused_keep_rows: u32,
 }
 
 /// What the portal does when a gateway with a valid token reports another `boardhash` than at
@@ -152,6 +167,10 @@ impl Default for GatewaysSection {
             max_messages_per_s: 5000,
             boardhash_change: BoardhashChange::default(),
             token_rotate_days: 0,
+            max_value_bytes: 4096,
+            max_stored_bytes_per_hour: 8 << 20,
+            refused_keep_days: 30,
+            refused_keep_rows: 100_000,
         }
     }
 }
@@ -161,6 +180,18 @@ impl GatewaysSection {
     pub fn token_lifetime(&self) -> Option<Duration> {
         (self.token_rotate_days > 0)
             .then(|| Duration::from_secs(u64::from(self.token_rotate_days) * 86_400))
+    }
+
+    /// How the portal treats every gateway.
+    pub fn policy(&self) -> crate::gateways::Policy {
+        crate::gateways::Policy {
+            settings: self.settings(),
+            max_messages_per_s: self.max_messages_per_s,
+            max_value_bytes: self.max_value_bytes,
+            max_stored_bytes_per_hour: self.max_stored_bytes_per_hour,
+            boardhash_change: self.boardhash_change,
+            token_lifetime: self.token_lifetime(),
+        }
     }
 
     /// The session settings.
@@ -278,6 +309,8 @@ pub struct Severities {
     pub emcy: Severity,
     /// The gateway's board changed under its token.
     pub board_changed: Severity,
+    /// The lift pushed more than it may store.
+    pub storage_quota: Severity,
 }
 
 impl Default for Severities {
@@ -290,6 +323,7 @@ impl Default for Severities {
             node_offline: Severity::Major,
             emcy: Severity::Major,
             board_changed: Severity::Major,
+            storage_quota: Severity::Major,
         }
     }
 }

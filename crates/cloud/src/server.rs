@@ -132,6 +132,8 @@ pub struct Portal {
     /// This process's lifts as the other processes of a cluster reach them: the cluster holds
     /// them weakly (they hold the cluster), the portal for as long as it runs.
     local: Arc<LocalLifts>,
+    /// The state directory's lock of a portal on SQLite, held while it runs.
+    state_lock: Option<std::fs::File>,
     /// Background work (retention, events, alarms, webhooks), ended with the portal.
     tasks: Vec<tokio::task::JoinHandle<()>>,
     /// The batch writers (telemetry, the gateways' records): when the portal stops they write
@@ -169,6 +171,22 @@ fn server_tls(
         tls.send_tls13_tickets = 1;
     }
     Ok(Arc::new(tls))
+}
+
+/// Take the state directory's lock (`portal.lock`) for as long as the returned file is open:
+/// one portal at a time on a SQLite database, and `canlift cloud restore` only into a stopped
+/// portal. `Err` of kind `WouldBlock` while another process holds it.
+pub fn lock_state_dir(dir: &std::path::Path) -> std::io::Result<std::fs::File> {
+    let file = std::fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(dir.join("portal.lock"))?;
+    match file.try_lock() {
+        Ok(()) => Ok(file),
+        Err(std::fs::TryLockError::WouldBlock) => Err(std::io::ErrorKind::WouldBlock.into()),
+        Err(std::fs::TryLockError::Error(e)) => Err(e),
+    }
 }
 
 /// How often a cluster's process looks for rotated ticket keys: a ticket made with a new key
@@ -263,6 +281,19 @@ impl Portal {
     pub async fn bind(config: &Config, names: ObjectNames) -> Result<Portal, ServerError> {
         std::fs::create_dir_all(&config.state.dir)
             .map_err(|e| ServerError::Other(format!("{}: {e}", config.state.dir.display())))?;
+        let database = config.database_url();
+        let state_lock = match database.starts_with("sqlite:") && !database.contains(":memory:") {
+            true => Some(lock_state_dir(&config.state.dir).map_err(|e| {
+                ServerError::Other(match e.kind() {
+                    std::io::ErrorKind::WouldBlock => format!(
+                        "another portal runs on {} (its portal.lock is taken)",
+                        config.state.dir.display()
+                    ),
+                    _ => format!("{}/portal.lock: {e}", config.state.dir.display()),
+                })
+            })?),
+            false => None,
+        };
         let store = Store::open_pooled(&config.database_url(), config.database.connections).await?;
         let (tickets, follow_tickets) = ticket_keys(config, &store).await?;
         let tls = server_tls(config, tickets)?;
@@ -329,6 +360,27 @@ impl Portal {
                 store.clone(),
                 config.database.events_days,
             )),
+            tokio::spawn(telemetry::retention(
+                telemetry::Retained::RollUps,
+                store.clone(),
+                config.database.rollup_days,
+            )),
+            tokio::spawn(telemetry::retention(
+                telemetry::Retained::Refused {
+                    rows: config.gateways.refused_keep_rows,
+                },
+                store.clone(),
+                config.gateways.refused_keep_days.max(1),
+            )),
+            tokio::spawn(telemetry::retention(
+                telemetry::Retained::Idempotency,
+                store.clone(),
+                1,
+            )),
+            tokio::spawn(telemetry::roll_up(store.clone())),
+            // A full disk or an outage is noticed when nothing else writes, and its end within
+            // a second (`/healthz`).
+            tokio::spawn(store.clone().watch_writes(Duration::from_secs(5))),
         ]);
         let (alarms, reports) = start_alarms(config, &store, &registry, &mut tasks)?;
         // Rights taken away anywhere reach this process within a second.
@@ -338,6 +390,7 @@ impl Portal {
                 .follow_auth_epoch(std::time::Duration::from_secs(1)),
         ));
         let (closing, closing_rx) = watch::channel(false);
+        let refusals = Arc::new(gateways::refusals::Refusals::new(store.clone()));
         let metrics = Arc::new(Metrics::default());
         if crate::memory::SUPPORTED {
             tasks.push(tokio::spawn(trim_after_bursts(
@@ -349,17 +402,15 @@ impl Portal {
             shared: Arc::new(Shared {
                 store: store.clone(),
                 registry: registry.clone(),
-                settings: config.gateways.settings(),
+                policy: config.gateways.policy(),
                 telemetry: telemetry.clone(),
                 admissions,
                 records,
                 dashboard: dashboard.clone(),
                 subscriptions: subscriptions.clone(),
                 reports: reports.clone(),
+                refusals: refusals.clone(),
                 closing: closing_rx,
-                max_messages_per_s: config.gateways.max_messages_per_s,
-                boardhash_change: config.gateways.boardhash_change,
-                token_lifetime: config.gateways.token_lifetime(),
             }),
             max_message: config.gateways.max_message_bytes,
             metrics: metrics.clone(),
@@ -369,7 +420,10 @@ impl Portal {
         let a = alarms.counters.clone();
         let router = Router::new()
             .route("/ws", get(ws).with_state(ws_state))
-            .route("/healthz", get(health).with_state(registry.clone()))
+            .route(
+                "/healthz",
+                get(health).with_state((registry.clone(), store.clone())),
+            )
             .route(
                 "/metrics",
                 get(move || {
@@ -379,7 +433,10 @@ impl Portal {
                 }),
             )
             .merge({
+                let (audit, auditing) = crate::audit::AuditTrail::start(store.clone());
+                tasks.push(auditing);
                 let app = Arc::new(AppState {
+                    audit,
                     auth: Auth {
                         elevations: crate::auth::elevation::Elevations::new(store.clone()),
                         sessions: crate::auth::sessions::Sessions::default(),
@@ -410,6 +467,7 @@ impl Portal {
             router,
             registry,
             local,
+            state_lock,
             tasks,
             writers,
             stop_writers,
@@ -438,6 +496,7 @@ impl Portal {
             router,
             registry,
             local,
+            state_lock,
             tasks,
             writers,
             stop_writers,
@@ -534,8 +593,9 @@ impl Portal {
         for task in tasks {
             task.abort();
         }
-        // Nothing is relayed here any more.
+        // Nothing is relayed here any more; another portal (or a restore) may have the state.
         drop(local);
+        drop(state_lock);
         tracing::info!("portal stopped");
     }
 }
@@ -584,7 +644,8 @@ async fn join_cluster(
     let database = config.database_url();
     if !(database.starts_with("postgres://") || database.starts_with("postgresql://")) {
         return Err(ServerError::Other(format!(
-            "[cluster] needs the processes' shared database: set [database] url = \"postgres://…\" (now {database})"
+            "[cluster] needs the processes' shared database: set [database] url = \"postgres://…\" (now {})",
+            cloud_store::shown_url(&database)
         )));
     }
     let ttl = std::time::Duration::from_secs(config.cluster.holder_ttl_s);
@@ -609,10 +670,19 @@ async fn join_cluster(
     Ok((cluster, events))
 }
 
-/// `/healthz`: `ok`, or in a cluster without NATS, or with a NATS that refuses part of its
-/// work, `degraded` with the reason (still 200: the process serves the gateways it holds).
-async fn health(State(registry): State<Arc<Registry>>) -> String {
-    match registry.cluster() {
+/// `/healthz`: `ok`; 503 `unavailable: database: disk full` (or `unreachable`, `busy`, `I/O
+/// error`) while the database takes no writes; in a cluster without NATS, or with a NATS that
+/// refuses part of its work, `degraded` with the reason (still 200: the process serves the
+/// gateways it holds).
+async fn health(State((registry, store)): State<(Arc<Registry>, Store)>) -> Response {
+    if let Some((trouble, since)) = store.health().trouble() {
+        let text = format!(
+            "unavailable: database: {trouble} (for {} s; writes wait or are refused, reads go on)\n",
+            since.as_secs()
+        );
+        return (StatusCode::SERVICE_UNAVAILABLE, text).into_response();
+    }
+    let text: String = match registry.cluster() {
         Some(cluster) if !cluster.connected() => {
             let why = cluster
                 .last_error()
@@ -627,7 +697,8 @@ async fn health(State(registry): State<Arc<Registry>>) -> String {
             None => "ok\n".into(),
         },
         None => "ok\n".into(),
-    }
+    };
+    text.into_response()
 }
 
 /// How long a client may take for its TLS handshake, and then for each HTTP request head
@@ -716,7 +787,7 @@ fn metrics_text(
             load(&m.memory_trimmed_bytes),
         ),
         ("canlift_telemetry_stored_total", load(&t.stored)),
-        ("canlift_telemetry_dropped_total", load(&t.dropped)),
+        ("canlift_telemetry_dropped_total", t.dropped_total()),
         ("canlift_telemetry_waits_total", load(&t.waits)),
         ("canlift_events_stored_total", load(&a.events_stored)),
         (

@@ -7,6 +7,7 @@ use cloud_store::Store;
 use nxg::names::ObjectNames;
 
 use crate::alarms::Alarms;
+use crate::audit::AuditTrail;
 use crate::auth::Auth;
 use crate::config::Dashboard;
 use crate::gateways::subscriptions::Subscriptions;
@@ -20,6 +21,8 @@ pub struct AppState {
     pub registry: Arc<Registry>,
     /// Who may do what: sessions, throttles, elevations.
     pub auth: Auth,
+    /// The audit log, written before a lift is asked.
+    pub audit: AuditTrail,
     /// What the web UI shows.
     pub dashboard: Arc<Dashboard>,
     /// Who holds which subscriptions.

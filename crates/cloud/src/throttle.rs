@@ -10,33 +10,48 @@
 use std::collections::HashMap;
 use std::time::{Duration, Instant};
 
-/// A rate of `per_s` on average with bursts of two seconds' worth.
+/// A rate of `per_s` on average with bursts of up to `capacity` (by default two seconds' worth).
 #[derive(Debug, Clone)]
 pub struct TokenBucket {
     per_s: f64,
+    capacity: f64,
     tokens: f64,
     at: Instant,
 }
 
 impl TokenBucket {
-    /// A full bucket at `now`.
+    /// A full bucket at `now`: `per_s` events a second, bursts of two seconds' worth.
     pub fn new(per_s: u32, now: Instant) -> TokenBucket {
         let per_s = f64::from(per_s.max(1));
+        TokenBucket::with_capacity(per_s, 2.0 * per_s, now)
+    }
+
+    /// A full bucket at `now` of `per_s` units a second (at least a millionth) and bursts of
+    /// `capacity` units.
+    pub fn with_capacity(per_s: f64, capacity: f64, now: Instant) -> TokenBucket {
+        let per_s = per_s.max(1e-6);
         TokenBucket {
             per_s,
-            tokens: 2.0 * per_s,
+            capacity,
+            tokens: capacity,
             at: now,
         }
     }
 
     /// One event at `now`: `Ok` within the rate, otherwise how long until one would be.
     pub fn take(&mut self, now: Instant) -> Result<(), Duration> {
+        self.take_n(1.0, now)
+    }
+
+    /// `n` units at `now`: `Ok` (and taken) within the rate, otherwise how long until they
+    /// would be (nothing taken).
+    pub fn take_n(&mut self, n: f64, now: Instant) -> Result<(), Duration> {
         self.tokens = (self.tokens + self.refill(now)).min(self.capacity());
         self.at = now;
-        if self.tokens < 1.0 {
-            return Err(Duration::from_secs_f64((1.0 - self.tokens) / self.per_s));
+        if self.tokens < n {
+            return Err(Duration::from_secs_f64((n - self.tokens) / self.per_s));
         }
-        self.tokens -= 1.0;
+        self.tokens -= n;
         Ok(())
     }
 
@@ -55,9 +70,65 @@ impl TokenBucket {
         now.saturating_duration_since(self.at).as_secs_f64() * self.per_s
     }
 
-    /// A full bucket: two seconds' worth.
     fn capacity(&self) -> f64 {
-        2.0 * self.per_s
+        self.capacity
+    }
+}
+
+/// The key a source address is limited by: itself for IPv4, its /64 for IPv6 (one host is
+/// given a whole /64 to choose addresses from).
+pub fn address_key(peer: &str) -> String {
+    let ip = peer
+        .parse::<std::net::SocketAddr>()
+        .map(|a| a.ip())
+        .or_else(|_| peer.parse::<std::net::IpAddr>());
+    match ip {
+        Ok(std::net::IpAddr::V6(v6)) => match v6.to_ipv4_mapped() {
+            Some(v4) => v4.to_string(),
+            None => {
+                let s = v6.segments();
+                format!("{:x}:{:x}:{:x}:{:x}::/64", s[0], s[1], s[2], s[3])
+            }
+        },
+        Ok(ip) => ip.to_string(),
+        Err(_) => peer.to_owned(),
+    }
+}
+
+/// Events per source address ([`address_key`]), each address its own bucket of `per_s` with
+/// bursts of `burst`. At most [`LIMIT`] addresses are followed; when full, the idle ones
+/// (full again) are forgotten first, then all.
+#[derive(Debug)]
+pub struct AddressRates {
+    per_s: f64,
+    burst: f64,
+    buckets: HashMap<String, TokenBucket>,
+}
+
+impl AddressRates {
+    /// `per_s` events a second per address, bursts of `burst`.
+    pub fn new(per_s: f64, burst: f64) -> AddressRates {
+        AddressRates {
+            per_s,
+            burst,
+            buckets: HashMap::new(),
+        }
+    }
+
+    /// One event from `peer` at `now`: whether it is within its address's rate.
+    pub fn take(&mut self, peer: &str, now: Instant) -> bool {
+        if self.buckets.len() >= LIMIT {
+            self.buckets.retain(|_, b| !b.full(now));
+            if self.buckets.len() >= LIMIT {
+                self.buckets.clear();
+            }
+        }
+        let (per_s, burst) = (self.per_s, self.burst);
+        self.buckets
+            .entry(address_key(peer))
+            .or_insert_with(|| TokenBucket::with_capacity(per_s, burst, now))
+            .take(now)
+            .is_ok()
     }
 }
 
@@ -229,6 +300,41 @@ mod tests {
         let mut full = TokenBucket::new(10, start);
         full.give_back();
         assert_eq!((0..30).take_while(|_| full.take(start).is_ok()).count(), 20);
+    }
+
+    #[test]
+    fn a_bucket_of_units_takes_what_fits() {
+        let t0 = Instant::now();
+        // 3,600 units an hour, bursts of an hour's worth.
+        let mut b = TokenBucket::with_capacity(1.0, 3600.0, t0);
+        assert!(b.take_n(3000.0, t0).is_ok());
+        assert_eq!(b.take_n(1000.0, t0), Err(Duration::from_secs(400)));
+        assert!(
+            b.take_n(600.0, t0).is_ok(),
+            "what did not fit was not taken"
+        );
+        assert!(b.take_n(10.0, t0 + Duration::from_secs(10)).is_ok());
+    }
+
+    #[test]
+    fn addresses_are_limited_alone_and_ipv6_by_its_64() {
+        assert_eq!(address_key("192.0.2.7:4711"), "192.0.2.7");
+        assert_eq!(
+            address_key("[2001:db8:1:2:aaaa::1]:443"),
+            "2001:db8:1:2::/64"
+        );
+        assert_eq!(address_key("[::ffff:192.0.2.7]:1"), "192.0.2.7");
+        let t0 = Instant::now();
+        let mut rates = AddressRates::new(1.0, 2.0);
+        assert!(rates.take("192.0.2.7:1", t0) && rates.take("192.0.2.7:2", t0));
+        assert!(!rates.take("192.0.2.7:3", t0), "a third at once is over");
+        assert!(rates.take("192.0.2.8:1", t0), "another address has its own");
+        assert!(rates.take("[2001:db8:1:2::1]:1", t0) && rates.take("[2001:db8:1:2::2]:1", t0));
+        assert!(
+            !rates.take("[2001:db8:1:2:ffff::9]:1", t0),
+            "the same /64 shares one bucket"
+        );
+        assert!(rates.take("192.0.2.7:4", t0 + Duration::from_secs(1)));
     }
 
     #[test]

@@ -153,16 +153,16 @@ impl PortalProcess {
         memory_kib(self.daemon.pid).map_or(0, |m| m[0])
     }
 
-    pub(crate) async fn stop(self) {
+    pub(crate) async fn stop(mut self) {
         self.daemon.stop(Duration::from_secs(10)).await;
     }
 
-    /// Replace the portal by a new process on the same state directory and database (the
-    /// new one starts first, on a port of its own; then the old one is stopped).
+    /// Replace the portal by a new process on the same state directory and database (stopped
+    /// first: one portal at a time holds a SQLite portal's state; the new one on a port of its
+    /// own).
     async fn restart(&mut self, dir: &Path, database: &str) -> anyhow::Result<()> {
-        let fresh = PortalProcess::start(dir, database).await;
-        let old = std::mem::replace(self, fresh?);
-        old.stop().await;
+        self.daemon.stop(Duration::from_secs(10)).await;
+        *self = PortalProcess::start(dir, database).await?;
         Ok(())
     }
 }
@@ -707,7 +707,7 @@ async fn latency(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyh
     together(&client, &path_of("naked"), args.requests, pids).await?;
     lift_pages(&client, &key, pids).await?;
     relay.kill().await;
-    for daemon in daemons.into_iter().chain([held]) {
+    for mut daemon in daemons.into_iter().chain([held]) {
         daemon.stop(Duration::from_secs(5)).await;
     }
     Ok(())

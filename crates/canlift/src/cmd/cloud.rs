@@ -2,8 +2,9 @@
 //! an operator account and prints its API key once; `canlift cloud token reset LIFT` forgets a
 //! lift's cloud token in the portal's database; `user` and `key` manage an account's people and
 //! their API keys (docs/PORTAL.md §Users and roles); `nats-nkey FILE` makes a cluster's NATS user
-//! key (docs/CLUSTER.md §Securing NATS). These are the administrator's commands on the portal's
-//! machine: they need the configuration, not an API key.
+//! key (docs/CLUSTER.md §Securing NATS); `backup FILE` and `restore FILE` copy a SQLite
+//! portal's database out and back (docs/PORTAL.md §Backups). These are the administrator's
+//! commands on the portal's machine: they need the configuration, not an API key.
 
 use std::path::PathBuf;
 
@@ -47,6 +48,24 @@ enum CloudCommand {
     Key {
         #[command(subcommand)]
         what: KeyCommand,
+    },
+    /// A consistent copy of a running SQLite portal's database into FILE (which must not exist).
+    ///
+    /// Taken while the portal runs (SQLite's online copy, one read transaction: every write
+    /// committed before it began is in it). A PostgreSQL portal is backed up with pg_dump
+    /// (docs/PORTAL.md §Backups).
+    Backup {
+        /// Where the copy goes (readable by its owner alone).
+        file: PathBuf,
+    },
+    /// Put a backup back into a stopped SQLite portal (its database replaced).
+    ///
+    /// The backup is checked first (SQLite's integrity check, the portal's tables); the
+    /// portal must not run on the state directory. Gateways whose tokens changed since the
+    /// backup are refused until their tokens are reset (docs/PORTAL.md §Backups).
+    Restore {
+        /// The backup.
+        file: PathBuf,
     },
     /// A new NATS user key for the cluster: its seed written to FILE, its public key printed.
     ///
@@ -216,13 +235,15 @@ pub async fn run(args: CloudArgs) -> anyhow::Result<()> {
             Ok(())
         }
         Some(CloudCommand::NatsNkey { file }) => nats_nkey(&file),
+        Some(CloudCommand::Backup { file }) => backup(&config, &file).await,
+        Some(CloudCommand::Restore { file }) => restore(&config, &file).await,
         Some(CloudCommand::User { what }) => users(&config, what).await,
         Some(CloudCommand::Key { what }) => keys(&config, what).await,
         None => {
             let portal = Portal::bind(&config, lift417::catalog::Catalog::builtin().names())
                 .await
                 .context("starting the portal")?;
-            tracing::info!(listen = %portal.local_addr(), database = %config.database_url(), "portal running");
+            tracing::info!(listen = %portal.local_addr(), database = %cloud_store::shown_url(&config.database_url()), "portal running");
             let (stop, stopped) = tokio::sync::watch::channel(false);
             let task = tokio::spawn(portal.run(stopped));
             crate::logging::shutdown_signal().await;
@@ -231,6 +252,84 @@ pub async fn run(args: CloudArgs) -> anyhow::Result<()> {
             Ok(())
         }
     }
+}
+
+/// `canlift cloud backup FILE`.
+async fn backup(config: &Config, file: &std::path::Path) -> anyhow::Result<()> {
+    use std::os::unix::fs::PermissionsExt;
+    anyhow::ensure!(
+        !file.exists(),
+        "{} exists: a backup goes into a new file",
+        file.display()
+    );
+    let started = std::time::Instant::now();
+    let store = store(config).await?;
+    store.backup_to(file).await?;
+    // Secrets' digests, users' hashes, the registry: for the portal's owner alone.
+    std::fs::set_permissions(file, std::fs::Permissions::from_mode(0o600))
+        .with_context(|| format!("making {} readable by its owner alone", file.display()))?;
+    let contents = cloud_store::backup::check(file).await?;
+    println!(
+        "{}: {} lifts, {} values, taken in {:.1} s",
+        file.display(),
+        contents.lifts,
+        contents.values,
+        started.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+/// `canlift cloud restore FILE`.
+async fn restore(config: &Config, file: &std::path::Path) -> anyhow::Result<()> {
+    let database = config.database_url();
+    let Some(path) = database
+        .strip_prefix("sqlite://")
+        .filter(|p| !p.contains(":memory:"))
+        .map(|p| PathBuf::from(p.split('?').next().unwrap_or(p)))
+    else {
+        anyhow::bail!(
+            "{}: a PostgreSQL portal is restored with pg_restore (docs/PORTAL.md §Backups)",
+            cloud_store::shown_url(&database)
+        );
+    };
+    let contents = cloud_store::backup::check(file)
+        .await
+        .with_context(|| format!("checking {}", file.display()))?;
+    std::fs::create_dir_all(&config.state.dir)
+        .with_context(|| format!("creating {}", config.state.dir.display()))?;
+    // Held until the database is replaced: no portal starts on it meanwhile.
+    let _lock = cloud::server::lock_state_dir(&config.state.dir).map_err(|e| match e.kind() {
+        std::io::ErrorKind::WouldBlock => anyhow::anyhow!(
+            "a portal runs on {}: stop it before restoring",
+            config.state.dir.display()
+        ),
+        _ => anyhow::anyhow!("{}/portal.lock: {e}", config.state.dir.display()),
+    })?;
+    // Copied beside the database, then renamed over it (never half a database); the old
+    // database's WAL must not be applied to the restored one.
+    let staged = path.with_extension("restoring");
+    std::fs::copy(file, &staged)
+        .with_context(|| format!("copying {} to {}", file.display(), staged.display()))?;
+    std::fs::File::open(&staged)?.sync_all()?;
+    for suffix in ["-wal", "-shm"] {
+        let side = PathBuf::from(format!("{}{suffix}", path.display()));
+        match std::fs::remove_file(&side) {
+            Ok(()) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+            Err(e) => return Err(e).with_context(|| format!("removing {}", side.display())),
+        }
+    }
+    std::fs::rename(&staged, &path)
+        .with_context(|| format!("moving {} to {}", staged.display(), path.display()))?;
+    println!(
+        "{} restored from {}: {} lifts, {} values. Gateways whose token changed since the backup \
+         are refused (\"wrong cloud token\") until their token is reset: canlift cloud token reset LIFT",
+        path.display(),
+        file.display(),
+        contents.lifts,
+        contents.values
+    );
+    Ok(())
 }
 
 /// `canlift cloud nats-nkey FILE`.

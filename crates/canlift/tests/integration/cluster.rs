@@ -196,18 +196,15 @@ impl Cluster {
     }
 
     /// The values of `mplex` stored by the portal (read through p0).
+    /// The values stored in the last ten minutes, in buckets of 60 ms (one value each).
     async fn history(&self, mplex: &str) -> Vec<String> {
-        let path = format!("/api/v1/lifts/{LIFT}/objects/{mplex}/history");
+        let from = cloud_types::now_ms() - 600_000;
+        let path = format!("/api/v1/lifts/{LIFT}/objects/{mplex}/history?from={from}&points=10000");
         let (status, history) = self.call(0, "GET", &path, None).await;
         assert_eq!(status, 200, "{history}");
-        history["values"]
-            .as_array()
-            .map(|list| {
-                list.iter()
-                    .filter_map(|v| v["value"].as_str().map(str::to_owned))
-                    .collect()
-            })
-            .unwrap_or_default()
+        let history: cloud_types::api::History =
+            serde_json::from_value(history).expect("a history answer");
+        history.points.into_iter().map(|p| p.last).collect()
     }
 
     async fn stop(self) {

@@ -94,7 +94,7 @@ async fn gateways_connect_reconnect_and_push() {
     let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
     loop {
         let values = store
-            .history("1050-4097-LOAD-000042", "0x638301", 0, i64::MAX)
+            .values("1050-4097-LOAD-000042", "0x638301", 0, i64::MAX, 100)
             .await
             .unwrap();
         if values.len() >= 3 {

@@ -201,6 +201,33 @@ impl Rules {
         }
     }
 
+    /// The lift pushed more than `[gateways] max_stored_bytes_per_hour`: `dropped` values were
+    /// not stored since it began.
+    pub fn storage_quota(&self, lift: &str, dropped: u64) -> Verdict {
+        Verdict::Raise {
+            condition: Condition {
+                lift: lift.to_owned(),
+                kind: Kind::StorageQuota,
+                place: None,
+                code: String::new(),
+            },
+            severity: self.severities.storage_quota,
+            text: format!(
+                "The lift pushes more than it may store per hour: {dropped} values not stored so far"
+            ),
+        }
+    }
+
+    /// The lift has stayed within its storage quota for an hour.
+    pub fn storage_quota_kept(&self, lift: &str) -> Verdict {
+        Verdict::Clear {
+            lift: lift.to_owned(),
+            kind: Kind::StorageQuota,
+            place: None,
+            keep: None,
+        }
+    }
+
     /// The lift's gateway is back.
     pub fn lift_online(&self, lift: &str) -> Verdict {
         Verdict::Clear {

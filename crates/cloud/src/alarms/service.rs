@@ -141,6 +141,10 @@ impl Alarms {
     }
 }
 
+/// How long a lift must stay within its storage quota (no report of it over) before its
+/// `storage-quota` alarm clears.
+const QUOTA_KEPT_FOR: Duration = Duration::from_secs(3600);
+
 /// Events written at once at most, and the longest an event waits for its batch.
 const BATCH: usize = 1000;
 const BATCH_WAIT: Duration = Duration::from_millis(200);
@@ -194,6 +198,9 @@ struct Service {
     active: Active,
     /// Lifts offline, with when they become `lift-offline`.
     offline: OfflineTimers,
+    /// Lifts over their storage quota, with when their `storage-quota` alarm clears (an hour
+    /// after the last report).
+    over_quota: OfflineTimers,
     batch: Vec<EventRow>,
     /// Alarms raised and cleared (id, when) since the last write.
     raised: Vec<Alarm>,
@@ -236,6 +243,7 @@ pub async fn run(
         offline_after,
         active,
         offline,
+        over_quota: OfflineTimers::default(),
         batch: Vec::with_capacity(BATCH),
         raised: Vec::new(),
         cleared: Vec::new(),
@@ -247,6 +255,7 @@ pub async fn run(
             .offline
             .next()
             .into_iter()
+            .chain(service.over_quota.next())
             .chain(service.flush_at)
             .min();
         tokio::select! {
@@ -322,6 +331,11 @@ impl Service {
                 let verdict = self.rules.board_changed(&lift, &was, &now);
                 self.apply(vec![verdict]);
             }
+            Report::OverQuota { lift, dropped } => {
+                let verdict = self.rules.storage_quota(&lift, dropped);
+                self.over_quota.start(lift, Instant::now() + QUOTA_KEPT_FOR);
+                self.apply(vec![verdict]);
+            }
         }
     }
 
@@ -338,6 +352,10 @@ impl Service {
             }
             self.refresh_in_cluster(std::slice::from_ref(&lift)).await;
             let verdict = self.rules.lift_offline(&lift, self.offline_after.as_secs());
+            self.apply(vec![verdict]);
+        }
+        for lift in self.over_quota.due(now) {
+            let verdict = self.rules.storage_quota_kept(&lift);
             self.apply(vec![verdict]);
         }
     }

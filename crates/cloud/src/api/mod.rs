@@ -6,6 +6,7 @@
 //! and keys in `users`; who the caller is and what it may do in [`crate::auth`].
 
 mod alarms;
+mod idempotency;
 mod users;
 
 use std::convert::Infallible;
@@ -31,9 +32,9 @@ use crate::gateways::subscriptions::{Subscriptions, WhenOffline};
 use crate::state::AppState;
 use cloud_types::api::{
     EventsQuery, Form, GetQuery, History, HistoryPoint, HistoryQuery, LiftSummary, NameQuery,
-    PrivilegeBody, PutBody, SubscriptionBody,
+    PrivilegeBody, PutBody, SubscriptionBody, HISTORY_POINTS, HISTORY_POINTS_MAX,
 };
-use cloud_types::audit::AuditEntry;
+use cloud_types::audit::{AuditEntry, PENDING};
 use cloud_types::subscriptions::{Subscriber, Terms};
 use cloud_types::users::{Operator, Role};
 
@@ -159,15 +160,17 @@ async fn put_object(
         object: object.text.clone(),
         old_value: old,
         new_value: body.value.clone(),
-        result: String::new(),
+        result: PENDING.into(),
     };
     // Unknown: as if it needed a privilege, so only the one who elevated may try.
     let needed = before.map_or(Some(1), |a| a.object.privilege).unwrap_or(1);
     if let Err(refused) = may_write(&app, &operator, &id, needed).await {
         entry.result = format!("refused: {}", refused.1.message);
-        app.store.audit(&entry).await?;
+        app.audit.record(&entry).await;
         return Err(refused);
     }
+    // Written as intended first: what cannot be audited is not done.
+    let audited = app.audit.intent(&entry).await?;
     let params = PutParams {
         sernum,
         lang: None,
@@ -180,8 +183,7 @@ async fn put_object(
         },
     };
     let result = app.registry.call(&id, &params).await;
-    entry.result = outcome(&result);
-    app.store.audit(&entry).await?;
+    app.audit.outcome(audited, outcome(&result), None).await;
     Ok(Json(result?))
 }
 
@@ -276,9 +278,25 @@ async fn privilege(
         privilege: u32::from(body.privilege),
         passhash: cloud_store::passhash(&body.password),
     };
+    let audited = app
+        .audit
+        .intent(&AuditEntry {
+            at: cloud_types::now_ms(),
+            account: operator.user.clone(),
+            lift: id.clone(),
+            action: "elevate".into(),
+            object: "privilege".into(),
+            old_value: None,
+            new_value: body.privilege.to_string(),
+            result: PENDING.into(),
+        })
+        .await?;
     let result = app.registry.call(&id, &params).await;
     if let Ok(answer) = &result {
-        app.auth
+        // The lift is elevated: answered as it is, whatever the database does now (a grant
+        // not recorded only means that this user's writes are refused as not elevated).
+        if let Err(e) = app
+            .auth
             .elevations
             .granted(
                 &id,
@@ -288,19 +306,12 @@ async fn privilege(
                 connection,
                 cloud_types::now_ms(),
             )
-            .await?;
+            .await
+        {
+            tracing::error!(error = %e, lift = %id, "elevation grant not recorded");
+        }
     }
-    let entry = AuditEntry {
-        at: cloud_types::now_ms(),
-        account: operator.user,
-        lift: id,
-        action: "elevate".into(),
-        object: "privilege".into(),
-        old_value: None,
-        new_value: body.privilege.to_string(),
-        result: outcome(&result),
-    };
-    app.store.audit(&entry).await?;
+    app.audit.outcome(audited, outcome(&result), None).await;
     Ok(Json(result?))
 }
 
@@ -328,27 +339,39 @@ async fn token(
         };
     }
     let sernum = app.registry.sernum(&id).ok_or(Failure::Gone)?;
+    let audited = app
+        .audit
+        .intent(&AuditEntry {
+            at: cloud_types::now_ms(),
+            account: operator.user,
+            lift: id.clone(),
+            action: "token rotated".into(),
+            object: "cloud token".into(),
+            old_value: None,
+            new_value: "(new token)".into(),
+            result: PENDING.into(),
+        })
+        .await?;
     let token = cloud_store::secret("");
-    app.store.set_next_token(&id, &token).await?;
+    if let Err(e) = app.store.set_next_token(&id, &token).await {
+        app.audit
+            .outcome(audited, "not sent: database".into(), None)
+            .await;
+        return Err(e.into());
+    }
     let params = TokenParams {
         sernum,
         token: token.clone(),
     };
     let result = app.registry.call(&id, &params).await;
     if result.is_ok() {
-        app.store.set_token(&id, &token).await?;
+        // The gateway keeps the new token; were it not recorded as in use, it is still the
+        // next one, which its next CONNECT confirms (NXg §5.4).
+        if let Err(e) = app.store.set_token(&id, &token).await {
+            tracing::error!(error = %e, lift = %id, "new token not recorded as in use: its next CONNECT confirms it");
+        }
     }
-    let entry = AuditEntry {
-        at: cloud_types::now_ms(),
-        account: operator.user,
-        lift: id,
-        action: "token rotated".into(),
-        object: "cloud token".into(),
-        old_value: None,
-        new_value: "(new token)".into(),
-        result: outcome(&result),
-    };
-    app.store.audit(&entry).await?;
+    app.audit.outcome(audited, outcome(&result), None).await;
     result?;
     Ok(StatusCode::NO_CONTENT)
 }
@@ -491,19 +514,40 @@ async fn history(
 ) -> Result<Json<History>, ApiError> {
     lift_of(&app, caller, &id, Role::Viewer).await?;
     let m = mplex(&app.names, &text)?.mplex.to_string();
-    let rows = app
+    let to = q.to.unwrap_or_else(cloud_types::now_ms);
+    let from = q.from.unwrap_or(to.saturating_sub(86_400_000));
+    let points = q.points.unwrap_or(HISTORY_POINTS);
+    if !(1..=HISTORY_POINTS_MAX).contains(&points) {
+        return Err(error(
+            StatusCode::BAD_REQUEST,
+            format!("points: 1 to {HISTORY_POINTS_MAX}"),
+        ));
+    }
+    let answer = app
         .store
-        .history(&id, &m, q.from.unwrap_or(0), q.to.unwrap_or(i64::MAX))
+        .history(&id, &m, from, to, points as usize)
         .await?;
-    let values = rows
-        .into_iter()
-        .map(|(at, value)| HistoryPoint { at, value })
-        .collect();
     Ok(Json(History {
         lift: id,
         mplex: m,
-        values,
+        from,
+        to,
+        width: answer.width,
+        source: answer.source.name().to_owned(),
+        points: answer.buckets.into_iter().map(point_of).collect(),
     }))
+}
+
+/// A store's bucket as the API shows it.
+pub(crate) fn point_of(b: cloud_store::Bucket) -> HistoryPoint {
+    HistoryPoint {
+        at: b.at,
+        min: b.min,
+        max: b.max,
+        last: b.last,
+        last_at: b.last_at,
+        count: b.count,
+    }
 }
 
 async fn audit(
@@ -568,5 +612,9 @@ pub fn routes(app: Arc<AppState>) -> Router {
         )
         .route("/api/v1/keys", get(users::keys).post(users::add_key))
         .route("/api/v1/keys/{id}", axum::routing::delete(users::revoke))
+        .layer(axum::middleware::from_fn_with_state(
+            app.clone(),
+            idempotency::once,
+        ))
         .with_state(app)
 }

@@ -114,8 +114,12 @@ impl Sessions {
             }
         };
         if let Some((session, touch)) = cached {
+            // The time of last use is worth a write, not a refused request: a database that
+            // takes no write (a full disk) leaves it as it was.
             if touch {
-                store.touch_session(&digest, cloud_types::now_ms()).await?;
+                if let Err(e) = store.touch_session(&digest, cloud_types::now_ms()).await {
+                    tracing::debug!(error = %e, "session's last use not recorded");
+                }
             }
             return Ok(Some(session));
         }
@@ -144,7 +148,9 @@ impl Sessions {
             store.close_session(digest).await?;
             return Ok(None);
         };
-        store.touch_session(digest, now).await?;
+        if let Err(e) = store.touch_session(digest, now).await {
+            tracing::debug!(error = %e, "session's last use not recorded");
+        }
         Ok(Some(self.keep(digest, operator, epoch, record.csrf)))
     }
 
@@ -215,9 +221,18 @@ impl Sessions {
             csrf: cloud_store::secret(""),
             last_used: now,
         };
-        store
+        // Signing in does not depend on the database taking a write: while it takes none (a
+        // full disk), the session lives in this process alone (a cluster's other processes,
+        // and this one after a restart, ask for a new sign-in).
+        if let Err(e) = store
             .open_session(&digest, &record, now.saturating_sub(idle_ms()))
-            .await?;
+            .await
+        {
+            if !e.is_unavailable() {
+                return Err(e);
+            }
+            tracing::warn!(error = %e, "session kept in this process only: the database takes no write");
+        }
         self.keep(&digest, operator, epoch, record.csrf);
         Ok(id)
     }

@@ -55,10 +55,7 @@ pub struct Known {
 pub fn decide(connect: &Connect, row: &GatewayRow) -> Admission {
     let identity = &connect.identity;
     if !row.account {
-        return Admission::Refused(format!(
-            "no account for domain token {:?}",
-            connect.domaintoken
-        ));
+        return Admission::Refused("no account for this domain token".into());
     }
     let subscribed = row.subscribed;
     let Some(registered) = &row.registered else {

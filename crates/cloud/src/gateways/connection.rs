@@ -10,11 +10,13 @@ use std::time::Instant;
 
 use axum::extract::ws::{close_code, CloseFrame, Message, WebSocket};
 use futures_util::SinkExt;
+use nxg::mplex::Mplex;
 use nxg::msg::{Connect, Event, Notification};
 use nxg::portal::{Failure, Output, RequestId, Session};
 
 use super::mailbox::{Letter, Mailbox};
 use super::reports::Report;
+use super::telemetry::Dropped;
 use super::{dashboard, Calls, Reply, Shared};
 use crate::config::BoardhashChange;
 use cloud_types::audit::AuditEntry;
@@ -30,6 +32,55 @@ struct Admitted {
     lift: String,
     /// Tells this connection from a newer one of the same lift.
     serial: u64,
+    /// What the lift may still store this hour.
+    quota: Quota,
+}
+
+/// A lift's storage quota (`[gateways] max_stored_bytes_per_hour`): bytes a bucket of an
+/// hour's worth allows, and the values dropped beyond it since the connection began.
+struct Quota {
+    bytes: TokenBucket,
+    dropped: u64,
+    /// When the last `OverQuota` report went out.
+    reported: Option<Instant>,
+}
+
+impl Quota {
+    /// How often a lift over its quota is reported at most (the alarm stays while reports
+    /// come, and clears an hour after the last).
+    const REPORT_EVERY: std::time::Duration = std::time::Duration::from_secs(60);
+
+    fn new(per_hour: u64, now: Instant) -> Quota {
+        let per_hour = per_hour as f64;
+        Quota {
+            bytes: TokenBucket::with_capacity(per_hour / 3600.0, per_hour, now),
+            dropped: 0,
+            reported: None,
+        }
+    }
+
+    /// Whether `row` fits the quota (taken from it if so).
+    fn take(&mut self, row: &TelemetryRow, now: Instant) -> bool {
+        // What a row costs the database roughly: its texts and its two numbers and overhead.
+        let cost = row.lift.len() + row.mplex.len() + row.value.len() + 32;
+        let fits = self.bytes.take_n(cost as f64, now).is_ok();
+        if !fits {
+            self.dropped += 1;
+        }
+        fits
+    }
+
+    /// The values dropped so far, when a report of them is due.
+    fn report_due(&mut self, now: Instant) -> Option<u64> {
+        if self
+            .reported
+            .is_some_and(|at| now.duration_since(at) < Quota::REPORT_EVERY)
+        {
+            return None;
+        }
+        self.reported = Some(now);
+        Some(self.dropped)
+    }
 }
 
 /// One gateway connection.
@@ -69,12 +120,12 @@ impl Drop for Connection {
 
 impl Connection {
     fn new(socket: WebSocket, shared: Arc<Shared>, peer: String) -> Connection {
-        let session = Session::new(shared.settings.clone(), Instant::now());
+        let session = Session::new(shared.policy.settings.clone(), Instant::now());
         let calls = Calls::new(Mailbox::new(
-            shared.settings.max_queued.max(1) + shared.settings.max_in_flight,
+            shared.policy.settings.max_queued.max(1) + shared.policy.settings.max_in_flight,
         ));
         let closing = shared.closing.clone();
-        let rate = TokenBucket::new(shared.max_messages_per_s, Instant::now());
+        let rate = TokenBucket::new(shared.policy.max_messages_per_s, Instant::now());
         Connection {
             socket,
             shared,
@@ -158,7 +209,7 @@ impl Connection {
                         reason: "message rate above [gateways] max_messages_per_s".into(),
                     };
                     let _ = self.socket.send(Message::Close(Some(frame))).await;
-                    let limit = self.shared.max_messages_per_s;
+                    let limit = self.shared.policy.max_messages_per_s;
                     return Err(format!("more than {limit} messages/s"));
                 }
                 match message {
@@ -239,8 +290,8 @@ impl Connection {
         match admission {
             Ok(Admission::Refused(cause)) => {
                 counters.refused.fetch_add(1, Ordering::Relaxed);
-                tracing::warn!(%lift, %peer, %cause, "gateway refused");
-                let _ = self.shared.store.refused(&lift, &peer, &cause).await;
+                let refusals = &self.shared.refusals;
+                Box::pin(refusals.note(&lift, &peer, &cause, &connect.domaintoken)).await;
                 self.session.refuse(cause)
             }
             Err(e) => {
@@ -286,6 +337,7 @@ impl Connection {
         self.admitted = Some(Admitted {
             lift: lift.to_owned(),
             serial,
+            quota: Quota::new(self.shared.policy.max_stored_bytes_per_hour, Instant::now()),
         });
         tokio::spawn(dashboard::subscribe(
             registry.clone(),
@@ -311,22 +363,48 @@ impl Connection {
         }
     }
 
-    /// A pushed value: handed to live viewers and queued for the store; `Err` with the value
+    /// A pushed value: checked (an object someone subscribed to, not too long), handed to live
+    /// viewers and queued for the store within the lift's hourly quota; `Err` with the value
     /// when the queue has no room now (see [`super::telemetry::Queue`]).
-    fn notification(&self, n: Notification) -> Result<(), TelemetryRow> {
-        let Some(a) = &self.admitted else {
+    fn notification(&mut self, n: Notification) -> Result<(), TelemetryRow> {
+        let Some(a) = &mut self.admitted else {
             return Ok(());
         };
+        let counters = self.shared.telemetry.counters();
+        if n.value.len() > self.shared.policy.max_value_bytes {
+            counters.count_dropped(Dropped::TooLarge, 1);
+            return Ok(());
+        }
+        // Only what the portal asked for: a gateway pushing objects of its own choosing (or of
+        // other nodes) must not fill the disk with them.
+        let mplex = Mplex::parse(&n.mplex).ok();
+        let wanted =
+            n.node.is_none() && mplex.is_some_and(|m| self.shared.subscriptions.wanted(&a.lift, m));
+        if !wanted {
+            counters.count_dropped(Dropped::Unsubscribed, 1);
+            return Ok(());
+        }
         let at = cloud_types::now_ms();
         self.shared.registry.observe(&a.lift, &n, at);
         let row = TelemetryRow {
             lift: a.lift.clone(),
             mplex: nxg::mplex::normalized(&n.mplex),
-            node: n.node.map_or(0, |node| node.id.get()),
+            node: 0,
             value: n.value.clone(),
             at,
         };
         self.shared.registry.publish(&a.lift, LiftEvent::Value(n));
+        if !a.quota.take(&row, Instant::now()) {
+            counters.count_dropped(Dropped::Quota, 1);
+            if let Some(dropped) = a.quota.report_due(Instant::now()) {
+                let report = Report::OverQuota {
+                    lift: a.lift.clone(),
+                    dropped,
+                };
+                self.shared.reports.try_report(report);
+            }
+            return Ok(());
+        }
         self.shared.telemetry.offer(row)
     }
 
@@ -383,7 +461,7 @@ async fn board_changed(
 ) -> Result<Admission, cloud_store::StoreError> {
     let lift = cloud_types::lifts::lift_id(&connect.identity);
     let now = connect.identity.boardhash.clone();
-    let policy = shared.boardhash_change;
+    let policy = shared.policy.boardhash_change;
     let result = match policy {
         BoardhashChange::Refuse => "refused",
         BoardhashChange::Alarm => "accepted, alarm raised",
@@ -422,7 +500,7 @@ async fn token_to_issue(shared: &Shared, lift: &str, admission: &Admission) -> O
     match admission {
         Admission::FirstContact { .. } => Some(cloud_store::secret("")),
         Admission::Known(known) => {
-            let lifetime = shared.token_lifetime?;
+            let lifetime = shared.policy.token_lifetime?;
             let age = cloud_types::now_ms().saturating_sub(known.token_set);
             if u128::try_from(age).unwrap_or(0) < lifetime.as_millis() {
                 return None;

@@ -10,6 +10,7 @@ mod dashboard;
 pub mod local;
 mod mailbox;
 pub mod records;
+pub mod refusals;
 pub mod reports;
 pub mod subscriptions;
 pub mod telemetry;
@@ -388,6 +389,23 @@ impl Registry {
     }
 }
 
+/// How the portal treats every gateway (`[gateways]`).
+#[derive(Debug, Clone)]
+pub struct Policy {
+    /// Session settings.
+    pub settings: Settings,
+    /// Messages per second a gateway may send (`max_messages_per_s`).
+    pub max_messages_per_s: u32,
+    /// Longest value stored (`max_value_bytes`).
+    pub max_value_bytes: usize,
+    /// Bytes of values a lift may store per hour (`max_stored_bytes_per_hour`).
+    pub max_stored_bytes_per_hour: u64,
+    /// What a valid token from another board gets (`boardhash_change`).
+    pub boardhash_change: crate::config::BoardhashChange,
+    /// Tokens older than this are replaced at CONNECT (`token_rotate_days`).
+    pub token_lifetime: Option<std::time::Duration>,
+}
+
 /// What a connection task needs.
 #[derive(Clone)]
 pub struct Shared {
@@ -395,8 +413,8 @@ pub struct Shared {
     pub store: Store,
     /// Live gateways.
     pub registry: Arc<Registry>,
-    /// Session settings.
-    pub settings: Settings,
+    /// How gateways are treated.
+    pub policy: Policy,
     /// Where notifications go to be stored in batches (with its counters, for `/metrics`).
     pub telemetry: telemetry::Queue,
     /// Where CONNECTs are decided on, in batches.
@@ -409,12 +427,8 @@ pub struct Shared {
     pub subscriptions: Arc<subscriptions::Subscriptions>,
     /// Where bus events and connection changes are reported (to become alarms).
     pub reports: reports::Reports,
+    /// Where refused CONNECTs are recorded.
+    pub refusals: Arc<refusals::Refusals>,
     /// Turns true when the portal stops: every connection closes.
     pub closing: tokio::sync::watch::Receiver<bool>,
-    /// Messages per second a gateway may send (`[gateways] max_messages_per_s`).
-    pub max_messages_per_s: u32,
-    /// What a valid token from another board gets (`[gateways] boardhash_change`).
-    pub boardhash_change: crate::config::BoardhashChange,
-    /// Tokens older than this are replaced at CONNECT (`[gateways] token_rotate_days`).
-    pub token_lifetime: Option<std::time::Duration>,
 }

@@ -23,6 +23,14 @@ pub enum Report {
     Online(String),
     /// The lift's gateway went away.
     Offline(String),
+    /// The lift pushed more than it may store per hour: `dropped` values not stored since its
+    /// connection began (reported at most once a minute while it lasts).
+    OverQuota {
+        /// The lift.
+        lift: String,
+        /// Values not stored so far.
+        dropped: u64,
+    },
     /// The lift's gateway connected from another board (boardhashes `was` → `now`).
     BoardChanged {
         /// The lift.
@@ -57,6 +65,12 @@ impl Reports {
                 let _ = self.tx.send(other).await;
             }
         }
+    }
+
+    /// Report `report` if there is room now; otherwise it is dropped (for reports that come
+    /// again, such as a lift over its quota). Not `async`, as [`Reports::event`].
+    pub fn try_report(&self, report: Report) {
+        let _ = self.tx.try_send(report);
     }
 
     /// Report a bus event of `lift`, or drop and count it when the queue is full. Not `async`:

@@ -208,6 +208,10 @@ pub struct Subscriptions {
     store: Store,
     base: DashboardTerms,
     lifts: Mutex<HashMap<String, Arc<tokio::sync::Mutex<Subscribers>>>>,
+    /// Objects beyond the dashboard's asked of each lift's gateway now: what its pushes may be
+    /// of ([`Subscriptions::wanted`]). Taken in before the gateway is asked (a registration
+    /// pushes the current value at once), let go of once it confirmed an unregistration.
+    asked: Mutex<HashMap<String, std::collections::HashSet<Mplex>>>,
     /// This process's part of its watchers' ids (the upper 32 bits).
     process: u64,
     watchers: AtomicU64,
@@ -236,9 +240,22 @@ impl Subscriptions {
             store,
             base: dashboard.live.iter().map(|m| (*m, terms)).collect(),
             lifts: Mutex::default(),
+            asked: Mutex::default(),
             process: u64::from(rand::random::<u32>()) << 32,
             watchers: AtomicU64::new(1),
         }
+    }
+
+    /// Whether `lift`'s gateway was asked to push `mplex` (of the lift controller): the
+    /// dashboard's objects, and those someone subscribed to.
+    pub fn wanted(&self, lift: &str, mplex: Mplex) -> bool {
+        self.base.contains_key(&mplex)
+            || self
+                .asked
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .get(lift)
+                .is_some_and(|set| set.contains(&mplex))
     }
 
     /// A subscriber for a new live watcher.
@@ -481,6 +498,10 @@ impl Subscriptions {
     /// on the next connection, or handed to the lift's next holder); users' come from the
     /// database again, other processes' watchers from their processes.
     pub async fn offline(&self, lift: &str) {
+        self.asked
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .remove(lift);
         let Some(cell) = self.existing(lift) else {
             return;
         };
@@ -546,10 +567,19 @@ impl Subscriptions {
                 Change::Register(objects, terms) => self.register(lift, &objects, terms).await?,
                 Change::Unregister(objects) => {
                     let params = UnregParams {
-                        mplex: objects.into_iter().map(Into::into).collect(),
+                        mplex: objects.iter().map(|m| (*m).into()).collect(),
                         node: None,
                     };
                     self.registry.call(lift, &params).await?;
+                    let mut asked = self.asked.lock().unwrap_or_else(PoisonError::into_inner);
+                    if let Some(set) = asked.get_mut(lift) {
+                        for m in &objects {
+                            set.remove(m);
+                        }
+                        if set.is_empty() {
+                            asked.remove(lift);
+                        }
+                    }
                 }
             }
         }
@@ -557,6 +587,15 @@ impl Subscriptions {
     }
 
     async fn register(&self, lift: &str, objects: &[Mplex], terms: Terms) -> Result<(), Failure> {
+        let extra: Vec<Mplex> = objects
+            .iter()
+            .filter(|m| !self.base.contains_key(m))
+            .copied()
+            .collect();
+        if !extra.is_empty() {
+            let mut asked = self.asked.lock().unwrap_or_else(PoisonError::into_inner);
+            asked.entry(lift.to_owned()).or_default().extend(extra);
+        }
         let params = RegParams {
             mplex: objects.iter().map(|m| (*m).into()).collect(),
             inhibit: terms.inhibit,

@@ -1,5 +1,7 @@
-//! Telemetry: the values gateways push, written to the store in batches, and deleted again
-//! after the retention time (as bus events are).
+//! Telemetry: the values gateways push, written to the store in batches, rolled up per minute
+//! and hour behind the writer, and deleted again after the retention time (as bus events are).
+//! A value is counted as stored only once its batch is committed; every value not stored is
+//! counted with the reason (docs/PORTAL.md §Metrics).
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
@@ -9,20 +11,81 @@ use tokio::sync::{mpsc, watch};
 
 use cloud_store::{Store, TelemetryRow};
 
-/// Pushed values stored, and dropped because the database could not keep up (the queue in
-/// front of it stayed full) or failed.
+/// Why a pushed value was not stored.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Dropped {
+    /// The database could not take writes (full, unreachable) and the queue was full.
+    Database,
+    /// The database was slow and the value waited for room longer than [`PUSH_BACK_LIMIT`].
+    Queue,
+    /// The database refused the batch for what it held.
+    Refused,
+    /// The value is longer than `[gateways] max_value_bytes`.
+    TooLarge,
+    /// Nobody subscribed to the object: the gateway pushed it of its own.
+    Unsubscribed,
+    /// The lift stored more than `[gateways] max_stored_bytes_per_hour`.
+    Quota,
+    /// The portal was stopping: the writer had ended.
+    Stopping,
+}
+
+impl Dropped {
+    /// Every reason, in the order of [`TelemetryCounters::dropped`].
+    pub const ALL: [Dropped; 7] = [
+        Dropped::Database,
+        Dropped::Queue,
+        Dropped::Refused,
+        Dropped::TooLarge,
+        Dropped::Unsubscribed,
+        Dropped::Quota,
+        Dropped::Stopping,
+    ];
+
+    /// The `reason` label of `canlift_telemetry_dropped_total`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Dropped::Database => "database",
+            Dropped::Queue => "queue",
+            Dropped::Refused => "refused",
+            Dropped::TooLarge => "too_large",
+            Dropped::Unsubscribed => "unsubscribed",
+            Dropped::Quota => "quota",
+            Dropped::Stopping => "stopping",
+        }
+    }
+}
+
+/// Pushed values stored, and those not stored by why.
 #[derive(Debug, Default)]
 pub struct TelemetryCounters {
-    /// Values written.
+    /// Values committed to the database.
     pub stored: AtomicU64,
-    /// Values lost.
-    pub dropped: AtomicU64,
+    /// Values not stored, by [`Dropped`] (in the order of [`Dropped::ALL`]).
+    pub dropped: [AtomicU64; 7],
     /// Values a connection had to wait for room for (push-back: meanwhile it does not read
     /// its gateway's socket).
     pub waits: AtomicU64,
     /// Set while the writer cannot reach the database: connections then drop what does not
     /// fit at once instead of waiting for room that will not come soon.
     pub unreachable: AtomicBool,
+}
+
+impl TelemetryCounters {
+    /// Count `n` values not stored for `why`.
+    pub fn count_dropped(&self, why: Dropped, n: u64) {
+        self.dropped[why as usize].fetch_add(n, Ordering::Relaxed);
+    }
+
+    /// Values not stored for `why`.
+    pub fn dropped(&self, why: Dropped) -> u64 {
+        self.dropped[why as usize].load(Ordering::Relaxed)
+    }
+
+    /// Values not stored, whatever the reason.
+    pub fn dropped_total(&self) -> u64 {
+        Dropped::ALL.iter().map(|&why| self.dropped(why)).sum()
+    }
 }
 
 /// How long a connection waits for room in a full queue before it drops the value.
@@ -74,8 +137,12 @@ impl Queue {
             {
                 Err(row)
             }
-            Err(_) => {
-                self.counters.dropped.fetch_add(1, Ordering::Relaxed);
+            Err(mpsc::error::TrySendError::Full(_)) => {
+                self.counters.count_dropped(Dropped::Database, 1);
+                Ok(())
+            }
+            Err(mpsc::error::TrySendError::Closed(_)) => {
+                self.counters.count_dropped(Dropped::Stopping, 1);
                 Ok(())
             }
         }
@@ -84,11 +151,10 @@ impl Queue {
     /// Wait for room for `row`, at most [`PUSH_BACK_LIMIT`]; dropped and counted after that.
     pub async fn wait(&self, row: TelemetryRow) {
         self.counters.waits.fetch_add(1, Ordering::Relaxed);
-        if !matches!(
-            tokio::time::timeout(PUSH_BACK_LIMIT, self.tx.send(row)).await,
-            Ok(Ok(()))
-        ) {
-            self.counters.dropped.fetch_add(1, Ordering::Relaxed);
+        match tokio::time::timeout(PUSH_BACK_LIMIT, self.tx.send(row)).await {
+            Ok(Ok(())) => {}
+            Ok(Err(_)) => self.counters.count_dropped(Dropped::Stopping, 1),
+            Err(_) => self.counters.count_dropped(Dropped::Queue, 1),
         }
     }
 }
@@ -97,11 +163,15 @@ impl Queue {
 /// values. Under load batches grow and each costs the database less per value (one commit, one
 /// COPY, index pages touched once for many values); a quiet portal still stores within 200 ms.
 ///
-/// While the database cannot be reached the batch in hand is tried again (every 250 ms at
-/// first, then at most every 5 s) and new values wait in the [`Queue`] in front of the writer;
-/// once that is full the connections drop what they receive and count it
-/// (`canlift_telemetry_dropped_total`): a database that is only slow makes them wait for room
-/// instead. A batch the database refuses is dropped and counted.
+/// While the database cannot take writes (unreachable, its disk full, busy) the batch in hand
+/// is tried again (every 250 ms at first, then at most every 5 s: writing resumes within 5 s
+/// of space or the server returning) and new values wait in the [`Queue`] in front of the
+/// writer; once that is full the connections drop what they receive and count it
+/// (`canlift_telemetry_dropped_total{reason="database"}`): a database that is only slow makes
+/// them wait for room instead. A batch the database refuses for what it holds is dropped and
+/// counted (`reason="refused"`). A value is counted as stored only when its batch committed.
+/// A batch stored late (after waiting, or holding values that waited) has its minutes rolled
+/// up again.
 ///
 /// When `stop` turns true (the portal stops, its connections have ended) what is queued is
 /// still written, then the writer ends.
@@ -130,30 +200,40 @@ pub async fn writer(
             }
         }
         let mut retry = RETRY_FIRST;
-        let counter = loop {
+        loop {
             match cloud_store::timed("telemetry", batch.len(), store.telemetry(&batch)).await {
                 Ok(()) => {
                     if retry > RETRY_FIRST {
                         counters.unreachable.store(false, Ordering::Relaxed);
                         tracing::info!(values = batch.len(), "telemetry stored again");
                     }
-                    break &counters.stored;
+                    counters
+                        .stored
+                        .fetch_add(batch.len() as u64, Ordering::Relaxed);
+                    break;
                 }
                 Err(e) if e.is_unavailable() => {
                     if retry == RETRY_FIRST {
                         counters.unreachable.store(true, Ordering::Relaxed);
-                        tracing::error!(error = %e, values = batch.len(), "database unreachable: telemetry waits");
+                        let trouble = e.trouble().map(|t| t.to_string()).unwrap_or_default();
+                        tracing::error!(error = %e, %trouble, values = batch.len(), "the database takes no writes: telemetry waits");
                     }
                     tokio::time::sleep(retry).await;
                     retry = (retry * 2).min(RETRY_LAST);
                 }
                 Err(e) => {
                     tracing::error!(error = %e, values = batch.len(), "telemetry not stored");
-                    break &counters.dropped;
+                    counters.count_dropped(Dropped::Refused, batch.len() as u64);
+                    break;
                 }
             }
-        };
-        counter.fetch_add(batch.len() as u64, Ordering::Relaxed);
+        }
+        // Values that waited (here, or in the queue behind a batch that did) may belong to
+        // minutes already rolled up.
+        let late = cloud_types::now_ms() - cloud_store::rollups::LAG_MS;
+        if let Some(oldest) = batch.iter().map(|r| r.at).min().filter(|&at| at < late) {
+            store.rewind_roll_ups(oldest);
+        }
         batch.clear();
     }
 }
@@ -161,13 +241,54 @@ pub async fn writer(
 const RETRY_FIRST: std::time::Duration = std::time::Duration::from_millis(250);
 const RETRY_LAST: std::time::Duration = std::time::Duration::from_secs(5);
 
+/// Roll up the pushed values once a minute (docs/PORTAL.md §History), at once again while
+/// behind (a portal started after a pause, or minutes made again after an outage).
+pub async fn roll_up(store: Store) {
+    let mut every_minute = tokio::time::interval(Duration::from_secs(60));
+    every_minute.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        every_minute.tick().await;
+        loop {
+            let started = std::time::Instant::now();
+            match store.roll_up(cloud_types::now_ms()).await {
+                Ok(rolled) if rolled.values > 0 => {
+                    tracing::debug!(
+                        values = rolled.values,
+                        minutes = rolled.minutes,
+                        hours = rolled.hours,
+                        took_ms = started.elapsed().as_millis() as u64,
+                        "values rolled up"
+                    );
+                    // A full round may have left more behind it.
+                    tokio::task::yield_now().await;
+                }
+                Ok(_) => break,
+                Err(e) => {
+                    tracing::warn!(error = %e, "values not rolled up: tried again in a minute");
+                    break;
+                }
+            }
+        }
+    }
+}
+
 /// What is deleted after its retention time.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Retained {
     /// Pushed values (`[database] telemetry_days`).
     Telemetry,
+    /// Their roll-ups (`[database] rollup_days`).
+    RollUps,
     /// Bus events (`[database] events_days`).
     Events,
+    /// Refused CONNECTs (`[gateways] refused_keep_days`, and all but the newest
+    /// `refused_keep_rows`).
+    Refused {
+        /// Rows kept at most.
+        rows: u32,
+    },
+    /// Outcomes of writes made with an `Idempotency-Key` (a day).
+    Idempotency,
 }
 
 /// Delete `kept` rows older than `days` once an hour (and at start); 0 days keeps everything.
@@ -181,7 +302,10 @@ pub async fn retention(kept: Retained, store: Store, days: u32) {
         let before = cloud_types::now_ms() - i64::from(days) * 86_400_000;
         let deleted = match kept {
             Retained::Telemetry => store.forget_telemetry(before).await,
+            Retained::RollUps => store.forget_roll_ups(before).await,
             Retained::Events => store.forget_events(before).await,
+            Retained::Refused { rows } => store.forget_refused(before, rows).await,
+            Retained::Idempotency => store.forget_idempotency(cloud_types::now_ms()).await,
         };
         match deleted {
             Ok(0) => {}
@@ -224,7 +348,7 @@ mod tests {
         waiting.await.expect("the wait ends");
         assert_eq!(rx.recv().await.map(|r| r.value), Some("2".into()));
         let c = queue.counters();
-        assert_eq!((count(&c.waits), count(&c.dropped)), (1, 0));
+        assert_eq!((count(&c.waits), c.dropped_total()), (1, 0));
     }
 
     #[tokio::test(start_paused = true)]
@@ -235,7 +359,7 @@ mod tests {
         let started = tokio::time::Instant::now();
         queue.wait(second).await;
         assert_eq!(started.elapsed(), PUSH_BACK_LIMIT);
-        assert_eq!(count(&queue.counters().dropped), 1);
+        assert_eq!(queue.counters().dropped(Dropped::Queue), 1);
         assert_eq!(rx.recv().await.map(|r| r.value), Some("1".into()));
         assert!(rx.try_recv().is_err(), "the late value is not queued");
     }
@@ -254,12 +378,12 @@ mod tests {
         writer(store.clone(), rx, queue.counters().clone(), stopping).await;
         assert_eq!(count(&queue.counters().stored), 50);
         let stored = store
-            .history("1050-4097-TEST-000001", "0x652001", 0, i64::MAX)
+            .values("1050-4097-TEST-000001", "0x652001", 0, i64::MAX, 1000)
             .await
             .unwrap();
         assert_eq!(stored.len(), 50);
         assert!(queue.offer(row(50)).is_ok(), "no writer any more: dropped");
-        assert_eq!(count(&queue.counters().dropped), 1);
+        assert_eq!(queue.counters().dropped(Dropped::Stopping), 1);
     }
 
     #[tokio::test]
@@ -268,11 +392,12 @@ mod tests {
         assert!(queue.offer(row(1)).is_ok());
         queue.counters().unreachable.store(true, Ordering::Relaxed);
         assert!(queue.offer(row(2)).is_ok(), "dropped, not handed back");
-        assert_eq!(count(&queue.counters().dropped), 1);
+        assert_eq!(queue.counters().dropped(Dropped::Database), 1);
         queue.counters().unreachable.store(false, Ordering::Relaxed);
         assert!(queue.offer(row(3)).is_err(), "reachable again: wait");
         drop(rx);
         assert!(queue.offer(row(4)).is_ok(), "no writer: dropped");
-        assert_eq!(count(&queue.counters().dropped), 2);
+        assert_eq!(queue.counters().dropped(Dropped::Stopping), 1);
+        assert_eq!(queue.counters().dropped_total(), 2);
     }
 }

@@ -1,7 +1,9 @@
 //! The history page: the stored values of one or several objects over a period, one SVG chart
-//! each on the same time axis, drawn by the portal — numbers as a step chart with their unit,
-//! choices (lift state, door state…) as a state timeline — with hover values, drag to zoom,
-//! live update while the period ends now, and the CSV of what is shown.
+//! each on the same time axis, drawn by the portal from at most a thousand buckets spanning the
+//! whole period (docs/PORTAL.md §History) — numbers as a step chart of each bucket's last value
+//! over a band from its smallest to its largest, with their unit; choices (lift state, door
+//! state…) as a state timeline — with hover values, drag to zoom, live update while the period
+//! ends now, and the CSV of what is shown (every value, or the buckets of a long period).
 
 use std::sync::Arc;
 
@@ -17,9 +19,16 @@ use super::lift::{describe, Described};
 use super::page::{layout, problem, time, unavailable, utc};
 use super::{owned, SignedIn};
 use crate::state::AppState;
+use cloud_store::Bucket;
 
 /// Objects on one page at most.
 const MAX_SERIES: usize = 6;
+
+/// Buckets a chart is drawn from: about one per pixel of its width.
+const POINTS: usize = 1000;
+
+/// Values a CSV lists one by one at most; a period holding more is exported as its buckets.
+const CSV_RAW: usize = 100_000;
 
 #[derive(Deserialize)]
 pub(super) struct HistoryQuery {
@@ -74,10 +83,10 @@ impl Period {
     }
 }
 
-/// One object's stored values.
+/// One object's stored values over the period, in buckets.
 struct Series {
     mplex: String,
-    rows: Vec<(i64, String)>,
+    history: cloud_store::Buckets,
 }
 
 /// The objects of `q` on lift `id` with their values in its period, or the page that says why
@@ -110,11 +119,11 @@ async fn shown(
     // Each series its own statement (they may be long), all asked at once.
     let series = futures_util::future::try_join_all(mplexes.iter().map(|m| async move {
         let mplex = m.to_string();
-        let rows = app
+        let history = app
             .store
-            .history(id, &mplex, period.from, period.to)
+            .history(id, &mplex, period.from, period.to, POINTS)
             .await?;
-        Ok::<_, cloud_store::StoreError>(Series { mplex, rows })
+        Ok::<_, cloud_store::StoreError>(Series { mplex, history })
     }))
     .await
     .map_err(|e| unavailable(e, who.viewer()))?;
@@ -122,26 +131,59 @@ async fn shown(
 }
 
 /// `GET /lifts/{id}/history.csv?mplex=&minutes=` (or `from`/`to`): what the page shows, as CSV
-/// (RFC 4180): `time,object,value` with UTC times (ISO 8601).
+/// (RFC 4180) with UTC times (ISO 8601): every value (`time,object,value`) when the period holds
+/// at most [`CSV_RAW`] of each object, otherwise the buckets the charts are drawn from
+/// (`time,object,min,max,last,count`, a bucket's time its start), which the first line says.
 pub(super) async fn history_csv(
     State(app): State<Arc<AppState>>,
     who: SignedIn,
     Path(id): Path<String>,
     Query(q): Query<HistoryQuery>,
 ) -> Response {
-    let (_, series, _) = match shown(&app, &who, &id, &q).await {
+    let (_, series, period) = match shown(&app, &who, &id, &q).await {
         Ok(s) => s,
         Err(r) => return r,
     };
-    let mut csv = String::from("time,object,value\r\n");
+    let mut raw = Vec::with_capacity(series.len());
     for s in &series {
-        for (at, value) in &s.rows {
-            let quoted = if value.contains([',', '"', '\r', '\n']) {
-                format!("\"{}\"", value.replace('"', "\"\""))
-            } else {
-                value.clone()
-            };
-            csv.push_str(&format!("{},{},{quoted}\r\n", iso(*at), s.mplex));
+        match app
+            .store
+            .values(&id, &s.mplex, period.from, period.to, CSV_RAW + 1)
+            .await
+        {
+            Ok(rows) if rows.len() <= CSV_RAW => raw.push(rows),
+            Ok(_) => break,
+            Err(e) => return unavailable(e, who.viewer()),
+        }
+    }
+    let mut csv = String::new();
+    if raw.len() == series.len() {
+        csv.push_str("time,object,value\r\n");
+        for (s, rows) in series.iter().zip(&raw) {
+            for (at, value) in rows {
+                csv.push_str(&format!("{},{},{}\r\n", iso(*at), s.mplex, cell(value)));
+            }
+        }
+    } else {
+        let width = series.first().map_or(0, |s| s.history.width);
+        csv.push_str(&format!(
+            "# more than {CSV_RAW} values: one line per {} s bucket (its start, its smallest and largest number, its last value, how many)\r\n",
+            width as f64 / 1000.0
+        ));
+        csv.push_str("time,object,min,max,last,count\r\n");
+        for s in &series {
+            for b in &s.history.buckets {
+                let number = |v: Option<f64>| v.map_or_else(String::new, |v| v.to_string());
+                csv.push_str(&format!(
+                    "{},{},{},{},{},{}\r\n",
+                    iso(b.at),
+                    s.mplex,
+                    number(b.min),
+                    number(b.max),
+                    cell(&b.last),
+                    b.count
+                ));
+            }
         }
     }
     let names: Vec<&str> = series.iter().map(|s| s.mplex.as_str()).collect();
@@ -157,6 +199,15 @@ pub(super) async fn history_csv(
         csv,
     )
         .into_response()
+}
+
+/// A value as a CSV cell: quoted when it holds a separator, a quote or a line break.
+fn cell(value: &str) -> String {
+    if value.contains([',', '"', '\r', '\n']) {
+        format!("\"{}\"", value.replace('"', "\"\""))
+    } else {
+        value.to_owned()
+    }
 }
 
 /// Milliseconds since the epoch as ISO 8601 UTC with milliseconds.
@@ -209,12 +260,20 @@ fn frame(
     }
 }
 
-/// A step chart of `points` (ms, value), the y axis labelled with `unit`.
-fn line_chart(points: &[(i64, f64)], period: &Period, unit: &str, l: Locale) -> Markup {
+/// A step chart of each bucket's last value over a band from its smallest to its largest
+/// (drawn where a bucket held more than one value), the y axis labelled with `unit`.
+fn line_chart(buckets: &[Bucket], width: i64, period: &Period, unit: &str, l: Locale) -> Markup {
     const H: f64 = 240.0;
     let bottom = H - 30.0;
-    let lo = points.iter().map(|p| p.1).fold(f64::INFINITY, f64::min);
-    let hi = points.iter().map(|p| p.1).fold(f64::NEG_INFINITY, f64::max);
+    let points = last_numbers(buckets);
+    let lo = buckets
+        .iter()
+        .filter_map(|b| b.min)
+        .fold(f64::INFINITY, f64::min);
+    let hi = buckets
+        .iter()
+        .filter_map(|b| b.max)
+        .fold(f64::NEG_INFINITY, f64::max);
     let (lo, hi) = if (hi - lo).abs() < f64::EPSILON {
         (lo - 1.0, hi + 1.0)
     } else {
@@ -223,7 +282,7 @@ fn line_chart(points: &[(i64, f64)], period: &Period, unit: &str, l: Locale) -> 
     let y = |v: f64| 10.0 + (hi - v) / (hi - lo) * (bottom - 10.0);
     let mut path = Vec::with_capacity(points.len() * 2 + 1);
     let mut previous: Option<f64> = None;
-    for &(t, v) in points {
+    for &(t, v) in &points {
         if let Some(p) = previous {
             path.push(format!("{:.1},{:.1}", x_of(t, period), y(p)));
         }
@@ -233,12 +292,34 @@ fn line_chart(points: &[(i64, f64)], period: &Period, unit: &str, l: Locale) -> 
     if let Some(p) = previous {
         path.push(format!("{:.1},{:.1}", RIGHT, y(p)));
     }
+    // The band: each bucket's smallest to largest, over the bucket's width.
+    let bands: Vec<(f64, f64, f64, f64)> = buckets
+        .iter()
+        .filter(|b| b.count > 1)
+        .filter_map(|b| {
+            let (min, max) = (b.min?, b.max?);
+            let x0 = x_of(b.at, period);
+            let x1 = x_of((b.at + width).min(period.to), period);
+            Some((x0, (x1 - x0).max(0.5), y(max), (y(min) - y(max)).max(0.5)))
+        })
+        .collect();
     let content = html! {
         text x=(LEFT - 6.0) y="16" class="label" text-anchor="end" { (hi) " " (unit) }
         text x=(LEFT - 6.0) y=(bottom) class="label" text-anchor="end" { (lo) " " (unit) }
+        @for (x, w, top, h) in &bands {
+            rect.band x=(format!("{x:.1}")) y=(format!("{top:.1}")) width=(format!("{w:.1}")) height=(format!("{h:.1}")) {}
+        }
         polyline class="line" points=(path.join(" ")) {}
     };
-    frame(period, H, points, None, l, content)
+    frame(period, H, &points, None, l, content)
+}
+
+/// Each bucket's last value that is a number, at the time it came.
+fn last_numbers(buckets: &[Bucket]) -> Vec<(i64, f64)> {
+    buckets
+        .iter()
+        .filter_map(|b| b.last.trim().parse::<f64>().ok().map(|v| (b.last_at, v)))
+        .collect()
 }
 
 /// A state timeline: one band per stretch of time in one state, named where there is room.
@@ -347,11 +428,9 @@ fn state_name(d: &Described, value: &str) -> String {
 
 /// One object's chart with its name, unit and last value.
 fn figure(s: &Series, d: &Described, period: &Period, l: Locale) -> Markup {
-    let points: Vec<(i64, f64)> = s
-        .rows
-        .iter()
-        .filter_map(|(at, v)| v.trim().parse::<f64>().ok().map(|v| (*at, v)))
-        .collect();
+    let buckets = &s.history.buckets;
+    let points = last_numbers(buckets);
+    let count: i64 = buckets.iter().map(|b| b.count).sum();
     html! {
         figure.series data-series=(s.mplex) {
             figcaption {
@@ -360,9 +439,9 @@ fn figure(s: &Series, d: &Described, period: &Period, l: Locale) -> Markup {
                 " " code { (s.mplex) }
             }
             p.summary {
-                (l.fill("{} values, last ", &[&points.len()]))
-                @if let Some((at, v)) = s.rows.last() {
-                    (state_name(d, v)) (l.t(" at ")) (time(*at, l))
+                (l.fill("{} values, last ", &[&count]))
+                @if let Some(b) = buckets.last() {
+                    (state_name(d, &b.last)) (l.t(" at ")) (time(b.last_at, l))
                 } @else {
                     "—"
                 }
@@ -374,7 +453,7 @@ fn figure(s: &Series, d: &Described, period: &Period, l: Locale) -> Markup {
             } @else if let Some((min, names)) = &d.states {
                 (state_chart(&points, period, (*min, names), l))
             } @else {
-                (line_chart(&points, period, d.unit, l))
+                (line_chart(buckets, s.history.width, period, d.unit, l))
             }
         }
     }
@@ -398,9 +477,18 @@ mod tests {
         assert_eq!(iso(0), "1970-01-01T00:00:00.000Z");
     }
 
+    fn bucket(at: i64, values: &[f64]) -> Bucket {
+        let mut b = Bucket::of(at, at, &values[0].to_string());
+        for (i, v) in values.iter().enumerate().skip(1) {
+            b.merge(&Bucket::of(at, at + i as i64, &v.to_string()));
+        }
+        b
+    }
+
     #[test]
     fn line_chart_steps_between_values_and_names_the_unit() {
-        let svg = line_chart(&[(0, 1.0), (500, 3.0)], &hour(), "mm", Locale::En).into_string();
+        let buckets = [bucket(0, &[1.0]), bucket(500, &[3.0])];
+        let svg = line_chart(&buckets, 500, &hour(), "mm", Locale::En).into_string();
         let points = svg
             .split("class=\"line\" points=\"")
             .nth(1)
@@ -410,6 +498,18 @@ mod tests {
             .unwrap();
         assert_eq!(points.split(' ').count(), 4, "{points}");
         assert!(svg.contains(">3 mm<"), "{svg}");
+        assert!(
+            !svg.contains("class=\"band\""),
+            "one value a bucket: no band"
+        );
+    }
+
+    #[test]
+    fn a_bucket_of_many_values_is_a_band_from_its_smallest_to_its_largest() {
+        let buckets = [bucket(0, &[5.0, -2.0, 9.0, 4.0]), bucket(500, &[1.0])];
+        let svg = line_chart(&buckets, 500, &hour(), "", Locale::En).into_string();
+        assert_eq!(svg.matches("class=\"band\"").count(), 1, "{svg}");
+        assert!(svg.contains(">9 <") && svg.contains(">-2 <"), "{svg}");
     }
 
     #[test]

@@ -49,7 +49,7 @@ async fn operator_reads_writes_and_watches_a_simulated_lift(database: Option<Str
                 None,
             )
             .await;
-        if h["values"].as_array().is_some_and(|v| !v.is_empty()) {
+        if h["points"].as_array().is_some_and(|v| !v.is_empty()) {
             break;
         }
         assert!(
@@ -209,16 +209,20 @@ async fn operator_reads_writes_and_watches_a_simulated_lift(database: Option<Str
         let (_, h) = client
             .call(
                 "GET",
-                &format!("/api/v1/lifts/{lift}/objects/0x652001/history"),
+                // The last ten minutes in buckets of 60 ms: each value its own.
+                &format!(
+                    "/api/v1/lifts/{lift}/objects/0x652001/history?from={}&points=10000",
+                    cloud_types::now_ms() - 600_000
+                ),
                 Some(&key),
                 None,
             )
             .await;
-        let values: Vec<&str> = h["values"]
+        let values: Vec<&str> = h["points"]
             .as_array()
             .unwrap()
             .iter()
-            .filter_map(|v| v["value"].as_str())
+            .filter_map(|v| v["last"].as_str())
             .collect();
         if values.contains(&"1") {
             assert_eq!(values[0], "0", "the baseline came first");

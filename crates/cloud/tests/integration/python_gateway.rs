@@ -70,6 +70,6 @@ async fn identity_and_token_rules() {
         .await
         .unwrap();
     assert_eq!(refusals.len(), 2, "{refusals:?}");
-    assert!(refusals.iter().any(|r| r.2 == "wrong cloud token"));
+    assert!(refusals.iter().any(|r| r.cause == "wrong cloud token"));
     rig.stop().await;
 }

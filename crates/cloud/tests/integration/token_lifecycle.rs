@@ -47,7 +47,7 @@ async fn portal_token_set(rig: &Rig) -> bool {
 async fn refusals(rig: &Rig) -> Vec<String> {
     let store = rig.store().await;
     let list = store.refusals(LIFT).await.expect("the refusals");
-    list.into_iter().map(|(_, _, cause)| cause).collect()
+    list.into_iter().map(|r| r.cause).collect()
 }
 
 /// The audit entries of the lift's account with `action`.
