@@ -132,6 +132,14 @@ impl Store {
             .collect()
     }
 
+    /// How many values are stored.
+    pub async fn count_telemetry(&self) -> Result<i64, StoreError> {
+        Ok(sqlx::query("SELECT COUNT(*) AS n FROM telemetry")
+            .fetch_one(&self.pool)
+            .await?
+            .try_get("n")?)
+    }
+
     /// Delete telemetry older than `before` (ms); how many values went.
     pub async fn forget_telemetry(&self, before: i64) -> Result<u64, StoreError> {
         let done = sqlx::query("DELETE FROM telemetry WHERE at < $1")

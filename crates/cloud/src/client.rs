@@ -29,6 +29,8 @@ pub struct Client {
     key: Option<String>,
     /// A web session's `name=value`, sent as `Cookie`.
     cookie: Option<String>,
+    /// Further headers sent with every request.
+    headers: Vec<(String, String)>,
     tls: tokio_rustls::TlsConnector,
 }
 
@@ -57,8 +59,16 @@ impl Client {
             port,
             key: key.map(str::to_owned),
             cookie: None,
+            headers: Vec::new(),
             tls: tokio_rustls::TlsConnector::from(Arc::new(tls)),
         })
+    }
+
+    /// The same client, sending header `name: value` with every request (an
+    /// `Idempotency-Key`, docs/PORTAL.md §Idempotency).
+    pub fn with_header(mut self, name: &str, value: &str) -> Client {
+        self.headers.push((name.to_owned(), value.to_owned()));
+        self
     }
 
     /// The same client, sending `cookie` (`name=value`, as [`Reply::set_cookie`] gives it):
@@ -94,6 +104,7 @@ impl Client {
             host: self.host.clone(),
             key: self.key.clone(),
             cookie: self.cookie.clone(),
+            headers: self.headers.clone(),
         })
     }
 
@@ -107,16 +118,13 @@ impl Client {
         self.connect().await?.call(method, path, body).await
     }
 
-    /// One counter or gauge of the portal's `/metrics` (Prometheus text); `None` when the
-    /// answer is not 200 or has no such line.
+    /// One counter or gauge of the portal's `/metrics` (Prometheus text): the sum of its
+    /// samples whatever their labels, or with `name{label="…"}` that sample alone; `None` when
+    /// the answer is not 200 or has no such line.
     pub async fn metric(&self, name: &str) -> Result<Option<f64>, ClientError> {
         let (status, text) = self.call("GET", "/metrics", None).await?;
         let text = text.as_str().filter(|_| status == 200);
-        Ok(text.and_then(|t| {
-            t.lines()
-                .find_map(|l| l.strip_prefix(name)?.strip_prefix(' '))
-                .and_then(|v| v.trim().parse().ok())
-        }))
+        Ok(text.and_then(|t| sample_sum(t, name)))
     }
 
     /// One request with its whole answer (status, `Retry-After`, body), on a connection of its
@@ -195,6 +203,7 @@ pub struct Connection {
     host: String,
     key: Option<String>,
     cookie: Option<String>,
+    headers: Vec<(String, String)>,
 }
 
 /// The body of a request.
@@ -240,6 +249,9 @@ impl Connection {
         }
         if let Some(c) = &self.cookie {
             request = request.header("cookie", c);
+        }
+        for (name, value) in &self.headers {
+            request = request.header(name, value);
         }
         let bytes = match body {
             Body::Json(b) => {
@@ -300,6 +312,24 @@ impl Connection {
         self.driven(|sender| async move { answer(send(sender, request).await?).await })
             .await
     }
+}
+
+/// The sum of the samples of `name` in the Prometheus text `text` (of every label set, unless
+/// `name` names one).
+fn sample_sum(text: &str, name: &str) -> Option<f64> {
+    let values: Vec<f64> = text
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .filter_map(|l| {
+            let rest = l.strip_prefix(name)?;
+            let value = match rest.strip_prefix('{') {
+                Some(labelled) if !name.contains('{') => labelled.split_once("} ")?.1,
+                _ => rest.strip_prefix(' ')?,
+            };
+            value.trim().parse().ok()
+        })
+        .collect();
+    (!values.is_empty()).then(|| values.iter().sum())
 }
 
 /// `e`, saying which portal when it is a connection's.
@@ -374,5 +404,19 @@ impl EventStream {
                 Err(e) => return Some(Err(ClientError::Io(e.to_string()))),
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_metric_sums_its_label_sets_unless_one_is_named() {
+        let text = "# TYPE a counter\na{reason=\"x\"} 2\na{reason=\"y\"} 3\nab 7\nb 1\n";
+        assert_eq!(sample_sum(text, "a"), Some(5.0));
+        assert_eq!(sample_sum(text, "a{reason=\"y\"}"), Some(3.0));
+        assert_eq!(sample_sum(text, "b"), Some(1.0));
+        assert_eq!(sample_sum(text, "c"), None);
     }
 }

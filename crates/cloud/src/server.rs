@@ -418,6 +418,7 @@ impl Portal {
         let m = metrics.clone();
         let r = registry.clone();
         let a = alarms.counters.clone();
+        let health_of = store.clone();
         let router = Router::new()
             .route("/ws", get(ws).with_state(ws_state))
             .route(
@@ -429,7 +430,24 @@ impl Portal {
                 get(move || {
                     let (m, r, t, a) = (m.clone(), r.clone(), telemetry.clone(), a.clone());
                     let (admitted, reports) = (admitted.clone(), reports.clone());
-                    async move { metrics_text(&m, &r, &t, &a, &reports, &admitted) }
+                    let more = Sampled {
+                        // 1 while the database takes writes (docs/PORTAL.md §Health).
+                        gauges: vec![(
+                            "canlift_database_healthy",
+                            u64::from(health_of.health().trouble().is_none()),
+                        )],
+                        counters: vec![
+                            (
+                                "canlift_gateways_refusals_recorded_total",
+                                refusals.recorded.load(Ordering::Relaxed),
+                            ),
+                            (
+                                "canlift_gateways_refusals_unrecorded_total",
+                                refusals.unrecorded.load(Ordering::Relaxed),
+                            ),
+                        ],
+                    };
+                    async move { metrics_text(&m, &r, &t, &a, &reports, &admitted, more) }
                 }),
             )
             .merge({
@@ -745,6 +763,27 @@ fn start_alarms(
     Ok((alarms, reports))
 }
 
+/// The sample of `canlift_telemetry_dropped_total` for `why`.
+fn dropped_names(why: telemetry::Dropped) -> &'static str {
+    match why {
+        telemetry::Dropped::Database => "canlift_telemetry_dropped_total{reason=\"database\"}",
+        telemetry::Dropped::Queue => "canlift_telemetry_dropped_total{reason=\"queue\"}",
+        telemetry::Dropped::Refused => "canlift_telemetry_dropped_total{reason=\"refused\"}",
+        telemetry::Dropped::TooLarge => "canlift_telemetry_dropped_total{reason=\"too_large\"}",
+        telemetry::Dropped::Unsubscribed => {
+            "canlift_telemetry_dropped_total{reason=\"unsubscribed\"}"
+        }
+        telemetry::Dropped::Quota => "canlift_telemetry_dropped_total{reason=\"quota\"}",
+        telemetry::Dropped::Stopping => "canlift_telemetry_dropped_total{reason=\"stopping\"}",
+    }
+}
+
+/// Metrics read where the router is built, beside the ones [`metrics_text`] reads itself.
+struct Sampled {
+    gauges: Vec<(&'static str, u64)>,
+    counters: Vec<(&'static str, u64)>,
+}
+
 fn metrics_text(
     m: &Metrics,
     r: &Registry,
@@ -752,6 +791,7 @@ fn metrics_text(
     a: &service::Counters,
     reports: &Reports,
     admitted: &gateways::admissions::AdmissionCounters,
+    more: Sampled,
 ) -> String {
     let t = telemetry.counters();
     let load = |c: &AtomicU64| c.load(Ordering::Relaxed);
@@ -787,7 +827,6 @@ fn metrics_text(
             load(&m.memory_trimmed_bytes),
         ),
         ("canlift_telemetry_stored_total", load(&t.stored)),
-        ("canlift_telemetry_dropped_total", t.dropped_total()),
         ("canlift_telemetry_waits_total", load(&t.waits)),
         ("canlift_events_stored_total", load(&a.events_stored)),
         (
@@ -819,6 +858,8 @@ fn metrics_text(
     ];
     let mut text = String::new();
     let (mut gauges, mut counters) = (gauges.to_vec(), counters.to_vec());
+    gauges.extend(more.gauges);
+    counters.extend(more.counters);
     if let Some(c) = r.cluster() {
         gauges.extend([
             ("canlift_cluster_nats_connected", u64::from(c.connected())),
@@ -852,9 +893,17 @@ fn metrics_text(
             ),
         ]);
     }
+    for why in telemetry::Dropped::ALL {
+        counters.push((dropped_names(why), t.dropped(why)));
+    }
+    let mut typed = std::collections::HashSet::new();
     for (kind, list) in [("gauge", &gauges[..]), ("counter", &counters[..])] {
         for (name, value) in list {
-            text.push_str(&format!("# TYPE {name} {kind}\n{name} {value}\n"));
+            let family = name.split('{').next().unwrap_or(name);
+            if typed.insert(family) {
+                text.push_str(&format!("# TYPE {family} {kind}\n"));
+            }
+            text.push_str(&format!("{name} {value}\n"));
         }
     }
     text

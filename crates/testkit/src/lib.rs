@@ -163,3 +163,80 @@ pub fn connect(sernum: &str, domain: &str, token: Option<&str>) -> nxg::msg::Con
         domaintoken: domain.into(),
     }
 }
+
+/// A small filesystem of a test's own (tmpfs) to fill up: mounted on a scratch directory,
+/// unmounted when dropped. Mounting needs root (as CI runs); elsewhere the test is skipped.
+pub struct Tmpfs {
+    dir: tempfile::TempDir,
+}
+
+impl Tmpfs {
+    /// A tmpfs of `bytes`, or `None` after printing why the test is skipped.
+    pub fn mount(bytes: u64) -> Option<Tmpfs> {
+        let dir = scratch();
+        let out = Command::new("mount")
+            .args(["-t", "tmpfs", "-o"])
+            .arg(format!("size={bytes},mode=0777"))
+            .arg("tmpfs")
+            .arg(dir.path())
+            .output();
+        match out {
+            Ok(o) if o.status.success() => Some(Tmpfs { dir }),
+            Ok(o) => {
+                skip(&format!(
+                    "tmpfs: mount refused ({}): a full disk is tried as root only",
+                    String::from_utf8_lossy(&o.stderr).trim()
+                ));
+                None
+            }
+            Err(e) => {
+                skip(&format!("tmpfs: no mount command ({e})"));
+                None
+            }
+        }
+    }
+
+    /// Where it is mounted.
+    pub fn path(&self) -> &std::path::Path {
+        self.dir.path()
+    }
+
+    /// Bytes free on it now.
+    pub fn free(&self) -> u64 {
+        let out = Command::new("stat")
+            .args(["-f", "-c", "%a %S"])
+            .arg(self.path())
+            .output()
+            .expect("stat runs");
+        let text = String::from_utf8_lossy(&out.stdout);
+        let mut fields = text
+            .split_whitespace()
+            .map(|f| f.parse::<u64>().unwrap_or(0));
+        fields.next().unwrap_or(0) * fields.next().unwrap_or(0)
+    }
+
+    /// Fill it up to `leave` bytes free with a file of zeros; the file, to delete for space.
+    pub fn fill(&self, leave: u64) -> PathBuf {
+        let filler = self.path().join("filler");
+        let size = self.free().saturating_sub(leave);
+        let file = std::fs::File::create(&filler).expect("the filler");
+        let zeros = vec![0u8; 64 << 10];
+        let mut left = size;
+        let mut out = std::io::BufWriter::new(file);
+        while left > 0 {
+            let n = left.min(zeros.len() as u64) as usize;
+            if out.write_all(&zeros[..n]).is_err() {
+                break;
+            }
+            left -= n as u64;
+        }
+        let _ = out.flush();
+        filler
+    }
+}
+
+impl Drop for Tmpfs {
+    fn drop(&mut self) {
+        let _ = Command::new("umount").arg("-l").arg(self.path()).status();
+    }
+}

@@ -121,6 +121,10 @@ impl Builder {
     }
 }
 
+/// A hand-made gateway's WebSocket ([`Rig::hand_made_gateway`]).
+pub type GatewaySocket =
+    tokio_tungstenite::WebSocketStream<tokio_rustls::client::TlsStream<tokio::net::TcpStream>>;
+
 /// Portal, gateway and simulator, running.
 pub struct Rig {
     /// The portal's address.
@@ -166,6 +170,40 @@ impl Rig {
     /// The live gateways.
     pub fn registry(&self) -> &cloud::gateways::Registry {
         &self.registry
+    }
+
+    /// A hand-made gateway of the account of domain `domain` (the rig has `MAS` and `OTH`),
+    /// identity `sernum`, admitted by the portal: a bare TLS WebSocket that says CONNECT and
+    /// then only what the test sends (it answers none of the portal's requests).
+    pub async fn hand_made_gateway(&self, sernum: &str, domain: &str) -> GatewaySocket {
+        use futures_util::{SinkExt, StreamExt};
+        use tokio_tungstenite::tungstenite::client::IntoClientRequest;
+        use tokio_tungstenite::tungstenite::Message;
+        let config = tls::client_config(Some(&self.ca), None).expect("the portal's CA");
+        let tcp = tokio::net::TcpStream::connect(self.addr)
+            .await
+            .expect("TCP");
+        let name =
+            tokio_rustls::rustls::pki_types::ServerName::try_from("localhost").expect("a name");
+        let tls = tokio_rustls::TlsConnector::from(config)
+            .connect(name, tcp)
+            .await
+            .expect("TLS");
+        let mut request = self.ws_url().into_client_request().expect("a request");
+        request.headers_mut().insert(
+            "Sec-WebSocket-Protocol",
+            tokio_tungstenite::tungstenite::http::HeaderValue::from_static("cloud"),
+        );
+        let (mut ws, _) = tokio_tungstenite::client_async(request, tls)
+            .await
+            .expect("the upgrade");
+        let connect = format!(
+            r#"{{"jsonrpc":"2.0","method":"CONNECT","id":1,"params":{{"identity":{{"sernum":"{sernum}","vendorid":1050,"productcode":4096,"liftnum":"x","hardware":"x","software":"1","api":1,"boardhash":"00"}},"domaintoken":"{domain}"}}}}"#
+        );
+        ws.send(Message::Text(connect.into())).await.expect("sent");
+        let answer = ws.next().await.expect("CONNACK").expect("a message");
+        assert!(answer.to_string().contains("CONNACK"), "{answer}");
+        ws
     }
 
     /// `wss://localhost:PORT/ws`, where gateways connect.

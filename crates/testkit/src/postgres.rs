@@ -50,6 +50,12 @@ impl Server {
     /// Create and start a cluster, or `None` after printing why the test is skipped (no
     /// PostgreSQL installed; with CANLIFT_REQUIRE_POSTGRES=1 the test fails instead).
     pub fn start() -> Option<Server> {
+        Server::start_in(None)
+    }
+
+    /// [`Server::start`] with the cluster's data in a directory under `parent` (a small
+    /// filesystem of the test's, to fill up).
+    pub fn start_in(parent: Option<&std::path::Path>) -> Option<Server> {
         let Some(bin) = installed() else {
             let reason =
                 "postgres: no /usr/lib/postgresql/*/bin/initdb (apt-get install postgresql)";
@@ -59,7 +65,13 @@ impl Server {
             skip(reason);
             return None;
         };
-        let data = crate::scratch();
+        let data = match parent {
+            Some(parent) => tempfile::Builder::new()
+                .prefix("pgdata")
+                .tempdir_in(parent)
+                .expect("a data directory"),
+            None => crate::scratch(),
+        };
         if as_root() {
             let chown = std::process::Command::new("chown")
                 .args(["-R", "postgres:postgres"])
@@ -107,6 +119,20 @@ impl Server {
             self.run("pg_ctl", &["-m", "fast", "-w", "stop", "-D"])
                 .expect("pg_ctl stop");
             self.running = false;
+        }
+    }
+
+    /// Whether the server runs (it stops by itself after a PANIC it cannot recover from, such
+    /// as a full disk under its WAL).
+    pub fn is_running(&self) -> bool {
+        self.running && self.run("pg_ctl", &["status", "-D"]).is_ok()
+    }
+
+    /// Start the server again if it stopped (as systemd's `Restart=` would).
+    pub fn revive(&mut self) {
+        if !self.is_running() {
+            self.running = false;
+            self.start_again();
         }
     }
 

@@ -880,36 +880,6 @@ async fn answers_to_the_portals_requests_do_not_count_against_the_message_rate()
     rig.stop().await;
 }
 
-type GatewaySocket = tokio_tungstenite::WebSocketStream<tokio_rustls::client::TlsStream<TcpStream>>;
-
-/// A hand-made gateway of account `someone` (domain OTH) admitted by the rig's portal.
-async fn hand_made_gateway(rig: &Rig, sernum: &str) -> GatewaySocket {
-    use futures_util::{SinkExt, StreamExt};
-    use tokio_tungstenite::tungstenite::client::IntoClientRequest;
-    let config = tls::client_config(Some(&rig.ca), None).expect("the portal's CA");
-    let tcp = TcpStream::connect(rig.addr).await.expect("TCP");
-    let name = tokio_rustls::rustls::pki_types::ServerName::try_from("localhost").expect("a name");
-    let tls = tokio_rustls::TlsConnector::from(config)
-        .connect(name, tcp)
-        .await
-        .expect("TLS");
-    let mut request = rig.ws_url().into_client_request().expect("a request");
-    request.headers_mut().insert(
-        "Sec-WebSocket-Protocol",
-        tokio_tungstenite::tungstenite::http::HeaderValue::from_static("cloud"),
-    );
-    let (mut ws, _) = tokio_tungstenite::client_async(request, tls)
-        .await
-        .expect("the upgrade");
-    let connect = format!(
-        r#"{{"jsonrpc":"2.0","method":"CONNECT","id":1,"params":{{"identity":{{"sernum":"{sernum}","vendorid":1050,"productcode":4096,"liftnum":"x","hardware":"x","software":"1","api":1,"boardhash":"00"}},"domaintoken":"OTH"}}}}"#
-    );
-    ws.send(Message::Text(connect.into())).await.expect("sent");
-    let answer = ws.next().await.expect("CONNACK").expect("a message");
-    assert!(answer.to_string().contains("CONNACK"), "{answer}");
-    ws
-}
-
 /// Until the portal closes `ws`: the close code it gave, if any (`None`: closed without one).
 async fn closed<S>(ws: &mut S, limit: Duration) -> Option<u16>
 where
@@ -935,12 +905,12 @@ async fn an_abusive_gateway_is_closed_alone() {
     let rig = Rig::builder().start().await;
     rig.online().await;
 
-    let mut big = hand_made_gateway(&rig, "ABUSE-BIG").await;
+    let mut big = rig.hand_made_gateway("ABUSE-BIG", "OTH").await;
     let _ = big.send(Message::Text("x".repeat(1 << 20).into())).await;
     closed(&mut big, Duration::from_secs(10)).await;
     assert_eq!(read_trips(&rig).await, 200);
 
-    let ws = hand_made_gateway(&rig, "ABUSE-FAST").await;
+    let ws = rig.hand_made_gateway("ABUSE-FAST", "OTH").await;
     let (mut tx, mut rx) = ws.split();
     let note =
         r#"{"jsonrpc":"2.0","method":"canopen_object","result":{"mplex":"0x652001","value":"1"}}"#;
@@ -966,4 +936,99 @@ async fn an_abusive_gateway_is_closed_alone() {
     assert_eq!(read_trips(&rig).await, 200);
     assert!(rig.registry().online(LIFT));
     rig.stop().await;
+}
+
+/// `canlift cloud backup` while 50 gateways push telemetry: the backup is a whole database
+/// (integrity_check, every lift, the values committed when it began); `restore` refuses while
+/// the portal runs, puts the backup back once it is stopped, and the gateways come back online
+/// with the tokens they hold.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_backup_under_load_is_whole_and_restores() {
+    const GATEWAYS: usize = 50;
+    let dir = testkit::scratch();
+    let (mut portal, key) = PortalProcess::start(dir.path(), "").await;
+    let mut fleet = loadgen(&portal, GATEWAYS, &dir.path().join("gateways"));
+    portal
+        .wait_online(&key, GATEWAYS, Duration::from_secs(60))
+        .await;
+    until_async(Duration::from_secs(30), "telemetry stored", || async {
+        portal.stored().await > 1_000
+    })
+    .await;
+
+    let config = portal.config.to_str().expect("UTF-8").to_owned();
+    let file = dir.path().join("backup.db");
+    let file_arg = file.to_str().expect("UTF-8");
+    let before = portal.stored().await;
+    let out = common::run(&["cloud", "backup", file_arg, "--config", &config]).await;
+    assert!(out.status.success(), "{}", common::stderr(&out));
+    let after = portal.stored().await;
+    let said = String::from_utf8_lossy(&out.stdout).into_owned();
+    eprintln!("{said}");
+    let (lifts, values) = backup_contents(&said);
+    assert_eq!(lifts, GATEWAYS as u64, "{said}");
+    assert!(
+        (before..=after).contains(&values),
+        "{values} values backed up, {before} stored before and {after} after: {said}"
+    );
+    use std::os::unix::fs::PermissionsExt;
+    let mode = std::fs::metadata(&file)
+        .expect("the backup")
+        .permissions()
+        .mode();
+    assert_eq!(mode & 0o777, 0o600, "the backup is for its owner alone");
+    let again = common::run(&["cloud", "backup", file_arg, "--config", &config]).await;
+    assert!(!again.status.success(), "a backup never overwrites a file");
+
+    let running = common::run(&["cloud", "restore", file_arg, "--config", &config]).await;
+    assert!(
+        !running.status.success(),
+        "restore refused while the portal runs"
+    );
+    assert!(
+        common::stderr(&running).contains("stop it before restoring"),
+        "{}",
+        common::stderr(&running)
+    );
+
+    interrupt_portal(&mut portal).await;
+    let out = common::run(&["cloud", "restore", file_arg, "--config", &config]).await;
+    assert!(out.status.success(), "{}", common::stderr(&out));
+    let (rows, check) = portal.inspect().await;
+    assert_eq!(check, "ok");
+    assert_eq!(
+        rows, values,
+        "the restored database holds the backup's values"
+    );
+
+    portal.restart().await;
+    let took = portal
+        .wait_online(&key, GATEWAYS, Duration::from_secs(90))
+        .await;
+    eprintln!("all {GATEWAYS} back online {took:?} after the restore");
+    kill(&mut fleet).await;
+    portal.kill().await;
+}
+
+/// Lifts and values from `backup`'s line "FILE: N lifts, M values, taken in S s".
+fn backup_contents(said: &str) -> (u64, u64) {
+    let number_before = |word: &str| -> u64 {
+        let at = said
+            .find(word)
+            .unwrap_or_else(|| panic!("{word} in {said}"));
+        said[..at]
+            .split_whitespace()
+            .last()
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("a number before {word} in {said}"))
+    };
+    (number_before(" lifts"), number_before(" values"))
+}
+
+/// Stop the portal as its service manager would (SIGINT, a clean shutdown).
+async fn interrupt_portal(portal: &mut PortalProcess) {
+    if let Some(mut child) = portal.child.take() {
+        let status = common::interrupt(&mut child, Duration::from_secs(30)).await;
+        assert!(status.success(), "the portal stops cleanly: {status}");
+    }
 }

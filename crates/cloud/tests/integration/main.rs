@@ -8,5 +8,6 @@ mod python_events;
 mod python_gateway;
 mod python_subscriptions;
 mod roles;
+mod storage;
 mod token_lifecycle;
 mod web_ui;
