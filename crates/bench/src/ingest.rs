@@ -42,6 +42,35 @@ fn row(i: usize, lifts: usize, at: i64) -> TelemetryRow {
     }
 }
 
+/// Roll up what was stored until `last` (ms) as the portal's roll-up task does, round by
+/// round, and print what it cost per value (docs/PORTAL.md §History).
+async fn roll_up(store: &cloud_store::Store, last: i64) -> anyhow::Result<()> {
+    // Past the last value's minute and the roll-ups' lag behind the newest values.
+    let now = last + 5 * 60_000;
+    let cpu0 = cpu_time(std::process::id()).unwrap_or_default();
+    let started = Instant::now();
+    let (mut values, mut rows) = (0, 0);
+    loop {
+        let round = store.roll_up(now).await?;
+        if round.values == 0 {
+            break;
+        }
+        values += round.values;
+        rows += round.minutes + round.hours;
+    }
+    let elapsed = started.elapsed();
+    let cpu = cpu_time(std::process::id())
+        .unwrap_or_default()
+        .saturating_sub(cpu0);
+    println!(
+        "  roll-ups: {values} values into {rows} minute and hour rows in {:.2} s: {:.2} µs per value, portal side {:.2} µs CPU",
+        elapsed.as_secs_f64(),
+        elapsed.as_secs_f64() * 1e6 / values.max(1) as f64,
+        cpu.as_secs_f64() * 1e6 / values.max(1) as f64
+    );
+    Ok(())
+}
+
 /// `canlift-bench ingest`.
 pub async fn run(args: IngestBench) -> anyhow::Result<()> {
     let (_dir, url, store) =
@@ -52,7 +81,8 @@ pub async fn run(args: IngestBench) -> anyhow::Result<()> {
         "SQLite"
     };
     for run in 1..=args.runs {
-        let base = cloud_types::now_ms();
+        // Each run an hour after the one before: its roll-up reads its own values alone.
+        let base = cloud_types::now_ms() + (run as i64 - 1) * 3_600_000;
         let rows: Vec<TelemetryRow> = (0..args.values)
             .map(|i| row(i, args.lifts.max(1), base + i as i64))
             .collect();
@@ -92,6 +122,7 @@ pub async fn run(args: IngestBench) -> anyhow::Result<()> {
             stored,
             elapsed.as_secs_f64()
         );
+        roll_up(&store, base + args.values as i64).await?;
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
     Ok(())

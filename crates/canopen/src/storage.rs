@@ -146,6 +146,18 @@ pub fn load(path: &Path) -> Result<Vec<Entry>, StorageError> {
 
 /// Write `text` to `path` atomically: temporary file, fsync, rename, fsync of the directory.
 pub fn write_atomically(path: &Path, text: &str) -> std::io::Result<()> {
+    write_file(path, text, false)
+}
+
+/// [`write_atomically`] for a secret (a cloud token, an API key, a password): the file is
+/// readable by its owner alone from the moment it is created, never for an instant by others.
+pub fn write_private_atomically(path: &Path, text: &str) -> std::io::Result<()> {
+    write_file(path, text, true)
+}
+
+/// Write `text` to a new file — `private`: of mode 0600 on Unix, else as the umask says —
+/// fsynced, then renamed over `path`.
+fn write_file(path: &Path, text: &str, private: bool) -> std::io::Result<()> {
     let dir = path
         .parent()
         .filter(|d| !d.as_os_str().is_empty())
@@ -158,7 +170,21 @@ pub fn write_atomically(path: &Path, text: &str) -> std::io::Result<()> {
             .unwrap_or("storage")
     ));
     {
-        let mut file = std::fs::File::create(&tmp)?;
+        let mut options = std::fs::OpenOptions::new();
+        options.write(true).create(true).truncate(true);
+        #[cfg(unix)]
+        if private {
+            std::os::unix::fs::OpenOptionsExt::mode(&mut options, 0o600);
+        }
+        let file = options.open(&tmp)?;
+        // A temporary file left by a crash keeps its mode: a private one is set anew.
+        #[cfg(unix)]
+        if private {
+            file.set_permissions(std::os::unix::fs::PermissionsExt::from_mode(0o600))?;
+        }
+        #[cfg(not(unix))]
+        let _ = private;
+        let mut file = file;
         file.write_all(text.as_bytes())?;
         file.sync_all()?;
     }

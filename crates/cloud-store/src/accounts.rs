@@ -3,6 +3,7 @@
 use sqlx::Row;
 
 use cloud_types::now_ms;
+use cloud_types::users::Account;
 
 use crate::secrets::{digest, secret};
 use crate::{Store, StoreError};
@@ -30,5 +31,61 @@ impl Store {
             .fetch_one(&self.pool)
             .await?;
         Ok(row.try_get::<i64, _>("n")? > 0)
+    }
+
+    /// The account named `name`.
+    pub async fn account(&self, name: &str) -> Result<Option<Account>, StoreError> {
+        let row = sqlx::query("SELECT name, domain FROM accounts WHERE name = $1")
+            .bind(name)
+            .fetch_optional(&self.pool)
+            .await?;
+        row.map(|r| -> Result<Account, sqlx::Error> {
+            Ok(Account {
+                name: r.try_get("name")?,
+                domain: r.try_get("domain")?,
+            })
+        })
+        .transpose()
+        .map_err(StoreError::from)
+    }
+
+    /// The accounts whose domain token is shorter than `length` characters (a guess away
+    /// from admitting lifts into them).
+    pub async fn short_domains(&self, length: usize) -> Result<Vec<String>, StoreError> {
+        let rows = sqlx::query("SELECT name, domain FROM accounts ORDER BY name")
+            .fetch_all(&self.pool)
+            .await?;
+        let mut short = Vec::new();
+        for r in rows {
+            if r.try_get::<String, _>("domain")?.chars().count() < length {
+                short.push(r.try_get("name")?);
+            }
+        }
+        Ok(short)
+    }
+
+    /// The accounts with a lift of id `id`, each with the lift's key (docs/PORTAL.md §Lifts and
+    /// accounts): for an administrator who names a lift without its account.
+    pub async fn owners_of(&self, id: &str) -> Result<Vec<(Account, String)>, StoreError> {
+        let rows = sqlx::query(
+            "SELECT a.name, a.domain, g.id FROM gateways g JOIN accounts a ON a.domain = g.domain \
+             WHERE g.id = $1 OR g.id = $2 || a.name ORDER BY a.name",
+        )
+        .bind(id)
+        .bind(cloud_types::lifts::scoped_key(id, ""))
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| {
+                Ok((
+                    Account {
+                        name: r.try_get("name")?,
+                        domain: r.try_get("domain")?,
+                    },
+                    r.try_get("id")?,
+                ))
+            })
+            .collect::<Result<_, sqlx::Error>>()
+            .map_err(StoreError::from)
     }
 }

@@ -48,7 +48,8 @@ impl Store {
 
     async fn insert_audit(&self, id: i64, e: &AuditEntry) -> Result<(), StoreError> {
         let done = sqlx::query(
-            "INSERT INTO audit (id, at, account, lift, action, object, old_value, new_value, result) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9)",
+            "INSERT INTO audit (id, at, account, lift, action, object, old_value, new_value, result, address, owner) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, \
+             (SELECT a.name FROM gateways g JOIN accounts a ON a.domain = g.domain WHERE g.id = $4))",
         )
         .bind(id)
         .bind(e.at)
@@ -59,6 +60,7 @@ impl Store {
         .bind(&e.old_value)
         .bind(&e.new_value)
         .bind(&e.result)
+        .bind(&e.address)
         .execute(&self.pool)
         .await
         .map(|_| ())
@@ -67,10 +69,12 @@ impl Store {
         done
     }
 
-    /// The audit entries of `domain`'s lifts, newest first.
+    /// The audit entries of `domain`'s lifts, newest first: those written while the lift was
+    /// the account's (a retired lift's entries stay the account's; its key may later be
+    /// another's), each lift named by the id the account sees.
     pub async fn audit_log(&self, domain: &str) -> Result<Vec<AuditEntry>, StoreError> {
         let rows = sqlx::query(
-            "SELECT a.* FROM audit a JOIN gateways g ON g.id = a.lift WHERE g.domain = $1 ORDER BY a.at DESC LIMIT 1000",
+            "SELECT * FROM audit WHERE owner = (SELECT name FROM accounts WHERE domain = $1) ORDER BY at DESC LIMIT 1000",
         )
         .bind(domain)
         .fetch_all(&self.pool)
@@ -80,12 +84,13 @@ impl Store {
                 Ok(AuditEntry {
                     at: r.try_get("at")?,
                     account: r.try_get("account")?,
-                    lift: r.try_get("lift")?,
+                    lift: cloud_types::lifts::shown_id(&r.try_get::<String, _>("lift")?).to_owned(),
                     action: r.try_get("action")?,
                     object: r.try_get("object")?,
                     old_value: r.try_get("old_value")?,
                     new_value: r.try_get("new_value")?,
                     result: r.try_get("result")?,
+                    address: r.try_get("address")?,
                 })
             })
             .collect::<Result<_, sqlx::Error>>()

@@ -44,7 +44,7 @@ pub use secrets::{digest, passhash, secret};
 pub use sessions::SessionRecord;
 pub use subscriptions::StoredSubscription;
 pub use telemetry::TelemetryRow;
-pub use users::UserError;
+pub use users::{secret_matches, UserError};
 
 use sqlx::any::AnyPoolOptions;
 use sqlx::{AnyPool, ConnectOptions, Connection, Executor, Row};
@@ -378,6 +378,7 @@ pub(crate) fn chunks_by_binary_digits<T>(
 pub(crate) mod tests {
     use super::*;
     use cloud_types::lifts::lift_id;
+    use cloud_types::users::Account;
     use nxg::msg::Connect;
     use testkit::connect;
 
@@ -578,7 +579,8 @@ pub(crate) mod tests {
         let connected = |software: &str, at: i64| {
             let mut connect = connect("REC-1", "REC", None);
             connect.identity.software = software.into();
-            let mut record = GatewayRecord::connected(&connect, 2);
+            let lift = lift_id(&connect.identity);
+            let mut record = GatewayRecord::connected(&lift, &connect, 2);
             if let GatewayRecord::Connected { at: when, .. } = &mut record {
                 *when = at;
             }
@@ -589,7 +591,11 @@ pub(crate) mod tests {
             lift: lift.clone(),
             at,
         };
-        let row = || async { store.lift("REC", &lift).await.unwrap().unwrap() };
+        let account = Account {
+            name: "records".into(),
+            domain: "REC".into(),
+        };
+        let row = || async { store.lift(&account, &lift).await.unwrap().unwrap() };
         store
             .record(&[connected("v1", 1_000), seen(2_000), connected("v2", 3_000)])
             .await
@@ -639,25 +645,25 @@ pub(crate) mod tests {
         assert!(store.domain_exists("MAS").await.unwrap());
         assert!(!store.domain_exists("XYZ").await.unwrap());
         let gw = |token| connect("180917010200000102", "MAS", token);
+        let lift = lift_id(&gw(None).identity);
         let row = gateway_row(&store, &gw(None)).await;
         assert_eq!(
             row,
             GatewayRow {
-                account: true,
+                account: Some("masora".into()),
+                key: lift.clone(),
                 subscribed: false,
                 registered: None
             }
         );
-        assert!(
-            !gateway_row(&store, &connect("1", "XYZ", None))
-                .await
-                .account
-        );
+        assert!(gateway_row(&store, &connect("1", "XYZ", None))
+            .await
+            .account
+            .is_none());
         store
-            .record(&[GatewayRecord::connected(&gw(None), 1)])
+            .record(&[GatewayRecord::connected(&lift, &gw(None), 1)])
             .await
             .unwrap();
-        let lift = lift_id(&gw(None).identity);
         let registered = gateway_row(&store, &gw(Some("x")))
             .await
             .registered
@@ -667,7 +673,7 @@ pub(crate) mod tests {
             ("MAS", None),
             "no token confirmed yet"
         );
-        store.set_token(&lift, "T0K3N").await.unwrap();
+        store.set_token(&lift, "MAS", "T0K3N").await.unwrap();
         store.set_next_token(&lift, "N3XT").await.unwrap();
         let registered = gateway_row(&store, &gw(None)).await.registered.unwrap();
         // Only digests are stored.
@@ -694,7 +700,13 @@ pub(crate) mod tests {
             .unwrap();
         assert_eq!(rows.len(), 3);
         assert!(rows[0].registered.is_some() && rows[2].registered.is_some());
-        assert_eq!(rows[1], GatewayRow::default());
+        assert_eq!(
+            rows[1],
+            GatewayRow {
+                key: lift_id(&other.identity),
+                ..GatewayRow::default()
+            }
+        );
         // Reset: only by the lift's own account, audited; the token digests are gone.
         store.add_account("other", "OTH").await.unwrap();
         assert!(
@@ -716,8 +728,12 @@ pub(crate) mod tests {
         );
         assert_eq!(store.lifts("MAS").await.unwrap().len(), 1);
         assert!(store.lifts("OTH").await.unwrap().is_empty());
+        let other = Account {
+            name: "other".into(),
+            domain: "OTH".into(),
+        };
         assert!(store
-            .lift("OTH", "1050-4096-180917010200000102")
+            .lift(&other, "1050-4096-180917010200000102")
             .await
             .unwrap()
             .is_none());

@@ -65,7 +65,7 @@ pub(crate) const SCHEMA: &[&str] = &[
     "CREATE TABLE IF NOT EXISTS webhook_outbox (id BIGINT PRIMARY KEY, url TEXT NOT NULL, body TEXT NOT NULL, lift TEXT NOT NULL, created BIGINT NOT NULL, attempts BIGINT NOT NULL, next_at BIGINT NOT NULL, delivered BIGINT, given_up BIGINT, last_error TEXT)",
     "CREATE INDEX IF NOT EXISTS webhook_outbox_due ON webhook_outbox (delivered, given_up, next_at)",
     "CREATE TABLE IF NOT EXISTS schema_migrations (version BIGINT PRIMARY KEY, applied BIGINT NOT NULL)",
-    "CREATE TABLE IF NOT EXISTS users (name TEXT PRIMARY KEY, account TEXT NOT NULL, role TEXT NOT NULL, secret_hash TEXT NOT NULL, disabled BIGINT, created BIGINT NOT NULL)",
+    "CREATE TABLE IF NOT EXISTS users (name TEXT NOT NULL, account TEXT NOT NULL, role TEXT NOT NULL, secret_hash TEXT NOT NULL, disabled BIGINT, created BIGINT NOT NULL, PRIMARY KEY (account, name))",
     "CREATE TABLE IF NOT EXISTS api_keys (id TEXT PRIMARY KEY, key_hash TEXT NOT NULL UNIQUE, user_name TEXT NOT NULL, created BIGINT NOT NULL, expires BIGINT, revoked BIGINT)",
     "CREATE TABLE IF NOT EXISTS auth_epoch (id BIGINT PRIMARY KEY, epoch BIGINT NOT NULL)",
     "INSERT INTO auth_epoch (id, epoch) SELECT 1, 0 WHERE NOT EXISTS (SELECT 1 FROM auth_epoch WHERE id = 1)",
@@ -93,40 +93,60 @@ pub(crate) const SCHEMA: &[&str] = &[
     "CREATE TABLE IF NOT EXISTS subscriptions (lift TEXT NOT NULL, user_name TEXT NOT NULL, mplex TEXT NOT NULL, inhibit BIGINT NOT NULL, threshold DOUBLE PRECISION NOT NULL, PRIMARY KEY (lift, user_name, mplex))",
 ];
 
-/// Changes to tables of an existing database, each applied once, in order (a database created
-/// before a change gets it when the portal next starts; a new one gets them all at once).
-const MIGRATIONS: &[(i64, &str)] = &[
+/// Changes to tables of an existing database, each applied once, in order, its statements in
+/// one transaction (a database created before a change gets it when the portal next starts; a
+/// new one gets them all at once).
+const MIGRATIONS: &[(i64, &[&str])] = &[
     // Token lifecycle: when the token in use was confirmed, and the one a rotation sent.
-    (
-        1,
-        "ALTER TABLE gateways ADD COLUMN token_set BIGINT NOT NULL DEFAULT 0",
-    ),
-    (2, "ALTER TABLE gateways ADD COLUMN token_next TEXT"),
+    (1, &["ALTER TABLE gateways ADD COLUMN token_set BIGINT NOT NULL DEFAULT 0"]),
+    (2, &["ALTER TABLE gateways ADD COLUMN token_next TEXT"]),
     // One active alarm per condition, also when several processes of a cluster raise it at
     // once: duplicates an older portal may have left are cleared first.
-    (
-        3,
-        "UPDATE alarms SET cleared = raised WHERE cleared IS NULL AND id NOT IN \
-         (SELECT MIN(id) FROM alarms WHERE cleared IS NULL GROUP BY lift, kind, net, node, code)",
-    ),
-    (
-        4,
-        "CREATE UNIQUE INDEX IF NOT EXISTS alarms_one_active ON alarms (lift, kind, net, node, code) WHERE cleared IS NULL",
-    ),
+    (3, &["UPDATE alarms SET cleared = raised WHERE cleared IS NULL AND id NOT IN \
+         (SELECT MIN(id) FROM alarms WHERE cleared IS NULL GROUP BY lift, kind, net, node, code)"]),
+    (4, &["CREATE UNIQUE INDEX IF NOT EXISTS alarms_one_active ON alarms (lift, kind, net, node, code) WHERE cleared IS NULL"]),
     // Audit first: an entry is written as intended before the lift is asked, and completed
     // with its outcome by its id.
-    (5, "ALTER TABLE audit ADD COLUMN id BIGINT"),
-    (6, "CREATE INDEX IF NOT EXISTS audit_by_id ON audit (id)"),
+    (5, &["ALTER TABLE audit ADD COLUMN id BIGINT"]),
+    (6, &["CREATE INDEX IF NOT EXISTS audit_by_id ON audit (id)"]),
     // Refused CONNECTs: a digest of the token offered (never the token), pruned by age.
-    (7, "ALTER TABLE refused ADD COLUMN token_digest TEXT"),
-    (8, "CREATE INDEX IF NOT EXISTS refused_by_time ON refused (at)"),
-    (9, "CREATE INDEX IF NOT EXISTS audit_by_time ON audit (at)"),
+    (7, &["ALTER TABLE refused ADD COLUMN token_digest TEXT"]),
+    (8, &["CREATE INDEX IF NOT EXISTS refused_by_time ON refused (at)"]),
+    (9, &["CREATE INDEX IF NOT EXISTS audit_by_time ON audit (at)"]),
+    // Lifts belong to accounts: an audit entry belongs to the account of its lift when it was
+    // written (a retired lift's key may later be another account's).
+    (10, &["ALTER TABLE audit ADD COLUMN owner TEXT"]),
+    (11, &["UPDATE audit SET owner = (SELECT a.name FROM gateways g JOIN accounts a ON a.domain = g.domain WHERE g.id = audit.lift) WHERE owner IS NULL"]),
+    (12, &["CREATE INDEX IF NOT EXISTS audit_by_owner ON audit (owner, at)"]),
+    // Users belong to accounts: a name is unique within its account (another account's
+    // administrator learns nothing of it); keys and sessions name the account of their user.
+    (13, &["ALTER TABLE api_keys ADD COLUMN account TEXT"]),
+    (
+        14,
+        &["UPDATE api_keys SET account = (SELECT u.account FROM users u WHERE u.name = api_keys.user_name) WHERE account IS NULL"],
+    ),
+    (15, &["ALTER TABLE web_sessions ADD COLUMN account TEXT"]),
+    (
+        16,
+        &["UPDATE web_sessions SET account = (SELECT u.account FROM users u WHERE u.name = web_sessions.user_name) WHERE account IS NULL AND user_name IS NOT NULL"],
+    ),
+    (
+        17,
+        &[
+            "CREATE TABLE users_by_account (name TEXT NOT NULL, account TEXT NOT NULL, role TEXT NOT NULL, secret_hash TEXT NOT NULL, disabled BIGINT, created BIGINT NOT NULL, PRIMARY KEY (account, name))",
+            "INSERT INTO users_by_account (name, account, role, secret_hash, disabled, created) SELECT name, account, role, secret_hash, disabled, created FROM users",
+            "DROP TABLE users",
+            "ALTER TABLE users_by_account RENAME TO users",
+        ],
+    ),
+    // Where an audited request came from.
+    (18, &["ALTER TABLE audit ADD COLUMN address TEXT"]),
 ];
 
 /// Apply the [`MIGRATIONS`] not yet recorded, each with its record in one transaction (under
 /// the schema lock on PostgreSQL, so that processes starting together apply each once).
 async fn migrate(conn: &mut AnyConnection) -> Result<(), StoreError> {
-    for (version, statement) in MIGRATIONS {
+    for (version, statements) in MIGRATIONS {
         let mut tx = conn.begin().await?;
         let applied = sqlx::query("SELECT COUNT(*) AS n FROM schema_migrations WHERE version = $1")
             .bind(version)
@@ -134,7 +154,9 @@ async fn migrate(conn: &mut AnyConnection) -> Result<(), StoreError> {
             .await?
             .try_get::<i64, _>("n")?;
         if applied == 0 {
-            sqlx::query(statement).execute(&mut *tx).await?;
+            for statement in *statements {
+                sqlx::query(statement).execute(&mut *tx).await?;
+            }
             sqlx::query("INSERT INTO schema_migrations (version, applied) VALUES ($1, $2)")
                 .bind(version)
                 .bind(now_ms())

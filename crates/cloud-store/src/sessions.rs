@@ -11,8 +11,8 @@ use crate::{Store, StoreError};
 pub struct SessionRecord {
     /// The digest of the API key it was opened with.
     pub key_digest: Option<String>,
-    /// The user who signed in with name and secret.
-    pub user: Option<String>,
+    /// The user who signed in with name and secret: (account, name).
+    pub user: Option<(String, String)>,
     /// The session's CSRF token.
     pub csrf: String,
     /// ms since the Unix epoch.
@@ -33,11 +33,12 @@ impl Store {
             .execute(&self.pool)
             .await?;
         sqlx::query(
-            "INSERT INTO web_sessions (digest, key_digest, user_name, csrf, last_used) VALUES ($1, $2, $3, $4, $5)",
+            "INSERT INTO web_sessions (digest, key_digest, account, user_name, csrf, last_used) VALUES ($1, $2, $3, $4, $5, $6)",
         )
         .bind(digest)
         .bind(record.key_digest.clone())
-        .bind(record.user.clone())
+        .bind(record.user.as_ref().map(|(account, _)| account.clone()))
+        .bind(record.user.as_ref().map(|(_, name)| name.clone()))
         .bind(&record.csrf)
         .bind(record.last_used)
         .execute(&self.pool)
@@ -48,7 +49,7 @@ impl Store {
     /// The session recorded under `digest`.
     pub async fn session(&self, digest: &str) -> Result<Option<SessionRecord>, StoreError> {
         let row = sqlx::query(
-            "SELECT key_digest, user_name, csrf, last_used FROM web_sessions WHERE digest = $1",
+            "SELECT key_digest, account, user_name, csrf, last_used FROM web_sessions WHERE digest = $1",
         )
         .bind(digest)
         .fetch_optional(&self.pool)
@@ -56,7 +57,9 @@ impl Store {
         row.map(|r| -> Result<SessionRecord, sqlx::Error> {
             Ok(SessionRecord {
                 key_digest: r.try_get("key_digest")?,
-                user: r.try_get("user_name")?,
+                user: r
+                    .try_get::<Option<String>, _>("account")?
+                    .zip(r.try_get::<Option<String>, _>("user_name")?),
                 csrf: r.try_get("csrf")?,
                 last_used: r.try_get("last_used")?,
             })

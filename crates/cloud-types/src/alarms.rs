@@ -215,11 +215,23 @@ impl Change {
     }
 }
 
-/// An alarm change as webhooks receive it and the live stream shows it.
+/// An alarm change as the live stream shows it.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct AlarmChange {
     /// What happened.
     pub change: Change,
     /// The alarm after the change.
     pub alarm: Alarm,
+}
+
+/// An alarm change as a webhook receives it (docs/PORTAL.md §Webhooks): the change, its lift
+/// named by the id its account knows it by, and that account (a receiver serves the portal,
+/// and lifts of two accounts may have one id).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct WebhookBody {
+    /// The change.
+    #[serde(flatten)]
+    pub change: AlarmChange,
+    /// The account of the alarm's lift.
+    pub account: String,
 }

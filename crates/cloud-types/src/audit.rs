@@ -30,4 +30,9 @@ pub struct AuditEntry {
     pub new_value: String,
     /// `ok`, the error, or [`PENDING`] while the lift has not answered.
     pub result: String,
+    /// The address the request came from (the client's, behind a trusted load balancer:
+    /// docs/PORTAL.md §Behind a load balancer); absent for what the portal or an administrator
+    /// on its machine did.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub address: Option<String>,
 }

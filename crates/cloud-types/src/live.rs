@@ -22,7 +22,8 @@ pub enum LiftEvent {
 }
 
 impl LiftEvent {
-    /// The Server-Sent Event of `lift`: its name and its JSON data.
+    /// The Server-Sent Event of `lift` (the id its account sees, which an alarm's data is
+    /// given too): its name and its JSON data.
     pub fn to_sse(&self, lift: &str) -> (&'static str, String) {
         let lift = lift.to_owned();
         match self {
@@ -51,7 +52,9 @@ impl LiftEvent {
                 .unwrap_or_default(),
             ),
             LiftEvent::Alarm(change) => {
-                ("alarm", serde_json::to_string(change).unwrap_or_default())
+                let mut change = change.clone();
+                change.alarm.lift = lift;
+                ("alarm", serde_json::to_string(&change).unwrap_or_default())
             }
         }
     }

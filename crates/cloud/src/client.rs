@@ -31,6 +31,8 @@ pub struct Client {
     cookie: Option<String>,
     /// Further headers sent with every request.
     headers: Vec<(String, String)>,
+    /// The local address connections are made from (the system's choice when absent).
+    source: Option<std::net::IpAddr>,
     tls: tokio_rustls::TlsConnector,
 }
 
@@ -60,6 +62,7 @@ impl Client {
             key: key.map(str::to_owned),
             cookie: None,
             headers: Vec::new(),
+            source: None,
             tls: tokio_rustls::TlsConnector::from(Arc::new(tls)),
         })
     }
@@ -68,6 +71,12 @@ impl Client {
     /// `Idempotency-Key`, docs/PORTAL.md §Idempotency).
     pub fn with_header(mut self, name: &str, value: &str) -> Client {
         self.headers.push((name.to_owned(), value.to_owned()));
+        self
+    }
+
+    /// The same client, connecting from local address `source` (a host with several).
+    pub fn with_source(mut self, source: std::net::IpAddr) -> Client {
+        self.source = Some(source);
         self
     }
 
@@ -83,9 +92,27 @@ impl Client {
         let io = |e: &dyn std::fmt::Display| {
             ClientError::Io(format!("{}:{}: {e}", self.host, self.port))
         };
-        let tcp = tokio::net::TcpStream::connect((self.host.as_str(), self.port))
-            .await
-            .map_err(|e| io(&e))?;
+        let tcp = match self.source {
+            None => tokio::net::TcpStream::connect((self.host.as_str(), self.port))
+                .await
+                .map_err(|e| io(&e))?,
+            Some(source) => {
+                let target = tokio::net::lookup_host((self.host.as_str(), self.port))
+                    .await
+                    .map_err(|e| io(&e))?
+                    .find(|a| a.is_ipv4() == source.is_ipv4())
+                    .ok_or_else(|| io(&"no address of the source's family"))?;
+                let socket = match source {
+                    std::net::IpAddr::V4(_) => tokio::net::TcpSocket::new_v4(),
+                    std::net::IpAddr::V6(_) => tokio::net::TcpSocket::new_v6(),
+                }
+                .map_err(|e| io(&e))?;
+                socket
+                    .bind(std::net::SocketAddr::new(source, 0))
+                    .map_err(|e| io(&e))?;
+                socket.connect(target).await.map_err(|e| io(&e))?
+            }
+        };
         let _ = tcp.set_nodelay(true);
         let name = rustls::pki_types::ServerName::try_from(self.host.clone())
             .map_err(|e| ClientError::Tls(e.to_string()))?;
@@ -101,7 +128,11 @@ impl Client {
         Ok(Connection {
             sender,
             conn: Some(Box::new(conn)),
-            host: self.host.clone(),
+            // RFC 9110 §7.2: the port too, unless it is HTTPS's own.
+            host: match self.port {
+                443 => self.host.clone(),
+                port => format!("{}:{port}", self.host),
+            },
             key: self.key.clone(),
             cookie: self.cookie.clone(),
             headers: self.headers.clone(),

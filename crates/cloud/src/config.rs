@@ -33,6 +33,20 @@ pub struct ServerSection {
     /// a restarted portal resumes its gateways' sessions; a ticket counts for at most two
     /// periods). 0: no tickets, every handshake is a full one.
     pub ticket_rotate_h: u32,
+    /// Sign-in secrets checked at once (argon2id, 19 MiB each), on threads of their own at a
+    /// lower priority; 0: as many as the machine has cores. A few more wait; beyond them a
+    /// sign-in is answered 429 (docs/PORTAL.md §Users and roles).
+    pub password_checks_at_once: usize,
+    /// Load balancers and proxies (addresses or CIDR blocks) whose word on the client's
+    /// address counts: the PROXY protocol v2 header they send first, or `X-Forwarded-For`
+    /// (docs/PORTAL.md §Behind a load balancer). No one else's is believed.
+    pub trusted_proxies: Vec<String>,
+    /// `/metrics` on a listener of its own (plain HTTP, for a scraper on the portal's network),
+    /// and not on the public port.
+    pub metrics_listen: Option<SocketAddr>,
+    /// `/metrics` on the public port for requests with `Authorization: Bearer` this token.
+    /// Neither set: `/metrics` is not served on the public port.
+    pub metrics_token: Option<String>,
 }
 
 impl Default for ServerSection {
@@ -44,6 +58,10 @@ impl Default for ServerSection {
             client_ca: None,
             requests_per_key_s: 100,
             ticket_rotate_h: 12,
+            password_checks_at_once: 0,
+            trusted_proxies: Vec::new(),
+            metrics_listen: None,
+            metrics_token: None,
         }
     }
 }
@@ -275,9 +293,15 @@ impl Default for DashboardSection {
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct WebhookSection {
-    /// `https://…` (or `http://` to a receiver on this host or its network).
+    /// What the audit log and the logs call the receiver (its URL may hold credentials and
+    /// internal names); default `webhook N`, its place in the list.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub name: Option<String>,
+    /// `https://…` (or `http://` to a receiver on this host or its network); `USER:PASSWORD@`
+    /// before the host is sent as Basic authentication.
     pub url: String,
-    /// The key of the body's HMAC-SHA256 in `X-Canlift-Signature`.
+    /// The signing key (Standard Webhooks): `whsec_` and base64 (the key's bytes), or any other
+    /// text (its UTF-8 bytes).
     pub secret: String,
     /// Changes of less severe alarms are not sent.
     #[serde(default = "major")]

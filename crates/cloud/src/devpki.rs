@@ -1,6 +1,8 @@
 //! A development PKI: a private CA and a server certificate for localhost, generated once into a
 //! state directory and reused (for `canlift cloud` without certificates, `canlift demo`, the
-//! benchmarks). Not for production: the CA key lies next to the certificates.
+//! benchmarks). Not for production: any portal's development CA is as good as another's. The
+//! CA's key signs the one server certificate and is not kept; the server's key is written for
+//! its owner alone.
 
 use std::path::{Path, PathBuf};
 

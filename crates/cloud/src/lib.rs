@@ -15,6 +15,7 @@ pub mod client;
 pub mod config;
 pub mod devpki;
 pub mod errors;
+pub mod forwarded;
 pub mod gateways;
 mod memory;
 pub mod server;

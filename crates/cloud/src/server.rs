@@ -21,8 +21,10 @@ use tokio::sync::{mpsc, watch};
 use crate::alarms::rules::Rules;
 use crate::alarms::{service, webhook, Alarms};
 use crate::api;
+use crate::auth::passwords::PasswordChecks;
 use crate::auth::Auth;
-use crate::config::Config;
+use crate::config::{Config, ServerSection};
+use crate::forwarded::TrustedProxies;
 use crate::gateways::local::LocalLifts;
 use crate::gateways::reports::Reports;
 use crate::gateways::{self, telemetry, Registry, Shared};
@@ -143,6 +145,10 @@ pub struct Portal {
     /// Closes the gateways' connections when the portal stops.
     closing: watch::Sender<bool>,
     metrics: Arc<Metrics>,
+    /// Whose word on the client's address counts (`[server] trusted_proxies`).
+    proxies: Arc<TrustedProxies>,
+    /// Addresses whose CONNECTs keep being refused are turned away before TLS.
+    refusals: Arc<gateways::refusals::Refusals>,
 }
 
 fn server_tls(
@@ -295,6 +301,14 @@ impl Portal {
             false => None,
         };
         let store = Store::open_pooled(&config.database_url(), config.database.connections).await?;
+        // Told at every start: anyone who guesses a short domain token adds lifts to its
+        // account (docs/SECURITY.md §Domain tokens).
+        for account in store.short_domains(SHORT_DOMAIN_TOKEN).await? {
+            tracing::warn!(
+                %account,
+                "the account's domain token is shorter than {SHORT_DOMAIN_TOKEN} characters: a guess away from admitting lifts into it"
+            );
+        }
         let (tickets, follow_tickets) = ticket_keys(config, &store).await?;
         let tls = server_tls(config, tickets)?;
         let mut tasks: Vec<_> = follow_tickets.into_iter().collect();
@@ -391,6 +405,9 @@ impl Portal {
         ));
         let (closing, closing_rx) = watch::channel(false);
         let refusals = Arc::new(gateways::refusals::Refusals::new(store.clone()));
+        let proxies = Arc::new(
+            TrustedProxies::parse(&config.server.trusted_proxies).map_err(ServerError::Other)?,
+        );
         let metrics = Arc::new(Metrics::default());
         if crate::memory::SUPPORTED {
             tasks.push(tokio::spawn(trim_after_bursts(
@@ -419,36 +436,44 @@ impl Portal {
         let r = registry.clone();
         let a = alarms.counters.clone();
         let health_of = store.clone();
-        let router = Router::new()
+        let refused = refusals.clone();
+        // `/metrics` (docs/PORTAL.md §Metrics): on a listener of its own, or on the public port
+        // for the bearer of `metrics_token`, or not at all.
+        let render: Metered = Arc::new(move || {
+            let (m, r, t, a) = (m.clone(), r.clone(), telemetry.clone(), a.clone());
+            let (admitted, reports) = (admitted.clone(), reports.clone());
+            let more = Sampled {
+                // 1 while the database takes writes (docs/PORTAL.md §Health).
+                gauges: vec![(
+                    "canlift_database_healthy",
+                    u64::from(health_of.health().trouble().is_none()),
+                )],
+                counters: refused
+                    .counts()
+                    .into_iter()
+                    .map(|(reason, n)| (refused_name(reason), n))
+                    .chain([
+                        (
+                            "canlift_gateways_refusals_recorded_total",
+                            refused.recorded.load(Ordering::Relaxed),
+                        ),
+                        (
+                            "canlift_gateways_refusals_unrecorded_total",
+                            refused.unrecorded.load(Ordering::Relaxed),
+                        ),
+                    ])
+                    .collect(),
+            };
+            metrics_text(&m, &r, &t, &a, &reports, &admitted, more)
+        });
+        if let Some(listen) = config.server.metrics_listen {
+            tasks.push(serve_metrics(listen, render.clone()).await?);
+        }
+        let mut router = Router::new()
             .route("/ws", get(ws).with_state(ws_state))
             .route(
                 "/healthz",
                 get(health).with_state((registry.clone(), store.clone())),
-            )
-            .route(
-                "/metrics",
-                get(move || {
-                    let (m, r, t, a) = (m.clone(), r.clone(), telemetry.clone(), a.clone());
-                    let (admitted, reports) = (admitted.clone(), reports.clone());
-                    let more = Sampled {
-                        // 1 while the database takes writes (docs/PORTAL.md §Health).
-                        gauges: vec![(
-                            "canlift_database_healthy",
-                            u64::from(health_of.health().trouble().is_none()),
-                        )],
-                        counters: vec![
-                            (
-                                "canlift_gateways_refusals_recorded_total",
-                                refusals.recorded.load(Ordering::Relaxed),
-                            ),
-                            (
-                                "canlift_gateways_refusals_unrecorded_total",
-                                refusals.unrecorded.load(Ordering::Relaxed),
-                            ),
-                        ],
-                    };
-                    async move { metrics_text(&m, &r, &t, &a, &reports, &admitted, more) }
-                }),
             )
             .merge({
                 let (audit, auditing) = crate::audit::AuditTrail::start(store.clone());
@@ -462,6 +487,7 @@ impl Portal {
                             config.server.requests_per_key_s,
                         )),
                         sign_ins: std::sync::Mutex::default(),
+                        passwords: password_checks(&config.server)?,
                     },
                     store,
                     registry: registry.clone(),
@@ -476,6 +502,28 @@ impl Portal {
                     .merge(crate::web::routes(app))
                     .layer(tower_http::compression::CompressionLayer::new())
             });
+        if let Some(token) = config.server.metrics_token.clone() {
+            let token = Arc::new(token);
+            router = router.route(
+                "/metrics",
+                get(move |headers: axum::http::HeaderMap| async move {
+                    public_metrics(&token, &headers, &render)
+                }),
+            );
+        }
+        // A browser that once came over HTTPS with the portal's own certificate never tries
+        // anything else for a year (RFC 6797); a development certificate is not worth pinning.
+        if config.server.tls_cert.is_some() {
+            router = router.layer(axum::middleware::map_response(
+                |mut response: Response| async move {
+                    response.headers_mut().insert(
+                        axum::http::header::STRICT_TRANSPORT_SECURITY,
+                        axum::http::HeaderValue::from_static("max-age=31536000"),
+                    );
+                    response
+                },
+            ));
+        }
         let listener = listen(config.server.listen).map_err(|e| {
             ServerError::Other(format!("listening on {}: {e}", config.server.listen))
         })?;
@@ -491,6 +539,8 @@ impl Portal {
             stop_writers,
             closing,
             metrics,
+            proxies,
+            refusals,
         })
     }
 
@@ -520,6 +570,8 @@ impl Portal {
             stop_writers,
             closing,
             metrics,
+            proxies,
+            refusals,
         } = self;
         let mut retry = None;
         loop {
@@ -544,7 +596,21 @@ impl Portal {
             };
             let _ = tcp.set_nodelay(true);
             let (tls, router, metrics) = (tls.clone(), router.clone(), metrics.clone());
+            let (proxies, refusals) = (proxies.clone(), refusals.clone());
             tokio::spawn(async move {
+                let mut tcp = tcp;
+                // The client behind a trusted balancer's PROXY header (docs/PORTAL.md §Behind
+                // a load balancer); an address whose CONNECTs keep being refused gets no TLS.
+                let peer = match proxies.client_of(&mut tcp, peer, HANDSHAKE_TIMEOUT).await {
+                    Ok(client) => client,
+                    Err(e) => {
+                        tracing::debug!(%peer, error = %e, "a trusted proxy's header failed");
+                        return;
+                    }
+                };
+                if !proxies.trusts(peer.ip()) && !refusals.admits(&peer.to_string()) {
+                    return;
+                }
                 let handshake = tokio::time::timeout(HANDSHAKE_TIMEOUT, tls.accept(tcp)).await;
                 let stream = match handshake {
                     Ok(Ok(s)) => {
@@ -570,7 +636,8 @@ impl Portal {
                 let service = tower::ServiceExt::map_request(
                     router,
                     move |mut request: hyper::Request<hyper::body::Incoming>| {
-                        request.extensions_mut().insert(ConnectInfo(peer));
+                        let client = proxies.client_of_request(peer, request.headers());
+                        request.extensions_mut().insert(ConnectInfo(client));
                         request
                     },
                 );
@@ -688,6 +755,19 @@ async fn join_cluster(
     Ok((cluster, events))
 }
 
+/// The sign-in secret checkers of `[server] password_checks_at_once`.
+fn password_checks(server: &ServerSection) -> Result<PasswordChecks, ServerError> {
+    let threads = match server.password_checks_at_once {
+        0 => std::thread::available_parallelism().map_or(1, usize::from),
+        n => n,
+    };
+    PasswordChecks::start(threads)
+        .map_err(|e| ServerError::Other(format!("starting the password checks: {e}")))
+}
+
+/// Domain tokens shorter than this are warned about at every start.
+pub const SHORT_DOMAIN_TOKEN: usize = 16;
+
 /// `/healthz`: `ok`; 503 `unavailable: database: disk full` (or `unreachable`, `busy`, `I/O
 /// error`) while the database takes no writes; in a cluster without NATS, or with a NATS that
 /// refuses part of its work, `degraded` with the reason (still 200: the process serves the
@@ -735,7 +815,8 @@ fn start_alarms(
         .alarms
         .webhooks
         .iter()
-        .map(webhook::Receiver::new)
+        .enumerate()
+        .map(|(i, section)| webhook::Receiver::new(section, i + 1))
         .collect::<Result<Vec<_>, _>>()
         .map_err(ServerError::Other)?;
     let (reports, reports_rx) = Reports::channel(65536);
@@ -763,6 +844,19 @@ fn start_alarms(
     Ok((alarms, reports))
 }
 
+/// The sample of `canlift_gateways_refused_total` for `reason`.
+fn refused_name(reason: gateways::refusals::Reason) -> &'static str {
+    use gateways::refusals::Reason;
+    match reason {
+        Reason::Domain => "canlift_gateways_refused_total{reason=\"domain\"}",
+        Reason::Token => "canlift_gateways_refused_total{reason=\"token\"}",
+        Reason::Board => "canlift_gateways_refused_total{reason=\"board\"}",
+        Reason::Identity => "canlift_gateways_refused_total{reason=\"identity\"}",
+        Reason::Taken => "canlift_gateways_refused_total{reason=\"taken\"}",
+        Reason::Address => "canlift_gateways_refused_total{reason=\"address\"}",
+    }
+}
+
 /// The sample of `canlift_telemetry_dropped_total` for `why`.
 fn dropped_names(why: telemetry::Dropped) -> &'static str {
     match why {
@@ -776,6 +870,61 @@ fn dropped_names(why: telemetry::Dropped) -> &'static str {
         telemetry::Dropped::Quota => "canlift_telemetry_dropped_total{reason=\"quota\"}",
         telemetry::Dropped::Stopping => "canlift_telemetry_dropped_total{reason=\"stopping\"}",
     }
+}
+
+/// What renders `/metrics`.
+type Metered = Arc<dyn Fn() -> String + Send + Sync>;
+
+/// `/metrics` on the public port: for the bearer of `[server] metrics_token` alone (compared in
+/// constant time).
+fn public_metrics(token: &str, headers: &axum::http::HeaderMap, render: &Metered) -> Response {
+    let given = headers
+        .get(axum::http::header::AUTHORIZATION)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.strip_prefix("Bearer "))
+        .unwrap_or_default();
+    let digest = |t: &str| cloud_store::digest(t);
+    if !nxg::digest::matches(&digest(given.trim()), &digest(token)) {
+        return (
+            StatusCode::UNAUTHORIZED,
+            [(axum::http::header::WWW_AUTHENTICATE, "Bearer")],
+            "metrics: Authorization: Bearer [server] metrics_token\n",
+        )
+            .into_response();
+    }
+    metrics_response(render)
+}
+
+/// The metrics in Prometheus's text format.
+fn metrics_response(render: &Metered) -> Response {
+    (
+        [(
+            axum::http::header::CONTENT_TYPE,
+            "text/plain; version=0.0.4; charset=utf-8",
+        )],
+        render(),
+    )
+        .into_response()
+}
+
+/// `/metrics` alone, in plain HTTP, on `listen` (`[server] metrics_listen`: a scraper on the
+/// portal's network); the task that serves it.
+async fn serve_metrics(
+    listen: SocketAddr,
+    render: Metered,
+) -> Result<tokio::task::JoinHandle<()>, ServerError> {
+    let listener = tokio::net::TcpListener::bind(listen)
+        .await
+        .map_err(|e| ServerError::Other(format!("[server] metrics_listen {listen}: {e}")))?;
+    let router = Router::new().route(
+        "/metrics",
+        get(move || async move { metrics_response(&render) }),
+    );
+    Ok(tokio::spawn(async move {
+        if let Err(e) = axum::serve(listener, router).await {
+            tracing::error!(error = %e, "the metrics listener failed");
+        }
+    }))
 }
 
 /// Metrics read where the router is built, beside the ones [`metrics_text`] reads itself.
@@ -802,7 +951,6 @@ fn metrics_text(
             load(&m.upgrades_refused),
         ),
         ("canlift_gateways_admitted_total", load(&admitted.admitted)),
-        ("canlift_gateways_refused_total", load(&admitted.refused)),
         (
             "canlift_gateways_registry_unavailable_total",
             load(&admitted.unavailable),

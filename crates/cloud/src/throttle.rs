@@ -2,10 +2,10 @@
 //!
 //! - [`TokenBucket`]: a rate with bursts, for the messages of one gateway and the requests of
 //!   one API key.
-//! - [`SignIns`]: failed sign-ins per user name and per source address; after a few, each
-//!   further failure makes the next attempt wait twice as long as the one before (1 s … 15 min),
-//!   so guessing a secret costs time and the logs stay quiet, while a person who mistyped waits
-//!   at most seconds.
+//! - [`SignIns`]: failed sign-ins per source address and per user name at an address; after a
+//!   few, each further failure makes the next attempt wait twice as long as the one before (1 s
+//!   … 15 min), so guessing costs time and the logs stay quiet, while a person who mistyped
+//!   waits at most seconds — and nobody's failures hold up anyone at another address.
 
 use std::collections::HashMap;
 use std::time::{Duration, Instant};
@@ -115,6 +115,14 @@ impl AddressRates {
         }
     }
 
+    /// Whether an event from `peer` at `now` would be within its address's rate (nothing
+    /// taken).
+    pub fn within(&self, peer: &str, now: Instant) -> bool {
+        self.buckets
+            .get(&address_key(peer))
+            .is_none_or(|b| b.tokens + b.refill(now) >= 1.0)
+    }
+
     /// One event from `peer` at `now`: whether it is within its address's rate.
     pub fn take(&mut self, peer: &str, now: Instant) -> bool {
         if self.buckets.len() >= LIMIT {
@@ -170,8 +178,11 @@ impl KeyRates {
     }
 }
 
-/// Failures allowed before attempts have to wait.
+/// Failures of one name from one address before its attempts there have to wait.
 const FREE_FAILURES: u32 = 5;
+/// Failures from one address, whatever the name, before its attempts have to wait (more: an
+/// office's people share one address).
+const FREE_ADDRESS_FAILURES: u32 = 20;
 /// The longest wait.
 const MAX_WAIT: Duration = Duration::from_secs(15 * 60);
 /// Failures older than this are forgotten.
@@ -180,13 +191,15 @@ const FORGET_AFTER: Duration = Duration::from_secs(3600);
 #[derive(Debug, Clone, Copy)]
 struct Failures {
     count: u32,
+    /// Failures before attempts have to wait.
+    free: u32,
     last: Instant,
 }
 
 impl Failures {
     /// When the next attempt may be made.
     fn next_at(&self) -> Instant {
-        let over = self.count.saturating_sub(FREE_FAILURES);
+        let over = self.count.saturating_sub(self.free);
         if over == 0 {
             return self.last;
         }
@@ -195,34 +208,52 @@ impl Failures {
     }
 }
 
-/// Failed sign-ins by user name and by source address.
+/// Failed sign-ins by source address ([`address_key`]: an IPv6 /64 counts as one) and by
+/// source address and user name. Nothing is counted per name alone: an outsider's failures,
+/// from wherever, never make a person wait who signs in from another address (a user's
+/// secret and an API key are 128 random bits: guessing them is hopeless at any rate, and
+/// the per-address bound keeps the attempts' cost bounded). An attempt is counted as failed
+/// when it begins ([`SignIns::begin`]) and forgotten when it succeeds, so a thousand parallel
+/// attempts from one address are a thousand failures, not five checks each seeing none.
 #[derive(Debug, Default)]
 pub struct SignIns {
     failures: HashMap<String, Failures>,
 }
 
+/// Who tries to sign in: a user by name, or an API key (which has no name to count by).
+#[derive(Debug, Clone, Copy)]
+pub enum Attempt<'a> {
+    /// User name and secret.
+    User(&'a str),
+    /// An API key.
+    Key,
+}
+
 impl SignIns {
-    fn keys(user: &str, address: &str) -> [String; 2] {
-        [format!("user {user}"), format!("address {address}")]
+    /// The counts `attempt` from `address` is in, each with its failures before a wait.
+    fn keys(attempt: Attempt, address: &str) -> Vec<(String, u32)> {
+        let address = address_key(address);
+        let mut keys = vec![(format!("address {address}"), FREE_ADDRESS_FAILURES)];
+        if let Attempt::User(user) = attempt {
+            keys.push((format!("user {user} at {address}"), FREE_FAILURES));
+        }
+        keys
     }
 
-    /// Whether `user` may try from `address` at `now`: `Err(wait)` while either has to wait.
-    pub fn check(&self, user: &str, address: &str, now: Instant) -> Result<(), Duration> {
-        let wait = Self::keys(user, address)
+    /// Begin `attempt` from `address` at `now`: `Err(wait)` while it has to wait; otherwise it
+    /// counts as a failure until [`SignIns::succeeded`] says otherwise.
+    pub fn begin(&mut self, attempt: Attempt, address: &str, now: Instant) -> Result<(), Duration> {
+        let keys = Self::keys(attempt, address);
+        let wait = keys
             .iter()
-            .filter_map(|k| self.failures.get(k))
+            .filter_map(|(k, _)| self.failures.get(k))
+            .filter(|f| now.saturating_duration_since(f.last) < FORGET_AFTER)
             .map(|f| f.next_at().saturating_duration_since(now))
             .max()
             .unwrap_or_default();
-        if wait.is_zero() {
-            Ok(())
-        } else {
-            Err(wait)
+        if !wait.is_zero() {
+            return Err(wait);
         }
-    }
-
-    /// `user` failed from `address` at `now`.
-    pub fn failed(&mut self, user: &str, address: &str, now: Instant) {
         if self.failures.len() >= LIMIT {
             self.failures
                 .retain(|_, f| now.saturating_duration_since(f.last) < FORGET_AFTER);
@@ -230,9 +261,10 @@ impl SignIns {
                 self.failures.clear();
             }
         }
-        for key in Self::keys(user, address) {
+        for (key, free) in keys {
             let entry = self.failures.entry(key).or_insert(Failures {
                 count: 0,
+                free,
                 last: now,
             });
             if now.saturating_duration_since(entry.last) >= FORGET_AFTER {
@@ -241,12 +273,23 @@ impl SignIns {
             entry.count += 1;
             entry.last = now;
         }
+        Ok(())
     }
 
-    /// `user` signed in from `address`: both start over.
-    pub fn succeeded(&mut self, user: &str, address: &str) {
-        for key in Self::keys(user, address) {
+    /// `attempt` from `address` succeeded: its failures start over.
+    pub fn succeeded(&mut self, attempt: Attempt, address: &str) {
+        for (key, _) in Self::keys(attempt, address) {
             self.failures.remove(&key);
+        }
+    }
+
+    /// `attempt` from `address` could not be decided (the database, or too many checks at
+    /// once): it does not count as a failure.
+    pub fn undecided(&mut self, attempt: Attempt, address: &str) {
+        for (key, _) in Self::keys(attempt, address) {
+            if let Some(f) = self.failures.get_mut(&key) {
+                f.count = f.count.saturating_sub(1);
+            }
         }
     }
 }
@@ -352,37 +395,66 @@ mod tests {
     fn failed_sign_ins_make_the_next_wait_longer() {
         let t0 = Instant::now();
         let mut s = SignIns::default();
+        let ann = Attempt::User("ann");
         for _ in 0..FREE_FAILURES {
-            assert_eq!(s.check("ann", "10.0.0.1", t0), Ok(()));
-            s.failed("ann", "10.0.0.1", t0);
+            assert_eq!(s.begin(ann, "10.0.0.1:1", t0), Ok(()));
         }
-        assert_eq!(s.check("ann", "10.0.0.1", t0), Ok(()));
-        s.failed("ann", "10.0.0.1", t0);
-        // The sixth failure: 1 s for the name from anywhere, and for anyone from the address.
-        assert_eq!(s.check("ann", "10.0.0.2", t0), Err(Duration::from_secs(1)));
-        assert_eq!(s.check("bob", "10.0.0.1", t0), Err(Duration::from_secs(1)));
-        assert_eq!(s.check("bob", "10.0.0.2", t0), Ok(()));
+        // The sixth failure of the name from the address: 1 s for it there, no one else.
+        assert_eq!(s.begin(ann, "10.0.0.1:1", t0), Ok(()));
+        assert_eq!(s.begin(ann, "10.0.0.1:2", t0), Err(Duration::from_secs(1)));
+        assert_eq!(s.begin(ann, "10.0.0.2:1", t0), Ok(()), "from elsewhere");
+        assert_eq!(s.begin(Attempt::User("bob"), "10.0.0.1:3", t0), Ok(()));
+        assert_eq!(s.begin(Attempt::Key, "10.0.0.1:3", t0), Ok(()));
         let t1 = t0 + Duration::from_secs(1);
-        assert_eq!(s.check("ann", "10.0.0.1", t1), Ok(()));
-        s.failed("ann", "10.0.0.1", t1);
-        assert_eq!(s.check("ann", "10.0.0.1", t1), Err(Duration::from_secs(2)));
+        assert_eq!(s.begin(ann, "10.0.0.1:1", t1), Ok(()));
+        assert_eq!(s.begin(ann, "10.0.0.1:1", t1), Err(Duration::from_secs(2)));
         // Many more: at most 15 minutes.
-        for _ in 0..40 {
-            s.failed("ann", "10.0.0.1", t1);
+        for n in 0..40 {
+            s.begin(ann, "10.0.0.1:1", t1 + MAX_WAIT * n).ok();
         }
-        assert_eq!(s.check("ann", "10.0.0.1", t1), Err(MAX_WAIT));
-        // A success clears both; an hour without failures forgets them.
-        s.succeeded("ann", "10.0.0.1");
-        assert_eq!(s.check("ann", "10.0.0.1", t1), Ok(()));
-        for _ in 0..=FREE_FAILURES {
-            s.failed("bob", "10.0.0.3", t1);
-        }
-        let later = t1 + FORGET_AFTER;
-        s.failed("bob", "10.0.0.3", later);
+        // A second after the last: most of the longest wait ahead.
+        let t2 = t1 + MAX_WAIT * 39 + Duration::from_secs(1);
         assert_eq!(
-            s.check("bob", "10.0.0.3", later),
+            s.begin(ann, "10.0.0.1:1", t2),
+            Err(MAX_WAIT - Duration::from_secs(1))
+        );
+        // A success clears them; an hour without failures forgets them.
+        s.succeeded(ann, "10.0.0.1:1");
+        assert_eq!(s.begin(ann, "10.0.0.1:1", t2), Ok(()));
+        s.succeeded(ann, "10.0.0.1:1");
+        for _ in 0..=FREE_FAILURES {
+            s.begin(Attempt::User("cy"), "10.0.0.3:1", t2).ok();
+        }
+        let later = t2 + FORGET_AFTER;
+        assert_eq!(
+            s.begin(Attempt::User("cy"), "10.0.0.3:1", later),
             Ok(()),
             "counted from one again"
         );
+    }
+
+    /// Wrong API keys from one address never hold up a right key from another, and many
+    /// attempts at once from one address count as many (check and count are one step).
+    #[test]
+    fn an_address_holds_up_itself_alone_and_attempts_at_once_all_count() {
+        let t0 = Instant::now();
+        let mut s = SignIns::default();
+        let tried = (0..600)
+            .filter(|_| s.begin(Attempt::Key, "127.0.0.20:9", t0).is_ok())
+            .count();
+        assert_eq!(tried, FREE_ADDRESS_FAILURES as usize + 1);
+        assert_eq!(s.begin(Attempt::Key, "127.0.0.21:9", t0), Ok(()));
+        assert_eq!(s.begin(Attempt::User("ann"), "127.0.0.21:9", t0), Ok(()));
+        // An IPv6 /64 is one address.
+        for _ in 0..=FREE_ADDRESS_FAILURES {
+            s.begin(Attempt::Key, "[2001:db8::1]:1", t0).ok();
+        }
+        assert!(s.begin(Attempt::Key, "[2001:db8::ffff]:1", t0).is_err());
+        // An attempt the portal could not decide does not count.
+        let mut u = SignIns::default();
+        for _ in 0..100 {
+            assert_eq!(u.begin(Attempt::Key, "10.1.1.1:1", t0), Ok(()));
+            u.undecided(Attempt::Key, "10.1.1.1:1");
+        }
     }
 }

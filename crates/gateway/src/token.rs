@@ -39,7 +39,7 @@ impl TokenStore {
 
     /// Store `token` atomically.
     pub fn store(&self, token: &str) -> std::io::Result<()> {
-        canopen::storage::write_atomically(&self.path, &format!("{token}\n"))
+        canopen::storage::write_private_atomically(&self.path, &format!("{token}\n"))
     }
 }
 
@@ -59,6 +59,13 @@ mod tests {
         // No temporary file is left behind.
         let files: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
         assert_eq!(files.len(), 1);
+        // The token is a secret: its owner's alone.
+        use std::os::unix::fs::PermissionsExt;
+        let mode = std::fs::metadata(store.path())
+            .unwrap()
+            .permissions()
+            .mode();
+        assert_eq!(mode & 0o777, 0o600);
     }
 
     #[test]
@@ -69,8 +76,16 @@ mod tests {
         // What a kill during `store` leaves: a half-written temporary file beside the token.
         std::fs::write(dir.path().join(".cloudtoken.tmp"), "new-to").unwrap();
         assert_eq!(store.load().as_deref(), Some("old-token"));
-        // The next store replaces the leftover and the token.
+        // The next store replaces the leftover (of another mode) and the token.
+        use std::os::unix::fs::PermissionsExt;
+        let leftover = dir.path().join(".cloudtoken.tmp");
+        std::fs::set_permissions(&leftover, std::fs::Permissions::from_mode(0o644)).unwrap();
         store.store("new-token").unwrap();
+        let mode = std::fs::metadata(store.path())
+            .unwrap()
+            .permissions()
+            .mode();
+        assert_eq!(mode & 0o777, 0o600, "not the leftover's mode");
         assert_eq!(store.load().as_deref(), Some("new-token"));
         assert!(!dir.path().join(".cloudtoken.tmp").exists());
     }

@@ -11,6 +11,8 @@ pub const PRODUCTCODE: u32 = 4096;
 pub const LIFTNUM: &str = "40/7289/20399-126";
 /// The domain token of the sample: the account the lift belongs to.
 pub const DOMAIN: &str = "MAS";
+/// The name of the account of [`DOMAIN`] at the test portals.
+pub const ACCOUNT: &str = "masora";
 /// The lift's id at the portal: `VENDORID-PRODUCTCODE-SERNUM`.
 pub const LIFT: &str = "1050-4096-180917010200000102";
 /// The service password the test gateways accept.
@@ -23,3 +25,5 @@ pub const SETUP_PASSWORD: &str = "setup";
 pub const SETUP_SHA1: &str = "80437a44a661d141174209119d54125a59a64b2a";
 /// How long a test waits for something that should happen at once.
 pub const WAIT: std::time::Duration = std::time::Duration::from_secs(10);
+/// The `[server] metrics_token` of the test portals (`/metrics` on their public port).
+pub const METRICS_TOKEN: &str = "metrics-of-the-test-portal";

@@ -78,6 +78,7 @@ impl Builder {
         config.database.url = self.database;
         config.server.listen = "127.0.0.1:0".parse().expect("an address");
         config.state.dir = dir.path().join("portal");
+        config.server.metrics_token = Some(METRICS_TOKEN.into());
         (self.portal)(&mut config);
         let portal = Portal::bind(&config, lift417::catalog::Catalog::builtin().names())
             .await
@@ -88,7 +89,7 @@ impl Builder {
             .await
             .expect("the store opens");
         let key = store
-            .add_account("masora", DOMAIN)
+            .add_account(ACCOUNT, DOMAIN)
             .await
             .expect("an account");
         let other_key = store
@@ -176,6 +177,19 @@ impl Rig {
     /// identity `sernum`, admitted by the portal: a bare TLS WebSocket that says CONNECT and
     /// then only what the test sends (it answers none of the portal's requests).
     pub async fn hand_made_gateway(&self, sernum: &str, domain: &str) -> GatewaySocket {
+        match self.try_hand_made_gateway(sernum, domain).await {
+            Ok(ws) => ws,
+            Err(answer) => panic!("not admitted: {answer}"),
+        }
+    }
+
+    /// [`Rig::hand_made_gateway`], or what the portal answered instead of CONNACK (a closed
+    /// socket: `closed`).
+    pub async fn try_hand_made_gateway(
+        &self,
+        sernum: &str,
+        domain: &str,
+    ) -> Result<GatewaySocket, String> {
         use futures_util::{SinkExt, StreamExt};
         use tokio_tungstenite::tungstenite::client::IntoClientRequest;
         use tokio_tungstenite::tungstenite::Message;
@@ -197,13 +211,27 @@ impl Rig {
         let (mut ws, _) = tokio_tungstenite::client_async(request, tls)
             .await
             .expect("the upgrade");
-        let connect = format!(
-            r#"{{"jsonrpc":"2.0","method":"CONNECT","id":1,"params":{{"identity":{{"sernum":"{sernum}","vendorid":1050,"productcode":4096,"liftnum":"x","hardware":"x","software":"1","api":1,"boardhash":"00"}},"domaintoken":"{domain}"}}}}"#
-        );
-        ws.send(Message::Text(connect.into())).await.expect("sent");
-        let answer = ws.next().await.expect("CONNACK").expect("a message");
-        assert!(answer.to_string().contains("CONNACK"), "{answer}");
-        ws
+        let connect = serde_json::json!({
+            "jsonrpc": "2.0",
+            "method": "CONNECT",
+            "id": 1,
+            "params": {
+                "identity": {
+                    "sernum": sernum, "vendorid": 1050, "productcode": 4096, "liftnum": "x",
+                    "hardware": "x", "software": "1", "api": 1, "boardhash": "00"
+                },
+                "domaintoken": domain
+            }
+        });
+        ws.send(Message::Text(connect.to_string().into()))
+            .await
+            .expect("sent");
+        match ws.next().await {
+            Some(Ok(Message::Text(answer))) if answer.contains("CONNACK") => Ok(ws),
+            Some(Ok(other)) => Err(other.to_string()),
+            Some(Err(e)) => Err(e.to_string()),
+            None => Err("closed".into()),
+        }
     }
 
     /// `wss://localhost:PORT/ws`, where gateways connect.
@@ -234,7 +262,7 @@ impl Rig {
 
     /// One counter or gauge of the portal's `/metrics`.
     pub async fn metric(&self, name: &str) -> f64 {
-        let client = cloud::client::Client::new(&self.url(), None, Some(&self.ca))
+        let client = cloud::client::Client::new(&self.url(), Some(METRICS_TOKEN), Some(&self.ca))
             .expect("a client of the portal");
         match client.metric(name).await {
             Ok(Some(value)) => value,

@@ -85,6 +85,7 @@ pub(crate) struct PortalProcess {
     pub(crate) daemon: Daemon,
     pub(crate) port: u16,
     pub(crate) ca: PathBuf,
+    /// A client with the `/metrics` token.
     pub(crate) client: cloud::client::Client,
 }
 
@@ -99,6 +100,8 @@ pub(crate) fn bench_config(dir: &Path, database: &str) -> anyhow::Result<cloud::
     config.database.url = Some(database.to_owned());
     config.dashboard.inhibit_ms = 0;
     config.server.requests_per_key_s = 0;
+    // The benchmark reads /metrics on the portal's port.
+    config.server.metrics_token = Some(cloud_store::secret("metrics-"));
     Ok(config)
 }
 
@@ -126,8 +129,10 @@ impl PortalProcess {
         if !ca.exists() {
             bail!("the portal listens but {} is missing", ca.display());
         }
+        // What it asks is /metrics, with its token.
+        let token = config.server.metrics_token.as_deref();
         let client =
-            cloud::client::Client::new(&format!("https://localhost:{port}"), None, Some(&ca))?;
+            cloud::client::Client::new(&format!("https://localhost:{port}"), token, Some(&ca))?;
         Ok(PortalProcess {
             daemon,
             port,

@@ -39,6 +39,11 @@ enum CloudCommand {
         #[command(subcommand)]
         what: TokenCommand,
     },
+    /// Lifts of the registry.
+    Lift {
+        #[command(subcommand)]
+        what: LiftCommand,
+    },
     /// People of an account, with their roles (viewer, technician, engineer, admin).
     User {
         #[command(subcommand)]
@@ -82,7 +87,7 @@ enum CloudCommand {
 enum UserCommand {
     /// Add a user; prints its sign-in secret once.
     Add {
-        /// User name (unique on the portal).
+        /// User name (unique within the account).
         name: String,
         #[arg(long)]
         account: String,
@@ -175,11 +180,30 @@ fn parse_lifetime(text: &str) -> Result<std::time::Duration, String> {
 enum TokenCommand {
     /// Forget a lift's token: its gateway's next CONNECT is a first contact and gets a new one
     /// (for a replaced or wiped gateway, refused otherwise for the token it no longer has).
-    Reset {
-        /// Lift id `VENDORID-PRODUCTCODE-SERNUM`.
-        lift: String,
-    },
+    Reset(LiftName),
 }
+
+#[derive(Debug, clap::Subcommand)]
+enum LiftCommand {
+    /// Retire a lift: its registry entry and everything stored of it (telemetry, events,
+    /// alarms, subscriptions) are removed, audited; its gateway's next CONNECT is a first
+    /// contact.
+    Remove(LiftName),
+}
+
+/// A lift as an administrator names it.
+#[derive(Debug, clap::Args)]
+struct LiftName {
+    /// Lift id `VENDORID-PRODUCTCODE-SERNUM`.
+    lift: String,
+    /// The lift's account (needed when lifts of several accounts have the id).
+    #[arg(long)]
+    account: Option<String>,
+}
+
+/// Domain tokens shorter than this need `--allow-short-domain-token` (docs/SECURITY.md
+/// §Domain tokens).
+use cloud::server::SHORT_DOMAIN_TOKEN;
 
 #[derive(Debug, clap::Subcommand)]
 enum AccountCommand {
@@ -187,10 +211,16 @@ enum AccountCommand {
     Add {
         /// Account name.
         name: String,
-        /// The domain token its gateways send in CONNECT.
+        /// The domain token its gateways send in CONNECT; default: a new random one (128 bits),
+        /// printed.
         #[arg(long)]
-        domain: String,
-        /// Print `{"account": …, "api_key": …}`.
+        domain: Option<String>,
+        /// Accept a domain token shorter than 16 characters (the protocol's examples use
+        /// three): anyone who guesses it can add lifts to the account. Warned about at every
+        /// start of the portal.
+        #[arg(long)]
+        allow_short_domain_token: bool,
+        /// Print `{"account": …, "domain": …, "api_key": …}`.
         #[arg(long)]
         json: bool,
     },
@@ -207,31 +237,62 @@ pub async fn run(args: CloudArgs) -> anyhow::Result<()> {
     }
     match args.what {
         Some(CloudCommand::Account {
-            what: AccountCommand::Add { name, domain, json },
+            what:
+                AccountCommand::Add {
+                    name,
+                    domain,
+                    allow_short_domain_token,
+                    json,
+                },
         }) => {
+            let domain = domain.unwrap_or_else(|| cloud_store::secret("").to_uppercase());
+            anyhow::ensure!(
+                domain.chars().count() >= SHORT_DOMAIN_TOKEN || allow_short_domain_token,
+                "a domain token of {} characters is a guess away from admitting lifts into the \
+                 account: give one of at least {SHORT_DOMAIN_TOKEN}, leave --domain out for a random \
+                 one, or add --allow-short-domain-token",
+                domain.chars().count()
+            );
             let store = store(&config).await?;
             let key = store.add_account(&name, &domain).await.with_context(|| {
                 format!("adding account {name:?} (names and domains are unique)")
             })?;
             if json {
-                println!("{}", serde_json::json!({"account": name, "api_key": key}));
+                println!(
+                    "{}",
+                    serde_json::json!({"account": name, "domain": domain, "api_key": key})
+                );
             } else {
                 println!("account {name} for domain {domain}\nAPI key (shown only now): {key}");
             }
             Ok(())
         }
         Some(CloudCommand::Token {
-            what: TokenCommand::Reset { lift },
+            what: TokenCommand::Reset(named),
         }) => {
             let store = store(&config).await?;
-            let domain = store
-                .domain_of(&lift)
-                .await?
-                .with_context(|| format!("no lift {lift:?} in the registry"))?;
+            let (account, key) = lift_named(&store, &named).await?;
             store
-                .reset_token(&domain, &lift, cloud_types::audit::BY_ADMINISTRATOR)
+                .reset_token(&account.domain, &key, cloud_types::audit::BY_ADMINISTRATOR)
                 .await?;
-            println!("{lift}: token forgotten; the gateway's next connection is a first contact");
+            println!(
+                "{} of {}: token forgotten; the gateway's next connection is a first contact",
+                named.lift, account.name
+            );
+            Ok(())
+        }
+        Some(CloudCommand::Lift {
+            what: LiftCommand::Remove(named),
+        }) => {
+            let store = store(&config).await?;
+            let (account, key) = lift_named(&store, &named).await?;
+            store
+                .retire(&account, &key, cloud_types::audit::BY_ADMINISTRATOR)
+                .await?;
+            println!(
+                "{} of {}: retired with its data; its gateway's next connection is a first contact",
+                named.lift, account.name
+            );
             Ok(())
         }
         Some(CloudCommand::NatsNkey { file }) => nats_nkey(&file),
@@ -250,6 +311,37 @@ pub async fn run(args: CloudArgs) -> anyhow::Result<()> {
             let _ = stop.send(true);
             let _ = task.await;
             Ok(())
+        }
+    }
+}
+
+/// The account and registry key of the lift an administrator named.
+async fn lift_named(
+    store: &cloud_store::Store,
+    named: &LiftName,
+) -> anyhow::Result<(cloud_types::users::Account, String)> {
+    let mut owners = store.owners_of(&named.lift).await?;
+    if let Some(account) = &named.account {
+        owners.retain(|(a, _)| &a.name == account);
+    }
+    match owners.len() {
+        0 => anyhow::bail!(
+            "no lift {:?}{} in the registry",
+            named.lift,
+            named
+                .account
+                .as_ref()
+                .map(|a| format!(" of account {a}"))
+                .unwrap_or_default()
+        ),
+        1 => Ok(owners.remove(0)),
+        _ => {
+            let names: Vec<&str> = owners.iter().map(|(a, _)| a.name.as_str()).collect();
+            anyhow::bail!(
+                "lifts of several accounts have the id {:?} ({}): add --account",
+                named.lift,
+                names.join(", ")
+            )
         }
     }
 }

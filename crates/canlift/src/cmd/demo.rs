@@ -60,7 +60,8 @@ pub struct DemoArgs {
     passengers: f64,
 }
 
-const DOMAIN: &str = "DEMO";
+/// The demo's account.
+const ACCOUNT: &str = "demo";
 const SERNUM: &str = "DEMO-0001";
 /// The simulated controller's further SDO channels (1201h, 1202h), the gateway's to use.
 const DEMO_SDO_CHANNELS: [SdoChannel; 2] = [
@@ -82,19 +83,25 @@ fn default_state() -> PathBuf {
     data.join("canlift/demo")
 }
 
-/// The account's API key: created on the first run and kept in the state directory (a demo
-/// convenience; a real portal shows it once and keeps only its digest).
-async fn api_key(store: &Store, dir: &Path) -> anyhow::Result<String> {
+/// The account's API key and domain token: created on the first run (the domain token a
+/// random one, as `canlift cloud account add` makes it) and kept in the state directory,
+/// readable by its owner alone (a demo convenience; a real portal shows the key once and
+/// keeps only its digest).
+async fn account(store: &Store, dir: &Path) -> anyhow::Result<(String, String)> {
     let path = dir.join("api-key");
-    if let Ok(key) = std::fs::read_to_string(&path) {
-        return Ok(key.trim().to_owned());
+    if let (Ok(key), Some(account)) = (
+        std::fs::read_to_string(&path),
+        store.account(ACCOUNT).await?,
+    ) {
+        return Ok((key.trim().to_owned(), account.domain));
     }
+    let domain = cloud_store::secret("").to_uppercase();
     let key = store
-        .add_account("demo", DOMAIN)
+        .add_account(ACCOUNT, &domain)
         .await
         .context("creating the demo account")?;
-    canopen::storage::write_atomically(&path, &format!("{key}\n"))?;
-    Ok(key)
+    canopen::storage::write_private_atomically(&path, &format!("{key}\n"))?;
+    Ok((key, domain))
 }
 
 /// The lift's service and setup passwords: made on the first run and kept in the state
@@ -108,7 +115,7 @@ fn lift_passwords(dir: &Path) -> anyhow::Result<(String, String)> {
     }
     let (service, setup) = (cloud_store::secret("svc-"), cloud_store::secret("set-"));
     let (service, setup) = (service[..12].to_owned(), setup[..12].to_owned());
-    canopen::storage::write_atomically(&path, &format!("{service}\n{setup}\n"))?;
+    canopen::storage::write_private_atomically(&path, &format!("{service}\n{setup}\n"))?;
     Ok((service, setup))
 }
 
@@ -140,7 +147,7 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
         .with_context(|| format!("starting the portal on {}", args.portal_listen))?;
     let portal_addr = portal.local_addr();
     let store = Store::open(&portal_config.database_url()).await?;
-    let key = api_key(&store, &dir).await?;
+    let (key, domain) = account(&store, &dir).await?;
     let (stop, stopped) = tokio::sync::watch::channel(false);
     let portal_task = tokio::spawn(portal.run(stopped.clone()));
     // The lift.
@@ -162,7 +169,7 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
         productcode: 4096,
         liftnum: "demo lift".into(),
         hardware: "canlift demo".into(),
-        domaintoken: DOMAIN.into(),
+        domaintoken: domain.clone(),
         ..Default::default()
     };
     let portal_ws = format!("wss://localhost:{}/ws", portal_addr.port());

@@ -146,9 +146,53 @@ async fn the_demo_runs_a_lift_end_to_end() {
         tokio::time::sleep(Duration::from_millis(200)).await;
     };
     stop(demo).await;
+    // Every secret the demo wrote is its owner's alone, from the start.
+    let secrets = secret_files(state);
+    let names: Vec<String> = secrets
+        .iter()
+        .filter_map(|p| p.file_name()?.to_str().map(str::to_owned))
+        .collect();
+    for expected in ["api-key", "lift-passwords", "cloudtoken", "dev-server.key"] {
+        assert!(
+            names.iter().any(|n| n == expected),
+            "{expected} in {names:?}"
+        );
+    }
+    for path in &secrets {
+        use std::os::unix::fs::PermissionsExt;
+        let mode = std::fs::metadata(path).unwrap().permissions().mode() & 0o777;
+        assert_eq!(mode, 0o600, "{}", path.display());
+    }
     // Later runs reuse the state: same account, same token, the counters keep counting.
     let demo = start(state).await;
     online(&demo.client).await;
     assert!(trips(&demo.client).await >= after);
     stop(demo).await;
+}
+
+/// The files under `dir` that hold secrets: keys, tokens, passwords.
+fn secret_files(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
+    let mut found = Vec::new();
+    let mut dirs = vec![dir.to_path_buf()];
+    while let Some(d) = dirs.pop() {
+        for entry in std::fs::read_dir(&d).into_iter().flatten().flatten() {
+            let path = entry.path();
+            if path.is_dir() {
+                dirs.push(path);
+                continue;
+            }
+            let name = path
+                .file_name()
+                .and_then(|n| n.to_str())
+                .unwrap_or_default();
+            let secret = matches!(
+                name,
+                "api-key" | "lift-passwords" | "cloudtoken" | "tls-ticket-keys"
+            ) || name.ends_with(".key");
+            if secret {
+                found.push(path);
+            }
+        }
+    }
+    found
 }

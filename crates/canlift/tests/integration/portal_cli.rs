@@ -275,7 +275,7 @@ async fn users_and_keys_on_the_command_line() {
     );
     assert!(added["secret"].as_str().unwrap().starts_with("cls_"));
     let (ok, _, err) = admin("user add tess --account masora --role viewer");
-    assert!(!ok && err.contains("taken"), "{err}");
+    assert!(!ok && err.contains("has a user"), "{err}");
     let (ok, _, err) = admin("user add x --account masora --role boss");
     assert!(!ok && err.contains("no role"), "{err}");
 

@@ -19,7 +19,7 @@ use crate::config::WebhookSection;
 use crate::gateways::reports::Report;
 use crate::gateways::Registry;
 use cloud_store::{EventRow, Store, StoreError};
-use cloud_types::alarms::{Alarm, AlarmChange, Change, Kind};
+use cloud_types::alarms::{Alarm, AlarmChange, Change, Kind, WebhookBody};
 use cloud_types::live::LiftEvent;
 
 /// Counts for `/metrics`.
@@ -120,10 +120,33 @@ impl Alarms {
         let lift = alarm.lift.clone();
         let severity = alarm.severity;
         let change = AlarmChange { change, alarm };
-        let body = serde_json::to_string(&change).unwrap_or_default();
-        self.registry.publish(&lift, LiftEvent::Alarm(change));
+        self.registry
+            .publish(&lift, LiftEvent::Alarm(change.clone()));
+        let hooks: Vec<(usize, &WebhookSection)> = self
+            .webhooks
+            .iter()
+            .enumerate()
+            .filter(|(_, h)| severity >= h.min_severity)
+            .collect();
+        if hooks.is_empty() {
+            return;
+        }
+        let account = match self.store.account_of(&lift).await {
+            Ok(account) => account.unwrap_or_default(),
+            Err(e) => {
+                tracing::error!(error = %e, %lift, "webhook notifications not queued");
+                return;
+            }
+        };
+        let mut shown = change;
+        shown.alarm.lift = cloud_types::lifts::shown_id(&lift).to_owned();
+        let body = WebhookBody {
+            change: shown,
+            account,
+        };
+        let body = serde_json::to_string(&body).unwrap_or_default();
         let mut queued = false;
-        for hook in self.webhooks.iter().filter(|h| severity >= h.min_severity) {
+        for (n, hook) in hooks {
             match self
                 .store
                 .enqueue_webhook(&hook.url, &lift, &body, cloud_types::now_ms())
@@ -131,7 +154,11 @@ impl Alarms {
             {
                 Ok(()) => queued = true,
                 Err(e) => {
-                    tracing::error!(error = %e, url = %hook.url, "webhook notification not queued")
+                    let receiver = hook
+                        .name
+                        .clone()
+                        .unwrap_or_else(|| format!("webhook {}", n + 1));
+                    tracing::error!(error = %e, %receiver, "webhook notification not queued")
                 }
             }
         }

@@ -1,9 +1,12 @@
 //! Webhooks (docs/PORTAL.md §Webhooks): every alarm change at or above a receiver's
 //! `min_severity` is queued in the database (so a portal restart loses nothing undelivered) and
-//! POSTed as JSON with `X-Canlift-Signature: sha256=<hex HMAC-SHA256 of the body>` — the scheme
-//! receivers know from code-hosting webhooks. A failed attempt (no connection, no 2xx answer in
-//! time) is tried again after 1 s, 2 s, 4 s … at most 10 min apart, and given up three days
-//! after the change. Every attempt is counted in `/metrics` and written to the audit log.
+//! POSTed as JSON, signed as the Standard Webhooks specification says (`webhook-id`,
+//! `webhook-timestamp`, `webhook-signature: v1,<base64 HMAC-SHA256 of id.timestamp.body>`): a
+//! receiver that refuses deliveries older than a few minutes cannot be fed a recorded one
+//! again. A failed attempt (no connection, no 2xx answer in time) is tried again after 1 s,
+//! 2 s, 4 s … at most 10 min apart, and given up three days after the change. Every attempt is
+//! counted in `/metrics` and written to the audit log under the receiver's name — never its
+//! URL, whose credentials and internal host names are no business of the account's viewers.
 //!
 //! `https://` receivers are checked against the system's roots or the receiver's `ca_file`;
 //! `http://` is allowed only to receivers on this host or its network (loopback, private and
@@ -31,56 +34,101 @@ const LONGEST_WAIT: Duration = Duration::from_secs(600);
 /// After this long a notification is given up.
 const GIVE_UP: Duration = Duration::from_secs(3 * 24 * 3600);
 
-/// The signature header's value for `body` under `secret`.
-pub fn signature(secret: &str, body: &[u8]) -> String {
-    let key = ring::hmac::Key::new(ring::hmac::HMAC_SHA256, secret.as_bytes());
-    format!("sha256={}", hex::encode(ring::hmac::sign(&key, body)))
+/// The signing key of `secret` (Standard Webhooks): a `whsec_` secret is base64 of the key's
+/// bytes; any other text is the key's bytes itself.
+fn signing_key(secret: &str) -> Vec<u8> {
+    use base64::Engine;
+    secret
+        .strip_prefix("whsec_")
+        .and_then(|b| base64::engine::general_purpose::STANDARD.decode(b).ok())
+        .unwrap_or_else(|| secret.as_bytes().to_vec())
+}
+
+/// The `webhook-signature` of message `id` sent at `timestamp` (s since the epoch) with
+/// `body`, under `secret`: `v1,` and the base64 HMAC-SHA256 of `id.timestamp.body`.
+pub fn signature(secret: &str, id: &str, timestamp: u64, body: &[u8]) -> String {
+    use base64::Engine;
+    let key = ring::hmac::Key::new(ring::hmac::HMAC_SHA256, &signing_key(secret));
+    let mut context = ring::hmac::Context::with_key(&key);
+    context.update(format!("{id}.{timestamp}.").as_bytes());
+    context.update(body);
+    let tag = context.sign();
+    format!(
+        "v1,{}",
+        base64::engine::general_purpose::STANDARD.encode(tag.as_ref())
+    )
 }
 
 /// A receiver ready to be posted to.
 pub struct Receiver {
     section: WebhookSection,
+    /// What the audit log and the logs call it.
+    name: String,
     tls: tokio_rustls::TlsConnector,
 }
 
 impl Receiver {
-    /// Prepare `section`: its URL must be `http(s)://HOST[:PORT]/PATH`, its CA file readable.
-    pub fn new(section: &WebhookSection) -> Result<Receiver, String> {
-        Target::parse(&section.url)?;
+    /// Prepare `section`, the `n`th receiver (from 1): its URL must be
+    /// `http(s)://[USER:PASSWORD@]HOST[:PORT]/PATH`, its CA file readable.
+    pub fn new(section: &WebhookSection, n: usize) -> Result<Receiver, String> {
+        let name = section
+            .name
+            .clone()
+            .unwrap_or_else(|| format!("webhook {n}"));
+        Target::parse(&section.url).map_err(|e| format!("alarms.webhooks {name}: {e}"))?;
         let tls = tls::client_config(section.ca_file.as_deref(), None)
-            .map_err(|e| format!("alarms.webhooks {}: {e}", section.url))?;
+            .map_err(|e| format!("alarms.webhooks {name}: {e}"))?;
         let mut tls = Arc::unwrap_or_clone(tls);
         tls.alpn_protocols = vec![b"http/1.1".to_vec()];
         Ok(Receiver {
             section: section.clone(),
+            name,
             tls: tokio_rustls::TlsConnector::from(Arc::new(tls)),
         })
     }
 }
 
-/// Where a URL points.
+/// Where a URL points, and the credentials it gives.
 struct Target {
     https: bool,
     host: String,
     port: u16,
     path: String,
+    /// `Authorization: Basic …` of the URL's `USER:PASSWORD@`.
+    basic: Option<String>,
 }
 
 impl Target {
+    /// The errors never repeat the URL: it may hold credentials.
     fn parse(url: &str) -> Result<Target, String> {
-        let uri: hyper::Uri = url
-            .parse()
-            .map_err(|e| format!("webhook URL {url:?}: {e}"))?;
+        use base64::Engine;
+        let uri: hyper::Uri = url.parse().map_err(|e| format!("not a URL: {e}"))?;
         let https = match uri.scheme_str() {
             Some("https") => true,
             Some("http") => false,
-            _ => return Err(format!("webhook URL {url:?}: http:// or https://")),
+            _ => return Err("http:// or https://".into()),
         };
         let host = uri
             .host()
-            .ok_or_else(|| format!("webhook URL {url:?}: no host"))?
+            .ok_or("no host")?
             .trim_matches(['[', ']'])
             .to_owned();
+        let basic = uri
+            .authority()
+            .and_then(|a| a.as_str().rsplit_once('@'))
+            .map(|(userinfo, _)| {
+                let (user, password) = userinfo.split_once(':').unwrap_or((userinfo, ""));
+                let decode = |t: &str| {
+                    percent_encoding::percent_decode_str(t)
+                        .decode_utf8_lossy()
+                        .into_owned()
+                };
+                let pair = format!("{}:{}", decode(user), decode(password));
+                format!(
+                    "Basic {}",
+                    base64::engine::general_purpose::STANDARD.encode(pair)
+                )
+            });
         Ok(Target {
             https,
             port: uri.port_u16().unwrap_or(if https { 443 } else { 80 }),
@@ -88,6 +136,7 @@ impl Target {
                 .path_and_query()
                 .map_or_else(|| "/".to_owned(), |p| p.as_str().to_owned()),
             host,
+            basic,
         })
     }
 }
@@ -104,32 +153,42 @@ fn nearby(ip: IpAddr) -> bool {
     }
 }
 
-/// POST `body` to the receiver; the HTTP status, or why there is none.
+/// POST `body`, the notification `id`, to the receiver; the HTTP status, or why there is
+/// none — in words that name neither the receiver's address nor its URL.
 async fn post(receiver: &Receiver, id: i64, body: &str) -> Result<u16, String> {
     let target = Target::parse(&receiver.section.url)?;
     let addresses: Vec<_> = tokio::net::lookup_host((target.host.as_str(), target.port))
         .await
-        .map_err(|e| format!("{}: {e}", target.host))?
+        .map_err(|e| format!("its host name did not resolve: {e}"))?
         .collect();
     if !target.https && !addresses.iter().all(|a| nearby(a.ip())) {
-        return Err(format!(
-            "{}: http:// only to a receiver on this host or its network; use https://",
-            target.host
-        ));
+        return Err("http:// only to a receiver on this host or its network; use https://".into());
     }
     let tcp = TcpStream::connect(&addresses[..])
         .await
-        .map_err(|e| format!("{}:{}: {e}", target.host, target.port))?;
+        .map_err(|e| format!("no connection: {}", e.kind()))?;
     let _ = tcp.set_nodelay(true);
-    let request = hyper::Request::post(&target.path)
+    let message = format!("msg_{id}");
+    let timestamp = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
+    let signature = signature(
+        &receiver.section.secret,
+        &message,
+        timestamp,
+        body.as_bytes(),
+    );
+    let mut request = hyper::Request::post(&target.path)
         .header("host", &target.host)
         .header("content-type", "application/json")
         .header("user-agent", concat!("canlift/", env!("CARGO_PKG_VERSION")))
-        .header(
-            "x-canlift-signature",
-            signature(&receiver.section.secret, body.as_bytes()),
-        )
-        .header("x-canlift-delivery", id.to_string())
+        .header("webhook-id", &message)
+        .header("webhook-timestamp", timestamp.to_string())
+        .header("webhook-signature", signature);
+    if let Some(basic) = &target.basic {
+        request = request.header("authorization", basic);
+    }
+    let request = request
         .body(Full::new(Bytes::from(body.to_owned())))
         .map_err(|e| e.to_string())?;
     if target.https {
@@ -139,7 +198,7 @@ async fn post(receiver: &Receiver, id: i64, body: &str) -> Result<u16, String> {
             .tls
             .connect(name, tcp)
             .await
-            .map_err(|e| format!("TLS with {}: {e}", target.host))?;
+            .map_err(|e| format!("TLS: {e}"))?;
         send(tls, request).await
     } else {
         send(tcp, request).await
@@ -192,9 +251,9 @@ async fn attempt(store: &Store, counters: &Counters, receiver: &Receiver, entry:
                 now - entry.created > i64::try_from(GIVE_UP.as_millis()).unwrap_or(i64::MAX);
             if expired {
                 counters.webhooks_given_up.fetch_add(1, Ordering::Relaxed);
-                tracing::error!(url = %receiver.section.url, %error, "webhook notification given up");
+                tracing::error!(receiver = %receiver.name, %error, "webhook notification given up");
             } else {
-                tracing::warn!(url = %receiver.section.url, %error, attempts = entry.attempts + 1, "webhook attempt failed; will retry");
+                tracing::warn!(receiver = %receiver.name, %error, attempts = entry.attempts + 1, "webhook attempt failed; will retry");
             }
             let outcome = Err((error.clone(), (!expired).then_some(next)));
             (outcome, error)
@@ -215,10 +274,11 @@ async fn attempt(store: &Store, counters: &Counters, receiver: &Receiver, entry:
         account: "portal".into(),
         lift: entry.lift.clone(),
         action: "webhook".into(),
-        object: receiver.section.url.clone(),
+        object: receiver.name.clone(),
         old_value: None,
         new_value: change,
         result: audit,
+        address: None,
     };
     if let Err(e) = store.audit(&entry).await {
         tracing::error!(error = %e, "webhook attempt not audited");
@@ -271,11 +331,21 @@ mod tests {
     use super::*;
 
     #[test]
-    fn signatures_are_hmac_sha256_of_the_body() {
-        // RFC 4231 test case 2.
+    fn signatures_are_standard_webhooks() {
+        // The specification's example (standard-webhooks/spec, its test vectors).
         assert_eq!(
-            signature("Jefe", b"what do ya want for nothing?"),
-            "sha256=5bdcc146bf60754e6a042426089575c75a003f089d2739839dec58b964ec3843"
+            signature(
+                "whsec_MfKQ9r8GKYqrTwjUPD8ILPZIo2LaLaSw",
+                "msg_p5jXN8AQM9LWM0D4loKWxJek",
+                1614265330,
+                br#"{"test": 2432232314}"#
+            ),
+            "v1,g0hM9SsE+OTPJTGt/tmIKtSyZlE3uFJELVlNIOLJ1OE="
+        );
+        // Any other text is the key's bytes.
+        assert_ne!(
+            signature("Jefe", "m", 1, b"x"),
+            signature("Jefd", "m", 1, b"x")
         );
     }
 
@@ -286,8 +356,17 @@ mod tests {
             (t.https, t.port, t.path.as_str()),
             (false, 9000, "/hook?x=1")
         );
+        assert_eq!(t.basic, None);
+        let t = Target::parse("https://hooks:p%40ss@alerts.example/hook").unwrap();
+        assert_eq!(
+            (t.host.as_str(), t.path.as_str()),
+            ("alerts.example", "/hook")
+        );
+        // base64 of "hooks:p@ss".
+        assert_eq!(t.basic.as_deref(), Some("Basic aG9va3M6cEBzcw=="));
+        let refused = Target::parse("ftp://secret@x/").err().unwrap();
+        assert!(!refused.contains("secret"), "{refused}");
         assert_eq!(Target::parse("https://example.com").unwrap().port, 443);
-        assert!(Target::parse("ftp://x/").is_err());
         assert!(nearby("10.1.2.3".parse().unwrap()));
         assert!(nearby("fe80::1".parse().unwrap()));
         assert!(!nearby("8.8.8.8".parse().unwrap()));

@@ -26,13 +26,29 @@ pub(super) async fn list(
     ApiQuery(q): ApiQuery<AlarmsQuery>,
 ) -> Result<Json<AlarmList>, ApiError> {
     let operator = allowed(caller, Role::Viewer)?;
+    let lift = match q.lift {
+        Some(id) => match super::key_of(&app, &operator.account, &id).await? {
+            Some(key) => Some(key),
+            // Not a lift of the account: none of its alarms.
+            None => return Ok(Json(AlarmList { alarms: Vec::new() })),
+        },
+        None => None,
+    };
     let filter = AlarmFilter {
         active: q.state.unwrap_or_default() == AlarmState::Active,
-        lift: q.lift,
+        lift,
         limit: q.limit.unwrap_or(500),
     };
     let alarms = app.store.alarms(&operator.account.domain, &filter).await?;
-    Ok(Json(AlarmList { alarms }))
+    Ok(Json(AlarmList {
+        alarms: alarms.into_iter().map(shown).collect(),
+    }))
+}
+
+/// `alarm` as its account sees it: its lift by the id the account knows it by.
+pub(crate) fn shown(mut alarm: Alarm) -> Alarm {
+    alarm.lift = cloud_types::lifts::shown_id(&alarm.lift).to_owned();
+    alarm
 }
 
 /// `POST /api/v1/alarms/{id}/ack`: 404 for an alarm of another account, 409 for one taken on
@@ -58,7 +74,7 @@ pub(super) async fn acknowledge(
         .acknowledge(&operator.account.domain, id, &operator.user, &body.comment)
         .await
     {
-        Ok(alarm) => Ok(Json(alarm)),
+        Ok(alarm) => Ok(Json(shown(alarm))),
         Err(AckError::NotFound) => Err(error(StatusCode::NOT_FOUND, "no such alarm")),
         Err(AckError::Already(alarm)) => Err(error(
             StatusCode::CONFLICT,
@@ -78,7 +94,7 @@ pub(super) async fn event_log(
     Path(id): Path<String>,
     ApiQuery(q): ApiQuery<EventLogQuery>,
 ) -> Result<Json<EventLog>, ApiError> {
-    lift_of(&app, caller, &id, Role::Viewer).await?;
+    let (_, id) = lift_of(&app, caller, &id, Role::Viewer).await?;
     let since = match q.since.as_deref() {
         None => None,
         Some(text) => Some(

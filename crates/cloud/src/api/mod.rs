@@ -10,9 +10,10 @@ mod idempotency;
 mod users;
 
 use std::convert::Infallible;
+use std::net::SocketAddr;
 use std::sync::Arc;
 
-use axum::extract::{Path, State};
+use axum::extract::{ConnectInfo, Path, State};
 use axum::http::{Method, StatusCode};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
@@ -35,31 +36,40 @@ use cloud_types::api::{
     PrivilegeBody, PutBody, SubscriptionBody, HISTORY_POINTS, HISTORY_POINTS_MAX,
 };
 use cloud_types::audit::{AuditEntry, PENDING};
+use cloud_types::lifts::shown_id;
 use cloud_types::subscriptions::{Subscriber, Terms};
-use cloud_types::users::{Operator, Role};
+use cloud_types::users::{Account, Operator, Role};
 
-/// The caller, if its role includes `role` (403 otherwise) and the lift is one of its
-/// account's (404 otherwise).
+/// The caller, if its role includes `role` (403 otherwise), and the registry's key of lift
+/// `id` of its account (404 when the account has no such lift): an id names a lift within the
+/// caller's account only (docs/PORTAL.md §Lifts and accounts).
 pub async fn lift_of(
     app: &AppState,
     caller: Caller,
     id: &str,
     role: Role,
-) -> Result<Operator, ApiError> {
+) -> Result<(Operator, String), ApiError> {
     let operator = allowed(caller, role)?;
-    // A connected lift's domain is known without the database (and without a query per request).
-    if app.registry.serves(&operator.account.domain, id) {
-        return Ok(operator);
+    match key_of(app, &operator.account, id).await? {
+        Some(key) => Ok((operator, key)),
+        None => Err(error(StatusCode::NOT_FOUND, "no such lift")),
     }
-    if app
-        .store
-        .lift(&operator.account.domain, id)
-        .await?
-        .is_none()
-    {
-        return Err(error(StatusCode::NOT_FOUND, "no such lift"));
+}
+
+/// The registry's key of lift `id` of `account`, if it has one.
+pub(crate) async fn key_of(
+    app: &AppState,
+    account: &Account,
+    id: &str,
+) -> Result<Option<String>, ApiError> {
+    // A connected lift's account is known without the database (and without a query per
+    // request).
+    for key in cloud_types::lifts::keys_of(id, &account.name) {
+        if app.registry.serves(&account.domain, &key) {
+            return Ok(Some(key));
+        }
     }
-    Ok(operator)
+    Ok(app.store.lift(account, id).await?.map(|record| record.id))
 }
 
 /// The object of a path or `?name=`: an mplex as the gateway spells it is passed on as written
@@ -99,12 +109,34 @@ async fn lifts(
         .lifts(&operator.account.domain)
         .await?
         .into_iter()
-        .map(|record| LiftSummary {
-            online: app.registry.online(&record.id),
-            record,
+        .map(|mut record| {
+            let online = app.registry.online(&record.id);
+            record.id = shown_id(&record.id).to_owned();
+            LiftSummary { online, record }
         })
         .collect();
     Ok(Json(lifts))
+}
+
+/// `DELETE /api/v1/lifts/{id}` (admin): the lift is retired with everything stored of it,
+/// audited; its gateway, if connected, is closed, and its next CONNECT is a first contact
+/// (docs/PORTAL.md §Lifts and accounts).
+async fn retire(
+    State(app): State<Arc<AppState>>,
+    caller: Caller,
+    Path(id): Path<String>,
+) -> Result<StatusCode, ApiError> {
+    let (operator, key) = lift_of(&app, caller, &id, Role::Admin).await?;
+    if !app
+        .store
+        .retire(&operator.account, &key, &operator.user)
+        .await?
+    {
+        return Err(error(StatusCode::NOT_FOUND, "no such lift"));
+    }
+    app.registry.retired(&key);
+    tracing::info!(lift = %id, account = %operator.account.name, by = %operator.user, "lift retired");
+    Ok(StatusCode::NO_CONTENT)
 }
 
 async fn get_object(
@@ -113,7 +145,7 @@ async fn get_object(
     Path((id, text)): Path<(String, String)>,
     ApiQuery(q): ApiQuery<GetQuery>,
 ) -> Result<Json<ObjectAnswer>, ApiError> {
-    lift_of(&app, caller, &id, Role::Viewer).await?;
+    let (_, id) = lift_of(&app, caller, &id, Role::Viewer).await?;
     let lang = Lang::new(
         q.lang.as_deref().unwrap_or("en"),
         q.alt_lang.as_deref().unwrap_or("en"),
@@ -133,10 +165,11 @@ async fn get_object(
 async fn put_object(
     State(app): State<Arc<AppState>>,
     caller: Caller,
+    ConnectInfo(client): ConnectInfo<SocketAddr>,
     Path((id, text)): Path<(String, String)>,
     ApiJson(body): ApiJson<PutBody>,
 ) -> Result<Json<PutAnswer>, ApiError> {
-    let operator = lift_of(&app, caller, &id, Role::Technician).await?;
+    let (operator, id) = lift_of(&app, caller, &id, Role::Technician).await?;
     let object = mplex(&app.names, &text)?;
     let sernum = app.registry.sernum(&id).ok_or(Failure::Gone)?;
     let node = node(body.node, body.net)?;
@@ -161,6 +194,7 @@ async fn put_object(
         old_value: old,
         new_value: body.value.clone(),
         result: PENDING.into(),
+        address: Some(client.ip().to_string()),
     };
     // Unknown: as if it needed a privilege, so only the one who elevated may try.
     let needed = before.map_or(Some(1), |a| a.object.privilege).unwrap_or(1);
@@ -246,11 +280,12 @@ async fn get_named(
 async fn put_named(
     app: State<Arc<AppState>>,
     caller: Caller,
+    client: ConnectInfo<SocketAddr>,
     Path(id): Path<String>,
     ApiQuery(q): ApiQuery<NameQuery>,
     body: ApiJson<PutBody>,
 ) -> Result<Json<PutAnswer>, ApiError> {
-    put_object(app, caller, Path((id, named(q.name)?)), body).await
+    put_object(app, caller, client, Path((id, named(q.name)?)), body).await
 }
 
 /// What the audit log says about a gateway request's outcome.
@@ -266,10 +301,11 @@ fn outcome<T>(result: &Result<T, Failure>) -> String {
 async fn privilege(
     State(app): State<Arc<AppState>>,
     caller: Caller,
+    ConnectInfo(client): ConnectInfo<SocketAddr>,
     Path(id): Path<String>,
     ApiJson(body): ApiJson<PrivilegeBody>,
 ) -> Result<Json<ElevateAnswer>, ApiError> {
-    let operator = lift_of(&app, caller, &id, Role::Engineer).await?;
+    let (operator, id) = lift_of(&app, caller, &id, Role::Engineer).await?;
     let sernum = app.registry.sernum(&id).ok_or(Failure::Gone)?;
     let connection = app.registry.connection(&id).ok_or(Failure::Gone)?;
     // NXg §6.4: the gateway compares the unsalted SHA-1; the password itself is never stored.
@@ -289,6 +325,7 @@ async fn privilege(
             old_value: None,
             new_value: body.privilege.to_string(),
             result: PENDING.into(),
+            address: Some(client.ip().to_string()),
         })
         .await?;
     let result = app.registry.call(&id, &params).await;
@@ -324,9 +361,10 @@ async fn token(
     State(app): State<Arc<AppState>>,
     method: Method,
     caller: Caller,
+    ConnectInfo(client): ConnectInfo<SocketAddr>,
     Path(id): Path<String>,
 ) -> Result<StatusCode, ApiError> {
-    let operator = lift_of(&app, caller, &id, Role::Admin).await?;
+    let (operator, id) = lift_of(&app, caller, &id, Role::Admin).await?;
     if method == Method::DELETE {
         return if app
             .store
@@ -350,6 +388,7 @@ async fn token(
             old_value: None,
             new_value: "(new token)".into(),
             result: PENDING.into(),
+            address: Some(client.ip().to_string()),
         })
         .await?;
     let token = cloud_store::secret("");
@@ -367,7 +406,11 @@ async fn token(
     if result.is_ok() {
         // The gateway keeps the new token; were it not recorded as in use, it is still the
         // next one, which its next CONNECT confirms (NXg §5.4).
-        if let Err(e) = app.store.set_token(&id, &token).await {
+        if let Err(e) = app
+            .store
+            .set_token(&id, &operator.account.domain, &token)
+            .await
+        {
             tracing::error!(error = %e, lift = %id, "new token not recorded as in use: its next CONNECT confirms it");
         }
     }
@@ -386,7 +429,7 @@ async fn subscriptions(
     Path(id): Path<String>,
     ApiJson(body): ApiJson<SubscriptionBody>,
 ) -> Result<Json<Done>, ApiError> {
-    let operator = lift_of(&app, caller, &id, Role::Technician).await?;
+    let (operator, id) = lift_of(&app, caller, &id, Role::Technician).await?;
     let objects = objects(&app.names, &body.mplex)?;
     let listed: Vec<String> = objects.iter().map(ToString::to_string).collect();
     let subscriber = Subscriber::User(operator.user.clone());
@@ -433,14 +476,22 @@ fn terms(inhibit: Option<u64>, threshold: Option<f64>) -> Result<Terms, ApiError
 
 /// The lift's live events. With `?mplex=A,B…` (and `inhibit`, `threshold`) the stream holds
 /// subscriptions of those objects for as long as it is open — kept while the gateway is
-/// offline and registered when it connects — and lets go of them when it ends.
+/// offline and registered when it connects — and lets go of them when it ends; that takes a
+/// technician (a viewer's stream holds nothing: 403).
 async fn events(
     State(app): State<Arc<AppState>>,
     caller: Caller,
     Path(id): Path<String>,
     ApiQuery(q): ApiQuery<EventsQuery>,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
-    lift_of(&app, caller, &id, Role::Viewer).await?;
+    // Holding subscriptions on the gateway is a technician's (docs/PORTAL.md §Users and
+    // roles): a viewer watches what is held already.
+    let least = if q.mplex.is_some() {
+        Role::Technician
+    } else {
+        Role::Viewer
+    };
+    let (_, id) = lift_of(&app, caller, &id, least).await?;
     let rx = app.registry.subscribe(&id).await;
     let watching = match q.mplex.as_deref() {
         Some(list) => {
@@ -460,10 +511,11 @@ async fn events(
         None => None,
     };
     let online = cloud_types::live::LiftEvent::Online(app.registry.online(&id));
-    let (kind, data) = online.to_sse(&id);
+    let shown = shown_id(&id).to_owned();
+    let (kind, data) = online.to_sse(&shown);
     let first = Event::default().event(kind).data(data);
     // The watcher's subscriptions live in the stream's state: dropped with it.
-    let state = (rx, Some(first), id, watching);
+    let state = (rx, Some(first), shown, watching);
     let stream = futures_util::stream::unfold(state, |(mut rx, first, id, watching)| async move {
         if let Some(first) = first {
             return Some((Ok(first), (rx, None, id, watching)));
@@ -512,7 +564,7 @@ async fn history(
     Path((id, text)): Path<(String, String)>,
     ApiQuery(q): ApiQuery<HistoryQuery>,
 ) -> Result<Json<History>, ApiError> {
-    lift_of(&app, caller, &id, Role::Viewer).await?;
+    let (_, id) = lift_of(&app, caller, &id, Role::Viewer).await?;
     let m = mplex(&app.names, &text)?.mplex.to_string();
     let to = q.to.unwrap_or_else(cloud_types::now_ms);
     let from = q.from.unwrap_or(to.saturating_sub(86_400_000));
@@ -528,7 +580,7 @@ async fn history(
         .history(&id, &m, from, to, points as usize)
         .await?;
     Ok(Json(History {
-        lift: id,
+        lift: shown_id(&id).to_owned(),
         mplex: m,
         from,
         to,
@@ -574,6 +626,7 @@ pub fn routes(app: Arc<AppState>) -> Router {
     Router::new()
         .route("/api/v1/openapi.json", get(openapi))
         .route("/api/v1/lifts", get(lifts))
+        .route("/api/v1/lifts/{id}", axum::routing::delete(retire))
         .route("/api/v1/lifts/{id}/objects", get(get_named).put(put_named))
         .route(
             "/api/v1/lifts/{id}/objects/{mplex}",

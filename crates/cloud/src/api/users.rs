@@ -81,7 +81,7 @@ pub(super) async fn list(
     Ok(Json(app.store.users(&admin.account.name).await?))
 }
 
-/// `POST /api/v1/users`: 201 with the secret; 409 when the name is taken.
+/// `POST /api/v1/users`: 201 with the secret; 409 when the account has a user of the name.
 pub(super) async fn add(
     State(app): State<Arc<AppState>>,
     caller: Caller,

@@ -4,6 +4,7 @@
 //! ([`crate::throttle`]) and who elevated which lift ([`elevation`]).
 
 pub mod elevation;
+pub mod passwords;
 pub mod sessions;
 
 use std::sync::{Arc, Mutex};
@@ -33,8 +34,10 @@ pub struct Auth {
     pub sessions: Sessions,
     /// Requests per API key (`[server] requests_per_key_s`).
     pub key_rates: Mutex<KeyRates>,
-    /// Failed web sign-ins per user name and source address.
+    /// Failed web sign-ins per source address, and per user name at an address.
     pub sign_ins: Mutex<SignIns>,
+    /// Where sign-in secrets are checked.
+    pub passwords: passwords::PasswordChecks,
     /// Who elevated which lift.
     pub elevations: Elevations,
 }

@@ -44,8 +44,13 @@ pub struct Session {
 pub enum Credential {
     /// An API key (its digest).
     Key(String),
-    /// A user's name and secret (the name).
-    User(String),
+    /// A user's name and secret: the user's account and name.
+    User {
+        /// The user's account.
+        account: String,
+        /// The user's name within it.
+        name: String,
+    },
 }
 
 impl Session {
@@ -134,7 +139,7 @@ impl Sessions {
         let now = cloud_types::now_ms();
         let credential = match (record.key_digest, record.user) {
             (Some(key), _) => Some(Credential::Key(key)),
-            (None, Some(user)) => Some(Credential::User(user)),
+            (None, Some((account, name))) => Some(Credential::User { account, name }),
             (None, None) => None,
         };
         let epoch = store.seen_auth_epoch();
@@ -212,7 +217,7 @@ impl Sessions {
         let digest = cloud_store::digest(&id);
         let (key_digest, user) = match &credential {
             Credential::Key(key) => (Some(key.clone()), None),
-            Credential::User(name) => (None, Some(name.clone())),
+            Credential::User { account, name } => (None, Some((account.clone(), name.clone()))),
         };
         let now = cloud_types::now_ms();
         let record = SessionRecord {
@@ -255,7 +260,7 @@ async fn operator_of(
 ) -> Result<Option<Operator>, StoreError> {
     match credential {
         Credential::Key(digest) => store.operator_of_key(digest).await,
-        Credential::User(name) => store.operator(name).await,
+        Credential::User { account, name } => store.operator(account, name).await,
     }
 }
 

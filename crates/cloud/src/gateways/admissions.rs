@@ -16,25 +16,30 @@ use nxg::msg::Connect;
 use tokio::sync::{mpsc, oneshot, Semaphore};
 
 use cloud_store::{GatewayRow, Store, StoreError};
-use cloud_types::lifts::lift_id;
+
+use super::refusals::Reason;
 
 /// What the registry says about a CONNECT.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Admission {
     /// No token on record (never issued, or reset by an administrator): accept and issue one.
     FirstContact {
+        /// The lift's key in the registry (docs/PORTAL.md §Lifts and accounts).
+        key: String,
         /// Whether users hold subscriptions of the lift (after a token reset they may).
         subscribed: bool,
     },
     /// The token matches the one on record (or the one being rotated to, which now is).
     Known(Known),
-    /// Refused, with the cause to record.
-    Refused(String),
+    /// Refused: why, in a word for `/metrics` and in words to record.
+    Refused(Reason, String),
 }
 
 /// What the registry knows of a gateway whose token matched.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Known {
+    /// The lift's key in the registry (docs/PORTAL.md §Lifts and accounts).
+    pub key: String,
     /// The boardhash on record when the CONNECT's differs (the gateway's hardware changed, or
     /// its token was copied to another board).
     pub board_was: Option<String>,
@@ -48,24 +53,34 @@ pub struct Known {
     pub rotation_confirmed: bool,
 }
 
-/// What the registry's `row` says about `connect` (NXg §5.2, §5.4): the registry is keyed by
-/// vendor, product and serial number; the domain token names the account; the token proves
+impl Admission {
+    /// The lift's key, for an admitted gateway.
+    pub fn key(&self) -> Option<&str> {
+        match self {
+            Admission::FirstContact { key, .. } | Admission::Known(Known { key, .. }) => Some(key),
+            Admission::Refused(..) => None,
+        }
+    }
+}
+
+/// What the registry's `row` says about `connect` (NXg §5.2, §5.4): the domain token names
+/// the account; within it the registry is keyed by vendor, product and serial number, apart
+/// from every other account's lifts (docs/PORTAL.md §Lifts and accounts); the token proves
 /// the gateway is the one that was admitted before. Decided here, without the database (the
 /// row is read with others in one statement: [`Store::gateway_rows`]).
 pub fn decide(connect: &Connect, row: &GatewayRow) -> Admission {
     let identity = &connect.identity;
-    if !row.account {
-        return Admission::Refused("no account for this domain token".into());
+    if row.account.is_none() {
+        return Admission::Refused(Reason::Domain, "no account for this domain token".into());
     }
     let subscribed = row.subscribed;
+    let key = row.key.clone();
     let Some(registered) = &row.registered else {
-        return Admission::FirstContact { subscribed };
+        return Admission::FirstContact { key, subscribed };
     };
-    if registered.domain != connect.domaintoken {
-        return Admission::Refused("domain token differs from the registered one".into());
-    }
     let known = |token_set, rotation_confirmed| {
         Admission::Known(Known {
+            key: key.clone(),
             board_was: (registered.boardhash != identity.boardhash)
                 .then(|| registered.boardhash.clone()),
             token_set,
@@ -79,12 +94,18 @@ pub fn decide(connect: &Connect, row: &GatewayRow) -> Admission {
             .is_some_and(|d| nxg::digest::matches(d, &cloud_store::digest(token)))
     };
     match (&registered.token_hash, identity.cloudtoken.as_deref()) {
-        (None, _) => Admission::FirstContact { subscribed },
+        (None, _) => Admission::FirstContact {
+            key: key.clone(),
+            subscribed,
+        },
         (hash, Some(t)) if matches(hash, t) => known(registered.token_set, false),
         // The gateway stored the token of a rotation whose answer the portal did not see.
         (_, Some(t)) if matches(&registered.token_next, t) => known(cloud_types::now_ms(), true),
-        (Some(_), Some(_)) => Admission::Refused("wrong cloud token".into()),
-        (Some(_), None) => Admission::Refused("no cloud token although one was issued".into()),
+        (Some(_), Some(_)) => Admission::Refused(Reason::Token, "wrong cloud token".into()),
+        (Some(_), None) => Admission::Refused(
+            Reason::Token,
+            "no cloud token although one was issued".into(),
+        ),
     }
 }
 
@@ -97,7 +118,9 @@ async fn admit_all(store: &Store, connects: &[&Connect]) -> Result<Vec<Admission
         let admission = decide(connect, row);
         if let (Admission::Known(known), Some(token)) = (&admission, &connect.identity.cloudtoken) {
             if known.rotation_confirmed {
-                store.set_token(&lift_id(&connect.identity), token).await?;
+                store
+                    .set_token(&known.key, &connect.domaintoken, token)
+                    .await?;
             }
         }
         admissions.push(admission);
@@ -131,8 +154,6 @@ struct Asked {
 pub struct AdmissionCounters {
     /// Admitted (CONNACK).
     pub admitted: AtomicU64,
-    /// Refused by the registry: unknown domain, wrong or missing token, another board.
-    pub refused: AtomicU64,
     /// Refused because the database did not answer (the gateway tries again after its backoff).
     pub unavailable: AtomicU64,
     /// Statements that asked about them (CONNECTs per statement: how much batching saves).
@@ -247,12 +268,15 @@ mod tests {
         // Even serial numbers are known with a token of their own; odd ones are new.
         for n in (0..600).step_by(2) {
             let gw = connect(&format!("GW{n}"), "MAS", None);
+            let lift = cloud_types::lifts::lift_id(&gw.identity);
             store
-                .record(&[GatewayRecord::connected(&gw, 2)])
+                .record(&[GatewayRecord::connected(&lift, &gw, 2)])
                 .await
                 .unwrap();
-            let lift = cloud_types::lifts::lift_id(&gw.identity);
-            store.set_token(&lift, &format!("T{n}")).await.unwrap();
+            store
+                .set_token(&lift, "MAS", &format!("T{n}"))
+                .await
+                .unwrap();
         }
         let (admissions, task) = Admissions::start(store.clone());
         let asked = (0..600).map(|n| {
@@ -293,7 +317,7 @@ mod tests {
             let kind = match batched {
                 Admission::FirstContact { .. } => "first",
                 Admission::Known(_) => "known",
-                Admission::Refused(_) => "refused",
+                Admission::Refused(..) => "refused",
             };
             *kinds.entry(kind).or_insert(0) += 1;
         }
@@ -308,7 +332,8 @@ mod tests {
 
     fn registered(token: Option<&str>, next: Option<&str>) -> GatewayRow {
         GatewayRow {
-            account: true,
+            account: Some("masora".into()),
+            key: "1050-4096-180917010200000102".into(),
             subscribed: false,
             registered: Some(cloud_store::Registered {
                 domain: "MAS".into(),
@@ -324,26 +349,30 @@ mod tests {
     #[test]
     fn admissions_are_decided_from_the_registry_row() {
         let gw = |token| connect("180917010200000102", "MAS", token);
+        let key = "1050-4096-180917010200000102".to_owned();
         let first = GatewayRow {
-            account: true,
+            account: Some("masora".into()),
+            key: key.clone(),
             ..GatewayRow::default()
         };
-        assert_eq!(
-            decide(&gw(None), &first),
-            Admission::FirstContact { subscribed: false }
-        );
+        let first_contact = Admission::FirstContact {
+            key: key.clone(),
+            subscribed: false,
+        };
+        assert_eq!(decide(&gw(None), &first), first_contact);
         assert!(matches!(
             decide(&gw(None), &GatewayRow::default()),
-            Admission::Refused(c) if c.contains("no account")
+            Admission::Refused(_, c) if c.contains("no account")
         ));
         // Registered, no token confirmed yet (or reset): a first contact again.
         assert_eq!(
             decide(&gw(Some("x")), &registered(None, None)),
-            Admission::FirstContact { subscribed: false }
+            first_contact
         );
         assert_eq!(
             decide(&gw(Some("T0K3N")), &registered(Some("T0K3N"), None)),
             Admission::Known(Known {
+                key,
                 board_was: None,
                 token_set: 7,
                 subscribed: false,
@@ -352,16 +381,11 @@ mod tests {
         );
         assert!(matches!(
             decide(&gw(Some("T0K3M")), &registered(Some("T0K3N"), None)),
-            Admission::Refused(c) if c.contains("wrong")
+            Admission::Refused(_, c) if c.contains("wrong")
         ));
         assert!(matches!(
             decide(&gw(None), &registered(Some("T0K3N"), None)),
-            Admission::Refused(c) if c.contains("no cloud token")
-        ));
-        // Another account's domain token for a registered lift.
-        assert!(matches!(
-            decide(&connect("180917010200000102", "XYZ", Some("T0K3N")), &registered(Some("T0K3N"), None)),
-            Admission::Refused(c) if c.contains("differs")
+            Admission::Refused(_, c) if c.contains("no cloud token")
         ));
         // Rotation: old and new token both admitted until one is confirmed.
         let rotating = registered(Some("T0K3N"), Some("N3XT"));
@@ -406,10 +430,10 @@ mod tests {
         let gw = |token: Option<&str>| connect("180917010200000102", "MAS", token);
         let lift = cloud_types::lifts::lift_id(&gw(None).identity);
         store
-            .record(&[GatewayRecord::connected(&gw(None), 1)])
+            .record(&[GatewayRecord::connected(&lift, &gw(None), 1)])
             .await
             .unwrap();
-        store.set_token(&lift, "T0K3N").await.unwrap();
+        store.set_token(&lift, "MAS", "T0K3N").await.unwrap();
         store.set_next_token(&lift, "N3XT").await.unwrap();
         let known = |a: Admission| matches!(a, Admission::Known(_));
         assert!(known(
@@ -420,14 +444,17 @@ mod tests {
         assert!(
             matches!(
                 admit_alone(&store, &gw(Some("T0K3N"))).await.unwrap(),
-                Admission::Refused(_)
+                Admission::Refused(..)
             ),
             "the old token is over once the new one was used"
         );
         assert!(store.reset_token("MAS", &lift, "ops").await.unwrap());
         assert_eq!(
             admit_alone(&store, &gw(Some("N3XT"))).await.unwrap(),
-            Admission::FirstContact { subscribed: false }
+            Admission::FirstContact {
+                key: lift.clone(),
+                subscribed: false
+            }
         );
     }
 
@@ -442,5 +469,96 @@ mod tests {
             return;
         };
         rotation_and_reset(Store::open(&url).await.unwrap()).await;
+    }
+
+    /// Lifts belong to accounts (docs/PORTAL.md §Lifts and accounts): a gateway with the
+    /// identity of another account's lift and its own account's domain token is a first
+    /// contact of a lift of its own, keyed apart, whichever came first; neither changes the
+    /// other's row or token, and a record of one never lands on the other's row.
+    async fn one_identity_in_two_accounts(store: Store) {
+        store.add_account("masora", "MAS").await.unwrap();
+        store.add_account("evil", "EVL").await.unwrap();
+        let serial = "180917010200000102";
+        let id = cloud_types::lifts::lift_id(&connect(serial, "MAS", None).identity);
+        let scoped = cloud_types::lifts::scoped_key(&id, "evil");
+        let admitted = |domain: &'static str, token: Option<&'static str>| {
+            let store = store.clone();
+            async move {
+                let gw = connect(serial, domain, token);
+                let admission = admit_alone(&store, &gw).await.unwrap();
+                if let Admission::FirstContact { key, .. } = &admission {
+                    let record = GatewayRecord::connected(key, &gw, 2);
+                    store.record(&[record]).await.unwrap();
+                    store
+                        .set_token(key, domain, &format!("{domain}-token"))
+                        .await
+                        .unwrap();
+                }
+                admission
+            }
+        };
+        assert_eq!(admitted("MAS", None).await.key(), Some(id.as_str()));
+        // The squatter: a lift of its own account, the first lift untouched.
+        assert_eq!(admitted("EVL", None).await.key(), Some(scoped.as_str()));
+        assert_eq!(
+            admitted("EVL", Some("EVL-token")).await.key(),
+            Some(scoped.as_str())
+        );
+        let real = admitted("MAS", Some("MAS-token")).await;
+        assert!(
+            matches!(&real, Admission::Known(k) if k.key == id),
+            "{real:?}"
+        );
+        assert!(matches!(
+            admitted("EVL", Some("MAS-token")).await,
+            Admission::Refused(_, c) if c.contains("wrong")
+        ));
+        // A record with another account's domain never lands on this account's row.
+        let mut stray = connect(serial, "EVL", None);
+        stray.identity.liftnum = "stray".into();
+        store
+            .record(&[
+                GatewayRecord::connected(&id, &stray, 2),
+                GatewayRecord::token(&id, "EVL", "stray"),
+            ])
+            .await
+            .unwrap();
+        assert_eq!(store.domain_of(&id).await.unwrap().as_deref(), Some("MAS"));
+        let masora = cloud_types::users::Account {
+            name: "masora".into(),
+            domain: "MAS".into(),
+        };
+        let row = store.lift(&masora, &id).await.unwrap().unwrap();
+        assert_ne!(row.liftnum, "stray");
+        assert!(matches!(
+            admitted("MAS", Some("MAS-token")).await,
+            Admission::Known(_)
+        ));
+        // Each account finds its own lift by the same id.
+        let evil = cloud_types::users::Account {
+            name: "evil".into(),
+            domain: "EVL".into(),
+        };
+        assert_eq!(store.lift(&evil, &id).await.unwrap().unwrap().id, scoped);
+        // Retired, the plain key is free: the next other account's first contact takes it.
+        assert!(store.retire(&masora, &id, "ops").await.unwrap());
+        assert!(store.lift(&masora, &id).await.unwrap().is_none());
+        assert_eq!(
+            admitted("EVL", Some("EVL-token")).await.key(),
+            Some(scoped.as_str())
+        );
+    }
+
+    #[tokio::test]
+    async fn one_identity_in_two_accounts_on_sqlite() {
+        one_identity_in_two_accounts(Store::open("sqlite::memory:").await.unwrap()).await;
+    }
+
+    #[tokio::test]
+    async fn one_identity_in_two_accounts_on_postgres() {
+        let Some(url) = testkit::postgres("two_accounts").await else {
+            return;
+        };
+        one_identity_in_two_accounts(Store::open(&url).await.unwrap()).await;
     }
 }

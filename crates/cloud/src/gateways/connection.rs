@@ -12,7 +12,7 @@ use axum::extract::ws::{close_code, CloseFrame, Message, WebSocket};
 use futures_util::SinkExt;
 use nxg::mplex::Mplex;
 use nxg::msg::{Connect, Event, Notification};
-use nxg::portal::{Failure, Output, RequestId, Session};
+use nxg::portal::{CloseReason, Failure, Output, RequestId, Session};
 
 use super::mailbox::{Letter, Mailbox};
 use super::reports::Report;
@@ -25,11 +25,14 @@ use cloud_types::live::LiftEvent;
 use cloud_store::{GatewayRecord, TelemetryRow};
 
 use super::admissions::{Admission, Known};
+use super::refusals::Reason;
 use crate::throttle::TokenBucket;
 
 /// The lift a connection serves, once it is admitted.
 struct Admitted {
     lift: String,
+    /// Its account's domain token (what a confirmed token's record is written under).
+    domain: String,
     /// Tells this connection from a newer one of the same lift.
     serial: u64,
     /// What the lift may still store this hour.
@@ -168,6 +171,9 @@ impl Connection {
                         unflushed = true;
                     }
                     Output::Close(reason) => {
+                        if let CloseReason::InvalidConnect(why) = &reason {
+                            self.shared.refusals.invalid(&self.peer, why);
+                        }
                         let _ = self.socket.send(Message::Close(None)).await;
                         return Err(reason.to_string());
                     }
@@ -269,11 +275,11 @@ impl Connection {
     /// use is due for rotation) or refuse it; a valid token from another board is dealt with
     /// per `[gateways] boardhash_change`.
     async fn identify(&mut self, connect: Connect) -> Vec<Output> {
-        let lift = cloud_types::lifts::lift_id(&connect.identity);
+        let id = cloud_types::lifts::lift_id(&connect.identity);
         let peer = self.peer.clone();
         // A token its last connection confirmed is on record first (else: a first contact
         // again, its board unchecked).
-        self.shared.records.settled(&lift).await;
+        self.shared.records.settled(&id, &connect.domaintoken).await;
         // A known gateway on its known board changes nothing the next admission decides on
         // (`unchanged`): its row is refreshed behind the connection, with others.
         let (admission, unchanged) = match self.shared.admissions.admit(&connect).await {
@@ -287,11 +293,19 @@ impl Connection {
             other => (other, false),
         };
         let counters = &self.shared.admissions.counters;
+        // A first contact's row is written (and checked) before CONNACK; what the CONNACK
+        // agreed then follows behind the connection.
+        let (admission, unchanged) = match admission {
+            Ok(Admission::FirstContact { key, subscribed }) => (
+                first_contact(&self.shared, &connect, key, subscribed).await,
+                true,
+            ),
+            other => (other, unchanged),
+        };
         match admission {
-            Ok(Admission::Refused(cause)) => {
-                counters.refused.fetch_add(1, Ordering::Relaxed);
+            Ok(Admission::Refused(reason, cause)) => {
                 let refusals = &self.shared.refusals;
-                Box::pin(refusals.note(&lift, &peer, &cause, &connect.domaintoken)).await;
+                Box::pin(refusals.note(&id, &peer, reason, &cause, &connect.domaintoken)).await;
                 self.session.refuse(cause)
             }
             Err(e) => {
@@ -300,11 +314,12 @@ impl Connection {
                 self.session.refuse("registry unavailable".into())
             }
             Ok(admission) => {
+                let lift = admission.key().unwrap_or(&id).to_owned();
                 counters.admitted.fetch_add(1, Ordering::Relaxed);
                 let token = token_to_issue(&self.shared, &lift, &admission).await;
                 let out = self.session.accept(&connect, token, Instant::now());
                 let api = self.session.api();
-                let record = GatewayRecord::connected(&connect, api);
+                let record = GatewayRecord::connected(&lift, &connect, api);
                 if unchanged {
                     self.shared.records.write(record).await;
                 } else if let Err(e) = self.shared.records.write_now(record).await {
@@ -314,8 +329,8 @@ impl Connection {
                 // (a first contact's, after a token reset, may have some from before).
                 let (subscribed, first) = match &admission {
                     Admission::Known(known) => (known.subscribed, false),
-                    Admission::FirstContact { subscribed } => (*subscribed, true),
-                    Admission::Refused(_) => (false, false),
+                    Admission::FirstContact { subscribed, .. } => (*subscribed, true),
+                    Admission::Refused(..) => (false, false),
                 };
                 self.register(&lift, &connect, api, subscribed);
                 tracing::info!(%lift, %peer, api, first, "gateway online");
@@ -336,6 +351,7 @@ impl Connection {
         let serial = registry.register(lift, connect, self.calls.clone());
         self.admitted = Some(Admitted {
             lift: lift.to_owned(),
+            domain: connect.domaintoken.clone(),
             serial,
             quota: Quota::new(self.shared.policy.max_stored_bytes_per_hour, Instant::now()),
         });
@@ -352,7 +368,7 @@ impl Connection {
     /// Queued behind the gateway's row; the lift's next admission waits until it is written.
     async fn token_confirmed(&mut self, token: &str) {
         if let Some(a) = &self.admitted {
-            let record = GatewayRecord::token(&a.lift, token);
+            let record = GatewayRecord::token(&a.lift, &a.domain, token);
             self.shared.records.write(record).await;
         }
     }
@@ -450,6 +466,30 @@ impl Connection {
     }
 }
 
+/// A first contact of lift `key`: its row is written before CONNACK, and it must be this
+/// account's. Two first contacts of one identity from two accounts at once both find the key
+/// free; the second's row is not written over the first's (`Store::record`), and it is
+/// refused here, to be admitted under a key of its own when it tries again (docs/PORTAL.md
+/// §Lifts and accounts).
+async fn first_contact(
+    shared: &Shared,
+    connect: &Connect,
+    key: String,
+    subscribed: bool,
+) -> Result<Admission, cloud_store::StoreError> {
+    let record = GatewayRecord::connected(&key, connect, connect.identity.api);
+    shared.records.write_now(record).await?;
+    match shared.store.domain_of(&key).await? {
+        Some(domain) if domain == connect.domaintoken => {
+            Ok(Admission::FirstContact { key, subscribed })
+        }
+        _ => Ok(Admission::Refused(
+            Reason::Taken,
+            "another account's lift took this identity's key at the same moment: try again".into(),
+        )),
+    }
+}
+
 /// A valid token came from another board than the one on record (`was`): refuse, or accept
 /// (`known`) with an alarm or without; audited either way.
 async fn board_changed(
@@ -459,7 +499,7 @@ async fn board_changed(
     was: String,
     known: Known,
 ) -> Result<Admission, cloud_store::StoreError> {
-    let lift = cloud_types::lifts::lift_id(&connect.identity);
+    let lift = known.key.clone();
     let now = connect.identity.boardhash.clone();
     let policy = shared.policy.boardhash_change;
     let result = match policy {
@@ -479,10 +519,11 @@ async fn board_changed(
             old_value: Some(was.clone()),
             new_value: now.clone(),
             result: result.into(),
+            address: Some(peer.to_owned()),
         })
         .await?;
     if policy == BoardhashChange::Refuse {
-        return Ok(Admission::Refused(format!(
+        return Ok(Admission::Refused(Reason::Board, format!(
             "boardhash {now:?} differs from the registered {was:?} (boardhash_change = refuse; reset the token to admit the new board)"
         )));
     }
@@ -517,6 +558,6 @@ async fn token_to_issue(shared: &Shared, lift: &str, admission: &Admission) -> O
                 }
             }
         }
-        Admission::Refused(_) => None,
+        Admission::Refused(..) => None,
     }
 }

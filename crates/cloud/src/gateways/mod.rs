@@ -357,6 +357,19 @@ impl Registry {
         serial
     }
 
+    /// Lift `lift` was retired (docs/PORTAL.md §Lifts and accounts): its gateway's connection
+    /// to this process, if any, is closed; its next CONNECT is a first contact.
+    pub fn retired(&self, lift: &str) {
+        if let Some(live) = self
+            .live
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(lift)
+        {
+            live.calls.close();
+        }
+    }
+
     /// The connection `serial` of `lift` ended; whether it was still the lift's.
     fn unregister(&self, lift: &str, serial: u64) -> bool {
         let mut live = self.live.lock().unwrap_or_else(PoisonError::into_inner);

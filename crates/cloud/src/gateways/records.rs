@@ -24,9 +24,11 @@ struct Queued {
     written: Option<oneshot::Sender<Result<(), StoreError>>>,
 }
 
-/// Confirmed tokens queued and not yet written, counted by lift. Until its token is written, a
-/// lift's row has none: a CONNECT of that lift would be taken for a first contact again — a new
-/// token, and no check of its board. Such an admission waits ([`Records::settled`]).
+/// Confirmed tokens queued and not yet written, counted by lift (its id and its account's
+/// domain: what a CONNECT says before the registry is asked for its key). Until its token is
+/// written, a lift's row has none: a CONNECT of that lift would be taken for a first contact
+/// again — a new token, and no check of its board. Such an admission waits
+/// ([`Records::settled`]).
 #[derive(Default)]
 struct Unwritten {
     tokens: Mutex<HashMap<String, usize>>,
@@ -37,22 +39,36 @@ struct Unwritten {
 impl Unwritten {
     /// `record` goes into the queue.
     fn queued(&self, record: &GatewayRecord) {
-        if let GatewayRecord::Token { lift, .. } = record {
-            *self.lock().entry(lift.clone()).or_default() += 1;
+        if let Some(lift) = Unwritten::token_of(record) {
+            *self.lock().entry(lift).or_default() += 1;
         }
     }
 
     /// `record` left the queue, written or lost.
     fn done(&self, record: &GatewayRecord) {
-        if let GatewayRecord::Token { lift, .. } = record {
+        if let Some(lift) = Unwritten::token_of(record) {
             let mut tokens = self.lock();
-            if let Some(count) = tokens.get_mut(lift) {
+            if let Some(count) = tokens.get_mut(&lift) {
                 *count -= 1;
                 if *count == 0 {
-                    tokens.remove(lift);
+                    tokens.remove(&lift);
                 }
             }
         }
+    }
+
+    /// The lift a token record is of, as [`Records::settled`] names it.
+    fn token_of(record: &GatewayRecord) -> Option<String> {
+        match record {
+            GatewayRecord::Token { lift, domain, .. } => {
+                Some(Unwritten::name(cloud_types::lifts::shown_id(lift), domain))
+            }
+            _ => None,
+        }
+    }
+
+    fn name(id: &str, domain: &str) -> String {
+        format!("{id}\n{domain}")
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<String, usize>> {
@@ -92,12 +108,14 @@ impl Records {
         )
     }
 
-    /// Returns once no confirmed token of `lift` waits in the queue (at once almost always:
-    /// only a gateway that reconnects right after confirming one waits for the writer).
-    pub async fn settled(&self, lift: &str) {
+    /// Returns once no confirmed token of lift `id` of `domain` waits in the queue (at once
+    /// almost always: only a gateway that reconnects right after confirming one waits for the
+    /// writer).
+    pub async fn settled(&self, id: &str, domain: &str) {
+        let lift = Unwritten::name(id, domain);
         // Subscribed before looking, so a batch done in between is not missed.
         let mut batches = self.unwritten.batches.subscribe();
-        while self.unwritten.lock().contains_key(lift) {
+        while self.unwritten.lock().contains_key(&lift) {
             if batches.changed().await.is_err() {
                 return;
             }
@@ -215,6 +233,11 @@ pub async fn writer(
 mod tests {
     use super::*;
 
+    /// The record of `connect`'s admission as a lift keyed by its id.
+    fn connected(connect: &nxg::msg::Connect) -> GatewayRecord {
+        GatewayRecord::connected(&cloud_types::lifts::lift_id(&connect.identity), connect, 2)
+    }
+
     fn connect(sernum: &str, software: &str) -> nxg::msg::Connect {
         let mut connect = testkit::connect(sernum, "MAS", None);
         connect.identity.software = software.into();
@@ -252,12 +275,11 @@ mod tests {
         store.add_account("masora", "MAS").await.unwrap();
         let first = connect("GW1", "v1");
         let lift = cloud_types::lifts::lift_id(&first.identity);
-        store
-            .record(&[GatewayRecord::connected(&first, 2)])
-            .await
-            .unwrap();
+        store.record(&[connected(&first)]).await.unwrap();
         let (records, rx) = Records::new(store.clone());
-        records.write(GatewayRecord::token(&lift, "T1")).await;
+        records
+            .write(GatewayRecord::token(&lift, "MAS", "T1"))
+            .await;
         let wait = std::time::Duration::from_millis(300);
         // No writer yet: the token is not on record, and the lift's admission waits.
         let again = testkit::connect("GW1", "MAS", Some("T1"));
@@ -267,18 +289,21 @@ mod tests {
                 .unwrap(),
             crate::gateways::admissions::Admission::FirstContact { .. }
         ));
-        assert!(tokio::time::timeout(wait, records.settled(&lift))
+        assert!(tokio::time::timeout(wait, records.settled(&lift, "MAS"))
             .await
             .is_err());
         let other = cloud_types::lifts::lift_id(&connect("GW2", "").identity);
-        tokio::time::timeout(wait, records.settled(&other))
+        tokio::time::timeout(wait, records.settled(&other, "MAS"))
             .await
             .expect("another lift does not wait");
         let (stop, stopping) = watch::channel(false);
         let task = tokio::spawn(writer(store.clone(), rx, stopping));
-        tokio::time::timeout(std::time::Duration::from_secs(10), records.settled(&lift))
-            .await
-            .expect("settled once written");
+        tokio::time::timeout(
+            std::time::Duration::from_secs(10),
+            records.settled(&lift, "MAS"),
+        )
+        .await
+        .expect("settled once written");
         assert!(matches!(
             crate::gateways::admissions::admit_alone(&store, &again)
                 .await
@@ -299,13 +324,13 @@ mod tests {
         let task = tokio::spawn(writer(store.clone(), rx, stopping));
         for n in 0..3000 {
             let connect = connect(&format!("GW{}", n % 100), &format!("v{n}"));
-            records.write(GatewayRecord::connected(&connect, 2)).await;
+            records.write(connected(&connect)).await;
         }
         // PostgreSQL stores no NUL (the session's validation keeps it out of a CONNECT): the
         // batch it is in is written record by record, and the others are not lost with it.
-        let poisoned = GatewayRecord::connected(&connect("GW\u{0}", ""), 2);
+        let poisoned = connected(&connect("GW\u{0}", ""));
         let (first, poisoned) = tokio::join!(
-            records.write_now(GatewayRecord::connected(&connect("FIRST", ""), 2)),
+            records.write_now(connected(&connect("FIRST", ""))),
             records.write_now(poisoned)
         );
         first.unwrap();

@@ -12,12 +12,13 @@ use nxg::msg::Event;
 use serde::Deserialize;
 
 use super::i18n::Locale;
-use super::page::{layout, problem, time, unavailable};
+use super::page::{layout, lift_path, problem, time, unavailable};
 use super::SignedIn;
 use crate::alarms::service::AckError;
 use crate::state::AppState;
 use cloud_store::AlarmFilter;
 use cloud_types::alarms::{Alarm, Severity};
+use cloud_types::lifts::shown_id;
 use cloud_types::users::Role;
 
 /// A severity as a coloured badge.
@@ -56,7 +57,7 @@ pub(super) fn table(alarms: &[Alarm], who: &SignedIn, back: &str, lifts: bool) -
                 @for a in alarms {
                     tr data-alarm=(a.id) {
                         td { (severity_badge(a.severity, l)) }
-                        @if lifts { td { a href={ "/lifts/" (a.lift) } { (a.lift) } } }
+                        @if lifts { td { a href=(lift_path(&a.lift)) { (shown_id(&a.lift)) } } }
                         td { (place(a, l)) }
                         td { (a.text) }
                         td { (at(&a.raised, l)) }

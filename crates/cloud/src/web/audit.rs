@@ -7,7 +7,7 @@ use axum::response::{IntoResponse, Response};
 use maud::html;
 
 use super::i18n::Locale;
-use super::page::{layout, time, unavailable};
+use super::page::{layout, lift_path, time, unavailable};
 use super::SignedIn;
 use crate::state::AppState;
 
@@ -57,7 +57,7 @@ pub(super) async fn audit_page(State(app): State<Arc<AppState>>, who: SignedIn) 
                     tr {
                         td { (time(e.at, l)) }
                         td { (e.account) }
-                        td { a href={ "/lifts/" (e.lift) } { (e.lift) } }
+                        td { a href=(lift_path(&e.lift)) { (e.lift) } }
                         td { (e.action) }
                         td { code { (e.object) } }
                         td { (e.old_value.as_deref().unwrap_or("")) }

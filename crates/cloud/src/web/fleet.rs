@@ -14,11 +14,12 @@ use serde::Deserialize;
 
 use super::alarms::severity_badge;
 use super::i18n::Locale;
-use super::page::{layout, time, unavailable};
+use super::page::{layout, lift_path, time, unavailable};
 use super::SignedIn;
 use crate::gateways::LiftStatus;
 use crate::state::AppState;
 use cloud_types::alarms::Alarm;
+use cloud_types::lifts::shown_id;
 use cloud_types::lifts::LiftRecord;
 
 /// Lifts per page.
@@ -223,7 +224,12 @@ pub(super) async fn fleet(
     let body = html! {
         h1 { (l.t("Fleet")) }
         @if all.is_empty() {
-            p { (l.fill("No lift of domain {} has connected yet.", &[&session.operator.account.domain])) }
+            // The domain token admits gateways into the account: for its administrators only.
+            @if session.operator.may(cloud_types::users::Role::Admin) {
+                p { (l.fill("No lift of domain {} has connected yet.", &[&session.operator.account.domain])) }
+            } @else {
+                p { (l.t("No lift has connected yet.")) }
+            }
         } @else {
             p.summary {
                 a.current[query.show.is_none()] href=(link(1, None, sort)) {
@@ -258,7 +264,7 @@ pub(super) async fn fleet(
                     tbody {
                         @for row in rows.iter().skip((page - 1) * PAGE).take(PAGE) {
                             tr data-state=(row.state.key()) {
-                                td { a href={ "/lifts/" (row.lift.id) } { (row.lift.id) } }
+                                td { a href=(lift_path(&row.lift.id)) { (shown_id(&row.lift.id)) } }
                                 td { (row.lift.liftnum) }
                                 td { (row.state.badge(l)) }
                                 td { (time(row.seen, l)) }

@@ -16,7 +16,7 @@ use serde::Deserialize;
 
 use super::i18n::Locale;
 use super::lift::{describe, Described};
-use super::page::{layout, problem, time, unavailable, utc};
+use super::page::{layout, lift_path, problem, time, unavailable, utc};
 use super::{owned, SignedIn};
 use crate::state::AppState;
 use cloud_store::Bucket;
@@ -90,15 +90,15 @@ struct Series {
 }
 
 /// The objects of `q` on lift `id` with their values in its period, or the page that says why
-/// not.
+/// not; the lift's key in the registry.
 async fn shown(
     app: &AppState,
     who: &SignedIn,
     id: &str,
     q: &HistoryQuery,
-) -> Result<(Vec<Mplex>, Vec<Series>, Period), Response> {
+) -> Result<(Vec<Mplex>, Vec<Series>, Period, String), Response> {
     let l = who.locale;
-    owned(app, who, id).await?;
+    let key = owned(app, who, id).await?.id;
     let mut mplexes = Vec::new();
     for text in q.mplex.split(',').map(str::trim).filter(|t| !t.is_empty()) {
         match app.names.resolve(text) {
@@ -117,17 +117,18 @@ async fn shown(
     }
     let period = Period::of(q);
     // Each series its own statement (they may be long), all asked at once.
+    let key = &key;
     let series = futures_util::future::try_join_all(mplexes.iter().map(|m| async move {
         let mplex = m.to_string();
         let history = app
             .store
-            .history(id, &mplex, period.from, period.to, POINTS)
+            .history(key, &mplex, period.from, period.to, POINTS)
             .await?;
         Ok::<_, cloud_store::StoreError>(Series { mplex, history })
     }))
     .await
     .map_err(|e| unavailable(e, who.viewer()))?;
-    Ok((mplexes, series, period))
+    Ok((mplexes, series, period, key.clone()))
 }
 
 /// `GET /lifts/{id}/history.csv?mplex=&minutes=` (or `from`/`to`): what the page shows, as CSV
@@ -140,7 +141,7 @@ pub(super) async fn history_csv(
     Path(id): Path<String>,
     Query(q): Query<HistoryQuery>,
 ) -> Response {
-    let (_, series, period) = match shown(&app, &who, &id, &q).await {
+    let (_, series, period, key) = match shown(&app, &who, &id, &q).await {
         Ok(s) => s,
         Err(r) => return r,
     };
@@ -148,7 +149,7 @@ pub(super) async fn history_csv(
     for s in &series {
         match app
             .store
-            .values(&id, &s.mplex, period.from, period.to, CSV_RAW + 1)
+            .values(&key, &s.mplex, period.from, period.to, CSV_RAW + 1)
             .await
         {
             Ok(rows) if rows.len() <= CSV_RAW => raw.push(rows),
@@ -191,22 +192,47 @@ pub(super) async fn history_csv(
     (
         [
             (header::CONTENT_TYPE, "text/csv; charset=utf-8".to_owned()),
-            (
-                header::CONTENT_DISPOSITION,
-                format!("attachment; filename=\"{file}\""),
-            ),
+            (header::CONTENT_DISPOSITION, attachment(&file)),
         ],
         csv,
     )
         .into_response()
 }
 
-/// A value as a CSV cell: quoted when it holds a separator, a quote or a line break.
+/// `Content-Disposition` of a download named `file` (RFC 6266): the name with every
+/// character but letters, digits, `.`, `-` and `_` replaced by `_` — a serial number is the
+/// gateway's text, and no quote or `;` of it may end the parameter — once as plain ASCII and
+/// once percent-encoded (`filename*`, RFC 8187) for browsers that prefer it.
+fn attachment(file: &str) -> String {
+    let safe: String = file
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | '_') {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
+    format!("attachment; filename=\"{safe}\"; filename*=UTF-8''{safe}")
+}
+
+/// A value as a CSV cell: quoted when it holds a separator, a quote or a line break; a text a
+/// spreadsheet would take for a formula (it begins with `=`, `+`, `-`, `@`, a tab or a carriage
+/// return: OWASP's CSV injection) is prefixed with `'` so it stays text. Numbers, negative
+/// ones too, stay numbers.
 fn cell(value: &str) -> String {
-    if value.contains([',', '"', '\r', '\n']) {
-        format!("\"{}\"", value.replace('"', "\"\""))
+    let formula =
+        value.starts_with(['=', '+', '-', '@', '\t', '\r']) && value.trim().parse::<f64>().is_err();
+    let value = if formula {
+        format!("'{value}")
     } else {
         value.to_owned()
+    };
+    if value.contains([',', '"', '\r', '\n', '\t']) || formula {
+        format!("\"{}\"", value.replace('"', "\"\""))
+    } else {
+        value
     }
 }
 
@@ -364,7 +390,7 @@ pub(super) async fn history_page(
     Query(q): Query<HistoryQuery>,
 ) -> Response {
     let l = who.locale;
-    let (mplexes, series, period) = match shown(&app, &who, &id, &q).await {
+    let (mplexes, series, period, _) = match shown(&app, &who, &id, &q).await {
         Ok(s) => s,
         Err(r) => return r,
     };
@@ -378,7 +404,7 @@ pub(super) async fn history_page(
         (1440, "24 h"),
         (10080, "7 d"),
     ];
-    let link = |p: &Period| format!("/lifts/{id}/history?{}", p.query(&list));
+    let link = |p: &Period| format!("{}/history?{}", lift_path(&id), p.query(&list));
     let charts = html! {
         section #charts data-live=[period.minutes.map(|_| list.as_str())] {
             @for (s, d) in series.iter().zip(&described) {
@@ -392,7 +418,7 @@ pub(super) async fn history_page(
         .collect::<Vec<_>>()
         .join(", ");
     let body = html! {
-        h1 { (l.fill("History of {} on", &[&title])) " " a href={ "/lifts/" (id) } { (id) } }
+        h1 { (l.fill("History of {} on", &[&title])) " " a href=(lift_path(&id)) { (id) } }
         p.ranges {
             @for (m, label) in ranges {
                 @let p = Period { from: 0, to: 0, minutes: Some(m) };
@@ -401,7 +427,7 @@ pub(super) async fn history_page(
         }
         p.muted.zone {}
         p {
-            a.csv href={ "/lifts/" (id) "/history.csv?" (period.query(&list)) } download {
+            a.csv href={ (lift_path(&id)) "/history.csv?" (period.query(&list)) } download {
                 (l.t("CSV of these values"))
             }
         }
@@ -462,6 +488,41 @@ fn figure(s: &Series, d: &Described, period: &Period, l: Locale) -> Markup {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A gateway's text a spreadsheet would run stays text; numbers stay numbers; a separator
+    /// or quote is quoted (RFC 4180).
+    #[test]
+    fn csv_cells_hold_no_formulas() {
+        assert_eq!(
+            cell("=HYPERLINK(\"http://x\")"),
+            "\"'=HYPERLINK(\"\"http://x\"\")\""
+        );
+        assert_eq!(cell("+1+cmd|' /C calc'!A0"), "\"'+1+cmd|' /C calc'!A0\"");
+        assert_eq!(cell("@SUM(A1)"), "\"'@SUM(A1)\"");
+        assert_eq!(cell("\tx"), "\"'\tx\"");
+        assert_eq!(cell("-3.5"), "-3.5");
+        assert_eq!(cell("+7"), "+7");
+        assert_eq!(cell("12"), "12");
+        assert_eq!(cell("a,b"), "\"a,b\"");
+        assert_eq!(cell("plain text"), "plain text");
+    }
+
+    /// A download's name never carries the gateway's quotes, semicolons or a path.
+    #[test]
+    fn download_names_are_sanitised() {
+        let header = attachment("1050-4096-Q\";filename*=UTF-8''evil.html;x=\"-0x652001.csv");
+        assert_eq!(
+            header,
+            "attachment; filename=\"1050-4096-Q__filename__UTF-8__evil.html_x__-0x652001.csv\"; \
+             filename*=UTF-8''1050-4096-Q__filename__UTF-8__evil.html_x__-0x652001.csv"
+        );
+        assert_eq!(
+            header.matches(';').count(),
+            2,
+            "two parameters alone: {header}"
+        );
+        assert_eq!(header.matches('"').count(), 2, "{header}");
+    }
 
     fn hour() -> Period {
         Period {

@@ -14,7 +14,7 @@ use nxg::portal::Failure;
 use serde::Deserialize;
 
 use super::i18n::Locale;
-use super::page::{layout, online_badge, time, unavailable};
+use super::page::{layout, lift_path, online_badge, time, unavailable};
 use super::{owned, SignedIn};
 use crate::state::AppState;
 use cloud_types::api::Form;
@@ -168,7 +168,7 @@ impl Object {
     fn history_link(&self, lift: &str, l: Locale) -> Markup {
         html! {
             @if self.numeric() && self.stored.is_some() {
-                a.chart href={ "/lifts/" (lift) "/history?mplex=" (self.mplex) } { (l.t("chart")) }
+                a.chart href={ (lift_path(lift)) "/history?mplex=" (self.mplex) } { (l.t("chart")) }
             }
         }
     }
@@ -359,6 +359,8 @@ pub(super) async fn lift_page(
         Ok(l) => l,
         Err(r) => return r,
     };
+    // The registry's key: the account's id of the lift is what the page shows and links.
+    let key = &lift.id;
     let (session, l) = (&who.session, who.locale);
     let (live, parameters) = (&app.dashboard.live, &app.dashboard.parameters);
     let asked = q.read.as_deref().map(str::trim).filter(|r| !r.is_empty());
@@ -373,15 +375,15 @@ pub(super) async fn lift_page(
     }
     let active = AlarmFilter {
         active: true,
-        lift: Some(id.clone()),
+        lift: Some(key.clone()),
         limit: 100,
     };
     // The gateway's answers and the database's at once: the page waits for the slower only.
     let (mut objects, stored, alarms, events) = tokio::join!(
-        read_all(&app, &id, &wanted, l),
-        app.store.latest(&id, &live_keys),
+        read_all(&app, key, &wanted, l),
+        app.store.latest(key, &live_keys),
         app.store.alarms(&session.operator.account.domain, &active),
-        app.store.event_log(&id, None, 50),
+        app.store.event_log(key, None, 50),
     );
     let (stored, alarms, events) = match (stored, alarms, events) {
         (Ok(s), Ok(a), Ok(e)) => (s, a, e),
@@ -427,7 +429,7 @@ pub(super) async fn lift_page(
         ("API", lift.api.to_string()),
     ];
     let body = html! {
-        h1 { (l.fill("Lift {}", &[&""])) code { (id) } " " (online_badge(&id, app.registry.online(&id), l)) }
+        h1 { (l.fill("Lift {}", &[&""])) code { (id) } " " (online_badge(&id, app.registry.online(key), l)) }
         @if let Some((n, call)) = &floors {
             section.call {
                 h2 { (l.t("Call the car")) }
@@ -448,7 +450,7 @@ pub(super) async fn lift_page(
             @if alarms.is_empty() {
                 p.ok { (l.t("No active alarm.")) }
             } @else {
-                (super::alarms::table(&alarms, &who, &format!("/lifts/{id}"), false))
+                (super::alarms::table(&alarms, &who, &lift_path(&id), false))
             }
         }
         p.rights.muted hidden role="status" {}

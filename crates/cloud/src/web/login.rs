@@ -13,8 +13,10 @@ use serde::Deserialize;
 
 use super::i18n::Locale;
 use super::page::{layout, problem, unavailable, Viewer};
+use crate::auth::passwords::Busy;
 use crate::auth::sessions::{Credential, COOKIE, IDLE};
 use crate::state::AppState;
+use crate::throttle::Attempt;
 
 pub(super) async fn login_page(locale: Locale) -> Response {
     login_form(None, locale)
@@ -28,8 +30,12 @@ fn login_form(error: Option<&str>, l: Locale) -> Response {
         }
         form.login method="post" action="/login" {
             label {
+                (l.t("Account "))
+                input type="text" name="account" autocomplete="organization" autofocus;
+            }
+            label {
                 (l.t("User name "))
-                input type="text" name="user" autocomplete="username" autofocus;
+                input type="text" name="user" autocomplete="username";
             }
             label {
                 (l.t("Secret "))
@@ -58,6 +64,8 @@ fn login_form(error: Option<&str>, l: Locale) -> Response {
 #[derive(Deserialize)]
 pub(super) struct LoginForm {
     #[serde(default)]
+    account: String,
+    #[serde(default)]
     user: String,
     #[serde(default)]
     secret: String,
@@ -69,55 +77,69 @@ pub(super) async fn login(
     State(app): State<Arc<AppState>>,
     ConnectInfo(peer): ConnectInfo<SocketAddr>,
     locale: Locale,
+    headers: HeaderMap,
     Form(form): Form<LoginForm>,
 ) -> Response {
+    // Login CSRF: another site's form must not sign the browser in to an account of the
+    // attacker's choosing (where a victim would type a lift's password into a rogue lift).
+    if !same_origin(&headers) {
+        let viewer = Viewer {
+            session: None,
+            locale,
+        };
+        return problem(
+            StatusCode::FORBIDDEN,
+            viewer,
+            locale.t("Sign in from the portal's own page."),
+        );
+    }
     let epoch = app.store.seen_auth_epoch();
     let key = form.key.trim();
-    // Failed attempts make the next ones wait, per name (keys count as one name) and address.
-    let name = if key.is_empty() {
-        form.user.trim()
+    let (account, user) = (form.account.trim(), form.user.trim());
+    // One name per account and user: the throttle's and the log's.
+    let qualified = format!("{user}@{account}");
+    let attempt = if key.is_empty() {
+        Attempt::User(&qualified)
     } else {
-        "(API key)"
+        Attempt::Key
     };
-    let address = peer.ip().to_string();
+    let address = peer.to_string();
     let sign_ins = || {
         app.auth
             .sign_ins
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
     };
-    let waiting = sign_ins().check(name, &address, Instant::now());
-    if let Err(wait) = waiting {
-        tracing::warn!(user = name, %address, wait_s = wait.as_secs(), "sign-in throttled");
+    if let Err(wait) = sign_ins().begin(attempt, &address, Instant::now()) {
+        tracing::warn!(user = %qualified, %address, wait_s = wait.as_secs(), "sign-in throttled");
         let text = locale.fill(
             "Too many failed sign-ins: try again in {} s.",
             &[&wait.as_secs().max(1)],
         );
-        let mut response = (
-            StatusCode::TOO_MANY_REQUESTS,
-            login_form(Some(&text), locale),
-        )
-            .into_response();
-        response
-            .headers_mut()
-            .insert(header::RETRY_AFTER, crate::errors::retry_after(wait));
-        return response;
+        return too_many(&text, wait, locale);
     }
     let signed_in = if key.is_empty() {
-        let user = form.user.trim();
-        app.store
-            .sign_in(user, form.secret.trim())
+        user_signs_in(&app, account, user, form.secret.trim())
             .await
-            .map(|o| o.map(|o| (o, Credential::User(user.to_owned()))))
+            .map(|o| {
+                o.map(|o| {
+                    let credential = Credential::User {
+                        account: account.to_owned(),
+                        name: user.to_owned(),
+                    };
+                    (o, credential)
+                })
+            })
     } else {
         app.store
             .operator_by_key(key)
             .await
             .map(|o| o.map(|o| (o, Credential::Key(cloud_store::digest(key)))))
+            .map_err(Undecided::Store)
     };
     match signed_in {
         Ok(Some((operator, credential))) => {
-            sign_ins().succeeded(name, &address);
+            sign_ins().succeeded(attempt, &address);
             tracing::info!(user = %operator.user, account = %operator.account.name, "web sign-in");
             let id = match app
                 .auth
@@ -139,12 +161,92 @@ pub(super) async fn login(
             response
         }
         Ok(None) => {
-            sign_ins().failed(name, &address, Instant::now());
-            let text = locale.t("Wrong user name, secret or API key.");
+            let text = locale.t("Wrong account, user name, secret or API key.");
             (StatusCode::UNAUTHORIZED, login_form(Some(text), locale)).into_response()
         }
-        Err(e) => database_down(e, locale),
+        Err(Undecided::Busy(busy)) => {
+            sign_ins().undecided(attempt, &address);
+            too_many(&busy.to_string(), std::time::Duration::from_secs(1), locale)
+        }
+        Err(Undecided::Store(e)) => {
+            sign_ins().undecided(attempt, &address);
+            database_down(e, locale)
+        }
     }
+}
+
+/// Whether a form post comes from the portal's own pages: its `Origin` (or, without one, its
+/// `Referer`) is this host's HTTPS origin. A request with neither — not a browser's — is
+/// taken as it is: CSRF needs a browser, and every browser sends `Origin` with a POST.
+fn same_origin(headers: &HeaderMap) -> bool {
+    let header = |name| {
+        headers
+            .get(name)
+            .and_then(|v: &HeaderValue| v.to_str().ok())
+    };
+    let Some(host) = header(header::HOST) else {
+        return false;
+    };
+    let ours = format!("https://{host}");
+    match (header(header::ORIGIN), header(header::REFERER)) {
+        (Some(origin), _) => origin == ours,
+        (None, Some(referer)) => {
+            referer == ours
+                || referer
+                    .strip_prefix(ours.as_str())
+                    .is_some_and(|rest| rest.starts_with('/'))
+        }
+        (None, None) => true,
+    }
+}
+
+/// Why a sign-in was neither let in nor refused.
+enum Undecided {
+    /// Too many secrets are being checked.
+    Busy(Busy),
+    /// The database did not answer.
+    Store(cloud_store::StoreError),
+}
+
+/// User `user` of `account` with `secret`, if the secret is right and the user enabled: the
+/// secret checked on the password threads, the same work for a name that does not exist.
+async fn user_signs_in(
+    app: &AppState,
+    account: &str,
+    user: &str,
+    secret: &str,
+) -> Result<Option<cloud_types::users::Operator>, Undecided> {
+    let hash = app
+        .store
+        .secret_hash(account, user)
+        .await
+        .map_err(Undecided::Store)?;
+    if !app
+        .auth
+        .passwords
+        .check(secret, hash)
+        .await
+        .map_err(Undecided::Busy)?
+    {
+        return Ok(None);
+    }
+    app.store
+        .operator(account, user)
+        .await
+        .map_err(Undecided::Store)
+}
+
+/// The sign-in page again, 429 with `Retry-After`.
+fn too_many(text: &str, wait: std::time::Duration, locale: Locale) -> Response {
+    let mut response = (
+        StatusCode::TOO_MANY_REQUESTS,
+        login_form(Some(text), locale),
+    )
+        .into_response();
+    response
+        .headers_mut()
+        .insert(header::RETRY_AFTER, crate::errors::retry_after(wait));
+    response
 }
 
 /// The page for a sign-in or sign-out the database failed.

@@ -60,11 +60,7 @@ impl FromRequestParts<Arc<AppState>> for SignedIn {
 
 /// The lift, if it is one of the signed-in account's (a 404 page otherwise).
 async fn owned(app: &AppState, who: &SignedIn, id: &str) -> Result<LiftRecord, Response> {
-    match app
-        .store
-        .lift(&who.session.operator.account.domain, id)
-        .await
-    {
+    match app.store.lift(&who.session.operator.account, id).await {
         Ok(Some(l)) => Ok(l),
         Ok(None) => Err(page::problem(
             StatusCode::NOT_FOUND,
@@ -90,9 +86,12 @@ async fn harden(mut response: Response) -> Response {
         header::X_CONTENT_TYPE_OPTIONS,
         HeaderValue::from_static("nosniff"),
     );
+    // No referrer to other sites; to this one the page's origin, so that the sign-in form's
+    // `Origin` is the portal's (with `no-referrer` browsers send `Origin: null`, which the
+    // login-CSRF check must refuse).
     h.insert(
         header::REFERRER_POLICY,
-        HeaderValue::from_static("no-referrer"),
+        HeaderValue::from_static("same-origin"),
     );
     h.insert(header::X_FRAME_OPTIONS, HeaderValue::from_static("DENY"));
     response

@@ -12,6 +12,24 @@ use cloud_types::users::Role;
 
 use cloud_store::StoreError;
 
+/// Characters a path segment carries as they are (RFC 3986 unreserved); all else is
+/// percent-encoded.
+const SEGMENT: &percent_encoding::AsciiSet = &percent_encoding::NON_ALPHANUMERIC
+    .remove(b'-')
+    .remove(b'.')
+    .remove(b'_')
+    .remove(b'~');
+
+/// The path of the page of lift `key` (a registry key or the id its account sees): the id,
+/// percent-encoded — a serial number may hold `/`, `?`, `#` or spaces.
+pub(super) fn lift_path(key: &str) -> String {
+    let id = cloud_types::lifts::shown_id(key);
+    format!(
+        "/lifts/{}",
+        percent_encoding::utf8_percent_encode(id, SEGMENT)
+    )
+}
+
 /// What every page is rendered for: the signed-in browser (absent: the sign-in page, without
 /// navigation) and its language.
 #[derive(Clone, Copy)]

@@ -262,8 +262,10 @@ fn broken(request: &Request, op: &Value, which: usize) -> Option<Request> {
         }
         1 if r.path.starts_with("/api/v1/lifts/") => {
             let rest = r.path.trim_start_matches("/api/v1/lifts/");
-            let tail = rest.split_once('/').map_or("", |(_, t)| t);
-            r.path = format!("/api/v1/lifts/9-9-NOSUCHLIFT/{tail}");
+            let tail = rest
+                .split_once('/')
+                .map_or(String::new(), |(_, t)| format!("/{t}"));
+            r.path = format!("/api/v1/lifts/9-9-NOSUCHLIFT{tail}");
             r.broken = "an unknown lift";
         }
         2 if has_body => {

@@ -290,7 +290,11 @@ async fn a_stopping_portal_records_when_its_gateways_were_last_seen() {
     rig.online().await;
     let store = rig.store().await;
     let seen = || async {
-        let lift = store.lift(testkit::constants::DOMAIN, LIFT).await;
+        let account = cloud_types::users::Account {
+            name: testkit::constants::ACCOUNT.into(),
+            domain: testkit::constants::DOMAIN.into(),
+        };
+        let lift = store.lift(&account, LIFT).await;
         lift.expect("the store answers")
             .expect("the lift")
             .last_seen

@@ -9,5 +9,6 @@ mod python_gateway;
 mod python_subscriptions;
 mod roles;
 mod storage;
+mod tenants;
 mod token_lifecycle;
 mod web_ui;

@@ -1,6 +1,8 @@
 //! Events, alarms and webhooks on the portal, against a fake api-2 gateway written with Python
-//! `websockets` and a webhook receiver written with Python's http.server and hmac (independent
-//! implementations of the connector's client side and of the signature check).
+//! `websockets` and a webhook receiver written with Python's http.server that checks every
+//! delivery with the Standard Webhooks reference library and with the verifier of
+//! docs/PORTAL.md §Webhooks (independent implementations of the connector's client side and of
+//! the signature check).
 
 use std::time::Duration;
 
@@ -11,7 +13,25 @@ use testkit::portal::Rig;
 use testkit::script::Script;
 
 const LIFT: &str = "1050-4096-PY-EVENTS";
-const SECRET: &str = "s3cret-for-the-receiver";
+/// The receiver's signing key, as Standard Webhooks writes one (base64 of the key's bytes).
+const SECRET: &str = "whsec_czNjcmV0LWZvci10aGUtcmVjZWl2ZXI=";
+/// The receiver's Basic credentials and a key in its query: never shown, anywhere.
+const USERINFO: &str = "hooks:pa55word";
+const QUERY_KEY: &str = "topsecret";
+
+/// The verifier of docs/PORTAL.md §Webhooks, as a Python file in `dir`.
+fn documented_verifier(dir: &std::path::Path) -> std::path::PathBuf {
+    let doc = include_str!("../../../../docs/PORTAL.md");
+    let section = &doc[doc.find("### Webhooks").expect("§Webhooks")..];
+    let code = section
+        .split("```python\n")
+        .nth(1)
+        .and_then(|rest| rest.split("```").next())
+        .expect("a Python block in §Webhooks");
+    let path = dir.join("verifier.py");
+    std::fs::write(&path, code).expect("written");
+    path
+}
 
 fn emcy(code: &str, register: &str, text: &str) -> String {
     let event = json!({"type": "emcy", "node": {"id": 1, "net": 1}, "time": "2026-11-23T10:11:12.345Z",
@@ -46,13 +66,14 @@ async fn events_become_alarms_that_reach_people() {
         return;
     };
     let hook_port = free_port();
-    let url = format!("http://127.0.0.1:{hook_port}/canlift");
+    let url = format!("http://{USERINFO}@127.0.0.1:{hook_port}/canlift?apikey={QUERY_KEY}");
     let mut rig = Rig::builder()
         .without_lift()
         .portal(move |config| {
             config.dashboard.live.clear();
             config.alarms.offline_after_s = 2;
             config.alarms.webhooks.push(cloud::config::WebhookSection {
+                name: Some("alerts".into()),
                 url,
                 secret: SECRET.into(),
                 min_severity: cloud_types::alarms::Severity::Major,
@@ -62,10 +83,12 @@ async fn events_become_alarms_that_reach_people() {
         .start()
         .await;
     // The receiver refuses the first two deliveries.
+    let verifier = documented_verifier(rig.dir());
+    let verifier = verifier.to_str().expect("UTF-8");
     let receiver = Script::start(
         &python,
         "webhook_receiver.py",
-        &[&hook_port.to_string(), SECRET, "2"],
+        &[&hook_port.to_string(), SECRET, "2", verifier],
     );
     receiver.wait_for("READY", 1, WAIT).await;
     let ca = rig.ca.display().to_string();
@@ -145,19 +168,24 @@ async fn events_become_alarms_that_reach_people() {
     assert!(all["alarms"][0]["cleared"].is_string());
     assert_eq!(all["alarms"][0]["acknowledged"]["by"], "masora");
 
-    // The receiver got raised, acknowledged, cleared — signed — after refusing two attempts.
+    // The receiver got raised, acknowledged, cleared — signed, with its Basic credentials, a
+    // replay of each refused — after refusing two attempts.
     let hooks = receiver
         .wait_for("HOOK 204", 3, Duration::from_secs(30))
         .await;
     assert_eq!(receiver.seen("HOOK 500").len(), 2, "retried after a 500");
+    let checked = format!(" valid replay-refused {USERINFO} ");
     assert!(
-        receiver.seen("HOOK").iter().all(|l| l.contains(" valid ")),
+        receiver.seen("HOOK").iter().all(|l| l.contains(&checked)),
         "{hooks:?}"
     );
     let changes: Vec<Value> = hooks
         .iter()
-        .map(|l| serde_json::from_str(l.splitn(4, ' ').nth(3).unwrap()).unwrap())
+        .map(|l| serde_json::from_str(l.splitn(6, ' ').nth(5).unwrap()).unwrap())
         .collect();
+    assert!(changes
+        .iter()
+        .all(|c| c["account"] == "masora" && c["alarm"]["lift"] == LIFT));
     let mut names: Vec<&str> = changes
         .iter()
         .map(|c| c["change"].as_str().unwrap())
@@ -185,7 +213,7 @@ async fn events_become_alarms_that_reach_people() {
     let receiver = Script::start(
         &python,
         "webhook_receiver.py",
-        &[&hook_port.to_string(), SECRET, "0"],
+        &[&hook_port.to_string(), SECRET, "0", verifier],
     );
     let hooks = receiver
         .wait_for("HOOK 204", 1, Duration::from_secs(30))
@@ -193,7 +221,7 @@ async fn events_become_alarms_that_reach_people() {
     assert!(
         hooks
             .iter()
-            .any(|h| h.contains("0xF001") && h.contains(" valid ")),
+            .any(|h| h.contains("0xF001") && h.contains(&checked)),
         "{hooks:?}"
     );
     // The attempts are in the audit log and the metrics.
@@ -205,7 +233,37 @@ async fn events_become_alarms_that_reach_people() {
         .filter(|e| e["action"] == "webhook")
         .count();
     assert!(webhook_entries >= 4, "{audit}");
-    let (status, metrics) = rig.call("GET", "/metrics", None, None).await;
+    // The receiver's URL — credentials, query, address — is in no answer and on no page:
+    // the audit log names it by its name.
+    let port = format!(":{hook_port}");
+    let secrets = ["pa55word", QUERY_KEY, port.as_str(), "127.0.0.1"];
+    let (_, alarms) = rig
+        .call("GET", "/api/v1/alarms?state=all", Some(&rig.key), None)
+        .await;
+    let browser = cloud::client::Client::new(&rig.url(), None, Some(&rig.ca)).expect("a client");
+    let form = [("key", rig.key.as_str())];
+    let signed_in = browser
+        .exchange("POST", "/login", cloud::client::Body::Form(&form))
+        .await
+        .expect("signed in");
+    let browser = browser.with_cookie(&signed_in.set_cookie.expect("a session"));
+    let mut shown = vec![audit.to_string(), alarms.to_string()];
+    for page in ["/audit", "/alarms", &format!("/lifts/{LIFT}")] {
+        let (status, html) = browser.call("GET", page, None).await.expect("a page");
+        assert_eq!(status, 200, "{page}");
+        shown.push(html.to_string());
+    }
+    for text in &shown {
+        for secret in secrets {
+            assert!(!text.contains(secret), "{secret} shown: {text}");
+        }
+    }
+    assert!(
+        audit.to_string().contains("\"object\":\"alerts\""),
+        "{audit}"
+    );
+    let token = Some(testkit::constants::METRICS_TOKEN);
+    let (status, metrics) = rig.call("GET", "/metrics", token, None).await;
     assert_eq!(status, 200);
     assert!(
         metrics

@@ -255,9 +255,14 @@ async fn rights_taken_away_count_within_a_second() {
     rig.stop().await;
 }
 
-/// The web UI's sign-in form, posted.
+/// The web UI's sign-in form, posted (a user of account masora).
 async fn web_sign_in(client: &cloud::client::Client, user: &str, secret: &str) -> Reply {
-    let form = [("user", user), ("secret", secret), ("key", "")];
+    let form = [
+        ("account", "masora"),
+        ("user", user),
+        ("secret", secret),
+        ("key", ""),
+    ];
     let reply = client.exchange("POST", "/login", Body::Form(&form)).await;
     reply.expect("the portal answers")
 }

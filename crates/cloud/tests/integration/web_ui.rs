@@ -234,7 +234,7 @@ async fn operator_uses_the_web_ui() {
     assert_sign_in_asked(&client, &format!("{base}/lifts/{LIFT}")).await;
     sign_in(&client, "clk_wrong").await;
     let refused = until("refusal shown", 10, || text_of(&client, "p.error")).await;
-    assert_eq!(refused, "Wrong user name, secret or API key.");
+    assert_eq!(refused, "Wrong account, user name, secret or API key.");
 
     // Sign in: the fleet shows the lift in service, with no fault.
     sign_in(&client, &rig.key).await;
@@ -910,8 +910,9 @@ async fn a_fault_reaches_the_fleet_page_and_is_acknowledged() {
     rig.stop().await;
 }
 
-/// Sign in with a user's name and secret.
+/// Sign in with a user's name and secret (of account masora).
 async fn sign_in_as(client: &Client, user: &str, secret: &str) {
+    type_into(client, "input[name=account]", testkit::constants::ACCOUNT).await;
     type_into(client, "input[name=user]", user).await;
     type_into(client, "input[name=secret]", secret).await;
     click(client, "form.login button").await;
@@ -950,7 +951,7 @@ async fn each_role_sees_what_it_may_do() {
     client.goto(&lift_page).await.unwrap();
     sign_in_as(&client, "vera", "cls_wrong").await;
     let refused = until("refusal shown", 10, || text_of(&client, "p.error")).await;
-    assert_eq!(refused, "Wrong user name, secret or API key.");
+    assert_eq!(refused, "Wrong account, user name, secret or API key.");
     screenshot(&client, "sign-in").await;
     sign_in_as(&client, "vera", &viewer).await;
     until("the fleet", 10, || text_of(&client, "table.fleet")).await;

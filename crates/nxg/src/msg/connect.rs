@@ -53,13 +53,17 @@ pub struct Connect {
 }
 
 impl Connect {
-    /// What the portal checks beyond the types: the serial number is there, texts are bounded
-    /// and free of control characters, the API version is at least 1, the token at most 128
-    /// characters.
+    /// What the portal checks beyond the types: the serial number is there, texts are bounded,
+    /// free of control, format and private-use characters and in Unicode's composed normal
+    /// form (NFC), the API version is at least 1, the token at most 128 characters
+    /// (docs/PROTOCOL.md §Connection).
     ///
     /// Control characters have no place in an identity, and one of them (NUL) is a text
     /// PostgreSQL refuses to store: the portal asks about many CONNECTs in one statement, so one
-    /// gateway's NUL would fail the admissions of the others asked with it.
+    /// gateway's NUL would fail the admissions of the others asked with it. Format characters
+    /// (a zero-width space, a direction mark), private-use ones and texts in another normal
+    /// form look like another identity on a screen while being a different one: a second
+    /// lift beside the real one that an operator cannot tell apart.
     pub fn validate(&self) -> Result<(), String> {
         let id = &self.identity;
         if id.sernum.is_empty() {
@@ -78,8 +82,8 @@ impl Connect {
             if text.chars().count() > longest {
                 return Err(format!("{name} is longer than {longest} characters"));
             }
-            if text.chars().any(char::is_control) {
-                return Err(format!("{name} holds a control character"));
+            if let Some(why) = unfit(text) {
+                return Err(format!("{name} holds {why}"));
             }
         }
         if id.api == 0 {
@@ -87,6 +91,26 @@ impl Connect {
         }
         Ok(())
     }
+}
+
+/// What makes `text` unfit for an identity, if anything: a control, format or private-use
+/// character (named by its code point), or a form other than NFC.
+fn unfit(text: &str) -> Option<String> {
+    use unicode_properties::{GeneralCategory, UnicodeGeneralCategory};
+    for c in text.chars() {
+        let kind = match c.general_category() {
+            GeneralCategory::Control => "a control character",
+            GeneralCategory::Format => "a format character",
+            GeneralCategory::PrivateUse => "a private-use character",
+            GeneralCategory::Surrogate | GeneralCategory::Unassigned => "an unassigned code point",
+            _ => continue,
+        };
+        return Some(format!("{kind} (U+{:04X})", u32::from(c)));
+    }
+    if !unicode_normalization::is_nfc(text) {
+        return Some("text not in Unicode normal form C (NFC)".into());
+    }
+    None
 }
 
 /// The portal's answer to CONNECT: the API version in force.
@@ -192,8 +216,25 @@ mod tests {
         bad.identity.sernum = "18091701\u{0}".into();
         assert_eq!(
             bad.validate(),
-            Err("sernum holds a control character".into())
+            Err("sernum holds a control character (U+0000)".into())
         );
+        // Look-alikes: a zero-width space, a direction mark, a private-use character, a
+        // decomposed umlaut beside the composed one.
+        for (text, why) in [
+            ("1809170102\u{200b}", "a format character (U+200B)"),
+            ("\u{202e}2010", "a format character (U+202E)"),
+            ("18\u{e000}", "a private-use character (U+E000)"),
+            ("Mu\u{308}ller", "not in Unicode normal form C"),
+        ] {
+            let mut bad = bare.clone();
+            bad.identity.sernum = text.into();
+            let refused = bad.validate().unwrap_err();
+            assert!(refused.contains(why), "{text:?}: {refused}");
+        }
+        let mut fine = bare.clone();
+        fine.identity.sernum = "M\u{fc}ller-2024/17 #3".into();
+        fine.identity.hardware = "Thor @ NX-T2 · Ω".into();
+        assert_eq!(fine.validate(), Ok(()));
         let mut bad = bare.clone();
         bad.domaintoken = "MAS\n".into();
         assert!(bad.validate().unwrap_err().contains("domaintoken"));

@@ -6,6 +6,7 @@ use std::time::Duration;
 use tokio::net::TcpStream;
 use tokio::process::Child;
 
+use testkit::constants::METRICS_TOKEN;
 use testkit::free_port;
 
 use super::{daemon, kill, run, stderr};
@@ -41,7 +42,7 @@ impl PortalProcess {
         std::fs::write(
             &config,
             format!(
-                "[state]\ndir = \"{}\"\n[server]\nlisten = \"127.0.0.1:{port}\"\n{extra}",
+                "[state]\ndir = \"{}\"\n[server]\nlisten = \"127.0.0.1:{port}\"\nmetrics_token = \"{METRICS_TOKEN}\"\n{extra}",
                 state.display()
             ),
         )
@@ -55,11 +56,21 @@ impl PortalProcess {
         }
     }
 
-    /// `canlift cloud account add NAME --domain DOMAIN`: the new account's API key.
+    /// `canlift cloud account add NAME --domain DOMAIN` (a short one, as the load generator's):
+    /// the new account's API key.
     pub async fn add_account(&self, name: &str, domain: &str) -> String {
         let config = self.config.to_str().expect("UTF-8");
         let out = run(&[
-            "cloud", "account", "add", name, "--domain", domain, "--json", "--config", config,
+            "cloud",
+            "account",
+            "add",
+            name,
+            "--domain",
+            domain,
+            "--allow-short-domain-token",
+            "--json",
+            "--config",
+            config,
         ])
         .await;
         assert!(out.status.success(), "{}", stderr(&out));
@@ -165,7 +176,7 @@ impl PortalProcess {
 
     /// One counter or gauge from `/metrics`.
     pub async fn metric(&self, name: &str) -> u64 {
-        let value = self.client("").metric(name).await;
+        let value = self.client(METRICS_TOKEN).metric(name).await;
         match value {
             Ok(Some(v)) => v as u64,
             other => panic!("/metrics, {name}: {other:?}"),
