@@ -200,18 +200,6 @@ impl GatewaysSection {
             .then(|| Duration::from_secs(u64::from(self.token_rotate_days) * 86_400))
     }
 
-    /// How the portal treats every gateway.
-    pub fn policy(&self) -> crate::gateways::Policy {
-        crate::gateways::Policy {
-            settings: self.settings(),
-            max_messages_per_s: self.max_messages_per_s,
-            max_value_bytes: self.max_value_bytes,
-            max_stored_bytes_per_hour: self.max_stored_bytes_per_hour,
-            boardhash_change: self.boardhash_change,
-            token_lifetime: self.token_lifetime(),
-        }
-    }
-
     /// The session settings.
     pub fn settings(&self) -> Settings {
         Settings {

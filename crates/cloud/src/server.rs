@@ -419,7 +419,7 @@ impl Portal {
             shared: Arc::new(Shared {
                 store: store.clone(),
                 registry: registry.clone(),
-                policy: config.gateways.policy(),
+                policy: gateways::Policy::of(&config.gateways),
                 telemetry: telemetry.clone(),
                 admissions,
                 records,

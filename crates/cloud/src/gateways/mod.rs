@@ -419,6 +419,20 @@ pub struct Policy {
     pub token_lifetime: Option<std::time::Duration>,
 }
 
+impl Policy {
+    /// The policy of `[gateways]`.
+    pub fn of(section: &crate::config::GatewaysSection) -> Policy {
+        Policy {
+            settings: section.settings(),
+            max_messages_per_s: section.max_messages_per_s,
+            max_value_bytes: section.max_value_bytes,
+            max_stored_bytes_per_hour: section.max_stored_bytes_per_hour,
+            boardhash_change: section.boardhash_change,
+            token_lifetime: section.token_lifetime(),
+        }
+    }
+}
+
 /// What a connection task needs.
 #[derive(Clone)]
 pub struct Shared {
