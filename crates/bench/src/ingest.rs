@@ -96,6 +96,7 @@ pub async fn run(args: IngestBench) -> anyhow::Result<()> {
             rx,
             counters.clone(),
             stopping,
+            Default::default(),
         ));
         let cpu0 = cpu_time(std::process::id()).unwrap_or_default();
         let started = Instant::now();

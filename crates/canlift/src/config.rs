@@ -1,7 +1,7 @@
 //! Daemon configuration: a TOML file, then `CANLIFT_<SECTION>_<KEY>` environment overrides,
 //! then command-line flags (docs/ARCHITECTURE.md §Conventions). `--print-config` shows the result with defaults.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, bail, Context};
 use serde::de::DeserializeOwned;
@@ -30,6 +30,15 @@ pub fn load<T: DeserializeOwned + Serialize + Default>(
     apply_env(&mut table, section, std::env::vars())?;
     T::deserialize(toml::Value::Table(table))
         .with_context(|| format!("invalid [{section}] configuration"))
+}
+
+/// Where a daemon's configuration is: `given` (`--config`, or `CANLIFT_CONFIG`), else the
+/// installed one, `/etc/canlift/NAME.toml`, when it exists (the package's place for it).
+pub fn or_installed(given: Option<PathBuf>, name: &str) -> Option<PathBuf> {
+    given.or_else(|| {
+        let installed = Path::new("/etc/canlift").join(format!("{name}.toml"));
+        installed.is_file().then_some(installed)
+    })
 }
 
 /// Load a whole multi-section document (a daemon with several sections, like the gateway) into

@@ -1,5 +1,7 @@
-//! Structured logs on stderr: human-readable text or JSON lines (`--log-format json`); the
-//! level comes from `RUST_LOG` (default `info`).
+//! Structured logs on stderr: human-readable text or JSON lines (`--log-format json`, or
+//! `CANLIFT_LOG_FORMAT=json`); the level comes from `RUST_LOG` (default `info`). Each JSON line
+//! names the service (the subcommand: `cloud`, `gateway`, `hub` …) and the version, as a log
+//! collector receiving the lines of many processes needs.
 
 use std::io::IsTerminal;
 
@@ -31,8 +33,40 @@ fn filter(rust_log: Option<&str>, default: &str) -> Result<Targets, String> {
     }
 }
 
-/// Install the global subscriber; `default` is the level when `RUST_LOG` is unset.
-pub fn init(format: LogFormat, default: &str) {
+/// JSON lines that begin with the service and the version: tracing-subscriber's JSON line
+/// (timestamp, level, fields, target), the two fields put first.
+struct Stamped {
+    head: String,
+    json: tracing_subscriber::fmt::format::Format<tracing_subscriber::fmt::format::Json>,
+}
+
+impl<S, N> tracing_subscriber::fmt::FormatEvent<S, N> for Stamped
+where
+    S: tracing::Subscriber + for<'a> tracing_subscriber::registry::LookupSpan<'a>,
+    N: for<'a> tracing_subscriber::fmt::FormatFields<'a> + 'static,
+{
+    fn format_event(
+        &self,
+        ctx: &tracing_subscriber::fmt::FmtContext<'_, S, N>,
+        mut writer: tracing_subscriber::fmt::format::Writer<'_>,
+        event: &tracing::Event<'_>,
+    ) -> std::fmt::Result {
+        let mut line = String::new();
+        self.json.format_event(
+            ctx,
+            tracing_subscriber::fmt::format::Writer::new(&mut line),
+            event,
+        )?;
+        match line.strip_prefix('{') {
+            Some(rest) => write!(writer, "{{{},{rest}", self.head),
+            None => writer.write_str(&line),
+        }
+    }
+}
+
+/// Install the global subscriber for `service` (the subcommand); `default` is the level when
+/// `RUST_LOG` is unset.
+pub fn init(format: LogFormat, service: &str, default: &str) {
     let rust_log = std::env::var("RUST_LOG").ok();
     let (targets, refused) = match filter(rust_log.as_deref(), default) {
         Ok(t) => (t, None),
@@ -44,7 +78,19 @@ pub fn init(format: LogFormat, default: &str) {
         .with_writer(std::io::stderr);
     let layer = match format {
         LogFormat::Text => layer.boxed(),
-        LogFormat::Json => layer.json().boxed(),
+        LogFormat::Json => {
+            let head = format!(
+                "\"service\":{},\"version\":{}",
+                serde_json::Value::from(service),
+                serde_json::Value::from(env!("CARGO_PKG_VERSION"))
+            );
+            let json = tracing_subscriber::fmt::format().json().flatten_event(true);
+            layer
+                .json()
+                .flatten_event(true)
+                .event_format(Stamped { head, json })
+                .boxed()
+        }
     };
     tracing_subscriber::registry()
         .with(layer.with_filter(targets))

@@ -11,7 +11,13 @@ use clap::{Parser, Subcommand};
 #[command(name = "canlift", version, about, long_about = None)]
 struct Cli {
     /// Log format on stderr (level from RUST_LOG; default info, warn for loadgen).
-    #[arg(long, value_enum, global = true, default_value = "text")]
+    #[arg(
+        long,
+        value_enum,
+        global = true,
+        default_value = "text",
+        env = "CANLIFT_LOG_FORMAT"
+    )]
     log_format: logging::LogFormat,
     #[command(subcommand)]
     command: Command,
@@ -78,6 +84,47 @@ enum Command {
     Loadgen(cmd::loadgen::LoadgenArgs),
 }
 
+impl Command {
+    /// The service a log line names (the subcommand).
+    fn service(&self) -> &'static str {
+        match self {
+            #[cfg(feature = "portal")]
+            Command::Demo(_) => "demo",
+            Command::Hub(_) => "hub",
+            Command::Dump(_) => "dump",
+            Command::Nmt(_) => "nmt",
+            Command::Sdo(_) => "sdo",
+            Command::Ascii(_) => "ascii",
+            Command::Scan(_) => "scan",
+            Command::Lss(_) => "lss",
+            Command::Pdo(_) => "pdo",
+            Command::Dcf(_) => "dcf",
+            Command::Sync(_) => "sync",
+            Command::Time(_) => "time",
+            Command::Emcy(_) => "emcy",
+            Command::Gateway(_) => "gateway",
+            #[cfg(feature = "portal")]
+            Command::Cloud(_) => "cloud",
+            #[cfg(feature = "portal")]
+            Command::Lifts(_) => "lifts",
+            #[cfg(feature = "portal")]
+            Command::Get(_) => "get",
+            #[cfg(feature = "portal")]
+            Command::Put(_) => "put",
+            #[cfg(feature = "portal")]
+            Command::Watch(_) => "watch",
+            #[cfg(feature = "portal")]
+            Command::Token(_) => "token",
+            #[cfg(feature = "portal")]
+            Command::Alarms(_) => "alarms",
+            #[cfg(feature = "portal")]
+            Command::Events(_) => "events",
+            Command::Sim(_) => "sim",
+            Command::Loadgen(_) => "loadgen",
+        }
+    }
+}
+
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     // Thousands of gateways in one process would log every connection: quieter by default.
@@ -85,7 +132,7 @@ fn main() -> std::process::ExitCode {
         Command::Loadgen(_) => "warn",
         _ => "info",
     };
-    logging::init(cli.log_format, level);
+    logging::init(cli.log_format, cli.command.service(), level);
     // A gateway serves one connection: one worker thread is enough, and on a device each
     // further thread costs its stack and an allocator arena (docs/BENCHMARKS.md §Elevator
     // gateway). `TOKIO_WORKER_THREADS` still decides where it is set. Everything else (portal,
@@ -145,6 +192,9 @@ fn main() -> std::process::ExitCode {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("canlift: {e:#}");
+            #[cfg(feature = "portal")]
+            return cmd::exit::status(&e);
+            #[cfg(not(feature = "portal"))]
             std::process::ExitCode::FAILURE
         }
     }

@@ -147,7 +147,7 @@ impl Master {
                             match PdoValues::split(f.id(), &route.mapping, f.data()) {
                                 Some(values) => (route.callback)(&values),
                                 None => {
-                                    tracing::debug!(id = ?f.id(), len = f.data().len(), "PDO shorter than its mapping")
+                                    tracing::debug!(id = %f.id(), len = f.data().len(), "PDO shorter than its mapping")
                                 }
                             }
                             continue;

@@ -92,27 +92,13 @@ impl Client {
         let io = |e: &dyn std::fmt::Display| {
             ClientError::Io(format!("{}:{}: {e}", self.host, self.port))
         };
-        let tcp = match self.source {
-            None => tokio::net::TcpStream::connect((self.host.as_str(), self.port))
-                .await
-                .map_err(|e| io(&e))?,
-            Some(source) => {
-                let target = tokio::net::lookup_host((self.host.as_str(), self.port))
-                    .await
-                    .map_err(|e| io(&e))?
-                    .find(|a| a.is_ipv4() == source.is_ipv4())
-                    .ok_or_else(|| io(&"no address of the source's family"))?;
-                let socket = match source {
-                    std::net::IpAddr::V4(_) => tokio::net::TcpSocket::new_v4(),
-                    std::net::IpAddr::V6(_) => tokio::net::TcpSocket::new_v6(),
-                }
-                .map_err(|e| io(&e))?;
-                socket
-                    .bind(std::net::SocketAddr::new(source, 0))
-                    .map_err(|e| io(&e))?;
-                socket.connect(target).await.map_err(|e| io(&e))?
-            }
-        };
+        // Through HTTPS_PROXY unless NO_PROXY names the portal (tls::reach).
+        let proxy = tls::reach::Proxies::Environment
+            .for_server(&self.host, self.port)
+            .map_err(|e| io(&e))?;
+        let tcp = tls::reach::connect(&self.host, self.port, self.source, proxy.as_ref())
+            .await
+            .map_err(|e| io(&e))?;
         let _ = tcp.set_nodelay(true);
         let name = rustls::pki_types::ServerName::try_from(self.host.clone())
             .map_err(|e| ClientError::Tls(e.to_string()))?;
@@ -211,7 +197,8 @@ impl Client {
         }
         Ok(Ok(EventStream {
             body: response.into_body(),
-            buffer: String::new(),
+            parser: crate::sse::SseParser::default(),
+            ready: std::collections::VecDeque::new(),
         }))
     }
 }
@@ -400,36 +387,24 @@ async fn answer(response: hyper::Response<hyper::body::Incoming>) -> Result<Answ
     Ok((status, value))
 }
 
-/// Server-Sent Events as they arrive.
+/// Server-Sent Events as they arrive (read by [`crate::sse::SseParser`]).
 pub struct EventStream {
     body: hyper::body::Incoming,
-    buffer: String,
+    parser: crate::sse::SseParser,
+    ready: std::collections::VecDeque<crate::sse::SseEvent>,
 }
 
 impl EventStream {
     /// The next event: (event name, data); `None` when the stream ends.
     pub async fn next(&mut self) -> Option<Result<(String, String), ClientError>> {
         loop {
-            if let Some(end) = self.buffer.find("\n\n") {
-                let block: String = self.buffer.drain(..end + 2).collect();
-                let mut event = "message".to_owned();
-                let mut text = String::new();
-                for line in block.lines() {
-                    if let Some(e) = line.strip_prefix("event:") {
-                        event = e.trim().to_owned();
-                    } else if let Some(d) = line.strip_prefix("data:") {
-                        text.push_str(d.trim_start());
-                    }
-                }
-                if !text.is_empty() {
-                    return Some(Ok((event, text)));
-                }
-                continue;
+            if let Some(e) = self.ready.pop_front() {
+                return Some(Ok((e.event, e.data)));
             }
             match self.body.frame().await? {
                 Ok(frame) => {
                     if let Ok(data) = frame.into_data() {
-                        self.buffer.push_str(&String::from_utf8_lossy(&data));
+                        self.ready.extend(self.parser.feed(&data));
                     }
                 }
                 Err(e) => return Some(Err(ClientError::Io(e.to_string()))),

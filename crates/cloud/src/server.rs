@@ -28,6 +28,7 @@ use crate::forwarded::TrustedProxies;
 use crate::gateways::local::LocalLifts;
 use crate::gateways::reports::Reports;
 use crate::gateways::{self, telemetry, Registry, Shared};
+use crate::metrics::{Exposition, Sample};
 use crate::state::AppState;
 use cloud_cluster::nats::{NatsAccess, NatsConfigError};
 use cloud_cluster::Cluster;
@@ -328,7 +329,13 @@ impl Portal {
             }
             cluster = Some(join_cluster(config, url).await?);
         }
-        let registry = Arc::new(Registry::new(cluster.as_ref().map(|(c, _)| c.clone())));
+        let exposition =
+            Arc::new(Exposition::new().map_err(|e| ServerError::Other(e.to_string()))?);
+        let timings = exposition.timings.clone();
+        let registry = Arc::new(Registry::new(
+            cluster.as_ref().map(|(c, _)| c.clone()),
+            timings.round_trips.clone(),
+        ));
         let dashboard = Arc::new(config.dashboard.dashboard().map_err(ServerError::Other)?);
         let subscriptions = Arc::new(gateways::subscriptions::Subscriptions::new(
             registry.clone(),
@@ -346,7 +353,8 @@ impl Portal {
         let (telemetry, telemetry_rx) =
             telemetry::Queue::new(config.database.telemetry_queue, Arc::default());
         let (records, records_rx) = gateways::records::Records::new(store.clone());
-        let (admissions, admitting) = gateways::admissions::Admissions::start(store.clone());
+        let (admissions, admitting) =
+            gateways::admissions::Admissions::start(store.clone(), timings.database.clone());
         tasks.push(admitting);
         let admitted = admissions.counters.clone();
         let (stop_writers, stopping) = watch::channel(false);
@@ -356,11 +364,13 @@ impl Portal {
                 telemetry_rx,
                 telemetry.counters().clone(),
                 stopping.clone(),
+                timings.database.clone(),
             )),
             tokio::spawn(gateways::records::writer(
                 store.clone(),
                 records_rx,
                 stopping,
+                timings.database.clone(),
             )),
         ];
         tasks.extend([
@@ -396,7 +406,7 @@ impl Portal {
             // a second (`/healthz`).
             tokio::spawn(store.clone().watch_writes(Duration::from_secs(5))),
         ]);
-        let (alarms, reports) = start_alarms(config, &store, &registry, &mut tasks)?;
+        let (alarms, reports) = start_alarms(config, &store, &registry, &timings, &mut tasks)?;
         // Rights taken away anywhere reach this process within a second.
         tasks.push(tokio::spawn(
             store
@@ -435,36 +445,31 @@ impl Portal {
         let m = metrics.clone();
         let r = registry.clone();
         let a = alarms.counters.clone();
+        let (telemetry, admitted, reports) = (telemetry.clone(), admitted.clone(), reports.clone());
+        let exposition = exposition.clone();
         let health_of = store.clone();
         let refused = refusals.clone();
         // `/metrics` (docs/PORTAL.md §Metrics): on a listener of its own, or on the public port
         // for the bearer of `metrics_token`, or not at all.
         let render: Metered = Arc::new(move || {
-            let (m, r, t, a) = (m.clone(), r.clone(), telemetry.clone(), a.clone());
-            let (admitted, reports) = (admitted.clone(), reports.clone());
-            let more = Sampled {
-                // 1 while the database takes writes (docs/PORTAL.md §Health).
-                gauges: vec![(
-                    "canlift_database_healthy",
-                    u64::from(health_of.health().trouble().is_none()),
-                )],
-                counters: refused
-                    .counts()
-                    .into_iter()
-                    .map(|(reason, n)| (refused_name(reason), n))
-                    .chain([
-                        (
-                            "canlift_gateways_refusals_recorded_total",
-                            refused.recorded.load(Ordering::Relaxed),
-                        ),
-                        (
-                            "canlift_gateways_refusals_unrecorded_total",
-                            refused.unrecorded.load(Ordering::Relaxed),
-                        ),
-                    ])
-                    .collect(),
-            };
-            metrics_text(&m, &r, &t, &a, &reports, &admitted, more)
+            let mut now = samples(&m, &r, &telemetry, &a, &reports, &admitted);
+            // 1 while the database takes writes (docs/PORTAL.md §Health).
+            let healthy = health_of.health().trouble().is_none();
+            now.push(Sample::of("canlift_database_healthy", u64::from(healthy)));
+            now.extend(refused.counts().into_iter().map(|(reason, n)| {
+                Sample::labelled("canlift_gateways_refused_total", reason.name(), n)
+            }));
+            now.extend([
+                Sample::of(
+                    "canlift_gateways_refusals_recorded_total",
+                    refused.recorded.load(Ordering::Relaxed),
+                ),
+                Sample::of(
+                    "canlift_gateways_refusals_unrecorded_total",
+                    refused.unrecorded.load(Ordering::Relaxed),
+                ),
+            ]);
+            exposition.render(&now)
         });
         if let Some(listen) = config.server.metrics_listen {
             tasks.push(serve_metrics(listen, render.clone()).await?);
@@ -501,6 +506,10 @@ impl Portal {
                 api::routes(app.clone())
                     .merge(crate::web::routes(app))
                     .layer(tower_http::compression::CompressionLayer::new())
+                    .layer(axum::middleware::from_fn_with_state(
+                        timings.requests.clone(),
+                        time_request,
+                    ))
             });
         if let Some(token) = config.server.metrics_token.clone() {
             let token = Arc::new(token);
@@ -809,6 +818,7 @@ fn start_alarms(
     config: &Config,
     store: &Store,
     registry: &Arc<Registry>,
+    timings: &crate::metrics::Timings,
     tasks: &mut Vec<tokio::task::JoinHandle<()>>,
 ) -> Result<(Arc<Alarms>, Reports), ServerError> {
     let receivers = config
@@ -840,36 +850,32 @@ fn start_alarms(
         reports_rx,
         acknowledged_rx,
     )));
-    tasks.push(tokio::spawn(webhook::deliver(alarms.clone(), receivers)));
+    tasks.push(tokio::spawn(webhook::deliver(
+        alarms.clone(),
+        receivers,
+        timings.webhooks.clone(),
+    )));
     Ok((alarms, reports))
 }
 
-/// The sample of `canlift_gateways_refused_total` for `reason`.
-fn refused_name(reason: gateways::refusals::Reason) -> &'static str {
-    use gateways::refusals::Reason;
-    match reason {
-        Reason::Domain => "canlift_gateways_refused_total{reason=\"domain\"}",
-        Reason::Token => "canlift_gateways_refused_total{reason=\"token\"}",
-        Reason::Board => "canlift_gateways_refused_total{reason=\"board\"}",
-        Reason::Identity => "canlift_gateways_refused_total{reason=\"identity\"}",
-        Reason::Taken => "canlift_gateways_refused_total{reason=\"taken\"}",
-        Reason::Address => "canlift_gateways_refused_total{reason=\"address\"}",
-    }
-}
-
-/// The sample of `canlift_telemetry_dropped_total` for `why`.
-fn dropped_names(why: telemetry::Dropped) -> &'static str {
-    match why {
-        telemetry::Dropped::Database => "canlift_telemetry_dropped_total{reason=\"database\"}",
-        telemetry::Dropped::Queue => "canlift_telemetry_dropped_total{reason=\"queue\"}",
-        telemetry::Dropped::Refused => "canlift_telemetry_dropped_total{reason=\"refused\"}",
-        telemetry::Dropped::TooLarge => "canlift_telemetry_dropped_total{reason=\"too_large\"}",
-        telemetry::Dropped::Unsubscribed => {
-            "canlift_telemetry_dropped_total{reason=\"unsubscribed\"}"
-        }
-        telemetry::Dropped::Quota => "canlift_telemetry_dropped_total{reason=\"quota\"}",
-        telemetry::Dropped::Stopping => "canlift_telemetry_dropped_total{reason=\"stopping\"}",
-    }
+/// Time an operator request (REST API or web UI) until its answer's head, by its route's
+/// template (`/api/v1/lifts/{id}/objects/{mplex}`: the ids are not labels) and method.
+async fn time_request(
+    State(requests): State<prometheus::HistogramVec>,
+    request: axum::extract::Request,
+    next: axum::middleware::Next,
+) -> Response {
+    let route = request
+        .extensions()
+        .get::<axum::extract::MatchedPath>()
+        .map_or_else(|| "unmatched".to_owned(), |p| p.as_str().to_owned());
+    let method = request.method().clone();
+    let started = std::time::Instant::now();
+    let response = next.run(request).await;
+    requests
+        .with_label_values(&[route.as_str(), method.as_str()])
+        .observe(started.elapsed().as_secs_f64());
+    response
 }
 
 /// What renders `/metrics`.
@@ -927,134 +933,114 @@ async fn serve_metrics(
     }))
 }
 
-/// Metrics read where the router is built, beside the ones [`metrics_text`] reads itself.
-struct Sampled {
-    gauges: Vec<(&'static str, u64)>,
-    counters: Vec<(&'static str, u64)>,
-}
-
-fn metrics_text(
+/// The values of the families the portal counts in its own atomics (docs/PORTAL.md §Metrics).
+fn samples(
     m: &Metrics,
     r: &Registry,
     telemetry: &telemetry::Queue,
     a: &service::Counters,
     reports: &Reports,
     admitted: &gateways::admissions::AdmissionCounters,
-    more: Sampled,
-) -> String {
+) -> Vec<Sample> {
     let t = telemetry.counters();
     let load = |c: &AtomicU64| c.load(Ordering::Relaxed);
-    let counters = [
-        ("canlift_gateway_connections_total", load(&m.connections)),
-        (
+    let mut samples = vec![
+        Sample::of("canlift_gateway_connections_total", load(&m.connections)),
+        Sample::of(
             "canlift_gateway_upgrades_refused_total",
             load(&m.upgrades_refused),
         ),
-        ("canlift_gateways_admitted_total", load(&admitted.admitted)),
-        (
+        Sample::of("canlift_gateways_admitted_total", load(&admitted.admitted)),
+        Sample::of(
             "canlift_gateways_registry_unavailable_total",
             load(&admitted.unavailable),
         ),
-        ("canlift_admission_lookups_total", load(&admitted.lookups)),
-        ("canlift_accept_failures_total", load(&m.accept_failures)),
-        (
+        Sample::of("canlift_admission_lookups_total", load(&admitted.lookups)),
+        Sample::of("canlift_accept_failures_total", load(&m.accept_failures)),
+        Sample::of(
             "canlift_tls_handshakes_full_total",
             load(&m.handshakes_full),
         ),
-        (
+        Sample::of(
             "canlift_tls_handshakes_resumed_total",
             load(&m.handshakes_resumed),
         ),
-        (
+        Sample::of(
             "canlift_tls_handshakes_abandoned_total",
             load(&m.handshakes_abandoned),
         ),
-        ("canlift_memory_trims_total", load(&m.memory_trims)),
-        (
+        Sample::of("canlift_memory_trims_total", load(&m.memory_trims)),
+        Sample::of(
             "canlift_memory_trimmed_bytes_total",
             load(&m.memory_trimmed_bytes),
         ),
-        ("canlift_telemetry_stored_total", load(&t.stored)),
-        ("canlift_telemetry_waits_total", load(&t.waits)),
-        ("canlift_events_stored_total", load(&a.events_stored)),
-        (
+        Sample::of("canlift_telemetry_stored_total", load(&t.stored)),
+        Sample::of("canlift_telemetry_waits_total", load(&t.waits)),
+        Sample::of("canlift_events_stored_total", load(&a.events_stored)),
+        Sample::of(
             "canlift_events_dropped_total",
             load(&a.events_dropped) + reports.dropped(),
         ),
-        ("canlift_alarms_raised_total", load(&a.raised)),
-        ("canlift_alarms_cleared_total", load(&a.cleared)),
-        (
+        Sample::of("canlift_alarms_raised_total", load(&a.raised)),
+        Sample::of("canlift_alarms_cleared_total", load(&a.cleared)),
+        Sample::of(
             "canlift_webhooks_delivered_total",
             load(&a.webhooks_delivered),
         ),
-        (
+        Sample::of(
             "canlift_webhook_attempts_failed_total",
             load(&a.webhooks_failed),
         ),
-        (
+        Sample::of(
             "canlift_webhooks_given_up_total",
             load(&a.webhooks_given_up),
         ),
-    ];
-    let gauges = [
-        ("canlift_gateways_online", r.online_count() as u64),
-        ("canlift_telemetry_queued", telemetry.queued() as u64),
-        (
+        Sample::of("canlift_gateways_online", r.online_count() as u64),
+        Sample::of("canlift_telemetry_queued", telemetry.queued() as u64),
+        Sample::of(
             "canlift_webhooks_pending",
             a.webhooks_pending.load(Ordering::Relaxed),
         ),
     ];
-    let mut text = String::new();
-    let (mut gauges, mut counters) = (gauges.to_vec(), counters.to_vec());
-    gauges.extend(more.gauges);
-    counters.extend(more.counters);
+    samples.extend(telemetry::Dropped::ALL.iter().map(|why| {
+        Sample::labelled(
+            "canlift_telemetry_dropped_total",
+            why.name(),
+            t.dropped(*why),
+        )
+    }));
     if let Some(c) = r.cluster() {
-        gauges.extend([
-            ("canlift_cluster_nats_connected", u64::from(c.connected())),
-            ("canlift_cluster_lifts_held", c.held_count() as u64),
-            ("canlift_cluster_lifts_elsewhere", c.known_count() as u64),
-            ("canlift_cluster_processes", c.processes() as u64),
-        ]);
         let n = &c.counters;
-        counters.extend([
-            ("canlift_cluster_requests_relayed_total", load(&n.relayed)),
-            (
+        samples.extend([
+            Sample::of("canlift_cluster_nats_connected", u64::from(c.connected())),
+            Sample::of("canlift_cluster_lifts_held", c.held_count() as u64),
+            Sample::of("canlift_cluster_lifts_elsewhere", c.known_count() as u64),
+            Sample::of("canlift_cluster_processes", c.processes() as u64),
+            Sample::of("canlift_cluster_requests_relayed_total", load(&n.relayed)),
+            Sample::of(
                 "canlift_cluster_requests_failed_total",
                 load(&n.relay_failed),
             ),
-            ("canlift_cluster_requests_served_total", load(&n.served)),
-            ("canlift_cluster_replaced_total", load(&n.replaced)),
-            (
+            Sample::of("canlift_cluster_requests_served_total", load(&n.served)),
+            Sample::of("canlift_cluster_replaced_total", load(&n.replaced)),
+            Sample::of(
                 "canlift_cluster_events_dropped_total",
                 load(&n.events_dropped),
             ),
-            (
+            Sample::of(
                 "canlift_cluster_events_unwatched_total",
                 load(&n.events_unwatched),
             ),
-            ("canlift_cluster_watch_lapsed_total", load(&n.watch_lapsed)),
-            ("canlift_cluster_entries_swept_total", load(&n.swept)),
-            ("canlift_cluster_nats_refused_total", load(&n.nats_refused)),
-            (
+            Sample::of("canlift_cluster_watch_lapsed_total", load(&n.watch_lapsed)),
+            Sample::of("canlift_cluster_entries_swept_total", load(&n.swept)),
+            Sample::of("canlift_cluster_nats_refused_total", load(&n.nats_refused)),
+            Sample::of(
                 "canlift_cluster_nats_slow_consumer_total",
                 load(&n.nats_slow),
             ),
         ]);
     }
-    for why in telemetry::Dropped::ALL {
-        counters.push((dropped_names(why), t.dropped(why)));
-    }
-    let mut typed = std::collections::HashSet::new();
-    for (kind, list) in [("gauge", &gauges[..]), ("counter", &counters[..])] {
-        for (name, value) in list {
-            let family = name.split('{').next().unwrap_or(name);
-            if typed.insert(family) {
-                text.push_str(&format!("# TYPE {family} {kind}\n"));
-            }
-            text.push_str(&format!("{name} {value}\n"));
-        }
-    }
-    text
+    samples
 }
 
 #[cfg(all(test, target_os = "linux"))]

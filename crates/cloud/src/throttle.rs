@@ -96,7 +96,7 @@ pub fn address_key(peer: &str) -> String {
 }
 
 /// Events per source address ([`address_key`]), each address its own bucket of `per_s` with
-/// bursts of `burst`. At most [`LIMIT`] addresses are followed; when full, the idle ones
+/// bursts of `burst`. At most 100,000 addresses are followed; when full, the idle ones
 /// (full again) are forgotten first, then all.
 #[derive(Debug)]
 pub struct AddressRates {

@@ -41,6 +41,9 @@ pub struct CloudSection {
     /// Local address to connect from (a gateway with several interfaces; `canlift loadgen`
     /// spreads its gateways over 127.0.0.x); absent: the system chooses.
     pub source_address: Option<std::net::IpAddr>,
+    /// An HTTP proxy to reach the portal through (`http://[USER:PASSWORD@]HOST:PORT`, a
+    /// `CONNECT` tunnel; TLS stays end to end); absent: `HTTPS_PROXY` and `NO_PROXY` decide.
+    pub proxy: Option<String>,
 }
 
 impl CloudSection {
@@ -68,6 +71,7 @@ impl Default for CloudSection {
             connack_timeout_s: 30,
             ping_s: 60,
             source_address: None,
+            proxy: None,
         }
     }
 }
@@ -315,6 +319,17 @@ pub struct Config {
     pub limits: LimitsSection,
     /// `[policy]`: what the cloud may write and see.
     pub policy: Policy,
+    /// `[metrics]`: the gateway's own metrics.
+    pub metrics: MetricsSection,
+}
+
+/// `[metrics]` (docs/GATEWAY.md §Metrics).
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MetricsSection {
+    /// Serve `GET /metrics` in plain HTTP here (a loopback or management address); absent:
+    /// no listener, no metrics kept.
+    pub listen: Option<std::net::SocketAddr>,
 }
 
 /// A configuration that cannot work.

@@ -6,9 +6,7 @@ use std::time::{Duration, Instant};
 
 use futures_util::{SinkExt, StreamExt};
 use nxg::gateway::{Job, JobId, JobResult, Output, Phase, Session};
-use std::net::{IpAddr, SocketAddr};
 
-use tokio::net::{TcpSocket, TcpStream};
 use tokio::sync::mpsc;
 use tokio_rustls::TlsConnector;
 use tokio_tungstenite::tungstenite::client::IntoClientRequest;
@@ -43,35 +41,6 @@ fn ended(served: bool, cause: impl Into<String>) -> Ended {
     }
 }
 
-/// TCP to the portal, from `source` when given.
-async fn tcp(host: &str, port: u16, source: Option<IpAddr>) -> std::io::Result<TcpStream> {
-    let Some(source) = source else {
-        return TcpStream::connect((host, port)).await;
-    };
-    let mut last = None;
-    for addr in tokio::net::lookup_host((host, port)).await? {
-        if addr.is_ipv4() != source.is_ipv4() {
-            continue;
-        }
-        let socket = if addr.is_ipv4() {
-            TcpSocket::new_v4()?
-        } else {
-            TcpSocket::new_v6()?
-        };
-        socket.bind(SocketAddr::new(source, 0))?;
-        match socket.connect(addr).await {
-            Ok(stream) => return Ok(stream),
-            Err(e) => last = Some(e),
-        }
-    }
-    Err(last.unwrap_or_else(|| {
-        std::io::Error::new(
-            std::io::ErrorKind::AddrNotAvailable,
-            format!("{host} has no address of the family of {source}"),
-        )
-    }))
-}
-
 /// Connect once and serve until the connection ends.
 pub async fn run(shared: &Shared, shutdown: &mut tokio::sync::watch::Receiver<bool>) -> Ended {
     let cloud = &shared.config.cloud;
@@ -97,7 +66,16 @@ pub async fn run(shared: &Shared, shutdown: &mut tokio::sync::watch::Receiver<bo
             Err(_) => return ended(false, "cloud.origin is not a valid header value"),
         }
     }
-    let tcp = match tokio::time::timeout(timeout, tcp(&host, port, cloud.source_address)).await {
+    let proxies = match &cloud.proxy {
+        Some(url) => tls::reach::Proxies::Configured(url.clone()),
+        None => tls::reach::Proxies::Environment,
+    };
+    let proxy = match proxies.for_server(&host, port) {
+        Ok(proxy) => proxy,
+        Err(e) => return ended(false, format!("cloud.proxy or HTTPS_PROXY: {e}")),
+    };
+    let connecting = tls::reach::connect(&host, port, cloud.source_address, proxy.as_ref());
+    let tcp = match tokio::time::timeout(timeout, connecting).await {
         Ok(Ok(s)) => s,
         Ok(Err(e)) => return ended(false, format!("TCP {host}:{port}: {e}")),
         Err(_) => {
@@ -150,7 +128,8 @@ pub async fn run(shared: &Shared, shutdown: &mut tokio::sync::watch::Receiver<bo
             format!("the portal selected neither cloud nor lift ({selected:?})"),
         );
     }
-    tracing::info!(url = %cloud.url, ?local, subprotocol = selected, "connected; sending CONNECT");
+    let local = local.map_or_else(String::new, |a| a.to_string());
+    tracing::info!(url = %cloud.url, %local, subprotocol = selected, "connected; sending CONNECT");
     serve(shared, ws, shutdown).await
 }
 
@@ -312,6 +291,10 @@ where
             if let Phase::Connected(api) = session.phase() {
                 served = true;
                 shared.online.send_replace(true);
+                if let Some(metrics) = &shared.metrics {
+                    metrics.connected.set(1);
+                    metrics.connections.inc();
+                }
                 tracing::info!(api, "CONNACK: serving the portal");
             }
         }
@@ -370,7 +353,12 @@ where
                 session.handle_job(id, result, Instant::now())
             }
             Wake::Update((target, index, sub, bytes)) => {
-                session.handle_bytes(target, index, sub, &bytes, Instant::now())
+                let out = session.handle_bytes(target, index, sub, &bytes, Instant::now());
+                if let Some(metrics) = &shared.metrics {
+                    let pushed = out.iter().filter(|o| matches!(o, Output::Send(_))).count();
+                    metrics.notifications.inc_by(pushed as u64);
+                }
+                out
             }
             Wake::Timer => session.handle_timeout(Instant::now()),
             Wake::Events => session.deliver_events(),
@@ -426,16 +414,25 @@ fn start_job(
         job => {
             let objects = shared.objects.clone();
             let mut run = Box::pin(async move { objects.run(job).await });
+            let metrics = shared.metrics.clone();
+            let ok = |result: &JobResult| !matches!(result, JobResult::Failed(_));
             // The local dictionary answers at once: in this round, with no task and no wake-up.
             // An SDO transfer is polled first in a task of its own, so its wake-ups go there
             // alone.
             if matches!(shared.objects, Objects::Local { .. }) {
                 if let Some(result) = futures_util::FutureExt::now_or_never(run.as_mut()) {
+                    if let Some(metrics) = &metrics {
+                        metrics.access(ok(&result), None);
+                    }
                     return Some(result);
                 }
             }
+            let started = Instant::now();
             tokio::spawn(async move {
                 let result = run.await;
+                if let Some(metrics) = &metrics {
+                    metrics.access(ok(&result), Some(started.elapsed()));
+                }
                 let _ = tx.send((id, result));
             });
             None

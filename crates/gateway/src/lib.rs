@@ -19,6 +19,7 @@ pub mod feed;
 pub mod fleet;
 pub mod lockout;
 pub mod metadata;
+pub mod metrics;
 pub mod supervision;
 pub mod token;
 
@@ -66,6 +67,9 @@ pub enum GatewayError {
     /// A vendor metadata file is malformed (`FILE:LINE: reason`).
     #[error("{0}")]
     Metadata(String),
+    /// The metrics could not be set up.
+    #[error(transparent)]
+    Metrics(#[from] metrics::MetricsError),
 }
 
 enum Mode {
@@ -92,6 +96,9 @@ pub struct Shared {
     online: watch::Sender<bool>,
     /// Woken when bus events were queued for the portal.
     events_ready: Arc<tokio::sync::Notify>,
+    /// The gateway's metrics, with `[metrics] listen` (none otherwise: a load generator's
+    /// thousands of gateways keep no registry each).
+    metrics: Option<Arc<metrics::GatewayMetrics>>,
 }
 
 impl Shared {
@@ -222,7 +229,7 @@ impl Gateway {
         }
         let mode = Mode::Bus { sdo, bus };
         let mut gateway =
-            Gateway::assemble(config, tls, metadata, Objects::Bus(nets), mode, Some(node));
+            Gateway::assemble(config, tls, metadata, Objects::Bus(nets), mode, Some(node))?;
         let sink = supervision::Sink {
             queue: gateway.shared.context.events.clone(),
             ready: gateway.shared.events_ready.clone(),
@@ -272,9 +279,7 @@ impl Gateway {
             changes: LocalChanges::install(&od),
             od,
         };
-        Ok(Gateway::assemble(
-            config, tls, metadata, objects, mode, None,
-        ))
+        Gateway::assemble(config, tls, metadata, objects, mode, None)
     }
 
     fn assemble(
@@ -284,8 +289,12 @@ impl Gateway {
         objects: Objects,
         mode: Mode,
         node: Option<LocalNode>,
-    ) -> Gateway {
+    ) -> Result<Gateway, GatewayError> {
         tracing::info!(policy = %config.policy.summary(), "write policy");
+        let metrics = match config.metrics.listen {
+            Some(_) => Some(Arc::new(metrics::GatewayMetrics::new()?)),
+            None => None,
+        };
         let lockout = lockout::LockoutStore::new(
             &config.state.dir,
             Duration::from_secs(config.privileges.lockout_s),
@@ -295,7 +304,7 @@ impl Gateway {
         context.events = Arc::new(std::sync::Mutex::new(nxg::gateway::EventQueue::new(
             config.limits.max_queued_events,
         )));
-        Gateway {
+        Ok(Gateway {
             shared: Arc::new(Shared {
                 token: TokenStore::new(&config.state.dir),
                 context,
@@ -306,10 +315,11 @@ impl Gateway {
                 mode,
                 online: watch::channel(false).0,
                 events_ready: Arc::default(),
+                metrics,
             }),
             node,
             supervisors: Vec::new(),
-        }
+        })
     }
 
     /// Whether the gateway is connected to the portal and in service (CONNACK received) —
@@ -320,6 +330,16 @@ impl Gateway {
 
     /// Connect, serve, and reconnect until `shutdown` turns true.
     pub async fn run(mut self, mut shutdown: watch::Receiver<bool>) {
+        if let (Some(listen), Some(metrics)) = (
+            self.shared.config.metrics.listen,
+            self.shared.metrics.clone(),
+        ) {
+            self.supervisors.push(tokio::spawn(async move {
+                if let Err(e) = metrics::serve(listen, metrics).await {
+                    tracing::error!(%listen, error = %e, "metrics listener failed");
+                }
+            }));
+        }
         // docs/PROTOCOL.md: 1 s growing to 5 min, full jitter, reset after a stable minute.
         let mut backoff = Backoff::new(Duration::from_secs(1), Duration::from_secs(300));
         for number in 1u64.. {
@@ -333,6 +353,12 @@ impl Gateway {
                 .instrument(span)
                 .await;
             self.shared.online.send_replace(false);
+            if let Some(metrics) = &self.shared.metrics {
+                metrics.connected.set(0);
+                if ended.served {
+                    metrics.disconnects.inc();
+                }
+            }
             if ended.shutdown {
                 break;
             }

@@ -21,6 +21,7 @@ pub mod pki;
 pub mod portal;
 #[cfg(feature = "postgres")]
 mod postgres;
+pub mod proxy;
 pub mod sample;
 #[cfg(feature = "lift")]
 pub mod script;
@@ -32,7 +33,7 @@ pub use postgres::{postgres, Server as PostgresServer};
 
 use std::io::Write;
 use std::net::SocketAddr;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
 use canbus::hub::{Hub, HubConfig, HubHandle};
@@ -125,6 +126,45 @@ pub fn browser() -> Option<(PathBuf, PathBuf)> {
             None
         }
     }
+}
+
+/// Prometheus's `promtool` (Debian's `prometheus` package), or `None` after printing why the
+/// test is skipped. With CANLIFT_REQUIRE_PROMTOOL=1 (CI installs it) its absence fails the test.
+pub fn promtool() -> Option<PathBuf> {
+    let found = std::env::var_os("PATH").and_then(|paths| {
+        std::env::split_paths(&paths)
+            .map(|p| p.join("promtool"))
+            .find(|p| p.is_file())
+    });
+    if found.is_none() {
+        let reason = "metrics: promtool is not on PATH (apt-get install prometheus)";
+        if std::env::var("CANLIFT_REQUIRE_PROMTOOL").as_deref() == Ok("1") {
+            panic!("{reason}");
+        }
+        skip(reason);
+    }
+    found
+}
+
+/// `promtool ARGS` with `input` on its standard input: its exit status and what it said.
+pub fn run_promtool(promtool: &Path, args: &[&str], input: &str) -> (bool, String) {
+    let mut child = Command::new(promtool)
+        .args(args)
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("promtool runs");
+    if let Some(mut stdin) = child.stdin.take() {
+        let _ = stdin.write_all(input.as_bytes());
+    }
+    let out = child.wait_with_output().expect("promtool ends");
+    let said = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (out.status.success(), said)
 }
 
 /// A free TCP port on 127.0.0.1 (for a server a test starts as a separate process).

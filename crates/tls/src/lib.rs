@@ -6,6 +6,7 @@
 
 #![warn(missing_docs)]
 
+pub mod reach;
 pub mod stream;
 pub mod tickets;
 

@@ -66,7 +66,7 @@ fn row(a: &Alarm) -> String {
         None => "gateway".into(),
     };
     let state = match (&a.cleared, &a.acknowledged) {
-        (Some(c), _) => format!("cleared {c}"),
+        (Some(c), _) => format!("cleared {}", super::local_time::of_rfc3339(c)),
         (None, Some(ack)) => format!("acknowledged by {}", ack.by),
         (None, None) => "active".into(),
     };
@@ -76,7 +76,7 @@ fn row(a: &Alarm) -> String {
         a.severity.name(),
         a.lift,
         place,
-        a.raised,
+        super::local_time::of_rfc3339(&a.raised),
         a.text,
         state
     )
@@ -135,6 +135,7 @@ pub async fn events(args: EventsArgs) -> anyhow::Result<()> {
     }
     let log: EventLog = check(answer)?;
     for e in &log.events {
+        let local = super::local_time::of_rfc3339;
         let line = match e {
             Event::Emcy {
                 node,
@@ -144,17 +145,21 @@ pub async fn events(args: EventsArgs) -> anyhow::Result<()> {
                 text,
                 ..
             } => format!(
-                "{time} EMCY  node {}/{} {code} register {register} {text}",
+                "{} EMCY  node {}/{} {code} register {register} {text}",
+                local(time),
                 node.id.get(),
                 node.net
             ),
             Event::State { node, time, state } => format!(
-                "{time} STATE node {}/{} {}",
+                "{} STATE node {}/{} {}",
+                local(time),
                 node.id.get(),
                 node.net,
                 state.name()
             ),
-            Event::Bus { net, time, state } => format!("{time} BUS   net {net} {}", state.name()),
+            Event::Bus { net, time, state } => {
+                format!("{} BUS   net {net} {}", local(time), state.name())
+            }
         };
         println!("{line}");
     }

@@ -17,8 +17,9 @@ use cloud_types::users::Role;
 /// Command-line arguments of `canlift cloud`.
 #[derive(Debug, clap::Args)]
 pub struct CloudArgs {
-    /// Configuration file (TOML: `[server]`, `[state]`, `[database]`, `[gateways]`).
-    #[arg(long, global = true)]
+    /// Configuration file (TOML: `[server]`, `[state]`, `[database]`, `[gateways]`); default:
+    /// /etc/canlift/portal.toml when present.
+    #[arg(long, global = true, env = "CANLIFT_CONFIG")]
     config: Option<PathBuf>,
     /// Print the effective configuration and exit.
     #[arg(long)]
@@ -230,7 +231,8 @@ const SECTIONS: [&str; 4] = ["server", "state", "database", "gateways"];
 
 /// Run the portal, or an account command.
 pub async fn run(args: CloudArgs) -> anyhow::Result<()> {
-    let config: Config = crate::config::load_document(args.config.as_deref(), &SECTIONS)?;
+    let file = crate::config::or_installed(args.config, "portal");
+    let config: Config = crate::config::load_document(file.as_deref(), &SECTIONS)?;
     if args.print_config {
         print!("{}", toml::to_string_pretty(&config)?);
         return Ok(());

@@ -10,8 +10,9 @@ use gateway::Gateway;
 #[derive(Debug, clap::Args)]
 pub struct GatewayArgs {
     /// Configuration file (TOML: `[identity]`, `[cloud]`, `[state]`, `[bus]`, `[[networks]]`,
-    /// `[privileges]`, `[limits]`, `[policy]`).
-    #[arg(long)]
+    /// `[privileges]`, `[limits]`, `[policy]`, `[metrics]`); default: /etc/canlift/gateway.toml
+    /// when present.
+    #[arg(long, env = "CANLIFT_CONFIG")]
     config: Option<PathBuf>,
     /// Print the effective configuration and exit.
     #[arg(long)]
@@ -31,7 +32,8 @@ const SECTIONS: [&str; 7] = [
 
 /// Run the gateway until Ctrl-C or SIGTERM.
 pub async fn run(args: GatewayArgs) -> anyhow::Result<()> {
-    let config: Config = crate::config::load_document(args.config.as_deref(), &SECTIONS)?;
+    let file = crate::config::or_installed(args.config, "gateway");
+    let config: Config = crate::config::load_document(file.as_deref(), &SECTIONS)?;
     if args.print_config {
         print!("{}", toml::to_string_pretty(&config)?);
         return Ok(());

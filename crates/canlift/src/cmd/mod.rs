@@ -12,9 +12,13 @@ pub mod dcf;
 pub mod demo;
 pub mod dump;
 pub mod emcy;
+#[cfg(feature = "portal")]
+pub mod exit;
 pub mod gateway;
 pub mod hub;
 pub mod loadgen;
+#[cfg(feature = "portal")]
+pub mod local_time;
 pub mod lss;
 pub mod nmt;
 #[cfg(feature = "portal")]

@@ -7,7 +7,7 @@ use anyhow::{bail, Context};
 use cloud::client::Client;
 use cloud_types::api::{EventsQuery, Form, GetQuery, LiftSummary, PutBody};
 use cloud_types::live::ValueMessage;
-use nxg::msg::{ErrorObject, ObjectAnswer};
+use nxg::msg::ObjectAnswer;
 use serde::de::DeserializeOwned;
 use serde_json::Value;
 
@@ -128,13 +128,11 @@ pub struct WatchArgs {
     portal: PortalArgs,
 }
 
-/// The body of a 200 answer as a `T`; any other answer is an error with the portal's message.
+/// The body of a 2xx answer as a `T`; any other answer is an error with the portal's message,
+/// and the exit status it means (docs/TOOLS.md §Exit statuses).
 pub(crate) fn check<T: DeserializeOwned>((status, body): (u16, Value)) -> anyhow::Result<T> {
     if !(200..300).contains(&status) {
-        match serde_json::from_value::<ErrorObject>(body.clone()) {
-            Ok(e) => bail!("{status}: {e}"),
-            Err(_) => bail!("{status}: {body}"),
-        }
+        return Err(super::exit::Refused::of(status, &body).into());
     }
     serde_json::from_value(body).context("the portal's answer is not what the API documents")
 }
@@ -208,7 +206,7 @@ pub async fn lifts(args: LiftsArgs) -> anyhow::Result<()> {
     }
     let lifts: Vec<LiftSummary> = check(answer)?;
     println!(
-        "{:<32} {:<8} {:<22} {:<14} LAST SEEN (ms)",
+        "{:<32} {:<8} {:<22} {:<14} LAST SEEN",
         "LIFT", "ONLINE", "LIFTNUM", "SOFTWARE"
     );
     for l in &lifts {
@@ -219,7 +217,7 @@ pub async fn lifts(args: LiftsArgs) -> anyhow::Result<()> {
             if l.online { "yes" } else { "no" },
             r.liftnum,
             r.software,
-            r.last_seen
+            super::local_time::of_ms(r.last_seen)
         );
     }
     Ok(())
@@ -339,7 +337,7 @@ pub async fn watch(mut args: WatchArgs) -> anyhow::Result<()> {
                 if wanted.contains(&v.object.mplex) {
                     println!(
                         "{} {} {}",
-                        cloud_types::now_ms(),
+                        super::local_time::of_ms(cloud_types::now_ms()),
                         v.object.mplex,
                         v.object.value
                     );

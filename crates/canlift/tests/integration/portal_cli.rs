@@ -358,3 +358,136 @@ async fn a_nats_user_key_for_its_owner_alone() {
     assert!(said.contains("an existing file is kept"), "{said}");
     assert_eq!(std::fs::read_to_string(&file).expect("the seed file"), seed);
 }
+
+/// The operator commands' exit statuses tell what went wrong apart (docs/TOOLS.md §Exit
+/// statuses), and their text output shows local times, not epoch milliseconds.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn exit_statuses_tell_failures_apart() {
+    let mut rig = Rig::builder().start().await;
+    rig.online().await;
+    let (url, key, ca) = (rig.url(), rig.key.clone(), rig.ca.clone());
+    let status = |args: &'static [&'static str], wrong_key: Option<&'static str>| {
+        let mut cmd = common::canlift();
+        cmd.env("CANLIFT_PORTAL", &url)
+            .env("CANLIFT_API_KEY", wrong_key.unwrap_or(&key))
+            .env("CANLIFT_CA", &ca);
+        async move { cmd.args(args).output().await.unwrap().status.code() }
+    };
+    assert_eq!(status(&["lifts"], None).await, Some(0));
+    let table = canlift(&rig).arg("lifts").output().await.unwrap();
+    let table = String::from_utf8_lossy(&table.stdout).into_owned();
+    let row = table
+        .lines()
+        .find(|l| l.starts_with(LIFT))
+        .unwrap_or_default();
+    let year = row
+        .split_whitespace()
+        .find(|w| w.len() == 10 && w.starts_with("20"));
+    assert!(year.is_some(), "a local date in {row:?}");
+    assert_eq!(status(&["get"], None).await, Some(2), "usage");
+    assert_eq!(
+        status(&["get", "1050-4096-NOSUCHLIFT", "0x652001"], None).await,
+        Some(3),
+        "not found"
+    );
+    assert_eq!(
+        status(&["get", LIFT, "0x652001"], Some("clk_wrong")).await,
+        Some(4),
+        "not allowed"
+    );
+    // 6520h sub 1 (the car position) is read-only: the lift refuses the write.
+    assert_eq!(
+        status(&["put", LIFT, "0x652001", "7"], None).await,
+        Some(5),
+        "refused by the lift"
+    );
+    rig.stop_gateway().await;
+    assert_eq!(
+        status(&["get", LIFT, "0x652001"], None).await,
+        Some(6),
+        "the lift offline"
+    );
+    let nowhere = canlift(&rig)
+        .env(
+            "CANLIFT_PORTAL",
+            format!("https://localhost:{}", testkit::free_port()),
+        )
+        .args(["lifts"])
+        .output()
+        .await
+        .unwrap();
+    assert_eq!(nowhere.status.code(), Some(6), "the portal unreachable");
+    rig.stop().await;
+}
+
+/// JSON log lines name the service and the version, and their fields keep their types.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn json_logs_are_typed_and_name_their_service() {
+    let mut hub = common::canlift()
+        .env("CANLIFT_LOG_FORMAT", "json")
+        .args(["hub", "--listen", "127.0.0.1:0"])
+        .spawn()
+        .expect("the hub starts");
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let status = common::interrupt(&mut hub, Duration::from_secs(10)).await;
+    assert!(status.success());
+    let out = hub.wait_with_output().await.unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    let lines: Vec<serde_json::Value> = stderr
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{l}: {e}")))
+        .collect();
+    assert!(lines.len() >= 2, "{stderr}");
+    for line in &lines {
+        assert_eq!(line["service"], "hub", "{line}");
+        assert_eq!(line["version"], env!("CARGO_PKG_VERSION"), "{line}");
+        for (name, value) in line.as_object().into_iter().flatten() {
+            let debug = value
+                .as_str()
+                .is_some_and(|s| s.starts_with("Some(") || s == "None");
+            assert!(!debug, "{name} is Debug-formatted: {line}");
+        }
+    }
+    let stopped = lines
+        .iter()
+        .find(|l| l["message"] == "hub stopped")
+        .expect("hub stopped");
+    assert!(
+        stopped["frames_in"].is_u64(),
+        "a number stays a number: {stopped}"
+    );
+}
+
+/// The operator commands go through `HTTPS_PROXY` (a CONNECT tunnel, TLS end to end) unless
+/// `NO_PROXY` names the portal.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn operators_reach_the_portal_through_https_proxy() {
+    let Some(proxy) = testkit::proxy::Tinyproxy::start(&[]) else {
+        return;
+    };
+    let rig = Rig::builder().without_lift().start().await;
+    let through = canlift(&rig)
+        .env("HTTPS_PROXY", proxy.url())
+        .env_remove("NO_PROXY")
+        .args(["lifts", "--json"])
+        .output()
+        .await
+        .unwrap();
+    assert!(through.status.success(), "{}", common::stderr(&through));
+    let port = rig.url().rsplit(':').next().unwrap_or_default().to_owned();
+    let tunnelled = proxy.log();
+    assert!(tunnelled.contains(&format!(":{port}")), "{tunnelled}");
+    let direct = canlift(&rig)
+        .env("HTTPS_PROXY", proxy.url())
+        .env("NO_PROXY", "localhost")
+        .args(["lifts", "--json"])
+        .output()
+        .await
+        .unwrap();
+    assert!(direct.status.success(), "{}", common::stderr(&direct));
+    assert_eq!(
+        proxy.log().matches("CONNECT").count(),
+        tunnelled.matches("CONNECT").count()
+    );
+    rig.stop().await;
+}

@@ -355,7 +355,11 @@ impl Node {
             Some(LssAction::ActivateBitTiming { delay_ms }) => {
                 // A virtual bus has no bit timing to switch; a SocketCAN deployment does it
                 // with `ip link` outside this process.
-                tracing::info!(delay_ms, bit_timing = ?self.lss.pending_bit_timing(), "LSS activate bit timing");
+                tracing::info!(
+                    delay_ms,
+                    bit_timing = self.lss.pending_bit_timing(),
+                    "LSS activate bit timing"
+                );
             }
             Some(LssAction::StateChanged(LssState::Waiting)) => {
                 let pending = self.lss.pending_node_id();

@@ -157,16 +157,30 @@ fn nearby(ip: IpAddr) -> bool {
 /// none — in words that name neither the receiver's address nor its URL.
 async fn post(receiver: &Receiver, id: i64, body: &str) -> Result<u16, String> {
     let target = Target::parse(&receiver.section.url)?;
-    let addresses: Vec<_> = tokio::net::lookup_host((target.host.as_str(), target.port))
-        .await
-        .map_err(|e| format!("its host name did not resolve: {e}"))?
-        .collect();
-    if !target.https && !addresses.iter().all(|a| nearby(a.ip())) {
-        return Err("http:// only to a receiver on this host or its network; use https://".into());
+    // An https:// receiver through HTTPS_PROXY unless NO_PROXY names it (the proxy resolves
+    // its name); one on this host or its network (http://) is reached straight.
+    let proxy = match target.https {
+        true => tls::reach::Proxies::Environment
+            .for_server(&target.host, target.port)
+            .map_err(|e| e.to_string())?,
+        false => None,
+    };
+    let tcp = match &proxy {
+        Some(proxy) => tls::reach::connect(&target.host, target.port, None, Some(proxy)).await,
+        None => {
+            let addresses: Vec<_> = tokio::net::lookup_host((target.host.as_str(), target.port))
+                .await
+                .map_err(|e| format!("its host name did not resolve: {e}"))?
+                .collect();
+            if !target.https && !addresses.iter().all(|a| nearby(a.ip())) {
+                return Err(
+                    "http:// only to a receiver on this host or its network; use https://".into(),
+                );
+            }
+            TcpStream::connect(&addresses[..]).await
+        }
     }
-    let tcp = TcpStream::connect(&addresses[..])
-        .await
-        .map_err(|e| format!("no connection: {}", e.kind()))?;
+    .map_err(|e| format!("no connection: {}", e.kind()))?;
     let _ = tcp.set_nodelay(true);
     let message = format!("msg_{id}");
     let timestamp = std::time::SystemTime::now()
@@ -229,11 +243,24 @@ fn backoff(attempts: u32) -> Duration {
     Duration::from_secs(1u64 << attempts.min(10)).min(LONGEST_WAIT)
 }
 
-/// One attempt at `entry`, recorded in the outbox, the counters and the audit log.
-async fn attempt(store: &Store, counters: &Counters, receiver: &Receiver, entry: &OutboxEntry) {
+/// One attempt at `entry`, recorded in the outbox, the counters, the attempts' timer and the
+/// audit log.
+async fn attempt(
+    store: &Store,
+    counters: &Counters,
+    timer: &crate::metrics::Timer,
+    receiver: &Receiver,
+    entry: &OutboxEntry,
+) {
+    let started = std::time::Instant::now();
     let result = tokio::time::timeout(ATTEMPT, post(receiver, entry.id, &entry.body))
         .await
         .unwrap_or_else(|_| Err(format!("no answer within {} s", ATTEMPT.as_secs())));
+    let delivered = matches!(result, Ok(status) if (200..300).contains(&status));
+    timer.observe(
+        if delivered { "delivered" } else { "failed" },
+        started.elapsed(),
+    );
     let now = cloud_types::now_ms();
     let (outcome, audit) = match &result {
         Ok(status) if (200..300).contains(status) => {
@@ -287,7 +314,7 @@ async fn attempt(store: &Store, counters: &Counters, receiver: &Receiver, entry:
 
 /// Deliver queued notifications until the portal stops: whenever something was queued, and
 /// whenever the next retry is due.
-pub async fn deliver(alarms: Arc<Alarms>, receivers: Vec<Receiver>) {
+pub async fn deliver(alarms: Arc<Alarms>, receivers: Vec<Receiver>, timer: crate::metrics::Timer) {
     let store = &alarms.store;
     let counters = &alarms.counters;
     loop {
@@ -295,7 +322,7 @@ pub async fn deliver(alarms: Arc<Alarms>, receivers: Vec<Receiver>) {
             Ok(due) => {
                 for entry in &due {
                     match receivers.iter().find(|r| r.section.url == entry.url) {
-                        Some(receiver) => attempt(store, counters, receiver, entry).await,
+                        Some(receiver) => attempt(store, counters, &timer, receiver, entry).await,
                         None => {
                             // The receiver left the configuration: nothing to deliver to.
                             let gone = Err(("receiver no longer configured", None));

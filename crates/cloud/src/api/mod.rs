@@ -551,7 +551,7 @@ impl Drop for Watching {
         if let Ok(runtime) = tokio::runtime::Handle::try_current() {
             runtime.spawn(async move {
                 if let Err(e) = subscriptions.unsubscribe(&lift, &subscriber, None).await {
-                    tracing::debug!(%lift, failure = ?e, "a watcher's subscriptions not released");
+                    tracing::debug!(%lift, failure = %e, "a watcher's subscriptions not released");
                 }
             });
         }

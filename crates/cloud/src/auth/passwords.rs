@@ -35,7 +35,7 @@ pub struct PasswordChecks {
 }
 
 impl PasswordChecks {
-    /// `threads` checking threads (at least one), each with [`QUEUE_PER_THREAD`] waiting.
+    /// `threads` checking threads (at least one), each with eight checks waiting.
     /// They end when the checker is dropped.
     pub fn start(threads: usize) -> std::io::Result<PasswordChecks> {
         let threads = threads.max(1);

@@ -171,10 +171,13 @@ pub struct Admissions {
 impl Admissions {
     /// The admissions and the task that asks the registry (it ends when every
     /// [`Admissions`] is gone).
-    pub fn start(store: Store) -> (Admissions, tokio::task::JoinHandle<()>) {
+    pub fn start(
+        store: Store,
+        timer: crate::metrics::Timer,
+    ) -> (Admissions, tokio::task::JoinHandle<()>) {
         let (tx, rx) = mpsc::channel(QUEUE);
         let counters = Arc::new(AdmissionCounters::default());
-        let task = tokio::spawn(ask(store, rx, counters.clone()));
+        let task = tokio::spawn(ask(store, rx, counters.clone(), timer));
         (Admissions { tx, counters }, task)
     }
 
@@ -194,7 +197,12 @@ impl Admissions {
 
 /// Take what waits (at once when one CONNECT does) and ask about it in one statement, up to
 /// [`IN_FLIGHT`] batches at a time.
-async fn ask(store: Store, mut rx: mpsc::Receiver<Asked>, counters: Arc<AdmissionCounters>) {
+async fn ask(
+    store: Store,
+    mut rx: mpsc::Receiver<Asked>,
+    counters: Arc<AdmissionCounters>,
+    timer: crate::metrics::Timer,
+) {
     let in_flight = Arc::new(Semaphore::new(IN_FLIGHT));
     loop {
         let Ok(permit) = in_flight.clone().acquire_owned().await else {
@@ -205,16 +213,17 @@ async fn ask(store: Store, mut rx: mpsc::Receiver<Asked>, counters: Arc<Admissio
         if rx.recv_many(&mut batch, BATCH).await == 0 {
             return;
         }
-        let (store, counters) = (store.clone(), counters.clone());
+        let (store, counters, timer) = (store.clone(), counters.clone(), timer.clone());
         tokio::spawn(async move {
             let connects: Vec<&Connect> = batch.iter().map(|asked| &asked.connect).collect();
             counters.lookups.fetch_add(1, Ordering::Relaxed);
-            let answers = cloud_store::timed(
-                "admission lookup",
-                connects.len(),
-                admit_all(&store, &connects),
-            )
-            .await;
+            let answers = timer
+                .statement(
+                    "admission lookup",
+                    connects.len(),
+                    admit_all(&store, &connects),
+                )
+                .await;
             match answers {
                 Ok(admissions) => {
                     for (asked, admission) in batch.into_iter().zip(admissions) {
@@ -278,7 +287,7 @@ mod tests {
                 .await
                 .unwrap();
         }
-        let (admissions, task) = Admissions::start(store.clone());
+        let (admissions, task) = Admissions::start(store.clone(), Default::default());
         let asked = (0..600).map(|n| {
             let admissions = admissions.clone();
             let store = store.clone();

@@ -27,7 +27,7 @@ pub(super) async fn subscribe(
             lang: Some(Lang::new("en", "en")),
         };
         if let Err(e) = registry.call(&lift, &events).await {
-            tracing::warn!(%lift, failure = ?e, "bus events not registered");
+            tracing::warn!(%lift, failure = %e, "bus events not registered");
         }
     }
     subscriptions.resubscribe(&lift, subscribed).await;

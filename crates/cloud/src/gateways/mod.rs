@@ -122,14 +122,17 @@ pub struct Registry {
     /// The newest connection epoch given out (µs since the Unix epoch, strictly rising).
     serial: AtomicU64,
     cluster: Option<Arc<Cluster>>,
+    /// How long requests to gateways take (`canlift_gateway_round_trip_seconds`).
+    round_trips: crate::metrics::Timer,
 }
 
 impl Registry {
     /// The registry of a process of `cluster` (lifts held elsewhere are reachable through it),
     /// or of a portal of its own.
-    pub fn new(cluster: Option<Arc<Cluster>>) -> Registry {
+    pub fn new(cluster: Option<Arc<Cluster>>, round_trips: crate::metrics::Timer) -> Registry {
         Registry {
             cluster,
+            round_trips,
             ..Registry::default()
         }
     }
@@ -261,8 +264,11 @@ impl Registry {
         let params =
             serde_json::value::to_raw_value(call).map_err(|e| Failure::Invalid(e.to_string()))?;
         let params = (params.get() != "null").then_some(params);
-        let raw = self.send(lift, C::METHOD, params).await?;
-        msg::read::<C::Answer>(&raw).map_err(Failure::Invalid)
+        let started = std::time::Instant::now();
+        let raw = self.send(lift, C::METHOD, params).await;
+        self.round_trips
+            .observe(C::METHOD.name(), started.elapsed());
+        msg::read::<C::Answer>(&raw?).map_err(Failure::Invalid)
     }
 
     /// Send a request to the lift's gateway: through its connection here, else (in a

@@ -185,6 +185,7 @@ pub async fn writer(
     store: Store,
     Queue(mut rx, unwritten): Queue,
     mut stop: watch::Receiver<bool>,
+    timer: crate::metrics::Timer,
 ) {
     let mut batch = Vec::with_capacity(BATCH);
     let mut records = Vec::with_capacity(BATCH);
@@ -194,7 +195,10 @@ pub async fn writer(
             records.push(queued.record);
             waiting.push(queued.written);
         }
-        match cloud_store::timed("gateway records", records.len(), store.record(&records)).await {
+        match timer
+            .statement("gateway records", records.len(), store.record(&records))
+            .await
+        {
             // One record the database refuses fails the transaction for all: each is written
             // alone, so only that one is lost.
             Err(e) if !e.is_unavailable() && records.len() > 1 => {
@@ -297,7 +301,7 @@ mod tests {
             .await
             .expect("another lift does not wait");
         let (stop, stopping) = watch::channel(false);
-        let task = tokio::spawn(writer(store.clone(), rx, stopping));
+        let task = tokio::spawn(writer(store.clone(), rx, stopping, Default::default()));
         tokio::time::timeout(
             std::time::Duration::from_secs(10),
             records.settled(&lift, "MAS"),
@@ -321,7 +325,7 @@ mod tests {
         store.add_account("masora", "MAS").await.unwrap();
         let (records, rx) = Records::new(store.clone());
         let (stop, stopping) = watch::channel(false);
-        let task = tokio::spawn(writer(store.clone(), rx, stopping));
+        let task = tokio::spawn(writer(store.clone(), rx, stopping, Default::default()));
         for n in 0..3000 {
             let connect = connect(&format!("GW{}", n % 100), &format!("v{n}"));
             records.write(connected(&connect)).await;

@@ -104,7 +104,7 @@ impl Refusals {
     }
 
     /// Whether a connection from `peer` may go on to the TLS handshake: not while its address
-    /// has had more refused CONNECTs than [`GUARD_PER_S`] allows (counted as refused for
+    /// has had more refused CONNECTs than one every two seconds allows (counted as refused for
     /// [`Reason::Address`]).
     pub fn admits(&self, peer: &str) -> bool {
         let admitted = lock(&self.guard).within(peer, Instant::now());

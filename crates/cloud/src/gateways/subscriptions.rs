@@ -433,7 +433,7 @@ impl Subscriptions {
         let changes = subscribers.remove_where(&self.base, |h| h.process() == Some(process));
         self.forget_if_empty(lift, &cell, &subscribers);
         if let Err(e) = self.send(lift, changes).await {
-            tracing::debug!(%lift, failure = ?e, "a lapsed process's subscriptions not unregistered");
+            tracing::debug!(%lift, failure = %e, "a lapsed process's subscriptions not unregistered");
         }
     }
 
@@ -482,13 +482,13 @@ impl Subscriptions {
                 Ok(()) => continue,
                 Err(Failure::Error(_)) if objects.len() > 1 => {}
                 Err(other) => {
-                    tracing::debug!(%lift, failure = ?other, "subscriptions not registered");
+                    tracing::debug!(%lift, failure = %other, "subscriptions not registered");
                     return;
                 }
             }
             for mplex in objects {
                 if let Err(e) = self.register(lift, &[mplex], terms).await {
-                    tracing::debug!(%lift, %mplex, failure = ?e, "object not subscribed");
+                    tracing::debug!(%lift, %mplex, failure = %e, "object not subscribed");
                 }
             }
         }
@@ -532,7 +532,7 @@ impl Subscriptions {
             for (subscriber, terms, objects) in requests {
                 let request = subscribe_request(subscriber, &objects, terms);
                 if let Err(e) = cluster.request(&lift, &request).await {
-                    tracing::debug!(%lift, failure = ?e, "a watcher's objects not handed to the lift's holder");
+                    tracing::debug!(%lift, failure = %e, "a watcher's objects not handed to the lift's holder");
                 }
             }
         });

@@ -180,6 +180,7 @@ pub async fn writer(
     mut rx: mpsc::Receiver<TelemetryRow>,
     counters: Arc<TelemetryCounters>,
     mut stop: watch::Receiver<bool>,
+    timer: crate::metrics::Timer,
 ) {
     const BATCH: usize = 16_384;
     let mut batch = Vec::with_capacity(BATCH);
@@ -201,7 +202,10 @@ pub async fn writer(
         }
         let mut retry = RETRY_FIRST;
         loop {
-            match cloud_store::timed("telemetry", batch.len(), store.telemetry(&batch)).await {
+            match timer
+                .statement("telemetry", batch.len(), store.telemetry(&batch))
+                .await
+            {
                 Ok(()) => {
                     if retry > RETRY_FIRST {
                         counters.unreachable.store(false, Ordering::Relaxed);
@@ -291,6 +295,19 @@ pub enum Retained {
     Idempotency,
 }
 
+impl Retained {
+    /// What the log calls it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Retained::Telemetry => "telemetry",
+            Retained::RollUps => "roll-ups",
+            Retained::Events => "events",
+            Retained::Refused { .. } => "refused",
+            Retained::Idempotency => "idempotency",
+        }
+    }
+}
+
 /// Delete `kept` rows older than `days` once an hour (and at start); 0 days keeps everything.
 pub async fn retention(kept: Retained, store: Store, days: u32) {
     if days == 0 {
@@ -309,8 +326,8 @@ pub async fn retention(kept: Retained, store: Store, days: u32) {
         };
         match deleted {
             Ok(0) => {}
-            Ok(n) => tracing::info!(rows = n, days, ?kept, "old rows deleted"),
-            Err(e) => tracing::error!(error = %e, ?kept, "old rows not deleted"),
+            Ok(n) => tracing::info!(rows = n, days, kept = kept.name(), "old rows deleted"),
+            Err(e) => tracing::error!(error = %e, kept = kept.name(), "old rows not deleted"),
         }
     }
 }
@@ -375,7 +392,14 @@ mod tests {
         }
         let (stop, stopping) = watch::channel(false);
         stop.send_replace(true);
-        writer(store.clone(), rx, queue.counters().clone(), stopping).await;
+        writer(
+            store.clone(),
+            rx,
+            queue.counters().clone(),
+            stopping,
+            Default::default(),
+        )
+        .await;
         assert_eq!(count(&queue.counters().stored), 50);
         let stored = store
             .values("1050-4097-TEST-000001", "0x652001", 0, i64::MAX, 1000)

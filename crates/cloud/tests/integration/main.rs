@@ -4,6 +4,7 @@
 
 mod contract;
 mod end_to_end;
+mod operations;
 mod python_events;
 mod python_gateway;
 mod python_subscriptions;

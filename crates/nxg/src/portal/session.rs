@@ -53,6 +53,18 @@ pub enum Failure {
     Gone,
 }
 
+impl std::fmt::Display for Failure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Failure::Error(e) => write!(f, "{e}"),
+            Failure::Invalid(why) => write!(f, "an answer not as the method answers: {why}"),
+            Failure::Timeout => f.write_str("no answer within the request timeout"),
+            Failure::Busy => f.write_str("too many requests waiting for the gateway"),
+            Failure::Gone => f.write_str("the connection ended first"),
+        }
+    }
+}
+
 /// Why a session ended the connection.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum CloseReason {
