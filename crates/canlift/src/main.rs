@@ -3,8 +3,9 @@
 mod cmd;
 mod config;
 mod logging;
+mod service;
 
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, Parser, Subcommand};
 
 /// canlift — CANopen-Lift (CiA 417) to cloud, and the tools around it.
 #[derive(Debug, Parser)]
@@ -82,6 +83,17 @@ enum Command {
     Sim(cmd::sim::SimArgs),
     /// Many gateways (the real gateway code, embedded mode) against one portal, for load tests.
     Loadgen(cmd::loadgen::LoadgenArgs),
+    /// Shell completions on standard output (`canlift completions bash`).
+    Completions {
+        /// The shell.
+        shell: clap_complete::Shell,
+    },
+    /// Write the manual pages (canlift.1 and one per subcommand) into a directory.
+    #[command(hide = true)]
+    Manpages {
+        /// An existing directory.
+        dir: std::path::PathBuf,
+    },
 }
 
 impl Command {
@@ -121,12 +133,28 @@ impl Command {
             Command::Events(_) => "events",
             Command::Sim(_) => "sim",
             Command::Loadgen(_) => "loadgen",
+            Command::Completions { .. } => "completions",
+            Command::Manpages { .. } => "manpages",
         }
     }
 }
 
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
+    // Made from the command-line definition alone: no logging, no runtime.
+    let manual = match &cli.command {
+        Command::Completions { shell } => Some(cmd::manual::completions(*shell, Cli::command())),
+        Command::Manpages { dir } => Some(cmd::manual::pages(Cli::command(), dir)),
+        _ => None,
+    };
+    match manual {
+        Some(Ok(())) => return std::process::ExitCode::SUCCESS,
+        Some(Err(e)) => {
+            eprintln!("canlift: {e:#}");
+            return std::process::ExitCode::FAILURE;
+        }
+        None => {}
+    }
     // Thousands of gateways in one process would log every connection: quieter by default.
     let level = match cli.command {
         Command::Loadgen(_) => "warn",
@@ -170,6 +198,7 @@ fn main() -> std::process::ExitCode {
             Command::Loadgen(args) => cmd::loadgen::run(args).await,
             Command::Sim(args) => cmd::sim::run(args).await,
             Command::Gateway(args) => cmd::gateway::run(args).await,
+            Command::Completions { .. } | Command::Manpages { .. } => Ok(()),
             #[cfg(feature = "portal")]
             Command::Cloud(args) => cmd::cloud::run(args).await,
             #[cfg(feature = "portal")]

@@ -130,6 +130,7 @@ async fn ws(
 pub struct Portal {
     listener: TcpListener,
     tls: tls::stream::Acceptor,
+    reload: TlsReload,
     router: Router,
     registry: Arc<Registry>,
     /// This process's lifts as the other processes of a cluster reach them: the cluster holds
@@ -155,7 +156,7 @@ pub struct Portal {
 fn server_tls(
     config: &Config,
     tickets: Option<Arc<TicketKeys>>,
-) -> Result<Arc<rustls::ServerConfig>, ServerError> {
+) -> Result<rustls::ServerConfig, ServerError> {
     let (cert, key) = match (&config.server.tls_cert, &config.server.tls_key) {
         (Some(c), Some(k)) => (c.clone(), k.clone()),
         (None, None) => {
@@ -177,7 +178,27 @@ fn server_tls(
         // A gateway holds one connection: one ticket per handshake is all it uses.
         tls.send_tls13_tickets = 1;
     }
-    Ok(Arc::new(tls))
+    Ok(tls)
+}
+
+/// Reads the portal's certificate, key and client CA again and serves new handshakes with them
+/// (`canlift cloud` on SIGHUP; docs/OPERATIONS.md §Certificates): the connections already made
+/// keep theirs, sessions resume across it. Files that do not make a configuration (a key that
+/// is not the certificate's, half-written PEM) are refused and the certificate in use stays.
+#[derive(Clone)]
+pub struct TlsReload {
+    config: Config,
+    tickets: Option<Arc<TicketKeys>>,
+    acceptor: tls::stream::Acceptor,
+}
+
+impl TlsReload {
+    /// Read the files and use them from the next handshake on.
+    pub fn reload(&self) -> Result<(), ServerError> {
+        let tls = server_tls(&self.config, self.tickets.clone())?;
+        self.acceptor.replace(tls);
+        Ok(())
+    }
 }
 
 /// Take the state directory's lock (`portal.lock`) for as long as the returned file is open:
@@ -311,7 +332,7 @@ impl Portal {
             );
         }
         let (tickets, follow_tickets) = ticket_keys(config, &store).await?;
-        let tls = server_tls(config, tickets)?;
+        let tls = server_tls(config, tickets.clone())?;
         let mut tasks: Vec<_> = follow_tickets.into_iter().collect();
         let mut cluster = None;
         if let Some(url) = &config.cluster.nats {
@@ -536,9 +557,15 @@ impl Portal {
         let listener = listen(config.server.listen).map_err(|e| {
             ServerError::Other(format!("listening on {}: {e}", config.server.listen))
         })?;
+        let acceptor = tls::stream::Acceptor::new(Arc::new(tls));
         Ok(Portal {
             listener,
-            tls: tls::stream::Acceptor::new(tls),
+            reload: TlsReload {
+                config: config.clone(),
+                tickets,
+                acceptor: acceptor.clone(),
+            },
+            tls: acceptor,
             router,
             registry,
             local,
@@ -565,11 +592,17 @@ impl Portal {
         self.registry.clone()
     }
 
+    /// What reloads the certificate while the portal runs.
+    pub fn tls_reload(&self) -> TlsReload {
+        self.reload.clone()
+    }
+
     /// Serve until `shutdown` turns true.
     pub async fn run(self, mut shutdown: watch::Receiver<bool>) {
         let Portal {
             listener,
             tls,
+            reload: _,
             router,
             registry,
             local,

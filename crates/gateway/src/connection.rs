@@ -91,7 +91,13 @@ pub async fn run(shared: &Shared, shutdown: &mut tokio::sync::watch::Receiver<bo
         Ok(n) => n,
         Err(e) => return ended(false, format!("{host}: {e}")),
     };
-    let tls = TlsConnector::from(shared.tls.clone());
+    let tls = TlsConnector::from(
+        shared
+            .tls
+            .read()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clone(),
+    );
     let tls = match tokio::time::timeout(timeout, tls.connect(server_name, tcp)).await {
         Ok(Ok(s)) => s,
         Ok(Err(e)) => return ended(false, format!("TLS with {host}: {e}")),

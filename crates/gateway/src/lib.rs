@@ -86,7 +86,8 @@ enum Mode {
 /// What every connection of a gateway shares.
 pub struct Shared {
     config: Config,
-    tls: Arc<rustls::ClientConfig>,
+    /// Replaced by [`TlsReload`]: each connection takes the one current when it begins.
+    tls: std::sync::RwLock<Arc<rustls::ClientConfig>>,
     token: TokenStore,
     context: Context,
     lockout: lockout::LockoutStore,
@@ -152,6 +153,23 @@ fn bus_error(url: &str, error: canbus::BusError) -> GatewayError {
     GatewayError::Bus {
         url: url.to_owned(),
         error,
+    }
+}
+
+/// Reads `[cloud]`'s CA file and client certificate again (`canlift gateway` on SIGHUP;
+/// docs/OPERATIONS.md §Certificates): the next connection uses them, the one in service goes on,
+/// and the TLS session cache carries over (a resumption needs no new certificate check).
+#[derive(Clone)]
+pub struct TlsReload(Arc<Shared>);
+
+impl TlsReload {
+    /// Read the files; on an error the configuration in use stays.
+    pub fn reload(&self) -> Result<(), GatewayError> {
+        let mut fresh = Arc::unwrap_or_clone(self.0.config.cloud.tls()?);
+        let mut current = self.0.tls.write().unwrap_or_else(PoisonError::into_inner);
+        fresh.resumption = current.resumption.clone();
+        *current = Arc::new(fresh);
+        Ok(())
     }
 }
 
@@ -310,7 +328,7 @@ impl Gateway {
                 context,
                 lockout,
                 config,
-                tls,
+                tls: std::sync::RwLock::new(tls),
                 objects,
                 mode,
                 online: watch::channel(false).0,
@@ -320,6 +338,11 @@ impl Gateway {
             node,
             supervisors: Vec::new(),
         })
+    }
+
+    /// What reloads the CA and client certificate of `[cloud]` while the gateway runs.
+    pub fn tls_reload(&self) -> TlsReload {
+        TlsReload(self.shared.clone())
     }
 
     /// Whether the gateway is connected to the portal and in service (CONNACK received) —

@@ -73,6 +73,30 @@ impl Portal {
             .expect("a gateway connects")
             .expect("accept");
         let tls = self.acceptor.accept(tcp).await.expect("the TLS handshake");
+        self.upgrade(tls).await
+    }
+
+    /// Accept the next gateway whose TLS handshake succeeds, within `wait`; the ones that
+    /// fail before it (a gateway that does not trust the portal yet) are passed over.
+    pub async fn accept_trusted(
+        &self,
+        wait: std::time::Duration,
+    ) -> (Ws, Option<String>, Option<String>) {
+        let tls = tokio::time::timeout(wait, async {
+            loop {
+                let (tcp, _) = self.listener.accept().await.expect("accept");
+                if let Ok(tls) = self.acceptor.accept(tcp).await {
+                    return tls;
+                }
+            }
+        })
+        .await
+        .expect("a gateway gets through TLS in time");
+        self.upgrade(tls).await
+    }
+
+    #[allow(clippy::result_large_err)] // the callback's error type is tungstenite's
+    async fn upgrade(&self, tls: TlsStream<TcpStream>) -> (Ws, Option<String>, Option<String>) {
         let protocol = self.protocol;
         let seen = Arc::new(std::sync::Mutex::new((None, None)));
         let seen2 = seen.clone();

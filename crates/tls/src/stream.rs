@@ -20,7 +20,7 @@
 use std::future::poll_fn;
 use std::io;
 use std::pin::Pin;
-use std::sync::Arc;
+use std::sync::{Arc, PoisonError, RwLock};
 use std::task::{ready, Context, Poll};
 
 use rustls::server::UnbufferedServerConnection;
@@ -44,22 +44,43 @@ const MAX_FRAGMENT: usize = 16 * 1024;
 /// announces more is refused by rustls, not read into memory).
 const MAX_RECORD: usize = 5 + MAX_FRAGMENT + 2048;
 
-/// Accepts TLS connections with one server configuration.
+/// Accepts TLS connections with a server configuration that can be replaced while it serves
+/// (a renewed certificate): clones share it.
 #[derive(Clone)]
 pub struct Acceptor {
-    config: Arc<ServerConfig>,
+    config: Arc<RwLock<Arc<ServerConfig>>>,
 }
 
 impl Acceptor {
     /// An acceptor for `config`.
     pub fn new(config: Arc<ServerConfig>) -> Acceptor {
-        Acceptor { config }
+        Acceptor {
+            config: Arc::new(RwLock::new(config)),
+        }
+    }
+
+    /// The configuration handshakes begin with now.
+    pub fn config(&self) -> Arc<ServerConfig> {
+        // A writer that panicked left a whole `Arc` behind: the lock's poison says nothing.
+        self.config
+            .read()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
+    }
+
+    /// Serve handshakes from now on with `config`; the connections already made keep theirs.
+    /// The session cache (TLS 1.2 session IDs, TLS 1.3 stateful tickets) carries over, so a
+    /// client resumes across the change as before it.
+    pub fn replace(&self, mut config: ServerConfig) {
+        let mut current = self.config.write().unwrap_or_else(PoisonError::into_inner);
+        config.session_storage = current.session_storage.clone();
+        *current = Arc::new(config);
     }
 
     /// Complete the server side of a handshake on `io` (bound its time with a timeout: a peer
     /// that says nothing keeps it waiting).
     pub async fn accept<IO: Transport>(&self, io: IO) -> io::Result<ServerStream<IO>> {
-        let conn = UnbufferedServerConnection::new(self.config.clone()).map_err(tls_error)?;
+        let conn = UnbufferedServerConnection::new(self.config()).map_err(tls_error)?;
         let mut stream = ServerStream {
             io,
             conn,

@@ -307,9 +307,16 @@ pub async fn run(args: CloudArgs) -> anyhow::Result<()> {
                 .await
                 .context("starting the portal")?;
             tracing::info!(listen = %portal.local_addr(), database = %cloud_store::shown_url(&config.database_url()), "portal running");
+            let reload = portal.tls_reload();
+            crate::service::on_hangup("the TLS certificate, key and client CA", move || {
+                reload.reload()
+            });
+            let status = format!("serving on {}", portal.local_addr());
             let (stop, stopped) = tokio::sync::watch::channel(false);
             let task = tokio::spawn(portal.run(stopped));
-            crate::logging::shutdown_signal().await;
+            crate::service::notify(crate::service::State::Ready(&status));
+            crate::service::shutdown_signal().await;
+            crate::service::notify(crate::service::State::Stopping);
             let _ = stop.send(true);
             let _ = task.await;
             Ok(())

@@ -234,7 +234,7 @@ pub async fn run(args: DemoArgs) -> anyhow::Result<()> {
     println!("  {canlift} watch {lift} 0x652001 0x638301");
     println!("  {canlift} put {lift} 0x502200 4");
     println!("  {canlift} alarms        (set 5030h on the lift page with the setup password to make faults)");
-    crate::logging::shutdown_signal().await;
+    crate::service::shutdown_signal().await;
     let _ = stop.send(true);
     let _ = gateway_task.await;
     sim.stop().await;

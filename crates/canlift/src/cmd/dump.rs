@@ -138,7 +138,7 @@ pub async fn run(args: DumpArgs) -> anyhow::Result<()> {
     let mut states: HashMap<u8, u8> = HashMap::new();
     let mut out = BufWriter::new(std::io::stdout().lock());
     let mut seen = 0u64;
-    let shutdown = crate::logging::shutdown_signal();
+    let shutdown = crate::service::shutdown_signal();
     tokio::pin!(shutdown);
     loop {
         let event = tokio::select! {

@@ -48,9 +48,20 @@ pub async fn run(args: GatewayArgs) -> anyhow::Result<()> {
         lift_controller = config.bus.lift_controller,
         "gateway running"
     );
+    let reload = gateway.tls_reload();
+    crate::service::on_hangup("the portal's CA and the client certificate", move || {
+        reload.reload()
+    });
     let (stop, stopped) = tokio::sync::watch::channel(false);
     let task = tokio::spawn(gateway.run(stopped));
-    crate::logging::shutdown_signal().await;
+    // On the bus and dialling: the portal may stay out of reach for hours, which systemd's
+    // start timeout must not count (`canlift_gateway_connected` tells whether it is online).
+    crate::service::notify(crate::service::State::Ready(&format!(
+        "on {} as node {}",
+        config.bus.url, config.bus.node_id
+    )));
+    crate::service::shutdown_signal().await;
+    crate::service::notify(crate::service::State::Stopping);
     let _ = stop.send(true);
     let _ = task.await;
     Ok(())

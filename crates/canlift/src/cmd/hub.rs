@@ -114,7 +114,7 @@ pub async fn run(args: HubArgs) -> anyhow::Result<()> {
     println!("canlift hub listening on {addr} ({mode}); join with socketcand://{addr}/CHANNEL");
     std::io::stdout().flush()?;
     let stats = hub.stats();
-    hub.run(crate::logging::shutdown_signal()).await;
+    hub.run(crate::service::shutdown_signal()).await;
     let load = |c: &std::sync::atomic::AtomicU64| c.load(std::sync::atomic::Ordering::Relaxed);
     tracing::info!(
         frames_in = load(&stats.frames_in),

@@ -72,7 +72,7 @@ pub async fn run(args: LoadgenArgs) -> anyhow::Result<()> {
     let mut report = tokio::time::interval(Duration::from_secs(1));
     let mut change = tokio::time::interval(Duration::from_millis(args.change_ms.max(1)));
     let mut step = 0u32;
-    let shutdown = crate::logging::shutdown_signal();
+    let shutdown = crate::service::shutdown_signal();
     tokio::pin!(shutdown);
     {
         let all_online = fleet.all_online(fleet.launched(), Duration::from_secs(24 * 3600));

@@ -20,6 +20,7 @@ pub mod loadgen;
 #[cfg(feature = "portal")]
 pub mod local_time;
 pub mod lss;
+pub mod manual;
 pub mod nmt;
 #[cfg(feature = "portal")]
 pub mod operator;

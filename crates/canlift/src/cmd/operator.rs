@@ -318,7 +318,7 @@ pub async fn watch(mut args: WatchArgs) -> anyhow::Result<()> {
         .map(|m| nxg::mplex::normalized(m))
         .collect();
     let mut seen = 0;
-    let shutdown = crate::logging::shutdown_signal();
+    let shutdown = crate::service::shutdown_signal();
     tokio::pin!(shutdown);
     while args.count == 0 || seen < args.count {
         let next = tokio::select! {

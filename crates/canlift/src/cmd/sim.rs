@@ -143,7 +143,7 @@ pub async fn run(args: SimArgs) -> anyhow::Result<()> {
         "simulated lift running; call the car with: canlift sdo write {} 0x5022 0 u32 FLOOR",
         config.node_id
     );
-    crate::logging::shutdown_signal().await;
+    crate::service::shutdown_signal().await;
     sim.stop().await;
     tracing::info!("simulated lift stopped, counters stored");
     Ok(())

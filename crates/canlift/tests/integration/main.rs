@@ -22,5 +22,7 @@ mod nmt_cli;
 #[cfg(feature = "portal")]
 mod portal_cli;
 mod sdo_cli;
+#[cfg(feature = "portal")]
+mod service;
 mod sim_cli;
 mod tools_cli;

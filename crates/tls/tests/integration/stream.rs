@@ -20,6 +20,8 @@ use tokio_rustls::TlsConnector;
 struct Pki {
     server: Arc<ServerConfig>,
     client: Arc<ClientConfig>,
+    /// The CA's certificate (PEM): the files go with the function's directory.
+    ca: Vec<u8>,
 }
 
 /// The server and client configurations the crate makes (as the portal and the gateway use
@@ -34,6 +36,7 @@ fn pki() -> Pki {
     Pki {
         server: Arc::new(server),
         client: tls::client_config(Some(&files.ca), None).unwrap(),
+        ca: std::fs::read(&files.ca).unwrap(),
     }
 }
 
@@ -115,6 +118,55 @@ async fn a_second_connection_resumes_the_session() {
     client.read_exact(&mut got).await.unwrap();
     let (server, _client) = pair(&pki, 8192).await;
     assert_eq!(server.handshake_kind(), Some(HandshakeKind::Resumed));
+}
+
+/// A renewed certificate (the portal's SIGHUP): handshakes from then on present it, a
+/// connection made before goes on as it was, and a client resumes the session it had.
+#[tokio::test]
+async fn a_replaced_configuration_serves_new_handshakes_and_spares_the_old_ones() {
+    let pki = pki();
+    let (mut before, mut client) = pair(&pki, 8192).await;
+    client.write_all(b"ping").await.unwrap();
+    let mut got = [0; 4];
+    before.read_exact(&mut got).await.unwrap();
+    let first = client.get_ref().1.peer_certificates().unwrap()[0].clone();
+
+    let acceptor = Acceptor::new(pki.server.clone());
+    let dir = tempfile::tempdir().unwrap();
+    let renewed = testkit::pki::pki(dir.path());
+    let mut config = tls::server_config(&renewed.cert, &renewed.key, None).unwrap();
+    config.ticketer = pki.server.ticketer.clone();
+    acceptor.replace(config);
+
+    let roots = dir.path().join("both.pem");
+    let mut both = std::fs::read(&renewed.ca).unwrap();
+    both.extend_from_slice(&pki.ca);
+    std::fs::write(&roots, both).unwrap();
+    let client_config = tls::client_config(Some(&roots), None).unwrap();
+    let connect = |config: Arc<ClientConfig>| {
+        let acceptor = acceptor.clone();
+        async move {
+            let (near, far) = tokio::io::duplex(8192);
+            let name = ServerName::try_from("localhost").unwrap();
+            let (server, client) = tokio::join!(
+                acceptor.accept(near),
+                TlsConnector::from(config).connect(name, far)
+            );
+            (server.unwrap(), client.unwrap())
+        }
+    };
+    let (_after, fresh) = connect(client_config).await;
+    let second = fresh.get_ref().1.peer_certificates().unwrap()[0].clone();
+    assert_ne!(first, second, "the renewed certificate is presented");
+
+    // The connection made before still carries data both ways.
+    before.write_all(b"pong").await.unwrap();
+    before.flush().await.unwrap();
+    client.read_exact(&mut got).await.unwrap();
+    assert_eq!(&got, b"pong");
+    // Its client took a ticket with the answer: it resumes against the new configuration.
+    let (resumed, _client) = connect(pki.client.clone()).await;
+    assert_eq!(resumed.handshake_kind(), Some(HandshakeKind::Resumed));
 }
 
 /// The client asks for new keys every few messages (RFC 8446 §4.6.3, `update_requested`): the

@@ -23,12 +23,19 @@ pub fn stderr(out: &Output) -> String {
     String::from_utf8_lossy(&out.stderr).into_owned()
 }
 
+/// Send signal `name` (`INT`, `HUP`, `TERM`) to `child`.
+pub fn send_signal(child: &tokio::process::Child, name: &str) {
+    let pid = child.id().expect("running");
+    let sent = std::process::Command::new("kill")
+        .args([&format!("-{name}"), &pid.to_string()])
+        .status()
+        .expect("kill runs");
+    assert!(sent.success(), "SIG{name} sent to {pid}");
+}
+
 /// SIGINT, as Ctrl-C would; the exit status within `limit`.
 pub async fn interrupt(child: &mut tokio::process::Child, limit: Duration) -> ExitStatus {
-    let pid = child.id().expect("running");
-    let _ = std::process::Command::new("kill")
-        .args(["-INT", &pid.to_string()])
-        .status();
+    send_signal(child, "INT");
     tokio::time::timeout(limit, child.wait())
         .await
         .expect("exits after SIGINT")
