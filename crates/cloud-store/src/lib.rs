@@ -767,6 +767,7 @@ pub(crate) mod tests {
         let h = store.values(lift, "0x652001", 0, 1000, 100).await.unwrap();
         assert_eq!(h, [(300, "8".to_owned())]);
         users::tests::users_keys_and_the_epoch(&store).await;
+        users::tests::users_of_single_sign_on(&store).await;
         subscriptions::tests::held_released_and_per_lift(&store).await;
         ticket_keys::tests::made_once_replaced_over_the_version(&store).await;
         alarms::tests::one_active_alarm_per_condition(&store).await;

@@ -141,6 +141,14 @@ const MIGRATIONS: &[(i64, &[&str])] = &[
     ),
     // Where an audited request came from.
     (18, &["ALTER TABLE audit ADD COLUMN address TEXT"]),
+    // Users of single sign-on, by their provider's issuer and subject.
+    (
+        19,
+        &[
+            "ALTER TABLE users ADD COLUMN sso_subject TEXT",
+            "CREATE UNIQUE INDEX IF NOT EXISTS users_by_sso ON users (account, sso_subject)",
+        ],
+    ),
 ];
 
 /// Apply the [`MIGRATIONS`] not yet recorded, each with its record in one transaction (under

@@ -206,6 +206,60 @@ impl Store {
         }
     }
 
+    /// A user the account's OpenID provider signed on (docs/PORTAL.md §Single sign-on), found
+    /// by `subject` (`ISSUER SUB`, which never changes for them) and given `role`, which their
+    /// groups decide at every sign-on; made with `name` the first time, without a secret of
+    /// their own (no secret matches it). `None` for a user an administrator disabled: the
+    /// provider's word does not enable them again. A name another user of the account has is
+    /// [`UserError::Taken`]: a local user is never taken over by a provider's name.
+    pub async fn signed_on_user(
+        &self,
+        account: &str,
+        subject: &str,
+        name: &str,
+        role: Role,
+    ) -> Result<Option<Operator>, UserError> {
+        self.account_named(account).await?;
+        for _ in 0..2 {
+            let found = sqlx::query(
+                "SELECT name, role, disabled FROM users WHERE account = $1 AND sso_subject = $2",
+            )
+            .bind(account)
+            .bind(subject)
+            .fetch_optional(&self.pool)
+            .await?;
+            if let Some(row) = found {
+                let known: String = row.try_get("name")?;
+                if row.try_get::<Option<i64>, _>("disabled")?.is_some() {
+                    return Ok(None);
+                }
+                if role_of(&row)? != role {
+                    self.set_role(account, &known, role).await?;
+                }
+                return Ok(self.operator(account, &known).await?);
+            }
+            let made = sqlx::query(
+                "INSERT INTO users (name, account, role, secret_hash, disabled, created, sso_subject) VALUES ($1, $2, $3, $4, NULL, $5, $6)",
+            )
+            .bind(name)
+            .bind(account)
+            .bind(role.name())
+            .bind(NO_SECRET)
+            .bind(now_ms())
+            .bind(subject)
+            .execute(&self.pool)
+            .await;
+            match made {
+                Ok(_) => return Ok(self.operator(account, name).await?),
+                // Another process made them a moment ago (then they are found), or the name
+                // is another user's.
+                Err(sqlx::Error::Database(e)) if e.is_unique_violation() => continue,
+                Err(e) => return Err(e.into()),
+            }
+        }
+        Err(UserError::Taken(name.to_owned()))
+    }
+
     /// The users of `account`, by name.
     pub async fn users(&self, account: &str) -> Result<Vec<User>, UserError> {
         self.account_named(account).await?;
@@ -463,6 +517,9 @@ impl Store {
     }
 }
 
+/// The secret hash of a user of single sign-on: not a PHC string, so no secret matches it.
+const NO_SECRET: &str = "!sso";
+
 /// A hash to compare against when there is no user, so that an unknown name costs as much time
 /// as a wrong secret.
 static DUMMY_HASH: std::sync::LazyLock<String> =
@@ -479,6 +536,61 @@ pub(crate) mod tests {
             return None;
         }
         store.operator(account, name).await.unwrap()
+    }
+
+    /// Run by the store's tests on SQLite and PostgreSQL, after [`users_keys_and_the_epoch`]
+    /// (which made ann, a local user of `masora`).
+    pub(crate) async fn users_of_single_sign_on(store: &Store) {
+        const VIC: &str = "https://id.example 248289761001";
+        let vic = store
+            .signed_on_user("masora", VIC, "vic", Role::Viewer)
+            .await
+            .unwrap()
+            .unwrap();
+        assert_eq!((vic.user.as_str(), vic.role), ("vic", Role::Viewer));
+        // No secret signs them in.
+        for secret in ["", "!sso", "cls_"] {
+            assert!(sign_in(store, "masora", "vic", secret).await.is_none());
+        }
+        // The role follows their groups; the name they were made with stays theirs.
+        let epoch = store.auth_epoch().await.unwrap();
+        let again = store
+            .signed_on_user("masora", VIC, "vic.renamed", Role::Engineer)
+            .await
+            .unwrap()
+            .unwrap();
+        assert_eq!((again.user.as_str(), again.role), ("vic", Role::Engineer));
+        assert!(
+            store.auth_epoch().await.unwrap() > epoch,
+            "a role change raises the epoch"
+        );
+        // Nobody takes over a local user by the name the provider gives.
+        assert!(matches!(
+            store
+                .signed_on_user("masora", "https://id.example 9", "ann", Role::Admin)
+                .await,
+            Err(UserError::Taken(_))
+        ));
+        // A disabled user stays disabled whatever the provider says.
+        store.disable_user("masora", "vic").await.unwrap();
+        assert!(store
+            .signed_on_user("masora", VIC, "vic", Role::Admin)
+            .await
+            .unwrap()
+            .is_none());
+        // The same subject in another account is another user there.
+        let theirs = store
+            .signed_on_user("other", VIC, "vic", Role::Viewer)
+            .await
+            .unwrap()
+            .unwrap();
+        assert_eq!(theirs.account.name, "other");
+        assert!(matches!(
+            store
+                .signed_on_user("nobody", VIC, "vic", Role::Viewer)
+                .await,
+            Err(UserError::NoAccount(_))
+        ));
     }
 
     /// Run by the store's tests on SQLite and PostgreSQL, with account `masora` (domain MAS)

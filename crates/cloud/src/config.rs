@@ -1,6 +1,7 @@
 //! The portal's configuration (docs/PORTAL.md §Configuration): `[server]`, `[state]`,
-//! `[database]`, `[gateways]`, `[dashboard]`, `[alarms]`.
+//! `[database]`, `[gateways]`, `[dashboard]`, `[alarms]`, `[cluster]`, `[oidc]`.
 
+use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -12,6 +13,7 @@ use serde::{Deserialize, Serialize};
 
 use cloud_cluster::ClusterSection;
 use cloud_types::alarms::Severity;
+use cloud_types::users::Role;
 
 /// `[server]`: the one TLS port.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -362,6 +364,63 @@ impl Default for AlarmsSection {
     }
 }
 
+/// `[oidc]`: the OpenID provider the web UI signs in with (absent: local users only).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OidcSection {
+    /// The provider's issuer URL (`https://…`); its discovery document is
+    /// `ISSUER/.well-known/openid-configuration`.
+    pub issuer: String,
+    /// The portal's client id at the provider.
+    pub client_id: String,
+    /// The portal's client secret (sent as HTTP Basic authentication to the token endpoint);
+    /// absent for a public client, which PKCE alone protects.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub client_secret: Option<String>,
+    /// The portal account whose users sign in this way.
+    pub account: String,
+    /// The claim that lists the user's groups (a string or an array of strings; a dotted path
+    /// such as `realm_access.roles` reaches into an object); default `groups`.
+    #[serde(default = "groups")]
+    pub roles_claim: String,
+    /// Which group gives which role (`{ "lift-engineers" = "engineer" }`); a user in several
+    /// gets the highest, one in none is refused.
+    pub role_map: BTreeMap<String, Role>,
+    /// The claim that names the user in the portal; default `preferred_username` (then
+    /// `email`, then the subject).
+    #[serde(default = "preferred_username")]
+    pub name_claim: String,
+    /// The scopes asked for; default `openid profile email` (`openid` is always asked).
+    #[serde(default = "default_scopes")]
+    pub scopes: Vec<String>,
+    /// PEM CA certificates that sign the provider's certificate; absent: the system's roots.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ca_file: Option<PathBuf>,
+    /// Where the provider sends the browser back; default `https://HOST/login/sso/callback`
+    /// with the host the browser asked for. Register it at the provider.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub redirect_url: Option<String>,
+    /// What the sign-in page's button says: "Sign in with LABEL"; default `single sign-on`.
+    #[serde(default = "label")]
+    pub label: String,
+}
+
+fn groups() -> String {
+    "groups".into()
+}
+
+fn preferred_username() -> String {
+    "preferred_username".into()
+}
+
+fn default_scopes() -> Vec<String> {
+    ["openid", "profile", "email"].map(String::from).to_vec()
+}
+
+fn label() -> String {
+    "single sign-on".into()
+}
+
 /// The whole configuration.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -380,6 +439,9 @@ pub struct Config {
     pub alarms: AlarmsSection,
     /// `[cluster]`.
     pub cluster: ClusterSection,
+    /// `[oidc]`: single sign-on (absent: local users and API keys only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub oidc: Option<OidcSection>,
 }
 
 impl Config {

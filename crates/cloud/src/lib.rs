@@ -19,6 +19,7 @@ pub mod forwarded;
 pub mod gateways;
 mod memory;
 pub mod metrics;
+pub mod outbound;
 pub mod server;
 pub mod sse;
 pub mod state;

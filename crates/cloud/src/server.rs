@@ -514,6 +514,13 @@ impl Portal {
                         )),
                         sign_ins: std::sync::Mutex::default(),
                         passwords: password_checks(&config.server)?,
+                        sso: match &config.oidc {
+                            Some(section) => Some(Arc::new(
+                                crate::auth::oidc::Sso::new(section.clone())
+                                    .map_err(ServerError::Other)?,
+                            )),
+                            None => None,
+                        },
                     },
                     store,
                     registry: registry.clone(),

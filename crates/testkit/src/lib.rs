@@ -128,6 +128,29 @@ pub fn browser() -> Option<(PathBuf, PathBuf)> {
     }
 }
 
+/// The OpenID provider of the single sign-on tests: `tests/interop/oidc` with its pinned npm
+/// packages installed (`scripts/test` runs `npm ci` there) and Node.js on PATH, or `None` after
+/// printing why the test is skipped. With CANLIFT_REQUIRE_OIDC=1 (CI) their absence fails it.
+pub fn oidc_provider() -> Option<PathBuf> {
+    let dir = workspace().join("tests/interop/oidc");
+    let node = Command::new("node")
+        .arg("--version")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success());
+    if node && dir.join("node_modules/oidc-provider").is_dir() {
+        return Some(dir);
+    }
+    let reason = "oidc: node or tests/interop/oidc/node_modules missing (scripts/test installs \
+                  the pinned oidc-provider with npm ci)";
+    if std::env::var("CANLIFT_REQUIRE_OIDC").as_deref() == Ok("1") {
+        panic!("{reason}");
+    }
+    skip(reason);
+    None
+}
+
 /// Prometheus's `promtool` (Debian's `prometheus` package), or `None` after printing why the
 /// test is skipped. With CANLIFT_REQUIRE_PROMTOOL=1 (CI installs it) its absence fails the test.
 pub fn promtool() -> Option<PathBuf> {

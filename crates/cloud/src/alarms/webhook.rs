@@ -17,16 +17,19 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;
 
-use http_body_util::{BodyExt, Full};
+use http_body_util::Full;
 use hyper::body::Bytes;
 use tokio::net::TcpStream;
 
 use super::service::{Alarms, Counters};
 use crate::config::WebhookSection;
+use crate::outbound::{Https, Target};
 use cloud_types::audit::AuditEntry;
 
 use cloud_store::{OutboxEntry, Store};
 
+/// What is read of a receiver's answer.
+const ANSWER_LIMIT: usize = 64 * 1024;
 /// How long one attempt may take.
 const ATTEMPT: Duration = Duration::from_secs(10);
 /// The longest wait between attempts.
@@ -64,7 +67,7 @@ pub struct Receiver {
     section: WebhookSection,
     /// What the audit log and the logs call it.
     name: String,
-    tls: tokio_rustls::TlsConnector,
+    https: Https,
 }
 
 impl Receiver {
@@ -76,67 +79,12 @@ impl Receiver {
             .clone()
             .unwrap_or_else(|| format!("webhook {n}"));
         Target::parse(&section.url).map_err(|e| format!("alarms.webhooks {name}: {e}"))?;
-        let tls = tls::client_config(section.ca_file.as_deref(), None)
+        let https = Https::new(section.ca_file.as_deref())
             .map_err(|e| format!("alarms.webhooks {name}: {e}"))?;
-        let mut tls = Arc::unwrap_or_clone(tls);
-        tls.alpn_protocols = vec![b"http/1.1".to_vec()];
         Ok(Receiver {
             section: section.clone(),
             name,
-            tls: tokio_rustls::TlsConnector::from(Arc::new(tls)),
-        })
-    }
-}
-
-/// Where a URL points, and the credentials it gives.
-struct Target {
-    https: bool,
-    host: String,
-    port: u16,
-    path: String,
-    /// `Authorization: Basic …` of the URL's `USER:PASSWORD@`.
-    basic: Option<String>,
-}
-
-impl Target {
-    /// The errors never repeat the URL: it may hold credentials.
-    fn parse(url: &str) -> Result<Target, String> {
-        use base64::Engine;
-        let uri: hyper::Uri = url.parse().map_err(|e| format!("not a URL: {e}"))?;
-        let https = match uri.scheme_str() {
-            Some("https") => true,
-            Some("http") => false,
-            _ => return Err("http:// or https://".into()),
-        };
-        let host = uri
-            .host()
-            .ok_or("no host")?
-            .trim_matches(['[', ']'])
-            .to_owned();
-        let basic = uri
-            .authority()
-            .and_then(|a| a.as_str().rsplit_once('@'))
-            .map(|(userinfo, _)| {
-                let (user, password) = userinfo.split_once(':').unwrap_or((userinfo, ""));
-                let decode = |t: &str| {
-                    percent_encoding::percent_decode_str(t)
-                        .decode_utf8_lossy()
-                        .into_owned()
-                };
-                let pair = format!("{}:{}", decode(user), decode(password));
-                format!(
-                    "Basic {}",
-                    base64::engine::general_purpose::STANDARD.encode(pair)
-                )
-            });
-        Ok(Target {
             https,
-            port: uri.port_u16().unwrap_or(if https { 443 } else { 80 }),
-            path: uri
-                .path_and_query()
-                .map_or_else(|| "/".to_owned(), |p| p.as_str().to_owned()),
-            host,
-            basic,
         })
     }
 }
@@ -157,31 +105,26 @@ fn nearby(ip: IpAddr) -> bool {
 /// none — in words that name neither the receiver's address nor its URL.
 async fn post(receiver: &Receiver, id: i64, body: &str) -> Result<u16, String> {
     let target = Target::parse(&receiver.section.url)?;
-    // An https:// receiver through HTTPS_PROXY unless NO_PROXY names it (the proxy resolves
-    // its name); one on this host or its network (http://) is reached straight.
-    let proxy = match target.https {
-        true => tls::reach::Proxies::Environment
-            .for_server(&target.host, target.port)
-            .map_err(|e| e.to_string())?,
-        false => None,
-    };
-    let tcp = match &proxy {
-        Some(proxy) => tls::reach::connect(&target.host, target.port, None, Some(proxy)).await,
-        None => {
+    // An http:// receiver is reached straight, and only on this host or its network; an
+    // https:// one through HTTPS_PROXY unless NO_PROXY names it.
+    let tcp = match target.https {
+        true => None,
+        false => {
             let addresses: Vec<_> = tokio::net::lookup_host((target.host.as_str(), target.port))
                 .await
                 .map_err(|e| format!("its host name did not resolve: {e}"))?
                 .collect();
-            if !target.https && !addresses.iter().all(|a| nearby(a.ip())) {
+            if !addresses.iter().all(|a| nearby(a.ip())) {
                 return Err(
                     "http:// only to a receiver on this host or its network; use https://".into(),
                 );
             }
-            TcpStream::connect(&addresses[..]).await
+            let tcp = TcpStream::connect(&addresses[..])
+                .await
+                .map_err(|e| format!("no connection: {}", e.kind()))?;
+            Some(tcp)
         }
-    }
-    .map_err(|e| format!("no connection: {}", e.kind()))?;
-    let _ = tcp.set_nodelay(true);
+    };
     let message = format!("msg_{id}");
     let timestamp = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
@@ -205,37 +148,12 @@ async fn post(receiver: &Receiver, id: i64, body: &str) -> Result<u16, String> {
     let request = request
         .body(Full::new(Bytes::from(body.to_owned())))
         .map_err(|e| e.to_string())?;
-    if target.https {
-        let name = rustls::pki_types::ServerName::try_from(target.host.clone())
-            .map_err(|e| e.to_string())?;
-        let tls = receiver
-            .tls
-            .connect(name, tcp)
-            .await
-            .map_err(|e| format!("TLS: {e}"))?;
-        send(tls, request).await
-    } else {
-        send(tcp, request).await
-    }
-}
-
-async fn send<S>(stream: S, request: hyper::Request<Full<Bytes>>) -> Result<u16, String>
-where
-    S: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin + Send + 'static,
-{
-    let (mut sender, connection) =
-        hyper::client::conn::http1::handshake(hyper_util::rt::TokioIo::new(stream))
-            .await
-            .map_err(|e| e.to_string())?;
-    tokio::spawn(connection);
-    let response = sender
-        .send_request(request)
-        .await
-        .map_err(|e| e.to_string())?;
-    let status = response.status().as_u16();
-    // The answer's body is read and dropped, up to where the connection closes.
-    let _ = response.into_body().collect().await;
-    Ok(status)
+    // What a receiver answers beyond its status is read (up to a bound) and dropped.
+    let answer = receiver
+        .https
+        .send(&target, tcp, request, ANSWER_LIMIT)
+        .await?;
+    Ok(answer.status)
 }
 
 /// The wait before attempt `n + 1` after `n` failed ones: 1 s doubling, at most 10 min.
@@ -377,23 +295,7 @@ mod tests {
     }
 
     #[test]
-    fn urls_and_nearby_receivers() {
-        let t = Target::parse("http://127.0.0.1:9000/hook?x=1").unwrap();
-        assert_eq!(
-            (t.https, t.port, t.path.as_str()),
-            (false, 9000, "/hook?x=1")
-        );
-        assert_eq!(t.basic, None);
-        let t = Target::parse("https://hooks:p%40ss@alerts.example/hook").unwrap();
-        assert_eq!(
-            (t.host.as_str(), t.path.as_str()),
-            ("alerts.example", "/hook")
-        );
-        // base64 of "hooks:p@ss".
-        assert_eq!(t.basic.as_deref(), Some("Basic aG9va3M6cEBzcw=="));
-        let refused = Target::parse("ftp://secret@x/").err().unwrap();
-        assert!(!refused.contains("secret"), "{refused}");
-        assert_eq!(Target::parse("https://example.com").unwrap().port, 443);
+    fn nearby_receivers_and_backoff() {
         assert!(nearby("10.1.2.3".parse().unwrap()));
         assert!(nearby("fe80::1".parse().unwrap()));
         assert!(!nearby("8.8.8.8".parse().unwrap()));

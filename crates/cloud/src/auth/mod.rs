@@ -1,9 +1,11 @@
 //! Who may do what on the portal (docs/PORTAL.md §Users and roles): the caller of a request
 //! ([`Caller`]: an API key, or the web UI's session with its CSRF token), its role and
 //! account, the browser [`sessions`], the throttles of keys and sign-ins
-//! ([`crate::throttle`]) and who elevated which lift ([`elevation`]).
+//! ([`crate::throttle`]), who elevated which lift ([`elevation`]) and single sign-on
+//! ([`oidc`]).
 
 pub mod elevation;
+pub mod oidc;
 pub mod passwords;
 pub mod sessions;
 
@@ -40,6 +42,8 @@ pub struct Auth {
     pub passwords: passwords::PasswordChecks,
     /// Who elevated which lift.
     pub elevations: Elevations,
+    /// Single sign-on (`[oidc]`), if configured.
+    pub sso: Option<Arc<oidc::Sso>>,
 }
 
 /// The operator a request acts for: `Authorization: Bearer API_KEY`, or the web UI's session

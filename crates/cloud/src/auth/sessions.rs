@@ -66,14 +66,15 @@ pub struct Sessions {
     by_digest: Mutex<HashMap<String, Session>>,
 }
 
-fn cookie(headers: &HeaderMap) -> Option<&str> {
+/// The value of the request's cookie `name`.
+pub fn cookie<'a>(headers: &'a HeaderMap, name: &str) -> Option<&'a str> {
     headers
         .get_all(header::COOKIE)
         .iter()
         .filter_map(|v| v.to_str().ok())
         .flat_map(|v| v.split(';'))
         .filter_map(|c| c.trim().split_once('='))
-        .find(|(name, _)| *name == COOKIE)
+        .find(|(n, _)| *n == name)
         .map(|(_, value)| value)
 }
 
@@ -95,7 +96,7 @@ impl Sessions {
         headers: &HeaderMap,
         store: &Store,
     ) -> Result<Option<Session>, StoreError> {
-        let Some(id) = cookie(headers) else {
+        let Some(id) = cookie(headers, COOKIE) else {
             return Ok(None);
         };
         let digest = cloud_store::digest(id);
@@ -196,7 +197,7 @@ impl Sessions {
         if session.epoch == store.seen_auth_epoch() {
             return Ok(Some(session));
         }
-        let Some(id) = cookie(headers) else {
+        let Some(id) = cookie(headers, COOKIE) else {
             return Ok(None);
         };
         let digest = cloud_store::digest(id);
@@ -244,7 +245,7 @@ impl Sessions {
 
     /// Sign the request's session out, here and (through the database) everywhere.
     pub async fn close(&self, headers: &HeaderMap, store: &Store) -> Result<(), StoreError> {
-        if let Some(id) = cookie(headers) {
+        if let Some(id) = cookie(headers, COOKIE) {
             let digest = cloud_store::digest(id);
             self.cache().remove(&digest);
             store.close_session(&digest).await?;

@@ -58,15 +58,7 @@ impl Locale {
     /// `?lang=`, else the language chosen before (cookie), else the browser's first language
     /// the UI speaks, else English.
     pub(super) fn of(query: Option<&str>, headers: &HeaderMap) -> Locale {
-        let chosen = || {
-            headers
-                .get_all(header::COOKIE)
-                .iter()
-                .filter_map(|v| v.to_str().ok())
-                .flat_map(|v| v.split(';'))
-                .filter_map(|c| c.trim().strip_prefix(COOKIE)?.strip_prefix('='))
-                .find_map(Locale::parse)
-        };
+        let chosen = || crate::auth::sessions::cookie(headers, COOKIE).and_then(Locale::parse);
         let browser = || {
             headers
                 .get(header::ACCEPT_LANGUAGE)
@@ -223,6 +215,17 @@ const GERMAN: &[(&str, &str)] = &[
     ("; an account's key by ", "; den Schlüssel eines Kontos: "),
     (" (or by ", " (oder "),
     (").", ")."),
+    // Single sign-on.
+    ("Sign in with {}", "Anmelden mit {}"),
+    ("or with the portal's own sign-in", "oder mit der Anmeldung des Portals"),
+    ("Single sign-on is not set up on this portal.", "Dieses Portal hat keine zentrale Anmeldung."),
+    ("The sign-on provider cannot be reached: try again, or sign in with a secret or an API key.", "Der Anmeldedienst ist nicht erreichbar: bitte erneut versuchen oder mit Geheimnis oder API-Schlüssel anmelden."),
+    ("This sign-on was not begun in this browser, or took longer than ten minutes: sign in again.", "Diese Anmeldung wurde nicht in diesem Browser begonnen oder dauerte länger als zehn Minuten: bitte erneut anmelden."),
+    ("The sign-on could not be verified.", "Die Anmeldung konnte nicht geprüft werden."),
+    ("The sign-on provider refused: {}", "Der Anmeldedienst lehnte ab: {}"),
+    ("None of your groups gives a role on this portal: ask its administrator.", "Keine Ihrer Gruppen gibt eine Rolle in diesem Portal: bitte an dessen Administrator wenden."),
+    ("Your user is disabled on this portal: ask its administrator.", "Ihr Benutzer ist in diesem Portal gesperrt: bitte an dessen Administrator wenden."),
+    ("The portal has another user named {}: its administrator must rename or remove it.", "Das Portal hat schon einen anderen Benutzer namens {}: sein Administrator muss ihn umbenennen oder entfernen."),
     ("Wrong account, user name, secret or API key.", "Konto, Benutzername, Geheimnis oder API-Schlüssel falsch."),
     ("Too many failed sign-ins: try again in {} s.", "Zu viele fehlgeschlagene Anmeldungen: bitte in {} s erneut versuchen."),
     ("Wrong CSRF token.", "Falsches CSRF-Token."),
@@ -416,7 +419,7 @@ mod tests {
         "increments",
     ];
 
-    const PAGES: [&str; 8] = [
+    const PAGES: [&str; 9] = [
         include_str!("alarms.rs"),
         include_str!("audit.rs"),
         include_str!("fleet.rs"),
@@ -425,6 +428,7 @@ mod tests {
         include_str!("login.rs"),
         include_str!("mod.rs"),
         include_str!("page.rs"),
+        include_str!("sso.rs"),
     ];
     const SCRIPT_SOURCE: &str = include_str!("app.js");
 

@@ -18,15 +18,27 @@ use crate::auth::sessions::{Credential, COOKIE, IDLE};
 use crate::state::AppState;
 use crate::throttle::Attempt;
 
-pub(super) async fn login_page(locale: Locale) -> Response {
-    login_form(None, locale)
+pub(super) async fn login_page(State(app): State<Arc<AppState>>, locale: Locale) -> Response {
+    login_form(None, sso_label(&app), locale)
 }
 
-fn login_form(error: Option<&str>, l: Locale) -> Response {
+/// The button's label of single sign-on, when the portal has it.
+pub(super) fn sso_label(app: &AppState) -> Option<&str> {
+    app.auth.sso.as_ref().map(|sso| sso.section.label.as_str())
+}
+
+/// The sign-in page, with `error` above the form and the single sign-on button if `sso`.
+pub(super) fn login_form(error: Option<&str>, sso: Option<&str>, l: Locale) -> Response {
     let body = html! {
         h1 { (l.t("Sign in")) }
         @if let Some(e) = error {
             p.error { (e) }
+        }
+        @if let Some(label) = sso {
+            // A link, not a form: the provider is another origin, which the page's
+            // form-action does not allow.
+            p.sso { a.button href="/login/sso" { (l.fill("Sign in with {}", &[&label])) } }
+            p.or { (l.t("or with the portal's own sign-in")) }
         }
         form.login method="post" action="/login" {
             label {
@@ -141,28 +153,16 @@ pub(super) async fn login(
         Ok(Some((operator, credential))) => {
             sign_ins().succeeded(attempt, &address);
             tracing::info!(user = %operator.user, account = %operator.account.name, "web sign-in");
-            let id = match app
-                .auth
-                .sessions
-                .open(operator, credential, epoch, &app.store)
-                .await
-            {
-                Ok(id) => id,
-                Err(e) => return database_down(e, locale),
-            };
-            let cookie = format!(
-                "{COOKIE}={id}; Path=/; HttpOnly; Secure; SameSite=Strict; Max-Age={}",
-                IDLE.as_secs()
-            );
-            let mut response = Redirect::to("/").into_response();
-            if let Ok(v) = HeaderValue::from_str(&cookie) {
-                response.headers_mut().insert(header::SET_COOKIE, v);
-            }
-            response
+            open_session(&app, operator, credential, epoch, locale).await
         }
         Ok(None) => {
             let text = locale.t("Wrong account, user name, secret or API key.");
-            (StatusCode::UNAUTHORIZED, login_form(Some(text), locale)).into_response()
+            let sso = sso_label(&app);
+            (
+                StatusCode::UNAUTHORIZED,
+                login_form(Some(text), sso, locale),
+            )
+                .into_response()
         }
         Err(Undecided::Busy(busy)) => {
             sign_ins().undecided(attempt, &address);
@@ -236,11 +236,40 @@ async fn user_signs_in(
         .map_err(Undecided::Store)
 }
 
+/// Open a session for `operator` signed in with `credential` (in auth epoch `epoch`): the
+/// cookie, and on to the fleet.
+pub(super) async fn open_session(
+    app: &AppState,
+    operator: cloud_types::users::Operator,
+    credential: Credential,
+    epoch: i64,
+    locale: Locale,
+) -> Response {
+    let id = match app
+        .auth
+        .sessions
+        .open(operator, credential, epoch, &app.store)
+        .await
+    {
+        Ok(id) => id,
+        Err(e) => return database_down(e, locale),
+    };
+    let cookie = format!(
+        "{COOKIE}={id}; Path=/; HttpOnly; Secure; SameSite=Strict; Max-Age={}",
+        IDLE.as_secs()
+    );
+    let mut response = Redirect::to("/").into_response();
+    if let Ok(v) = HeaderValue::from_str(&cookie) {
+        response.headers_mut().append(header::SET_COOKIE, v);
+    }
+    response
+}
+
 /// The sign-in page again, 429 with `Retry-After`.
 fn too_many(text: &str, wait: std::time::Duration, locale: Locale) -> Response {
     let mut response = (
         StatusCode::TOO_MANY_REQUESTS,
-        login_form(Some(text), locale),
+        login_form(Some(text), None, locale),
     )
         .into_response();
     response
@@ -250,7 +279,7 @@ fn too_many(text: &str, wait: std::time::Duration, locale: Locale) -> Response {
 }
 
 /// The page for a sign-in or sign-out the database failed.
-fn database_down(e: cloud_store::StoreError, locale: Locale) -> Response {
+pub(super) fn database_down(e: cloud_store::StoreError, locale: Locale) -> Response {
     let viewer = Viewer {
         session: None,
         locale,

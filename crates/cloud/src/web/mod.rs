@@ -13,6 +13,7 @@ mod i18n;
 mod lift;
 mod login;
 mod page;
+mod sso;
 
 use std::sync::Arc;
 
@@ -102,6 +103,8 @@ pub fn routes(app: Arc<AppState>) -> Router {
     Router::new()
         .route("/", get(fleet::fleet))
         .route("/login", get(login::login_page).post(login::login))
+        .route("/login/sso", get(sso::start))
+        .route("/login/sso/callback", get(sso::callback))
         .route("/logout", post(login::logout))
         .route("/lifts/{id}", get(lift::lift_page))
         .route("/lifts/{id}/history", get(history::history_page))

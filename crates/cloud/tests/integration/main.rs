@@ -2,6 +2,7 @@
 //! the whole stack beneath it, so one per crate keeps the build short (run one area with
 //! `cargo test -p cloud --test integration AREA::`).
 
+mod browser;
 mod contract;
 mod end_to_end;
 mod operations;
@@ -9,6 +10,7 @@ mod python_events;
 mod python_gateway;
 mod python_subscriptions;
 mod roles;
+mod sso;
 mod storage;
 mod tenants;
 mod token_lifecycle;
