@@ -15,6 +15,10 @@ pub mod live;
 pub mod subscriptions;
 pub mod users;
 
+/// The latest time the API takes (ms since the epoch): the end of the year 9999, as far as RFC
+/// 3339 writes years; the earliest is the epoch itself.
+pub const LATEST_MS: i64 = 253_402_300_799_999;
+
 /// Milliseconds since the Unix epoch: how the portal stamps what it stores.
 pub fn now_ms() -> i64 {
     std::time::SystemTime::now()

@@ -19,6 +19,9 @@ use cloud_types::users::Role;
 
 use cloud_store::AlarmFilter;
 
+/// The most alarms or events one answer lists (the OpenAPI document's `limit` maximum).
+const LIMIT_MAX: u32 = 10_000;
+
 /// `GET /api/v1/alarms`.
 pub(super) async fn list(
     State(app): State<Arc<AppState>>,
@@ -26,6 +29,7 @@ pub(super) async fn list(
     ApiQuery(q): ApiQuery<AlarmsQuery>,
 ) -> Result<Json<AlarmList>, ApiError> {
     let operator = allowed(caller, Role::Viewer)?;
+    let limit = super::bounded("limit", q.limit, 1..=LIMIT_MAX)?.unwrap_or(500);
     let lift = match q.lift {
         Some(id) => match super::key_of(&app, &operator.account, &id).await? {
             Some(key) => Some(key),
@@ -37,7 +41,7 @@ pub(super) async fn list(
     let filter = AlarmFilter {
         active: q.state.unwrap_or_default() == AlarmState::Active,
         lift,
-        limit: q.limit.unwrap_or(500),
+        limit,
     };
     let alarms = app.store.alarms(&operator.account.domain, &filter).await?;
     Ok(Json(AlarmList {
@@ -111,7 +115,11 @@ pub(super) async fn event_log(
     };
     let bodies = app
         .store
-        .event_log(&id, since, q.limit.unwrap_or(100))
+        .event_log(
+            &id,
+            since,
+            super::bounded("limit", q.limit, 1..=LIMIT_MAX)?.unwrap_or(100),
+        )
         .await?;
     let events = bodies
         .iter()

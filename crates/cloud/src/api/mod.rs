@@ -90,7 +90,24 @@ pub(crate) fn mplex(names: &ObjectNames, text: &str) -> Result<MplexText, ApiErr
     }
 }
 
+/// `value` if it is in `range` (or absent); else 400 naming the parameter and its range, as
+/// the OpenAPI document states it — nothing beyond a documented bound is taken silently.
+pub(crate) fn bounded<T: PartialOrd + std::fmt::Display + Copy>(
+    what: &str,
+    value: Option<T>,
+    range: std::ops::RangeInclusive<T>,
+) -> Result<Option<T>, ApiError> {
+    match value {
+        Some(v) if !range.contains(&v) => Err(error(
+            StatusCode::BAD_REQUEST,
+            format!("{what}: {} to {}", range.start(), range.end()),
+        )),
+        v => Ok(v),
+    }
+}
+
 fn node(node: Option<u8>, net: Option<u8>) -> Result<Option<NodeRef>, ApiError> {
+    let net = bounded("net", net, 1..=255)?;
     node.map(|id| {
         let id = NodeId::new(id)
             .ok_or_else(|| error(StatusCode::BAD_REQUEST, "node: a node-ID 1–127"))?;
@@ -491,13 +508,15 @@ async fn events(
     } else {
         Role::Viewer
     };
+    // The terms are checked whether or not objects are named: a stream takes no parameter it
+    // would refuse with them.
+    let terms = terms(q.inhibit, q.threshold)?;
     let (_, id) = lift_of(&app, caller, &id, least).await?;
     let rx = app.registry.subscribe(&id).await;
     let watching = match q.mplex.as_deref() {
         Some(list) => {
             let list: Vec<String> = list.split(',').map(str::to_owned).collect();
             let objects = objects(&app.names, &list)?;
-            let terms = terms(q.inhibit, q.threshold)?;
             let subscriber = app.subscriptions.watcher();
             app.subscriptions
                 .subscribe(&id, &subscriber, &objects, terms, WhenOffline::Keep)
@@ -566,15 +585,10 @@ async fn history(
 ) -> Result<Json<History>, ApiError> {
     let (_, id) = lift_of(&app, caller, &id, Role::Viewer).await?;
     let m = mplex(&app.names, &text)?.mplex.to_string();
-    let to = q.to.unwrap_or_else(cloud_types::now_ms);
-    let from = q.from.unwrap_or(to.saturating_sub(86_400_000));
-    let points = q.points.unwrap_or(HISTORY_POINTS);
-    if !(1..=HISTORY_POINTS_MAX).contains(&points) {
-        return Err(error(
-            StatusCode::BAD_REQUEST,
-            format!("points: 1 to {HISTORY_POINTS_MAX}"),
-        ));
-    }
+    let times = 0..=cloud_types::LATEST_MS;
+    let to = bounded("to", q.to, times.clone())?.unwrap_or_else(cloud_types::now_ms);
+    let from = bounded("from", q.from, times)?.unwrap_or(to.saturating_sub(86_400_000));
+    let points = bounded("points", q.points, 1..=HISTORY_POINTS_MAX)?.unwrap_or(HISTORY_POINTS);
     let answer = app
         .store
         .history(&id, &m, from, to, points as usize)

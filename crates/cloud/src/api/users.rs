@@ -169,8 +169,7 @@ pub(super) async fn add_key(
     ApiJson(body): ApiJson<NewKey>,
 ) -> Result<(StatusCode, Json<KeySecret>), ApiError> {
     let admin = allowed(caller, Role::Admin)?;
-    let expires = body
-        .expires_days
+    let expires = super::bounded("expires_days", body.expires_days, 1..=36_500)?
         .map(|days| cloud_types::now_ms().saturating_add(i64::from(days) * 86_400_000));
     let (id, api_key) = app
         .store

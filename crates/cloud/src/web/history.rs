@@ -52,7 +52,9 @@ struct Period {
 impl Period {
     fn of(q: &HistoryQuery) -> Period {
         let now = cloud_types::now_ms();
-        match (q.from, q.to) {
+        // Times the page cannot show are no period of its own (a hostile link is the last hour).
+        let shown = |t: Option<i64>| t.filter(|t| (0..=cloud_types::LATEST_MS).contains(t));
+        match (shown(q.from), shown(q.to)) {
             (Some(from), Some(to)) if from < to => Period {
                 from,
                 to: to.min(now.max(from + 1)),
@@ -491,6 +493,28 @@ mod tests {
 
     /// A gateway's text a spreadsheet would run stays text; numbers stay numbers; a separator
     /// or quote is quoted (RFC 4180).
+    #[test]
+    fn a_period_beyond_what_the_page_shows_is_the_last_hour() {
+        let query = |from, to| HistoryQuery {
+            mplex: "0x652001".into(),
+            minutes: None,
+            from: Some(from),
+            to: Some(to),
+        };
+        for (from, to) in [
+            (i64::MIN, i64::MAX),
+            (-5, 10),
+            (0, i64::MAX),
+            (i64::MAX - 1, i64::MAX),
+        ] {
+            let p = Period::of(&query(from, to));
+            assert_eq!(p.minutes, Some(60), "{from}..{to}");
+            assert_eq!(p.to - p.from, 3_600_000);
+        }
+        let p = Period::of(&query(1_000, 2_000));
+        assert_eq!((p.from, p.to, p.minutes), (1_000, 2_000, None));
+    }
+
     #[test]
     fn csv_cells_hold_no_formulas() {
         assert_eq!(

@@ -200,31 +200,12 @@ pub fn format_time(ms: i64) -> String {
     )
 }
 
-/// Read an RFC 3339 UTC time (`Z` or `+00:00`, any number of fraction digits) as ms since the
-/// epoch.
+/// Read an RFC 3339 time (any offset, `Z`, any number of fraction digits; RFC 3339 §5.6) as
+/// ms since the epoch.
 pub fn parse_time(text: &str) -> Option<i64> {
-    let text = text
-        .strip_suffix('Z')
-        .or_else(|| text.strip_suffix("+00:00"))?;
-    let (date, clock) = text.split_once('T')?;
-    let mut date = date.splitn(3, '-');
-    let year: i32 = date.next()?.parse().ok()?;
-    let month: u8 = date.next()?.parse().ok()?;
-    let day: u8 = date.next()?.parse().ok()?;
-    let (hms, fraction) = clock.split_once('.').unwrap_or((clock, "0"));
-    let mut hms = hms.splitn(3, ':');
-    let hour: u8 = hms.next()?.parse().ok()?;
-    let minute: u8 = hms.next()?.parse().ok()?;
-    let second: u8 = hms.next()?.parse().ok()?;
-    if !fraction.bytes().all(|b| b.is_ascii_digit()) {
-        return None;
-    }
-    let milli: u16 = format!("{fraction:0<3}").get(..3)?.parse().ok()?;
-    let date =
-        time::Date::from_calendar_date(year, time::Month::try_from(month).ok()?, day).ok()?;
-    let clock = time::Time::from_hms_milli(hour, minute, second, milli).ok()?;
-    let at = time::PrimitiveDateTime::new(date, clock).assume_utc();
-    Some(at.unix_timestamp() * 1000 + i64::from(milli))
+    let at =
+        time::OffsetDateTime::parse(text, &time::format_description::well_known::Rfc3339).ok()?;
+    i64::try_from(at.unix_timestamp_nanos().div_euclid(1_000_000)).ok()
 }
 
 #[cfg(test)]
@@ -268,7 +249,20 @@ mod tests {
             parse_time("2026-11-23T10:11:12.3456+00:00"),
             parse_time("2026-11-23T10:11:12.345Z")
         );
-        assert_eq!(parse_time("2026-11-23 10:11:12Z"), None);
+        // The same moment in Central European Time, and at the other side of the date line.
+        assert_eq!(
+            parse_time("2026-11-23T11:11:12.345+01:00"),
+            parse_time("2026-11-23T10:11:12.345Z")
+        );
+        assert_eq!(
+            parse_time("2026-11-22T23:41:12-10:30"),
+            parse_time("2026-11-23T10:11:12Z")
+        );
+        assert_eq!(
+            parse_time("2026-11-23T10:11:12"),
+            None,
+            "an offset is needed"
+        );
         assert_eq!(parse_time("2026-13-23T10:11:12Z"), None);
     }
 }
