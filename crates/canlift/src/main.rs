@@ -139,8 +139,55 @@ impl Command {
     }
 }
 
+impl Command {
+    /// Whether the command prints and ends (or prints until stopped) rather than serving: such a
+    /// command ends quietly when its reader goes away (`canlift dump … | head`), as `cat` does.
+    /// The daemons keep SIGPIPE ignored: their sockets never raise it (writes use MSG_NOSIGNAL),
+    /// and a log reader that went away must not stop a portal or a gateway.
+    fn prints(&self) -> bool {
+        match self {
+            Command::Dump(_)
+            | Command::Nmt(_)
+            | Command::Sdo(_)
+            | Command::Scan(_)
+            | Command::Lss(_)
+            | Command::Pdo(_)
+            | Command::Dcf(_)
+            | Command::Sync(_)
+            | Command::Time(_)
+            | Command::Emcy(_)
+            | Command::Completions { .. }
+            | Command::Manpages { .. } => true,
+            #[cfg(feature = "portal")]
+            Command::Lifts(_)
+            | Command::Get(_)
+            | Command::Put(_)
+            | Command::Watch(_)
+            | Command::Token(_)
+            | Command::Alarms(_)
+            | Command::Events(_) => true,
+            Command::Sim(args) => args.exports(),
+            _ => false,
+        }
+    }
+}
+
+/// SIGPIPE back to its default (the Rust runtime ignores it, so a write to a closed pipe is an
+/// error `println!` panics on — exit 101 and a panic message for `| head`).
+#[cfg(unix)]
+fn end_quietly_on_a_closed_pipe() {
+    // SAFETY: setting a signal's disposition to the default, before any thread is started.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
+    #[cfg(unix)]
+    if cli.command.prints() {
+        end_quietly_on_a_closed_pipe();
+    }
     // Made from the command-line definition alone: no logging, no runtime.
     let manual = match &cli.command {
         Command::Completions { shell } => Some(cmd::manual::completions(*shell, Cli::command())),

@@ -309,6 +309,9 @@ impl Gateway {
         node: Option<LocalNode>,
     ) -> Result<Gateway, GatewayError> {
         tracing::info!(policy = %config.policy.summary(), "write policy");
+        for why in config.policy.ineffective() {
+            tracing::warn!("write policy: {why}");
+        }
         let metrics = match config.metrics.listen {
             Some(_) => Some(Arc::new(metrics::GatewayMetrics::new()?)),
             None => None,

@@ -35,9 +35,10 @@ pub struct AsciiArgs {
     /// How long an LSS slave has to answer, in milliseconds.
     #[arg(long, default_value_t = 200)]
     lss_timeout_ms: u64,
-    /// Longest command line in bytes; a longer one closes that client.
-    #[arg(long, default_value_t = 1 << 20)]
-    max_line: usize,
+    /// Longest command line in bytes (at least 64: the longest command without data); a
+    /// longer one closes that client.
+    #[arg(long, default_value_t = 1 << 20, value_parser = clap::value_parser!(u64).range(64..))]
+    max_line: u64,
     /// Clients served at once; more are told so and closed.
     #[arg(long, default_value_t = 32)]
     max_clients: usize,
@@ -65,7 +66,7 @@ pub async fn run(args: AsciiArgs) -> anyhow::Result<()> {
     let gateway = Arc::new(Gateway {
         master,
         sdo_timeout,
-        max_line: args.max_line.max(64),
+        max_line: usize::try_from(args.max_line).unwrap_or(usize::MAX),
         info: format!(
             "canlift {} CiA 309-3 gateway, net 1 = {}",
             env!("CARGO_PKG_VERSION"),

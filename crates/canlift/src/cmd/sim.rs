@@ -112,6 +112,13 @@ fn parse_channel(text: &str) -> anyhow::Result<(CanId, CanId)> {
     ))
 }
 
+impl SimArgs {
+    /// Whether the run writes the EDS files and ends (a tool), rather than simulating (a daemon).
+    pub fn exports(&self) -> bool {
+        self.export_eds.is_some()
+    }
+}
+
 /// Run `canlift sim` until Ctrl-C or SIGTERM.
 pub async fn run(args: SimArgs) -> anyhow::Result<()> {
     let config = args.config()?;

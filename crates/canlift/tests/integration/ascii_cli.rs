@@ -356,3 +356,16 @@ async fn the_ascii_gateway_speaks_cia_309_3() {
     drop(node9);
     hub.shutdown().await;
 }
+
+/// A line limit below what a command without data needs is refused at start (exit 2, naming
+/// the range), not raised behind the user's back.
+#[tokio::test]
+async fn a_line_limit_too_short_for_a_command_is_refused() {
+    let out = crate::common::run(&["ascii", "--stdio", "--max-line", "10"]).await;
+    assert_eq!(out.status.code(), Some(2));
+    let text = crate::common::stderr(&out);
+    assert!(
+        text.contains("--max-line") && text.contains("64.."),
+        "{text}"
+    );
+}

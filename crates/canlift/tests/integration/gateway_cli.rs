@@ -44,6 +44,9 @@ async fn the_readme_configuration_is_what_the_gateway_reads() {
             && text.contains("node = 12"),
         "the write policy: {text}"
     );
+    // An example whose allow a deny covers would teach a rule that never takes effect.
+    let config: gateway::config::Config = toml::from_str(&text).expect("the printed config");
+    assert_eq!(config.policy.ineffective(), Vec::<String>::new());
 }
 
 #[tokio::test]

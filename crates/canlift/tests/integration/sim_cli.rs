@@ -116,3 +116,29 @@ async fn python_canopen_reads_and_calls_the_simulated_lift() {
     let stored = std::fs::read_to_string(dir.join("state/node1.params")).unwrap();
     assert!(stored.contains("6520:01 01000000"), "{stored}");
 }
+
+/// A reader that goes away (`canlift sim --export-eds F | head -1`) ends a printing command
+/// quietly, as it ends `cat`: killed by SIGPIPE, no panic message, no exit status 101. The
+/// pipe's read end is closed before the command writes, so its first line meets it.
+#[test]
+fn a_closed_pipe_ends_a_printing_command_quietly() {
+    use std::os::unix::process::ExitStatusExt;
+    let scratch = testkit::scratch();
+    let (reader, writer) = std::io::pipe().expect("a pipe");
+    drop(reader);
+    let child = std::process::Command::new(env!("CARGO_BIN_EXE_canlift"))
+        .args(["sim", "--export-eds"])
+        .arg(scratch.path().join("lift.eds"))
+        .stdout(writer)
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("canlift starts");
+    let out = child.wait_with_output().expect("it ends");
+    // SIGPIPE is 13 on Linux.
+    assert_eq!(out.status.signal(), Some(13), "{:?}", out.status);
+    assert!(
+        out.stderr.is_empty(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}

@@ -198,6 +198,39 @@ impl Policy {
         Ok(())
     }
 
+    /// The `allow` rules that can never take effect, each with why (logged as warnings at
+    /// start): one whose every object a `deny` rule covers (allow never overrides deny), or one
+    /// outside the communication objects (1000h–1FFFh), the only protection it lifts.
+    pub fn ineffective(&self) -> Vec<String> {
+        self.allow
+            .iter()
+            .filter_map(|rule| {
+                if !rule.indices.clone().any(|i| COMMUNICATION.contains(&i)) {
+                    return Some(format!(
+                        "allow {rule} never takes effect: it lifts only the protection of other \
+                         nodes' communication objects (0x1000-0x1FFF)"
+                    ));
+                }
+                let covered = |index: u16| {
+                    self.deny.iter().find(|d| {
+                        d.indices.contains(&index) && d.node.is_none_or(|n| Some(n) == rule.node)
+                    })
+                };
+                let by: Vec<String> = rule
+                    .indices
+                    .clone()
+                    .map(|i| covered(i).map(ToString::to_string))
+                    .collect::<Option<Vec<_>>>()?;
+                let mut by = by;
+                by.dedup();
+                Some(format!(
+                    "allow {rule} never takes effect: deny {} covers it (allow never overrides deny)",
+                    by.join(", ")
+                ))
+            })
+            .collect()
+    }
+
     /// A line for the log at start.
     pub fn summary(&self) -> String {
         let list = |rules: &[Rule]| {
@@ -235,6 +268,26 @@ mod tests {
 
     const CONTROLLER: Target = Target { net: 1, node: 1 };
     const IO: Target = Target { net: 1, node: 12 };
+
+    #[test]
+    fn an_allow_that_cannot_take_effect_is_named() {
+        let p = policy(
+            r#"{"deny": ["0x1010-0x1FFF", {"index": "0x1018", "node": 7}],
+                "allow": [{"index": "0x1017", "node": 12}, {"index": "0x1018", "node": 7},
+                          {"index": "0x1018", "node": 8}, "0x2000"]}"#,
+        )
+        .unwrap();
+        let said = p.ineffective();
+        assert_eq!(said.len(), 4, "{said:?}");
+        assert!(said[0].contains("deny 0x1010-0x1FFF covers it"), "{said:?}");
+        assert!(said[3].contains("communication objects"), "{said:?}");
+        let p = policy(
+            r#"{"deny": ["0x1010-0x1011", {"index": "0x1018", "node": 7}],
+                "allow": [{"index": "0x1017", "node": 12}, {"index": "0x1018", "node": 8}]}"#,
+        )
+        .unwrap();
+        assert!(p.ineffective().is_empty(), "{:?}", p.ineffective());
+    }
 
     #[test]
     fn rules_read_and_check() {
