@@ -76,6 +76,26 @@ pub fn skip(reason: &str) {
     let _ = writeln!(std::io::stderr(), "SKIP: {reason}");
 }
 
+/// What a test that needs something missing gets: `None` after printing `reason` as a skip, or
+/// a failure where the environment variable `require` is `1` (CI installs everything and sets
+/// it, so nothing is skipped there unnoticed).
+pub fn unavailable<T>(require: &str, reason: &str) -> Option<T> {
+    if std::env::var(require).as_deref() == Ok("1") {
+        panic!("{reason}");
+    }
+    skip(reason);
+    None
+}
+
+/// `name`'s path on the PATH, if it is there.
+pub fn on_path(name: &str) -> Option<PathBuf> {
+    std::env::var_os("PATH").and_then(|paths| {
+        std::env::split_paths(&paths)
+            .map(|p| p.join(name))
+            .find(|p| p.is_file())
+    })
+}
+
 /// The Python with python-can and canopen (the venv `scripts/test` makes), or `None` after
 /// printing why the test is skipped. With CANLIFT_REQUIRE_INTEROP=1 (as `scripts/test` and CI
 /// set) a missing venv fails the test instead.
@@ -96,35 +116,20 @@ pub fn python() -> Option<PathBuf> {
         "interop: {} cannot import can/canopen; run scripts/test to set up .venv",
         candidate.display()
     );
-    if std::env::var("CANLIFT_REQUIRE_INTEROP").as_deref() == Ok("1") {
-        panic!("{reason}");
-    }
-    skip(&reason);
-    None
+    unavailable("CANLIFT_REQUIRE_INTEROP", &reason)
 }
 
 /// Chromium and ChromeDriver (Debian's `chromium` and `chromium-driver`), or `None` after
 /// printing why the test is skipped. With CANLIFT_REQUIRE_BROWSER=1 (CI installs both) their
 /// absence fails the test instead.
 pub fn browser() -> Option<(PathBuf, PathBuf)> {
-    let find = |name: &str| {
-        std::env::var_os("PATH").and_then(|paths| {
-            std::env::split_paths(&paths)
-                .map(|p| p.join(name))
-                .find(|p| p.is_file())
-        })
-    };
-    match (find("chromium"), find("chromedriver")) {
+    match (on_path("chromium"), on_path("chromedriver")) {
         (Some(chromium), Some(driver)) => Some((chromium, driver)),
-        _ => {
-            let reason = "browser: chromium and chromedriver are not on PATH \
-                          (apt-get install chromium chromium-driver)";
-            if std::env::var("CANLIFT_REQUIRE_BROWSER").as_deref() == Ok("1") {
-                panic!("{reason}");
-            }
-            skip(reason);
-            None
-        }
+        _ => unavailable(
+            "CANLIFT_REQUIRE_BROWSER",
+            "browser: chromium and chromedriver are not on PATH \
+             (apt-get install chromium chromium-driver)",
+        ),
     }
 }
 
@@ -142,31 +147,22 @@ pub fn oidc_provider() -> Option<PathBuf> {
     if node && dir.join("node_modules/oidc-provider").is_dir() {
         return Some(dir);
     }
-    let reason = "oidc: node or tests/interop/oidc/node_modules missing (scripts/test installs \
-                  the pinned oidc-provider with npm ci)";
-    if std::env::var("CANLIFT_REQUIRE_OIDC").as_deref() == Ok("1") {
-        panic!("{reason}");
-    }
-    skip(reason);
-    None
+    unavailable(
+        "CANLIFT_REQUIRE_OIDC",
+        "oidc: node or tests/interop/oidc/node_modules missing (scripts/test installs the \
+         pinned oidc-provider with npm ci)",
+    )
 }
 
 /// Prometheus's `promtool` (Debian's `prometheus` package), or `None` after printing why the
 /// test is skipped. With CANLIFT_REQUIRE_PROMTOOL=1 (CI installs it) its absence fails the test.
 pub fn promtool() -> Option<PathBuf> {
-    let found = std::env::var_os("PATH").and_then(|paths| {
-        std::env::split_paths(&paths)
-            .map(|p| p.join("promtool"))
-            .find(|p| p.is_file())
-    });
-    if found.is_none() {
-        let reason = "metrics: promtool is not on PATH (apt-get install prometheus)";
-        if std::env::var("CANLIFT_REQUIRE_PROMTOOL").as_deref() == Ok("1") {
-            panic!("{reason}");
-        }
-        skip(reason);
-    }
-    found
+    on_path("promtool").or_else(|| {
+        unavailable(
+            "CANLIFT_REQUIRE_PROMTOOL",
+            "metrics: promtool is not on PATH (apt-get install prometheus)",
+        )
+    })
 }
 
 /// `promtool ARGS` with `input` on its standard input: its exit status and what it said.

@@ -5,8 +5,6 @@
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
-use crate::skip;
-
 /// A running (or stopped) `nats-server -js`.
 pub struct Nats {
     port: u16,
@@ -32,12 +30,10 @@ impl Nats {
             .status()
             .is_err()
         {
-            let reason = "nats: no nats-server on the PATH (apt-get install nats-server)";
-            if std::env::var("CANLIFT_REQUIRE_NATS").as_deref() == Ok("1") {
-                panic!("{reason}");
-            }
-            skip(reason);
-            return None;
+            return crate::unavailable(
+                "CANLIFT_REQUIRE_NATS",
+                "nats: no nats-server on the PATH (apt-get install nats-server)",
+            );
         }
         let port = crate::free_port();
         let mut nats = Nats {

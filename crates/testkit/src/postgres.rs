@@ -1,21 +1,12 @@
 //! A fresh PostgreSQL database per test.
 
-use crate::skip;
-
 /// A fresh PostgreSQL database for test `name`, or `None` after printing why the test is
 /// skipped. CANLIFT_TEST_POSTGRES is a URL to an existing database whose user may create
 /// databases (CI sets it after starting Debian's PostgreSQL); with CANLIFT_REQUIRE_POSTGRES=1 a
 /// missing or unreachable server fails the test instead.
 pub async fn postgres(name: &str) -> Option<String> {
     use sqlx::Connection;
-    let require = std::env::var("CANLIFT_REQUIRE_POSTGRES").as_deref() == Ok("1");
-    let give_up = |reason: String| {
-        if require {
-            panic!("{reason}");
-        }
-        skip(&reason);
-        None
-    };
+    let give_up = |reason: String| crate::unavailable("CANLIFT_REQUIRE_POSTGRES", &reason);
     let Ok(admin) = std::env::var("CANLIFT_TEST_POSTGRES") else {
         return give_up("postgres: CANLIFT_TEST_POSTGRES is not set".into());
     };
@@ -57,13 +48,10 @@ impl Server {
     /// filesystem of the test's, to fill up).
     pub fn start_in(parent: Option<&std::path::Path>) -> Option<Server> {
         let Some(bin) = installed() else {
-            let reason =
-                "postgres: no /usr/lib/postgresql/*/bin/initdb (apt-get install postgresql)";
-            if std::env::var("CANLIFT_REQUIRE_POSTGRES").as_deref() == Ok("1") {
-                panic!("{reason}");
-            }
-            skip(reason);
-            return None;
+            return crate::unavailable(
+                "CANLIFT_REQUIRE_POSTGRES",
+                "postgres: no /usr/lib/postgresql/*/bin/initdb (apt-get install postgresql)",
+            );
         };
         let data = match parent {
             Some(parent) => tempfile::Builder::new()

@@ -6,8 +6,6 @@ use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
-use crate::skip;
-
 /// A running `tinyproxy`.
 pub struct Tinyproxy {
     port: u16,
@@ -25,12 +23,10 @@ impl Tinyproxy {
             .map(PathBuf::from)
             .find(|p| p.is_file());
         let Some(binary) = binary else {
-            let reason = "proxy: tinyproxy is not installed (apt-get install tinyproxy)";
-            if std::env::var("CANLIFT_REQUIRE_TINYPROXY").as_deref() == Ok("1") {
-                panic!("{reason}");
-            }
-            skip(reason);
-            return None;
+            return crate::unavailable(
+                "CANLIFT_REQUIRE_TINYPROXY",
+                "proxy: tinyproxy is not installed (apt-get install tinyproxy)",
+            );
         };
         let dir = crate::scratch();
         let port = crate::free_port();
