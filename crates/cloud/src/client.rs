@@ -1,11 +1,12 @@
 //! A client of the operator REST API over HTTPS (for `canlift lifts|get|put|watch` and tests).
 
 use std::path::Path;
-use std::sync::Arc;
 
 use http_body_util::{BodyExt, Full};
 use hyper::body::Bytes;
 use serde_json::Value;
+
+use crate::outbound::{Https, OpenError};
 
 /// Why a call failed before an HTTP answer came.
 #[derive(Debug, thiserror::Error)]
@@ -33,7 +34,8 @@ pub struct Client {
     headers: Vec<(String, String)>,
     /// The local address connections are made from (the system's choice when absent).
     source: Option<std::net::IpAddr>,
-    tls: tokio_rustls::TlsConnector,
+    /// Whom it trusts, and how it gets through a proxy.
+    https: Https,
 }
 
 /// An answer: HTTP status and JSON body (a string when the body is not JSON).
@@ -53,9 +55,7 @@ impl Client {
             ),
             None => (rest.to_owned(), 443),
         };
-        let tls = tls::client_config(ca, None).map_err(|e| ClientError::Tls(e.to_string()))?;
-        let mut tls = Arc::unwrap_or_clone(tls);
-        tls.alpn_protocols = vec![b"http/1.1".to_vec()];
+        let https = Https::new(ca).map_err(|e| ClientError::Tls(e.to_string()))?;
         Ok(Client {
             host,
             port,
@@ -63,7 +63,7 @@ impl Client {
             cookie: None,
             headers: Vec::new(),
             source: None,
-            tls: tokio_rustls::TlsConnector::from(Arc::new(tls)),
+            https,
         })
     }
 
@@ -92,21 +92,16 @@ impl Client {
         let io = |e: &dyn std::fmt::Display| {
             ClientError::Io(format!("{}:{}: {e}", self.host, self.port))
         };
-        // Through HTTPS_PROXY unless NO_PROXY names the portal (tls::reach).
-        let proxy = tls::reach::Proxies::Environment
-            .for_server(&self.host, self.port)
-            .map_err(|e| io(&e))?;
-        let tcp = tls::reach::connect(&self.host, self.port, self.source, proxy.as_ref())
-            .await
-            .map_err(|e| io(&e))?;
-        let _ = tcp.set_nodelay(true);
-        let name = rustls::pki_types::ServerName::try_from(self.host.clone())
-            .map_err(|e| ClientError::Tls(e.to_string()))?;
+        // Through HTTPS_PROXY unless NO_PROXY names the portal.
         let tls = self
-            .tls
-            .connect(name, tcp)
+            .https
+            .open(&self.host, self.port, self.source)
             .await
-            .map_err(|e| ClientError::Tls(e.to_string()))?;
+            .map_err(|e| match e {
+                OpenError::Proxy(e) => io(&e),
+                OpenError::Connect(e) => io(&e),
+                OpenError::Tls(e) => ClientError::Tls(e),
+            })?;
         let (sender, conn) =
             hyper::client::conn::http1::handshake(hyper_util::rt::TokioIo::new(tls))
                 .await

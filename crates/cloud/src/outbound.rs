@@ -6,12 +6,14 @@
 //! up to a bound, and errors name neither the server's address nor its URL, which may hold
 //! credentials and internal host names.
 
+use std::net::IpAddr;
 use std::path::Path;
 use std::sync::Arc;
 
 use http_body_util::{BodyExt, Full, Limited};
 use hyper::body::Bytes;
 use tokio::net::TcpStream;
+use tokio_rustls::client::TlsStream;
 
 /// Where a request goes, read from its URL.
 #[derive(Debug, Clone)]
@@ -96,9 +98,33 @@ impl Https {
         })
     }
 
-    /// Send `request` to `target` over a connection of its own (`tcp` when the caller made it:
-    /// an `http://` target it checked; else one is made, through the proxy where one applies),
-    /// reading at most `limit` bytes of the answer's body.
+    /// A TLS connection to `host:port` (from local address `source` if given): through
+    /// `HTTPS_PROXY` unless `NO_PROXY` names the host (the proxy resolves its name), else
+    /// straight. What failed is told apart, for each caller to say in its own words.
+    pub async fn open(
+        &self,
+        host: &str,
+        port: u16,
+        source: Option<IpAddr>,
+    ) -> Result<TlsStream<TcpStream>, OpenError> {
+        let proxy = tls::reach::Proxies::Environment
+            .for_server(host, port)
+            .map_err(OpenError::Proxy)?;
+        let tcp = tls::reach::connect(host, port, source, proxy.as_ref())
+            .await
+            .map_err(OpenError::Connect)?;
+        let _ = tcp.set_nodelay(true);
+        let name = rustls::pki_types::ServerName::try_from(host.to_owned())
+            .map_err(|e| OpenError::Tls(e.to_string()))?;
+        self.tls
+            .connect(name, tcp)
+            .await
+            .map_err(|e| OpenError::Tls(e.to_string()))
+    }
+
+    /// Send `request` to `target` over a connection of its own (an `http://` target over `tcp`
+    /// when the caller made it, having checked where it goes; else straight), reading at most
+    /// `limit` bytes of the answer's body.
     pub async fn send(
         &self,
         target: &Target,
@@ -106,37 +132,38 @@ impl Https {
         request: hyper::Request<Full<Bytes>>,
         limit: usize,
     ) -> Result<Answer, String> {
-        let tcp = match tcp {
-            Some(tcp) => tcp,
-            None => self.connect(target).await?,
-        };
-        let _ = tcp.set_nodelay(true);
+        let no_connection = |e: std::io::Error| format!("no connection: {}", e.kind());
         if !target.https {
+            let tcp = match tcp {
+                Some(tcp) => tcp,
+                None => tls::reach::connect(&target.host, target.port, None, None)
+                    .await
+                    .map_err(no_connection)?,
+            };
+            let _ = tcp.set_nodelay(true);
             return exchange(tcp, request, limit).await;
         }
-        let name = rustls::pki_types::ServerName::try_from(target.host.clone())
-            .map_err(|e| e.to_string())?;
         let tls = self
-            .tls
-            .connect(name, tcp)
+            .open(&target.host, target.port, None)
             .await
-            .map_err(|e| format!("TLS: {e}"))?;
+            .map_err(|e| match e {
+                OpenError::Proxy(e) => e.to_string(),
+                OpenError::Connect(e) => no_connection(e),
+                OpenError::Tls(e) => format!("TLS: {e}"),
+            })?;
         exchange(tls, request, limit).await
     }
+}
 
-    /// A connection to `target`: through `HTTPS_PROXY` for `https://` unless `NO_PROXY` names
-    /// the host (the proxy resolves its name), else straight.
-    async fn connect(&self, target: &Target) -> Result<TcpStream, String> {
-        let proxy = match target.https {
-            true => tls::reach::Proxies::Environment
-                .for_server(&target.host, target.port)
-                .map_err(|e| e.to_string())?,
-            false => None,
-        };
-        tls::reach::connect(&target.host, target.port, None, proxy.as_ref())
-            .await
-            .map_err(|e| format!("no connection: {}", e.kind()))
-    }
+/// Why [`Https::open`] made no connection.
+#[derive(Debug)]
+pub enum OpenError {
+    /// `HTTPS_PROXY` is not a proxy URL.
+    Proxy(tls::reach::ProxyError),
+    /// No TCP connection, straight or through the proxy.
+    Connect(std::io::Error),
+    /// No TLS session (the handshake failed, or the host is no server name).
+    Tls(String),
 }
 
 async fn exchange<S>(
