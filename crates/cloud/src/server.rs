@@ -129,7 +129,7 @@ async fn ws(
 /// A portal bound to its port.
 pub struct Portal {
     listener: TcpListener,
-    tls: tls::stream::Acceptor,
+    /// The TLS acceptor (`reload.acceptor`) and what replaces its configuration.
     reload: TlsReload,
     router: Router,
     registry: Arc<Registry>,
@@ -564,15 +564,13 @@ impl Portal {
         let listener = listen(config.server.listen).map_err(|e| {
             ServerError::Other(format!("listening on {}: {e}", config.server.listen))
         })?;
-        let acceptor = tls::stream::Acceptor::new(Arc::new(tls));
         Ok(Portal {
             listener,
             reload: TlsReload {
                 config: config.clone(),
                 tickets,
-                acceptor: acceptor.clone(),
+                acceptor: tls::stream::Acceptor::new(Arc::new(tls)),
             },
-            tls: acceptor,
             router,
             registry,
             local,
@@ -608,8 +606,7 @@ impl Portal {
     pub async fn run(self, mut shutdown: watch::Receiver<bool>) {
         let Portal {
             listener,
-            tls,
-            reload: _,
+            reload: TlsReload { acceptor: tls, .. },
             router,
             registry,
             local,

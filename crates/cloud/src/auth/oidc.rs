@@ -35,6 +35,10 @@ pub enum SsoError {
     /// The ID token or the answer failed a check: a forgery, a replay, a mix-up.
     #[error("the ID token: {0}")]
     Token(String),
+    /// The ID token names a signing key the provider's key set does not have (yet: it may
+    /// have rotated its keys since they were fetched).
+    #[error("the ID token: {0}")]
+    UnknownKey(String),
 }
 
 /// What the provider's discovery document says (Discovery 1.0 §3; the fields used).
@@ -250,7 +254,7 @@ pub fn verify_id_token(
         .filter(|k| scheme.fits(k))
         .collect();
     if candidates.is_empty() {
-        return Err(SsoError::Token(format!(
+        return Err(SsoError::UnknownKey(format!(
             "no key of the provider's for alg {alg} and kid {kid:?}"
         )));
     }
@@ -487,7 +491,7 @@ impl Sso {
         let mut claims = match verify_id_token(id_token, &known.keys, &expected) {
             Ok(claims) => claims,
             // A key not seen yet: the provider rotated its keys.
-            Err(SsoError::Token(why)) if why.starts_with("no key") => {
+            Err(SsoError::UnknownKey(_)) => {
                 let known = self.known(true).await?;
                 verify_id_token(id_token, &known.keys, &expected)?
             }
@@ -571,9 +575,8 @@ impl Sso {
         let basic = match &self.section.client_secret {
             Some(secret) => {
                 let part = |t: &str| {
-                    serde_urlencoded::to_string([("", t)])
-                        .map(|s| s[1..].to_owned())
-                        .unwrap_or_default()
+                    percent_encoding::utf8_percent_encode(t, percent_encoding::NON_ALPHANUMERIC)
+                        .to_string()
                 };
                 let pair = format!("{}:{}", part(&self.section.client_id), part(secret));
                 Some(format!(

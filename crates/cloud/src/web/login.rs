@@ -66,10 +66,7 @@ pub(super) fn login_form(error: Option<&str>, sso: Option<&str>, l: Locale) -> R
             (l.t(" (or by ")) code { "canlift demo" } (l.t(")."))
         }
     };
-    let viewer = Viewer {
-        session: None,
-        locale: l,
-    };
+    let viewer = Viewer::signed_out(l);
     layout(l.t("Sign in"), viewer, None, body).into_response()
 }
 
@@ -95,10 +92,7 @@ pub(super) async fn login(
     // Login CSRF: another site's form must not sign the browser in to an account of the
     // attacker's choosing (where a victim would type a lift's password into a rogue lift).
     if !same_origin(&headers) {
-        let viewer = Viewer {
-            session: None,
-            locale,
-        };
+        let viewer = Viewer::signed_out(locale);
         return problem(
             StatusCode::FORBIDDEN,
             viewer,
@@ -280,10 +274,7 @@ fn too_many(text: &str, wait: std::time::Duration, locale: Locale) -> Response {
 
 /// The page for a sign-in or sign-out the database failed.
 pub(super) fn database_down(e: cloud_store::StoreError, locale: Locale) -> Response {
-    let viewer = Viewer {
-        session: None,
-        locale,
-    };
+    let viewer = Viewer::signed_out(locale);
     unavailable(e, viewer)
 }
 

@@ -38,6 +38,16 @@ pub(super) struct Viewer<'a> {
     pub locale: Locale,
 }
 
+impl Viewer<'static> {
+    /// A browser nobody is signed in with (the sign-in pages, their refusals).
+    pub(super) fn signed_out(locale: Locale) -> Viewer<'static> {
+        Viewer {
+            session: None,
+            locale,
+        }
+    }
+}
+
 /// A whole page. `lift`: the lift whose live events the page's script follows.
 pub(super) fn layout(title: &str, viewer: Viewer, lift: Option<&str>, body: Markup) -> Markup {
     let l = viewer.locale;

@@ -23,13 +23,6 @@ const COOKIE: &str = "canlift_sso";
 /// How long a sign-on may take at the provider.
 const PENDING_S: u64 = 600;
 
-fn no_session(locale: Locale) -> Viewer<'static> {
-    Viewer {
-        session: None,
-        locale,
-    }
-}
-
 /// Where the provider sends the browser back: `[oidc] redirect_url`, else this portal as the
 /// browser reached it.
 fn redirect_url(sso: &Sso, headers: &HeaderMap) -> Option<String> {
@@ -62,14 +55,14 @@ pub(super) async fn start(
     let Some(sso) = &app.auth.sso else {
         return problem(
             StatusCode::NOT_FOUND,
-            no_session(locale),
+            Viewer::signed_out(locale),
             locale.t("Single sign-on is not set up on this portal."),
         );
     };
     let Some(redirect) = redirect_url(sso, &headers) else {
         return problem(
             StatusCode::BAD_REQUEST,
-            no_session(locale),
+            Viewer::signed_out(locale),
             locale.t("Sign in from the portal's own page."),
         );
     };
@@ -89,7 +82,7 @@ fn provider_down(e: &SsoError, locale: Locale) -> Response {
     tracing::warn!(error = %e, "single sign-on: the provider is unavailable");
     problem(
         StatusCode::SERVICE_UNAVAILABLE,
-        no_session(locale),
+        Viewer::signed_out(locale),
         locale.t("The sign-on provider cannot be reached: try again, or sign in with a secret or an API key."),
     )
 }
@@ -123,7 +116,7 @@ async fn finish(app: &AppState, locale: Locale, headers: &HeaderMap, answer: Ans
     let Some(sso) = &app.auth.sso else {
         return problem(
             StatusCode::NOT_FOUND,
-            no_session(locale),
+            Viewer::signed_out(locale),
             locale.t("Single sign-on is not set up on this portal."),
         );
     };
@@ -169,7 +162,7 @@ async fn finish(app: &AppState, locale: Locale, headers: &HeaderMap, answer: Ans
     let epoch = app.store.seen_auth_epoch();
     let signed_on = match sso.finish(code, &pending, &redirect).await {
         Ok(s) => s,
-        Err(SsoError::Token(why)) => {
+        Err(SsoError::Token(why) | SsoError::UnknownKey(why)) => {
             tracing::warn!(%why, "single sign-on: the ID token was refused");
             return refuse(
                 StatusCode::FORBIDDEN,
@@ -226,7 +219,7 @@ async fn finish(app: &AppState, locale: Locale, headers: &HeaderMap, answer: Ans
             tracing::error!(error = %e, "single sign-on: [oidc] account");
             problem(
                 StatusCode::INTERNAL_SERVER_ERROR,
-                no_session(locale),
+                Viewer::signed_out(locale),
                 locale.t("Single sign-on is not set up on this portal."),
             )
         }
