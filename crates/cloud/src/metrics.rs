@@ -11,6 +11,8 @@
 use std::sync::{Mutex, PoisonError};
 use std::time::Duration;
 
+pub use exposition::MetricsError;
+use exposition::{registered, LATENCY_BUCKETS};
 use prometheus::{HistogramOpts, HistogramVec, IntCounterVec, IntGaugeVec, Opts, Registry};
 
 /// What a family is.
@@ -190,13 +192,6 @@ pub struct Exposition {
     pub timings: Timings,
 }
 
-/// A family that could not be registered: two of one name, a name Prometheus does not take.
-#[derive(Debug, thiserror::Error)]
-#[error("metrics: {0}")]
-pub struct MetricsError(#[from] prometheus::Error);
-
-use exposition::LATENCY_BUCKETS;
-
 impl Exposition {
     /// Every family registered, the process collector and the build information.
     pub fn new() -> Result<Exposition, MetricsError> {
@@ -207,13 +202,11 @@ impl Exposition {
             match f.kind {
                 Kind::Counter => {
                     let c = IntCounterVec::new(Opts::new(f.name, f.help), labels)?;
-                    registry.register(Box::new(c.clone()))?;
-                    counters.push((f.name, c));
+                    counters.push((f.name, registered(&registry, c)?));
                 }
                 Kind::Gauge => {
                     let g = IntGaugeVec::new(Opts::new(f.name, f.help), labels)?;
-                    registry.register(Box::new(g.clone()))?;
-                    gauges.push((f.name, g));
+                    gauges.push((f.name, registered(&registry, g)?));
                 }
             }
         }
@@ -223,17 +216,19 @@ impl Exposition {
                 HistogramOpts::new(name, help).buckets(LATENCY_BUCKETS.to_vec()),
                 &[label],
             )?;
-            registry.register(Box::new(h.clone()))?;
-            Ok(Timer(Some(h)))
+            Ok(Timer(Some(registered(&registry, h)?)))
         };
         let timings = Timings {
-            requests: HistogramVec::new(
-                HistogramOpts::new(
-                    "canlift_http_request_duration_seconds",
-                    "Operator requests (REST API and web UI) until the answer's head, by route and method",
-                )
-                .buckets(LATENCY_BUCKETS.to_vec()),
-                &["route", "method"],
+            requests: registered(
+                &registry,
+                HistogramVec::new(
+                    HistogramOpts::new(
+                        "canlift_http_request_duration_seconds",
+                        "Operator requests (REST API and web UI) until the answer's head, by route and method",
+                    )
+                    .buckets(LATENCY_BUCKETS.to_vec()),
+                    &["route", "method"],
+                )?,
             )?,
             round_trips: histogram(
                 "canlift_gateway_round_trip_seconds",
@@ -251,7 +246,6 @@ impl Exposition {
                 "outcome",
             )?,
         };
-        registry.register(Box::new(timings.requests.clone()))?;
         Ok(Exposition {
             registry,
             counters,

@@ -10,6 +10,21 @@ pub const LATENCY_BUCKETS: &[f64] = &[
     0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0,
 ];
 
+/// A family that could not be registered: two of one name, a name Prometheus does not take.
+#[derive(Debug, thiserror::Error)]
+#[error("metrics: {0}")]
+pub struct MetricsError(#[from] prometheus::Error);
+
+/// `metric`, registered in `registry`: the registry gathers from one handle, the caller counts
+/// with the other.
+pub fn registered<M>(registry: &Registry, metric: M) -> Result<M, MetricsError>
+where
+    M: prometheus::core::Collector + Clone + 'static,
+{
+    registry.register(Box::new(metric.clone()))?;
+    Ok(metric)
+}
+
 /// Register `canlift_build_info{version}` (always 1) and, on Linux, the process collector in
 /// `registry`.
 pub fn register_standard(registry: &Registry) -> Result<(), prometheus::Error> {

@@ -7,6 +7,7 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
+use exposition::registered;
 use prometheus::{Histogram, HistogramOpts, IntCounter, IntCounterVec, IntGauge, Opts, Registry};
 
 /// The gateway's families.
@@ -28,41 +29,42 @@ pub struct GatewayMetrics {
     pub notifications: IntCounter,
 }
 
-/// A family that could not be registered.
-#[derive(Debug, thiserror::Error)]
-#[error("metrics: {0}")]
-pub struct MetricsError(#[from] prometheus::Error);
+pub use exposition::MetricsError;
 
 impl GatewayMetrics {
     /// Every family registered, the process collector and the build information.
     pub fn new() -> Result<GatewayMetrics, MetricsError> {
         let registry = Registry::new();
         let counter = |name: &str, help: &str| -> Result<IntCounter, MetricsError> {
-            let c = IntCounter::new(name, help)?;
-            registry.register(Box::new(c.clone()))?;
-            Ok(c)
+            registered(&registry, IntCounter::new(name, help)?)
         };
-        let connected = IntGauge::new(
-            "canlift_gateway_connected",
-            "1 while a connection to the portal is in service (CONNACK received)",
+        let connected = registered(
+            &registry,
+            IntGauge::new(
+                "canlift_gateway_connected",
+                "1 while a connection to the portal is in service (CONNACK received)",
+            )?,
         )?;
-        registry.register(Box::new(connected.clone()))?;
-        let accesses = IntCounterVec::new(
-            Opts::new(
-                "canlift_gateway_accesses_total",
-                "Object dictionary accesses the portal asked for, by outcome (ok, refused)",
-            ),
-            &["outcome"],
+        let accesses = registered(
+            &registry,
+            IntCounterVec::new(
+                Opts::new(
+                    "canlift_gateway_accesses_total",
+                    "Object dictionary accesses the portal asked for, by outcome (ok, refused)",
+                ),
+                &["outcome"],
+            )?,
         )?;
-        registry.register(Box::new(accesses.clone()))?;
-        let access_seconds = Histogram::with_opts(
-            HistogramOpts::new(
-                "canlift_gateway_bus_access_duration_seconds",
-                "Accesses to bus nodes (SDO) until their answer",
-            )
-            .buckets(exposition::LATENCY_BUCKETS.to_vec()),
+        let access_seconds = registered(
+            &registry,
+            Histogram::with_opts(
+                HistogramOpts::new(
+                    "canlift_gateway_bus_access_duration_seconds",
+                    "Accesses to bus nodes (SDO) until their answer",
+                )
+                .buckets(exposition::LATENCY_BUCKETS.to_vec()),
+            )?,
         )?;
-        registry.register(Box::new(access_seconds.clone()))?;
         exposition::register_standard(&registry)?;
         Ok(GatewayMetrics {
             connections: counter(
