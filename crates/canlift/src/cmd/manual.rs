@@ -10,14 +10,13 @@ use anyhow::Context;
 pub fn completions(shell: clap_complete::Shell, mut command: clap::Command) -> anyhow::Result<()> {
     use std::io::Write;
     let name = command.get_name().to_owned();
-    // Made in memory first: clap_complete panics where a write fails (a closed pipe).
+    // Made in memory first: clap_complete panics where a write fails (a full disk). A reader
+    // that goes away ends the command by SIGPIPE, as it ends every printing command (main.rs).
     let mut script = Vec::new();
     clap_complete::generate(shell, &mut command, name, &mut script);
-    match std::io::stdout().write_all(&script) {
-        // Read as far as the reader wanted (`| head`): not an error.
-        Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => Ok(()),
-        written => written.context("writing the completions"),
-    }
+    std::io::stdout()
+        .write_all(&script)
+        .context("writing the completions")
 }
 
 /// Write `canlift.1` and a page per subcommand (`canlift-cloud.1`, `canlift-cloud-user.1`, …)
