@@ -115,6 +115,7 @@ pub async fn run(args: AlarmsBench) -> anyhow::Result<()> {
     let (_dir, _, store) = scratch_store("alarms", args.database.as_deref()).await?;
     let (reports, reports_rx) = tokio::sync::mpsc::channel(65536);
     let (acknowledged, acknowledged_rx) = tokio::sync::mpsc::channel(1);
+    let (_trends, trends_rx) = tokio::sync::mpsc::channel(1);
     let alarms = Arc::new(Alarms {
         store,
         registry: Arc::new(Registry::default()),
@@ -129,6 +130,7 @@ pub async fn run(args: AlarmsBench) -> anyhow::Result<()> {
         Duration::from_secs(3600),
         reports_rx,
         acknowledged_rx,
+        trends_rx,
     ));
     let started = Instant::now();
     for (lift, event) in events.iter().cloned() {

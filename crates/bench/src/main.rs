@@ -13,6 +13,7 @@ mod plot;
 mod portal;
 mod process;
 mod relay;
+mod reports;
 
 use std::path::PathBuf;
 use std::sync::OnceLock;
@@ -50,6 +51,8 @@ enum Bench {
     Portal(portal::PortalBench),
     /// The portal's cost per bus event: alarm rules, and the alarm service with its database.
     Alarms(alarms::AlarmsBench),
+    /// An account's availability and monthly reports over a month of 10,000 lifts.
+    Reports(reports::ReportsBench),
     /// The portal's telemetry writer alone: values/s stored and CPU per value.
     Ingest(ingest::IngestBench),
     /// The portal as a cluster: NATS, portal processes on PostgreSQL, load generators.
@@ -115,6 +118,7 @@ async fn main() -> anyhow::Result<()> {
         Bench::Portal(p) => portal::run(p).await,
         Bench::Alarms(a) => alarms::run(a).await,
         Bench::Ingest(i) => ingest::run(i).await,
+        Bench::Reports(r) => reports::run(r).await,
         Bench::Cluster(c) => cluster::run(c).await,
         Bench::Relay(r) => relay::relay(r).await,
     }

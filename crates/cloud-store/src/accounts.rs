@@ -50,6 +50,32 @@ impl Store {
     }
 
     /// The accounts whose domain token is shorter than `length` characters (a guess away
+    /// The availability account `name` promises (0–1), if it set one.
+    pub async fn availability_target(&self, name: &str) -> Result<Option<f64>, StoreError> {
+        let row = sqlx::query("SELECT availability_target FROM accounts WHERE name = $1")
+            .bind(name)
+            .fetch_optional(&self.pool)
+            .await?;
+        Ok(match row {
+            Some(r) => r.try_get("availability_target")?,
+            None => None,
+        })
+    }
+
+    /// Account `name` promises `target` (0–1; none: the portal's default).
+    pub async fn set_availability_target(
+        &self,
+        name: &str,
+        target: Option<f64>,
+    ) -> Result<(), StoreError> {
+        sqlx::query("UPDATE accounts SET availability_target = $1 WHERE name = $2")
+            .bind(target)
+            .bind(name)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
     /// from admitting lifts into them).
     pub async fn short_domains(&self, length: usize) -> Result<Vec<String>, StoreError> {
         let rows = sqlx::query("SELECT name, domain FROM accounts ORDER BY name")

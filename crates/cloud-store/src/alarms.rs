@@ -111,12 +111,13 @@ pub struct AlarmFilter {
 }
 
 impl Store {
-    /// Write what the alarm service gathered, in one transaction: bus events, alarms raised,
-    /// alarms cleared (id, when). Returns the cleared alarms as stored (with their
+    /// Write what the alarm service gathered, in one transaction: bus events, lifts' status
+    /// changes, alarms raised, alarms cleared (id, when). Returns the cleared alarms as stored (with their
     /// acknowledgement, if any).
     pub async fn write_alarm_batch(
         &self,
         events: &[EventRow],
+        statuses: &[crate::StatusRow],
         raised: &[Alarm],
         cleared: &[(i64, i64)],
     ) -> Result<(Vec<bool>, Vec<Alarm>), StoreError> {
@@ -138,6 +139,7 @@ impl Store {
             }
             query.execute(&mut *tx).await?;
         }
+        crate::insights::insert(&mut tx, statuses).await?;
         let mut new = Vec::with_capacity(raised.len());
         for alarm in raised {
             let place = alarm.node.unwrap_or(Place { id: None, net: 0 });
@@ -460,12 +462,12 @@ pub(crate) mod tests {
         };
         let raise = |id: i64| Alarm::raised(id, &condition, Severity::Major, "offline", 1000);
         let (new, _) = store
-            .write_alarm_batch(&[], &[raise(11), raise(12)], &[])
+            .write_alarm_batch(&[], &[], &[raise(11), raise(12)], &[])
             .await
             .unwrap();
         assert_eq!(new, [true, false]);
         let (new, _) = store
-            .write_alarm_batch(&[], &[raise(13)], &[])
+            .write_alarm_batch(&[], &[], &[raise(13)], &[])
             .await
             .unwrap();
         assert_eq!(new, [false], "raised by another process before");
@@ -477,13 +479,13 @@ pub(crate) mod tests {
             [(condition.clone(), 11)]
         );
         let (new, cleared) = store
-            .write_alarm_batch(&[], &[], &[(11, 2000)])
+            .write_alarm_batch(&[], &[], &[], &[(11, 2000)])
             .await
             .unwrap();
         assert!(new.is_empty());
         assert_eq!(cleared.len(), 1);
         let (new, _) = store
-            .write_alarm_batch(&[], &[raise(14)], &[])
+            .write_alarm_batch(&[], &[], &[raise(14)], &[])
             .await
             .unwrap();
         assert_eq!(new, [true]);
@@ -506,7 +508,10 @@ pub(crate) mod tests {
                 Alarm::raised(100 + n, &condition, Severity::Major, "offline", 1000)
             })
             .collect();
-        store.write_alarm_batch(&[], &others, &[]).await.unwrap();
+        store
+            .write_alarm_batch(&[], &[], &others, &[])
+            .await
+            .unwrap();
         let asked: Vec<String> = (0..300)
             .filter(|n| n % 3 != 0)
             .map(|n| format!("1050-4096-STORM{n}"))

@@ -417,6 +417,7 @@ impl Store {
                 "DELETE FROM telemetry WHERE lift = $1",
                 "DELETE FROM telemetry_minute WHERE lift = $1",
                 "DELETE FROM telemetry_hour WHERE lift = $1",
+                "DELETE FROM lift_status WHERE lift = $1",
                 "DELETE FROM events WHERE lift = $1",
                 "DELETE FROM alarms WHERE lift = $1",
                 "DELETE FROM subscriptions WHERE lift = $1",

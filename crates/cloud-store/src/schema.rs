@@ -91,6 +91,10 @@ pub(crate) const SCHEMA: &[&str] = &[
     "CREATE TABLE IF NOT EXISTS write_probe (id BIGINT PRIMARY KEY, at BIGINT NOT NULL)",
     // Users' subscriptions, registered again by whichever process the lift's gateway connects to.
     "CREATE TABLE IF NOT EXISTS subscriptions (lift TEXT NOT NULL, user_name TEXT NOT NULL, mplex TEXT NOT NULL, inhibit BIGINT NOT NULL, threshold DOUBLE PRECISION NOT NULL, PRIMARY KEY (lift, user_name, mplex))",
+    // Each change of a lift's status (in service, out of service, offline, unknown): what the
+    // availability reports integrate.
+    "CREATE TABLE IF NOT EXISTS lift_status (lift TEXT NOT NULL, at BIGINT NOT NULL, status TEXT NOT NULL)",
+    "CREATE INDEX IF NOT EXISTS lift_status_by_lift ON lift_status (lift, at)",
 ];
 
 /// Changes to tables of an existing database, each applied once, in order, its statements in
@@ -149,6 +153,8 @@ const MIGRATIONS: &[(i64, &[&str])] = &[
             "CREATE UNIQUE INDEX IF NOT EXISTS users_by_sso ON users (account, sso_subject)",
         ],
     ),
+    // The availability an account promises its customers (the monthly report's target).
+    (20, &["ALTER TABLE accounts ADD COLUMN availability_target DOUBLE PRECISION"]),
 ];
 
 /// Apply the [`MIGRATIONS`] not yet recorded, each with its record in one transaction (under

@@ -24,6 +24,10 @@ pub enum Kind {
     /// The lift pushed more than it may store per hour (`[gateways]
     /// max_stored_bytes_per_hour`): values are not stored; cleared after an hour within it.
     StorageQuota,
+    /// A stored numeric object's recent mean rose above its baseline by more than a trend
+    /// rule allows (`[[insights.trends]]`): wear that shows before it fails; cleared when the
+    /// mean falls back. Its code is the object's mplex.
+    Trend,
 }
 
 impl Kind {
@@ -36,6 +40,7 @@ impl Kind {
             Kind::LiftOffline => "lift-offline",
             Kind::BoardChanged => "board-changed",
             Kind::StorageQuota => "storage-quota",
+            Kind::Trend => "trend",
         }
     }
 
@@ -43,7 +48,7 @@ impl Kind {
     pub fn is_lift_wide(self) -> bool {
         matches!(
             self,
-            Kind::LiftOffline | Kind::BoardChanged | Kind::StorageQuota
+            Kind::LiftOffline | Kind::BoardChanged | Kind::StorageQuota | Kind::Trend
         )
     }
 
@@ -62,6 +67,7 @@ impl Kind {
             Kind::LiftOffline,
             Kind::BoardChanged,
             Kind::StorageQuota,
+            Kind::Trend,
         ]
         .into_iter()
         .find(|k| k.name() == name)

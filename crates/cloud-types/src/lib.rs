@@ -1,8 +1,8 @@
 //! What the portal's parts and its clients say to each other: the operator REST API's bodies
 //! ([`api`]), the live events of a lift ([`live`]), alarms ([`alarms`]), lifts as the registry
-//! knows them ([`lifts`]), accounts, users and roles ([`users`]), the audit log ([`audit`]) and
-//! who holds which subscriptions ([`subscriptions`]). Types only — no database, no runtime —
-//! so that the store, the cluster, the server and the command-line client build on one
+//! knows them ([`lifts`]), accounts, users and roles ([`users`]), the audit log ([`audit`]),
+//! who holds which subscriptions ([`subscriptions`]) and lift insights ([`insights`]). Types
+//! only — no database, no runtime — so that the store, the cluster, the server and the command-line client build on one
 //! vocabulary without depending on each other.
 
 #![warn(missing_docs)]
@@ -10,6 +10,7 @@
 pub mod alarms;
 pub mod api;
 pub mod audit;
+pub mod insights;
 pub mod lifts;
 pub mod live;
 pub mod subscriptions;

@@ -164,12 +164,19 @@ impl Client {
                     .and_then(|v| v.to_str().ok())
                     .and_then(|v| v.split(';').next())
                     .map(str::to_owned);
+                let media = response
+                    .headers()
+                    .get(hyper::header::CONTENT_TYPE)
+                    .and_then(|v| v.to_str().ok())
+                    .and_then(|v| v.split(';').next())
+                    .map(|v| v.trim().to_owned());
                 let (status, body) = answer(response).await?;
                 Ok(Reply {
                     status,
                     retry_after,
                     body,
                     set_cookie,
+                    media,
                 })
             })
             .await
@@ -243,6 +250,8 @@ pub struct Reply {
     pub body: Value,
     /// The `name=value` of a `Set-Cookie` (a sign-in's session).
     pub set_cookie: Option<String>,
+    /// The media type of the body (`text/csv`), without its parameters.
+    pub media: Option<String>,
 }
 
 impl Connection {

@@ -1,5 +1,5 @@
 //! The portal's configuration (docs/PORTAL.md §Configuration): `[server]`, `[state]`,
-//! `[database]`, `[gateways]`, `[dashboard]`, `[alarms]`, `[cluster]`, `[oidc]`.
+//! `[database]`, `[gateways]`, `[dashboard]`, `[alarms]`, `[insights]`, `[cluster]`, `[oidc]`.
 
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
@@ -221,7 +221,7 @@ impl GatewaysSection {
 pub struct DashboardSection {
     /// Objects subscribed on every gateway when it connects (`reg_canopen_object`, NXg §7.3):
     /// stored as telemetry, shown live on the lift page; 0x100100 and 0x502400 give the fleet
-    /// page its fault column.
+    /// page its fault column, and what `[insights]` reads must be among them.
     pub live: Vec<String>,
     /// Inhibit time of those subscriptions (ms).
     pub inhibit_ms: u64,
@@ -268,7 +268,7 @@ impl Default for DashboardSection {
         DashboardSection {
             live: list(&[
                 "0x652001", "0x652002", "0x638301", "0x639001", "0x630101", "0x648001", "0x502300",
-                "0x502400", "0x100100",
+                "0x502400", "0x100100", "0x440001", "0x440004", "0x440301",
             ]),
             inhibit_ms: 500,
             parameters: list(&[
@@ -325,6 +325,8 @@ pub struct Severities {
     pub board_changed: Severity,
     /// The lift pushed more than it may store.
     pub storage_quota: Severity,
+    /// A trend rule saw an object's mean rise (`[[insights.trends]]`).
+    pub trend: Severity,
 }
 
 impl Default for Severities {
@@ -338,6 +340,7 @@ impl Default for Severities {
             emcy: Severity::Major,
             board_changed: Severity::Major,
             storage_quota: Severity::Major,
+            trend: Severity::Minor,
         }
     }
 }
@@ -361,6 +364,143 @@ impl Default for AlarmsSection {
             severity: Severities::default(),
             webhooks: Vec::new(),
         }
+    }
+}
+
+/// `[insights]`: what availability reports and trend alarms read (docs/PORTAL.md
+/// §Availability, §Trends). The objects are the lift controller's and must be among `[dashboard]
+/// live` (the default list has those of the defaults here): insights read what is stored.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct InsightsSection {
+    /// The lift's state object.
+    pub state: String,
+    /// Its values that mean "out of service"; any other value means in service.
+    pub out_of_service: Vec<i64>,
+    /// The trip counter.
+    pub trips: String,
+    /// The door cycle counter.
+    pub door_cycles: String,
+    /// The reopening counter.
+    pub reopenings: String,
+    /// The availability an account promises unless it set its own (0–1).
+    pub target: f64,
+    /// Trend rules.
+    pub trends: Vec<TrendRule>,
+}
+
+impl Default for InsightsSection {
+    fn default() -> Self {
+        InsightsSection {
+            state: "0x502400".into(),
+            out_of_service: vec![4, 5],
+            trips: "0x652001".into(),
+            door_cycles: "0x440001".into(),
+            reopenings: "0x440004".into(),
+            target: 0.99,
+            trends: vec![TrendRule {
+                mplex: "0x440301".into(),
+                name: "Door closing time".into(),
+                rise_percent: 20.0,
+                baseline_h: 24.0 * 7.0,
+                window_h: 24.0,
+            }],
+        }
+    }
+}
+
+/// `[[insights.trends]]`: a `trend` alarm when an object's mean over the last `window_h` hours
+/// exceeds its mean over the `baseline_h` hours before by more than `rise_percent` %; cleared
+/// when it no longer does.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrendRule {
+    /// The object (of the lift controller), a stored numeric one.
+    pub mplex: String,
+    /// What the alarm calls it.
+    pub name: String,
+    /// The rise that raises the alarm (%).
+    pub rise_percent: f64,
+    /// The baseline's length (hours, fractions allowed).
+    pub baseline_h: f64,
+    /// The recent window's length (hours, fractions allowed).
+    pub window_h: f64,
+}
+
+/// `[insights]` as the portal uses it: the objects parsed, the rules checked.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Insights {
+    /// The lift's state object.
+    pub state: Mplex,
+    /// Its out-of-service values.
+    pub out_of_service: Vec<i64>,
+    /// Trip, door cycle and reopening counters.
+    pub trips: Mplex,
+    /// Door cycles.
+    pub door_cycles: Mplex,
+    /// Reopenings.
+    pub reopenings: Mplex,
+    /// The default availability target.
+    pub target: f64,
+    /// Trend rules with their object parsed.
+    pub trends: Vec<(Mplex, TrendRule)>,
+}
+
+impl InsightsSection {
+    /// The section checked; what is wrong is named in the error.
+    pub fn insights(&self) -> Result<Insights, String> {
+        let parse =
+            |key: &str, m: &str| Mplex::parse(m).map_err(|e| format!("insights.{key}: {e}"));
+        if !(0.0..=1.0).contains(&self.target) {
+            return Err(format!("insights.target {}: 0 to 1", self.target));
+        }
+        let trends = self
+            .trends
+            .iter()
+            .map(|rule| {
+                let hours = |h: f64| h.is_finite() && h > 0.0 && h <= 24.0 * 400.0;
+                if !(hours(rule.baseline_h) && hours(rule.window_h)) {
+                    return Err(format!(
+                        "insights.trends {:?}: baseline_h and window_h more than 0, at most 9600",
+                        rule.name
+                    ));
+                }
+                if !(rule.rise_percent.is_finite() && rule.rise_percent > 0.0) {
+                    return Err(format!(
+                        "insights.trends {:?}: rise_percent more than 0",
+                        rule.name
+                    ));
+                }
+                Ok((parse("trends.mplex", &rule.mplex)?, rule.clone()))
+            })
+            .collect::<Result<_, String>>()?;
+        Ok(Insights {
+            state: parse("state", &self.state)?,
+            out_of_service: self.out_of_service.clone(),
+            trips: parse("trips", &self.trips)?,
+            door_cycles: parse("door_cycles", &self.door_cycles)?,
+            reopenings: parse("reopenings", &self.reopenings)?,
+            target: self.target,
+            trends,
+        })
+    }
+}
+
+impl Insights {
+    /// Whether `value` of the state object means the lift serves passengers (a value that is
+    /// no integer is none of its out-of-service values).
+    pub fn in_service(&self, value: &str) -> bool {
+        value
+            .trim()
+            .parse::<i64>()
+            .map_or(true, |v| !self.out_of_service.contains(&v))
+    }
+
+    /// The objects insights read.
+    pub fn objects(&self) -> Vec<Mplex> {
+        let mut all = vec![self.state, self.trips, self.door_cycles, self.reopenings];
+        all.extend(self.trends.iter().map(|(m, _)| *m));
+        all
     }
 }
 
@@ -437,6 +577,8 @@ pub struct Config {
     pub dashboard: DashboardSection,
     /// `[alarms]`.
     pub alarms: AlarmsSection,
+    /// `[insights]`.
+    pub insights: InsightsSection,
     /// `[cluster]`.
     pub cluster: ClusterSection,
     /// `[oidc]`: single sign-on (absent: local users and API keys only).

@@ -17,6 +17,7 @@ pub mod devpki;
 pub mod errors;
 pub mod forwarded;
 pub mod gateways;
+pub mod insights;
 mod memory;
 pub mod metrics;
 pub mod outbound;

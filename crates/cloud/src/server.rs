@@ -357,7 +357,22 @@ impl Portal {
             cluster.as_ref().map(|(c, _)| c.clone()),
             timings.round_trips.clone(),
         ));
+        let insights = Arc::new(config.insights.insights().map_err(ServerError::Other)?);
         let dashboard = Arc::new(config.dashboard.dashboard().map_err(ServerError::Other)?);
+        // Insights read what is stored: what the gateways are not asked to push stays unknown.
+        let unread: Vec<String> = insights
+            .objects()
+            .iter()
+            .filter(|m| !dashboard.live.contains(m))
+            .map(ToString::to_string)
+            .collect();
+        if !unread.is_empty() {
+            tracing::warn!(
+                objects = %unread.join(", "),
+                "[insights] reads objects that are not in [dashboard] live: no gateway pushes them, \
+                 so reports and trend rules will not see them (docs/PORTAL.md §Availability)"
+            );
+        }
         let subscriptions = Arc::new(gateways::subscriptions::Subscriptions::new(
             registry.clone(),
             store.clone(),
@@ -427,7 +442,8 @@ impl Portal {
             // a second (`/healthz`).
             tokio::spawn(store.clone().watch_writes(Duration::from_secs(5))),
         ]);
-        let (alarms, reports) = start_alarms(config, &store, &registry, &timings, &mut tasks)?;
+        let (alarms, reports) =
+            start_alarms(config, &store, &registry, &insights, &timings, &mut tasks)?;
         // Rights taken away anywhere reach this process within a second.
         tasks.push(tokio::spawn(
             store
@@ -456,6 +472,7 @@ impl Portal {
                 records,
                 dashboard: dashboard.clone(),
                 subscriptions: subscriptions.clone(),
+                insights: insights.clone(),
                 reports: reports.clone(),
                 refusals: refusals.clone(),
                 closing: closing_rx,
@@ -528,6 +545,8 @@ impl Portal {
                     subscriptions,
                     alarms,
                     names: Arc::new(names),
+                    insights: insights.clone(),
+                    recent: crate::insights::Recent::default(),
                 });
                 // Pages, scripts and JSON gzip-compressed when the browser accepts it (a phone
                 // on a mobile network); tower-http leaves event streams and images alone.
@@ -855,6 +874,7 @@ fn start_alarms(
     config: &Config,
     store: &Store,
     registry: &Arc<Registry>,
+    insights: &crate::config::Insights,
     timings: &crate::metrics::Timings,
     tasks: &mut Vec<tokio::task::JoinHandle<()>>,
 ) -> Result<(Arc<Alarms>, Reports), ServerError> {
@@ -880,12 +900,20 @@ fn start_alarms(
         severities: config.alarms.severity,
     };
     let offline_after = std::time::Duration::from_secs(config.alarms.offline_after_s.max(1));
+    let (trends, trends_rx) = mpsc::channel(16);
+    tasks.push(tokio::spawn(crate::insights::trends::run(
+        store.clone(),
+        insights.trends.clone(),
+        rules,
+        trends,
+    )));
     tasks.push(tokio::spawn(service::run(
         alarms.clone(),
         rules,
         offline_after,
         reports_rx,
         acknowledged_rx,
+        trends_rx,
     )));
     tasks.push(tokio::spawn(webhook::deliver(
         alarms.clone(),

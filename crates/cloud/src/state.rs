@@ -31,6 +31,10 @@ pub struct AppState {
     pub alarms: Arc<Alarms>,
     /// Object names operators may use instead of an mplex (`?name=`, path, web forms).
     pub names: Arc<ObjectNames>,
+    /// What lift insights read.
+    pub insights: Arc<crate::config::Insights>,
+    /// The fleet's availability over the last days, per account.
+    pub recent: crate::insights::Recent,
 }
 
 impl crate::auth::AuthState for AppState {

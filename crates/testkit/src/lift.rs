@@ -74,17 +74,19 @@ impl RunningGateway {
     }
 }
 
-/// The simulator on `bus` (20 × speed, so tests see movement quickly).
+/// The simulator's configuration in tests: 20 × speed, so tests see movement quickly.
+pub fn sim_config() -> SimConfig {
+    SimConfig {
+        speed: 20.0,
+        ..SimConfig::default()
+    }
+}
+
+/// The simulator on `bus` with [`sim_config`].
 pub async fn simulator(bus: &str) -> Simulator {
-    Simulator::start(
-        bus,
-        SimConfig {
-            speed: 20.0,
-            ..SimConfig::default()
-        },
-    )
-    .await
-    .expect("the simulator starts")
+    Simulator::start(bus, sim_config())
+        .await
+        .expect("the simulator starts")
 }
 
 /// The simulated lift and its gateway.
@@ -96,9 +98,11 @@ pub struct Lift {
 }
 
 impl Lift {
-    /// The simulator on `bus` and a gateway in bus-node mode with `config`.
-    pub async fn start(bus: &str, config: Config) -> Lift {
-        let sim = simulator(bus).await;
+    /// The simulator on `bus` with `sim` and a gateway in bus-node mode with `config`.
+    pub async fn start(bus: &str, sim: SimConfig, config: Config) -> Lift {
+        let sim = Simulator::start(bus, sim)
+            .await
+            .expect("the simulator starts");
         let gateway = Gateway::bus_node(config).await.expect("the gateway starts");
         Lift {
             sim,

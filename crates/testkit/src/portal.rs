@@ -43,6 +43,7 @@ pub struct Builder {
     lift: bool,
     portal: Box<dyn FnOnce(&mut Config)>,
     gateway: Box<dyn FnOnce(&mut gateway::config::Config)>,
+    sim: Box<dyn FnOnce(&mut lift417::sim::SimConfig)>,
 }
 
 impl Builder {
@@ -67,6 +68,12 @@ impl Builder {
     /// Change the gateway's configuration before it starts.
     pub fn gateway(mut self, f: impl FnOnce(&mut gateway::config::Config) + 'static) -> Builder {
         self.gateway = Box::new(f);
+        self
+    }
+
+    /// Change the simulator's configuration before it starts.
+    pub fn sim(mut self, f: impl FnOnce(&mut lift417::sim::SimConfig) + 'static) -> Builder {
+        self.sim = Box::new(f);
         self
     }
 
@@ -105,7 +112,9 @@ impl Builder {
             let ws = format!("wss://localhost:{}/ws", addr.port());
             let mut gw = gateway_config(&ws, &ca, &bus, &dir.path().join("gateway"));
             (self.gateway)(&mut gw);
-            lift = Some((Lift::start(&bus, gw.clone()).await, gw));
+            let mut sim = crate::lift::sim_config();
+            (self.sim)(&mut sim);
+            lift = Some((Lift::start(&bus, sim, gw.clone()).await, gw));
         }
         Rig {
             addr,
@@ -153,6 +162,7 @@ impl Rig {
             lift: true,
             portal: Box::new(|_| {}),
             gateway: Box::new(|_| {}),
+            sim: Box::new(|_| {}),
         }
     }
 

@@ -37,6 +37,10 @@ pub struct SimArgs {
     /// Start lift 1 with faults: door-blocked, overload, drive, io-offline (comma-separated).
     #[arg(long, value_delimiter = ',')]
     fault: Vec<FaultArg>,
+    /// Wear a part: `door-closing=PERCENT` makes every lift's door close PERCENT % more slowly
+    /// per simulated hour (0x4403 shows it) until its closing supervision calls it blocked.
+    #[arg(long, value_name = "PART=PERCENT", value_parser = parse_wear)]
+    wear: Vec<Wear>,
     /// Simulated passengers press a button about every this many simulated seconds.
     #[arg(long)]
     passengers: Option<f64>,
@@ -51,6 +55,30 @@ pub struct SimArgs {
     /// Write the controller's EDS to this file (and the I/O node's beside it) and exit.
     #[arg(long)]
     export_eds: Option<PathBuf>,
+}
+
+/// A part that wears, and how fast (% per simulated hour).
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Wear {
+    /// The car door closes more slowly.
+    DoorClosing(f64),
+}
+
+/// `door-closing=PERCENT`.
+fn parse_wear(text: &str) -> anyhow::Result<Wear> {
+    let Some((part, percent)) = text.split_once('=') else {
+        anyhow::bail!("{text:?} is not PART=PERCENT (e.g. door-closing=5)");
+    };
+    let percent: f64 = percent
+        .trim()
+        .parse()
+        .ok()
+        .filter(|p: &f64| p.is_finite() && (0.0..=10_000.0).contains(p))
+        .with_context(|| format!("{percent:?}: a percentage per hour, 0 to 10000"))?;
+    match part.trim() {
+        "door-closing" => Ok(Wear::DoorClosing(percent)),
+        other => anyhow::bail!("no part {other:?} wears here: door-closing"),
+    }
 }
 
 /// A fault to start with.
@@ -81,6 +109,12 @@ impl SimArgs {
             Some(s) => anyhow::bail!("--passengers {s}: a positive number of seconds"),
             None => None,
         };
+        let door_wear_percent_per_h = self
+            .wear
+            .iter()
+            .map(|Wear::DoorClosing(p)| *p)
+            .next_back()
+            .unwrap_or(0.0);
         Ok(SimConfig {
             node_id: self.node,
             io_node: (self.io_node != 0).then_some(self.io_node),
@@ -90,6 +124,7 @@ impl SimArgs {
             heartbeat_ms: self.heartbeat_ms,
             state_dir: self.state.clone(),
             faults,
+            door_wear_percent_per_h,
             passengers,
             autostart: !self.no_autostart,
             sdo_servers: self.sdo_servers.clone(),
@@ -170,6 +205,23 @@ mod tests {
         assert_eq!(parse_channel("1697:1729").unwrap(), (id(0x6A1), id(0x6C1)));
         for bad in ["0x6A1", "0x6A1:", "0x800:0x6C1", "x:0x6C1", "0x6A1:0x6C1:1"] {
             assert!(parse_channel(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn wear_is_a_part_and_a_percentage_per_hour() {
+        assert_eq!(
+            parse_wear("door-closing=12.5").unwrap(),
+            Wear::DoorClosing(12.5)
+        );
+        for bad in [
+            "door-closing",
+            "door-closing=-1",
+            "door-closing=x",
+            "brake=5",
+            "door-closing=1e9",
+        ] {
+            assert!(parse_wear(bad).is_err(), "{bad}");
         }
     }
 }

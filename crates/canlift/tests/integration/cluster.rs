@@ -92,7 +92,7 @@ impl Cluster {
         let bus = format!("mem://cluster-{name}");
         let ws = format!("wss://localhost:{}/ws", balancer.addr().port());
         let gateway = gateway_config(&ws, &pki.ca, &bus, &dir.path().join("gateway"));
-        let lift = Lift::start(&bus, gateway.clone()).await;
+        let lift = Lift::start(&bus, testkit::lift::sim_config(), gateway.clone()).await;
         let cluster = Cluster {
             nats,
             portals,

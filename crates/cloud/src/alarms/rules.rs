@@ -12,6 +12,8 @@
 //! | gateway offline for `offline_after_s` | `lift-offline` | — |
 //! | gateway back | — | `lift-offline` |
 //! | a valid token from another board (`boardhash_change = "alarm"`) | `board-changed` (new hash) | — (its acknowledgement clears it) |
+//! | a trend rule's mean rose beyond it (`[[insights.trends]]`) | `trend` (object) | — |
+//! | the mean is back within the rule | — | that object's `trend` |
 //!
 //! `overrun` is stored as an event and raises nothing: frames were lost once, the network is
 //! not in a state.
@@ -48,6 +50,8 @@ pub enum Verdict {
         /// A code that stays.
         keep: Option<String>,
     },
+    /// The active alarm of exactly this condition, if any, is over.
+    End(Condition),
 }
 
 /// The rules with their severities.
@@ -218,6 +222,49 @@ impl Rules {
         }
     }
 
+    /// A trend rule saw `mplex` of `lift` rise: mean `now` over its window against `base` over
+    /// its baseline.
+    pub fn trend(
+        &self,
+        lift: &str,
+        mplex: &str,
+        rule: &crate::config::TrendRule,
+        base: f64,
+        now: f64,
+    ) -> Verdict {
+        let rise = if base > 0.0 {
+            (now / base - 1.0) * 100.0
+        } else {
+            0.0
+        };
+        Verdict::Raise {
+            condition: Condition {
+                lift: lift.to_owned(),
+                kind: Kind::Trend,
+                place: None,
+                code: mplex.to_owned(),
+            },
+            severity: self.severities.trend,
+            text: format!(
+                "{} ({mplex}) rose {rise:.0} % (rule: {} %): mean {now:.1} over the last {}, {base:.1} over the {} before",
+                rule.name,
+                rule.rise_percent,
+                hours(rule.window_h),
+                hours(rule.baseline_h),
+            ),
+        }
+    }
+
+    /// `mplex` of `lift` is back within its trend rule.
+    pub fn trend_over(&self, lift: &str, mplex: &str) -> Verdict {
+        Verdict::End(Condition {
+            lift: lift.to_owned(),
+            kind: Kind::Trend,
+            place: None,
+            code: mplex.to_owned(),
+        })
+    }
+
     /// The lift has stayed within its storage quota for an hour.
     pub fn storage_quota_kept(&self, lift: &str) -> Verdict {
         Verdict::Clear {
@@ -250,6 +297,16 @@ fn code_value(text: &str) -> Option<u32> {
 /// A code in one spelling (`0xFF01`), whatever the gateway wrote.
 fn normalized_code(text: &str) -> String {
     code_value(text).map_or_else(|| text.to_owned(), |v| format!("0x{v:04X}"))
+}
+
+/// Hours as people say them: `24 h`, `90 min`, `20 s`.
+fn hours(h: f64) -> String {
+    let s = (h * 3600.0).round() as u64;
+    if s.is_multiple_of(3600) && s > 0 {
+        format!("{} h", s / 3600)
+    } else {
+        duration(s)
+    }
 }
 
 fn duration(seconds: u64) -> String {
@@ -357,6 +414,16 @@ impl Active {
                     .map(|(_, id)| id)
                     .collect(),
             ),
+            Verdict::End(condition) => {
+                let Some(active) = self.lifts.get_mut(&condition.lift) else {
+                    return Applied::Unchanged;
+                };
+                let ended = active.remove(&condition);
+                if active.is_empty() {
+                    self.lifts.remove(&condition.lift);
+                }
+                ended.map_or(Applied::Unchanged, |id| Applied::Cleared(vec![id]))
+            }
         }
     }
 

@@ -3,8 +3,10 @@
 //! acknowledgements of alarms only a person ends, stores the events in batches, applies [`Rules`] to an
 //! index of the active alarms (so that an event costs a look-up, and the database is written
 //! only when an alarm changes), runs the `lift-offline` timers, and announces every change to
-//! the lift's live viewers and to the webhook outbox. [`Alarms`] is the handle the API and the
-//! web UI use.
+//! the lift's live viewers and to the webhook outbox. It also keeps each lift's status (in
+//! service, out of service, offline, unknown: docs/PORTAL.md §Availability), writing its changes
+//! with the events, and applies the trend rules' verdicts. [`Alarms`] is the handle the API and
+//! the web UI use.
 
 use std::collections::{BTreeSet, HashMap};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -18,8 +20,9 @@ use super::rules::{Active, Applied, Rules, Verdict};
 use crate::config::WebhookSection;
 use crate::gateways::reports::Report;
 use crate::gateways::Registry;
-use cloud_store::{EventRow, Store, StoreError};
+use cloud_store::{EventRow, StatusRow, Store, StoreError};
 use cloud_types::alarms::{Alarm, AlarmChange, Change, Kind, WebhookBody};
+use cloud_types::insights::Status;
 use cloud_types::live::LiftEvent;
 
 /// Counts for `/metrics`.
@@ -229,6 +232,9 @@ struct Service {
     /// after the last report).
     over_quota: OfflineTimers,
     batch: Vec<EventRow>,
+    /// Each lift's status as last written by this process, and the changes not written yet.
+    statuses: HashMap<String, Status>,
+    status_changes: Vec<StatusRow>,
     /// Alarms raised and cleared (id, when) since the last write.
     raised: Vec<Alarm>,
     cleared: Vec<(i64, i64)>,
@@ -244,6 +250,7 @@ pub async fn run(
     offline_after: Duration,
     mut reports: mpsc::Receiver<Report>,
     mut acknowledged: mpsc::Receiver<Acknowledged>,
+    mut trends: mpsc::Receiver<Vec<Verdict>>,
 ) {
     let mut active = Active::default();
     match alarms.store.active_alarms().await {
@@ -272,6 +279,8 @@ pub async fn run(
         offline,
         over_quota: OfflineTimers::default(),
         batch: Vec::with_capacity(BATCH),
+        statuses: HashMap::new(),
+        status_changes: Vec::new(),
         raised: Vec::new(),
         cleared: Vec::new(),
         flush_at: None,
@@ -297,6 +306,7 @@ pub async fn run(
                 let verdict = service.rules.acknowledged(&lift, kind);
                 service.apply(vec![verdict]);
             }
+            Some(verdicts) = trends.recv() => service.apply(verdicts),
             _ = tokio::time::sleep_until(next.unwrap_or_else(Instant::now)), if next.is_some() => {
                 service.timers().await
             }
@@ -324,8 +334,10 @@ impl Service {
         if lifts.is_empty() {
             return;
         }
+        let now = cloud_types::now_ms();
         for lift in &lifts {
             self.offline.stop(lift);
+            self.status(lift, Status::Unknown, now);
         }
         self.refresh_in_cluster(&lifts).await;
         let verdicts = lifts.iter().map(|lift| self.rules.lift_online(lift));
@@ -351,8 +363,21 @@ impl Service {
             }
             Report::Online(lift) => self.online(vec![lift]).await,
             Report::Offline(lift) => {
+                self.status(&lift, Status::Offline, cloud_types::now_ms());
                 self.offline
                     .start(lift, Instant::now() + self.offline_after);
+            }
+            Report::Service {
+                lift,
+                in_service,
+                at,
+            } => {
+                let status = if in_service {
+                    Status::InService
+                } else {
+                    Status::OutOfService
+                };
+                self.status(&lift, status, at);
             }
             Report::BoardChanged { lift, was, now } => {
                 let verdict = self.rules.board_changed(&lift, &was, &now);
@@ -364,6 +389,20 @@ impl Service {
                 self.apply(vec![verdict]);
             }
         }
+    }
+
+    /// `lift` is `status` from `at` on: written with the next batch when it changed.
+    fn status(&mut self, lift: &str, status: Status, at: i64) {
+        if self.statuses.get(lift) == Some(&status) {
+            return;
+        }
+        self.statuses.insert(lift.to_owned(), status);
+        self.status_changes.push(StatusRow {
+            lift: lift.to_owned(),
+            at,
+            status,
+        });
+        self.flush_at.get_or_insert(Instant::now() + BATCH_WAIT);
     }
 
     async fn timers(&mut self) {
@@ -392,14 +431,23 @@ impl Service {
     /// attempt.
     async fn flush(&mut self) {
         self.flush_at = None;
-        if self.batch.is_empty() && self.raised.is_empty() && self.cleared.is_empty() {
+        if self.batch.is_empty()
+            && self.status_changes.is_empty()
+            && self.raised.is_empty()
+            && self.cleared.is_empty()
+        {
             return;
         }
         let counters = &self.alarms.counters;
         let written = self
             .alarms
             .store
-            .write_alarm_batch(&self.batch, &self.raised, &self.cleared)
+            .write_alarm_batch(
+                &self.batch,
+                &self.status_changes,
+                &self.raised,
+                &self.cleared,
+            )
             .await;
         let events = std::mem::take(&mut self.batch).len() as u64;
         let (new, cleared) = match written {
@@ -413,6 +461,7 @@ impl Service {
         };
         counters.events_stored.fetch_add(events, Ordering::Relaxed);
         self.cleared.clear();
+        self.status_changes.clear();
         let mut raised_elsewhere = Vec::new();
         for (alarm, new) in std::mem::take(&mut self.raised).into_iter().zip(new) {
             if !new {

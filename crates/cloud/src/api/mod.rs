@@ -3,10 +3,11 @@
 //! others). NXg errors come back as 4xx with the gateway's error object; an offline gateway
 //! gives 503, a gateway that does not answer in time 504. Puts and elevations are audited. The
 //! bodies are the types of [`cloud_types::api`]; alarms and the event log are in `alarms`, users
-//! and keys in `users`; who the caller is and what it may do in [`crate::auth`].
+//! and keys in `users`, availability reports in `reports`; who the caller is and what it may do in [`crate::auth`].
 
 mod alarms;
 mod idempotency;
+mod reports;
 mod users;
 
 use std::convert::Infallible;
@@ -667,6 +668,12 @@ pub fn routes(app: Arc<AppState>) -> Router {
             axum::routing::post(alarms::acknowledge),
         )
         .route("/api/v1/audit", get(audit))
+        .route("/api/v1/reports/availability", get(reports::availability))
+        .route("/api/v1/reports/monthly", get(reports::monthly))
+        .route(
+            "/api/v1/reports/target",
+            axum::routing::put(reports::target),
+        )
         .route("/api/v1/users", get(users::list).post(users::add))
         .route("/api/v1/users/{name}/role", axum::routing::put(users::role))
         .route(

@@ -37,6 +37,8 @@ struct Admitted {
     serial: u64,
     /// What the lift may still store this hour.
     quota: Quota,
+    /// Whether its state object last said it is in service (none before its first value).
+    in_service: Option<bool>,
 }
 
 /// A lift's storage quota (`[gateways] max_stored_bytes_per_hour`): bytes a bucket of an
@@ -354,6 +356,7 @@ impl Connection {
             domain: connect.domaintoken.clone(),
             serial,
             quota: Quota::new(self.shared.policy.max_stored_bytes_per_hour, Instant::now()),
+            in_service: None,
         });
         tokio::spawn(dashboard::subscribe(
             registry.clone(),
@@ -401,6 +404,16 @@ impl Connection {
             return Ok(());
         }
         let at = cloud_types::now_ms();
+        if mplex == Some(self.shared.insights.state) {
+            let now = self.shared.insights.in_service(&n.value);
+            if a.in_service.replace(now) != Some(now) {
+                self.shared.reports.offer(Report::Service {
+                    lift: a.lift.clone(),
+                    in_service: now,
+                    at,
+                });
+            }
+        }
         self.shared.registry.observe(&a.lift, &n, at);
         let row = TelemetryRow {
             lift: a.lift.clone(),

@@ -458,6 +458,8 @@ pub struct Shared {
     pub dashboard: Arc<Dashboard>,
     /// Who holds which subscriptions, registered again on every connection.
     pub subscriptions: Arc<subscriptions::Subscriptions>,
+    /// What lift insights read: the state object's out-of-service values.
+    pub insights: Arc<crate::config::Insights>,
     /// Where bus events and connection changes are reported (to become alarms).
     pub reports: reports::Reports,
     /// Where refused CONNECTs are recorded.

@@ -23,6 +23,16 @@ pub enum Report {
     Online(String),
     /// The lift's gateway went away.
     Offline(String),
+    /// The lift's state object now says it is in service or not (`[insights] state`); sent
+    /// when that changes, and with the first value of a connection.
+    Service {
+        /// The lift.
+        lift: String,
+        /// In service.
+        in_service: bool,
+        /// When the value came (ms since the epoch).
+        at: i64,
+    },
     /// The lift pushed more than it may store per hour: `dropped` values not stored since its
     /// connection began (reported at most once a minute while it lasts).
     OverQuota {
@@ -60,7 +70,7 @@ impl Reports {
     /// Report a change of a lift's connection: it always waits for room (there are few).
     pub async fn report(&self, report: Report) {
         match report {
-            Report::Event { lift, event } => self.event(lift, event),
+            Report::Event { .. } | Report::Service { .. } => self.offer(report),
             other => {
                 let _ = self.tx.send(other).await;
             }
@@ -77,12 +87,17 @@ impl Reports {
     /// a gateway connection's task calls it for every event it receives, and an awaited call
     /// would size that long-lived task by its future.
     pub fn event(&self, lift: String, event: Event) {
-        if self.tx.try_send(Report::Event { lift, event }).is_err() {
+        self.offer(Report::Event { lift, event });
+    }
+
+    /// Report `report`, or drop and count it when the queue is full (as [`Reports::event`]).
+    pub fn offer(&self, report: Report) {
+        if self.tx.try_send(report).is_err() {
             self.dropped.fetch_add(1, Ordering::Relaxed);
         }
     }
 
-    /// Events dropped because the queue was full.
+    /// Reports dropped because the queue was full.
     pub fn dropped(&self) -> u64 {
         self.dropped.load(Ordering::Relaxed)
     }

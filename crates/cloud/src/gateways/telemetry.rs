@@ -281,7 +281,7 @@ pub async fn roll_up(store: Store) {
 pub enum Retained {
     /// Pushed values (`[database] telemetry_days`).
     Telemetry,
-    /// Their roll-ups (`[database] rollup_days`).
+    /// Their roll-ups and the lifts' status changes (`[database] rollup_days`).
     RollUps,
     /// Bus events (`[database] events_days`).
     Events,
@@ -319,7 +319,11 @@ pub async fn retention(kept: Retained, store: Store, days: u32) {
         let before = cloud_types::now_ms() - i64::from(days) * 86_400_000;
         let deleted = match kept {
             Retained::Telemetry => store.forget_telemetry(before).await,
-            Retained::RollUps => store.forget_roll_ups(before).await,
+            // Status changes are few and reports reach as far back as the roll-ups.
+            Retained::RollUps => match store.forget_roll_ups(before).await {
+                Ok(n) => store.forget_statuses(before).await.map(|m| n + m),
+                failed => failed,
+            },
             Retained::Events => store.forget_events(before).await,
             Retained::Refused { rows } => store.forget_refused(before, rows).await,
             Retained::Idempotency => store.forget_idempotency(cloud_types::now_ms()).await,

@@ -1,8 +1,10 @@
 //! The fleet page: every lift of the account with one coloured state (in service, out of
 //! service, faults, offline), when a value last arrived (or the lift was last seen), its most
 //! severe active alarm and its active faults; counts per state, filters, sort, search and
-//! pages. The condition of connected lifts comes from the registry (their pushes), not the
-//! database: the page costs one lookup per lift. The script refreshes the table.
+//! pages, and each lift's availability over the last 30 days (docs/PORTAL.md §Availability;
+//! computed at most once a minute per account). The condition of connected lifts comes from the
+//! registry (their pushes), not the database: the page costs one lookup per lift. The script
+//! refreshes the table.
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -167,9 +169,13 @@ pub(super) async fn fleet(
 ) -> Response {
     let (session, l) = (&who.session, who.locale);
     let domain = &session.operator.account.domain;
-    let (all, worst) = match tokio::join!(app.store.lifts(domain), app.store.worst_alarms(domain)) {
-        (Ok(l), Ok(w)) => (l, w),
-        (Err(e), _) | (_, Err(e)) => return unavailable(e, who.viewer()),
+    let (all, worst, available) = match tokio::join!(
+        app.store.lifts(domain),
+        app.store.worst_alarms(domain),
+        app.recent.of(&app.store, domain)
+    ) {
+        (Ok(l), Ok(w), Ok(a)) => (l, w, a),
+        (Err(e), _, _) | (_, Err(e), _) | (_, _, Err(e)) => return unavailable(e, who.viewer()),
     };
     let needle = query.q.as_deref().unwrap_or("").trim().to_lowercase();
     let mut counts: HashMap<FleetState, usize> = HashMap::new();
@@ -260,6 +266,7 @@ pub(super) async fn fleet(
                         (heading("Lift", Sort::Lift)) (heading("Lift number", Sort::Number))
                         (heading("State", Sort::State)) (heading("Last value / seen", Sort::Seen))
                         th { (l.t("Alarm")) } th { (l.t("Active faults")) }
+                        th { (l.t("Availability (30 days)")) }
                     } }
                     tbody {
                         @for row in rows.iter().skip((page - 1) * PAGE).take(PAGE) {
@@ -276,6 +283,9 @@ pub(super) async fn fleet(
                                     }
                                 }
                                 td { (faults(row.status, l)) }
+                                td.availability {
+                                    (super::reports::percent(available.get(&row.lift.id).copied().flatten()))
+                                }
                             }
                         }
                     }

@@ -197,6 +197,7 @@ const GERMAN: &[(&str, &str)] = &[
     ("Fleet", "Anlagen"),
     ("Alarms", "Alarme"),
     ("Audit", "Protokoll"),
+    ("Reports", "Berichte"),
     ("Sign out", "Abmelden"),
     ("Language", "Sprache"),
     ("viewer", "Betrachter"),
@@ -383,6 +384,35 @@ const GERMAN: &[(&str, &str)] = &[
     ("Elevation refused: {}", "Rechteerhöhung abgelehnt: {}"),
     ("saved", "gespeichert"),
     ("{} — elevate and save again.", "{} — Rechte erhöhen und erneut speichern."),
+    // The monthly report and availability.
+    ("Monthly report {}", "Monatsbericht {}"),
+    ("A month is written YYYY-MM.", "Ein Monat wird JJJJ-MM geschrieben."),
+    ("← previous month", "← Vormonat"),
+    ("next month →", "nächster Monat →"),
+    ("Account", "Konto"),
+    ("Availability", "Verfügbarkeit"),
+    ("target met", "Ziel erreicht"),
+    ("target missed", "Ziel verfehlt"),
+    ("Target", "Ziel"),
+    ("Lifts", "Anlagen"),
+    ("The months before", "Die Monate davor"),
+    ("Month", "Monat"),
+    ("Faults by kind", "Störungen nach Art"),
+    ("No fault.", "Keine Störung."),
+    ("EMCY code", "EMCY-Code"),
+    ("Faults", "Störungen"),
+    ("Lifts, the least available first", "Anlagen, die am wenigsten verfügbare zuerst"),
+    ("In service", "In Betrieb"),
+    ("Out of service", "Außer Betrieb"),
+    ("Gateway offline", "Gateway offline"),
+    ("Unknown", "Unbekannt"),
+    ("Trips", "Fahrten"),
+    ("Faults per 1000 trips", "Störungen je 1000 Fahrten"),
+    ("mean time between failures", "mittlere Betriebsdauer zwischen Ausfällen"),
+    ("mean time to repair", "mittlere Instandsetzungsdauer"),
+    ("Door cycles", "Türspiele"),
+    ("Reopenings", "Wiederöffnungen"),
+    ("Availability (30 days)", "Verfügbarkeit (30 Tage)"),
 ];
 
 #[cfg(test)]
@@ -419,7 +449,7 @@ mod tests {
         "increments",
     ];
 
-    const PAGES: [&str; 9] = [
+    const PAGES: [&str; 10] = [
         include_str!("alarms.rs"),
         include_str!("audit.rs"),
         include_str!("fleet.rs"),
@@ -428,6 +458,7 @@ mod tests {
         include_str!("login.rs"),
         include_str!("mod.rs"),
         include_str!("page.rs"),
+        include_str!("reports.rs"),
         include_str!("sso.rs"),
     ];
     const SCRIPT_SOURCE: &str = include_str!("app.js");

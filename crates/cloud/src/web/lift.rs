@@ -378,17 +378,32 @@ pub(super) async fn lift_page(
         lift: Some(key.clone()),
         limit: 100,
     };
+    let to = cloud_types::now_ms();
+    let from = to - crate::insights::Recent::DAYS * 86_400_000;
+    let this = cloud_store::Lifts {
+        domain: &session.operator.account.domain,
+        lift: Some(key),
+    };
     // The gateway's answers and the database's at once: the page waits for the slower only.
-    let (mut objects, stored, alarms, events) = tokio::join!(
+    let (mut objects, stored, alarms, events, figures, timelines) = tokio::join!(
         read_all(&app, key, &wanted, l),
         app.store.latest(key, &live_keys),
         app.store.alarms(&session.operator.account.domain, &active),
         app.store.event_log(key, None, 50),
+        crate::insights::figures(&app.store, &app.insights, this, from, to),
+        app.store.timelines(this, from, to),
     );
-    let (stored, alarms, events) = match (stored, alarms, events) {
-        (Ok(s), Ok(a), Ok(e)) => (s, a, e),
-        (Err(e), _, _) | (_, Err(e), _) | (_, _, Err(e)) => return unavailable(e, who.viewer()),
-    };
+    let (stored, alarms, events, figures, mut timelines) =
+        match (stored, alarms, events, figures, timelines) {
+            (Ok(s), Ok(a), Ok(e), Ok(f), Ok(t)) => (s, a, e, f, t),
+            (Err(e), ..)
+            | (_, Err(e), ..)
+            | (_, _, Err(e), ..)
+            | (.., Err(e), _)
+            | (.., Err(e)) => return unavailable(e, who.viewer()),
+        };
+    let spans =
+        crate::insights::availability::spans(&timelines.remove(key).unwrap_or_default(), from, to);
     for o in &mut objects {
         o.stored = stored.get(&o.mplex.to_string()).cloned();
     }
@@ -452,6 +467,9 @@ pub(super) async fn lift_page(
             } @else {
                 (super::alarms::table(&alarms, &who, &lift_path(&id), false))
             }
+        }
+        @if let Some(f) = figures.first() {
+            (super::reports::recent(f, &spans, from, to, l))
         }
         p.rights.muted hidden role="status" {}
         h2 { (l.t("Live values")) }

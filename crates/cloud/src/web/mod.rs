@@ -13,6 +13,7 @@ mod i18n;
 mod lift;
 mod login;
 mod page;
+mod reports;
 mod sso;
 
 use std::sync::Arc;
@@ -110,6 +111,7 @@ pub fn routes(app: Arc<AppState>) -> Router {
         .route("/lifts/{id}/history", get(history::history_page))
         .route("/lifts/{id}/history.csv", get(history::history_csv))
         .route("/audit", get(audit::audit_page))
+        .route("/reports", get(reports::reports_page))
         .route("/alarms", get(alarms::alarms_page))
         .route("/alarms/{id}/ack", post(alarms::acknowledge))
         .route("/static/{file}", get(assets::serve))

@@ -74,6 +74,7 @@ pub(super) fn layout(title: &str, viewer: Viewer, lift: Option<&str>, body: Mark
                             a href="/" { (l.t("Fleet")) }
                             a href="/alarms" { (l.t("Alarms")) }
                             a href="/audit" { (l.t("Audit")) }
+                            a href="/reports" { (l.t("Reports")) }
                             span.who title=(role_text(s.operator.role, l)) {
                                 (s.operator.user) " · " (role_text(s.operator.role, l))
                             }

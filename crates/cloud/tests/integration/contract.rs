@@ -354,12 +354,14 @@ async fn the_portal_keeps_the_contract_of_its_openapi_document() {
                             retry_after: None,
                             body: Value::Null,
                             set_cookie: None,
+                            media: Some("text/event-stream".into()),
                         },
                         Err((status, body)) => Reply {
                             status,
                             retry_after: None,
                             body,
                             set_cookie: None,
+                            media: None,
                         },
                     }
                 } else {
@@ -414,8 +416,28 @@ fn judge(doc: &Document, op: &Value, r: &Request, reply: &Reply) -> Result<(), S
     if !r.valid && reply.status < 300 {
         return Err(format!("{} accepted", r.broken));
     }
-    if let Some(schema) = documented["content"]["application/json"].get("schema") {
-        doc.check(schema, &reply.body, "body")?;
+    // The schema of the media type answered (a CSV answer is a string); an event stream's
+    // status alone is checked.
+    let media = reply.media.as_deref().unwrap_or("application/json");
+    let content = &documented["content"];
+    if !content.is_null() && content.get(media).is_none() {
+        return Err(format!("media type {media} is not documented for {code}"));
+    }
+    if media == "text/event-stream" {
+        return Ok(());
+    }
+    if let Some(schema) = content[media].get("schema") {
+        let body = match media {
+            "application/json" => reply.body.clone(),
+            _ => Value::String(
+                reply
+                    .body
+                    .as_str()
+                    .map(str::to_owned)
+                    .unwrap_or_else(|| reply.body.to_string()),
+            ),
+        };
+        doc.check(schema, &body, "body")?;
     }
     Ok(())
 }

@@ -5,6 +5,7 @@
 mod browser;
 mod contract;
 mod end_to_end;
+mod insights;
 mod operations;
 mod python_events;
 mod python_gateway;

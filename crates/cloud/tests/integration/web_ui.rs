@@ -22,7 +22,7 @@ async fn assert_sign_in_asked(client: &Client, url: &str) {
 }
 
 /// Submit the sign-in form with `key`.
-async fn sign_in(client: &Client, key: &str) {
+pub(crate) async fn sign_in(client: &Client, key: &str) {
     type_into(client, "input[name=key]", key).await;
     click(client, "form.login button").await;
 }
@@ -138,7 +138,7 @@ async fn operator_uses_the_web_ui() {
         15,
         || async {
             client.refresh().await.ok()?;
-            text_of(&client, "table.fleet td:last-child")
+            text_of(&client, "table.fleet td:nth-child(6)")
                 .await
                 .filter(|t| t != "no data")
         },

@@ -62,6 +62,10 @@ pub struct SimConfig {
     pub state_dir: Option<PathBuf>,
     /// Faults (0x5030 bits) lift 1 starts with.
     pub faults: u8,
+    /// Door wear: every lift's door closes this many percent more slowly per simulated hour
+    /// (0x4403 shows it), until the closing supervision calls it blocked at twice the nominal
+    /// time.
+    pub door_wear_percent_per_h: f64,
     /// Simulated passengers press a button about this often (simulated time).
     pub passengers: Option<Duration>,
     /// Enter operational by itself (a self-starting device, CiA 302 0x1F80 bit 2).
@@ -84,6 +88,7 @@ impl Default for SimConfig {
             heartbeat_ms: 1000,
             state_dir: None,
             faults: 0,
+            door_wear_percent_per_h: 0.0,
             passengers: None,
             autostart: true,
             seed: 0x5EED,
@@ -136,6 +141,10 @@ impl SimConfig {
         }
         if !(self.speed.is_finite() && self.speed > 0.0 && self.speed <= 1000.0) {
             return bad(format!("speed {}: more than 0, at most 1000", self.speed));
+        }
+        let wear = self.door_wear_percent_per_h;
+        if !(wear.is_finite() && (0.0..=10_000.0).contains(&wear)) {
+            return bad(format!("door wear {wear} %/h: 0 to 10000"));
         }
         self.check_sdo_servers()
     }
@@ -591,6 +600,7 @@ impl Runner {
                 counters,
                 config.seed.wrapping_add(u64::from(lift)),
             );
+            model.set_door_wear(config.door_wear_percent_per_h);
             if lift == 1 {
                 model.inject(config.faults);
                 let _ = controller.set_value(
@@ -853,6 +863,8 @@ impl Runner {
                     Value::Uint(c.last_fault.map_or(0, |f| f.1).into()),
                 ),
                 (m(0x4402), 3, Value::Bool(l.faults().next().is_some())),
+                (m(0x4403), 1, Value::Uint(l.door_timing().last_ms().into())),
+                (m(0x4403), 2, Value::Uint(l.door_timing().mean_ms().into())),
             ]);
             for (k, n) in c.faults.iter().enumerate() {
                 values.push((m(0x4401), k as u8 + 1, Value::Uint((*n).into())));

@@ -12,6 +12,11 @@ pub const STEP: Duration = Duration::from_millis(10);
 /// Door open/close time (s) and stroke (mm) of the simulated car door.
 const DOOR_TIME_S: f64 = 2.5;
 const DOOR_WIDTH_MM: f64 = 900.0;
+/// Door closing supervision: a closing that would take this many times the nominal time means
+/// a door that cannot close (a blocked-door fault), as a door controller's closing timeout.
+const CLOSING_LIMIT: f64 = 2.0;
+/// Closings the door timing's mean is taken over.
+const TIMING_CLOSINGS: usize = 16;
 /// Closings the light barrier may interrupt before the door counts as blocked.
 const REOPEN_LIMIT: u32 = 3;
 /// Stop accuracy: the car snaps onto the floor within this distance at creeping speed.
@@ -223,6 +228,33 @@ pub struct Counters {
     pub last_fault: Option<(u16, u32)>,
 }
 
+/// How long the car door took to close (0x4403): the last closing and the mean of the last
+/// sixteen, in ms — what shows a door wearing out before it fails.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct DoorTiming {
+    recent: VecDeque<u32>,
+}
+
+impl DoorTiming {
+    fn record(&mut self, ms: u32) {
+        if self.recent.len() == TIMING_CLOSINGS {
+            self.recent.pop_front();
+        }
+        self.recent.push_back(ms);
+    }
+
+    /// The last closing (ms; 0 before the first).
+    pub fn last_ms(&self) -> u32 {
+        self.recent.back().copied().unwrap_or(0)
+    }
+
+    /// The mean of the recent closings (ms; 0 before the first).
+    pub fn mean_ms(&self) -> u32 {
+        let n = self.recent.len().max(1) as u64;
+        (self.recent.iter().map(|&ms| u64::from(ms)).sum::<u64>() / n) as u32
+    }
+}
+
 /// One simulated lift.
 #[derive(Debug, Clone)]
 pub struct Lift {
@@ -238,6 +270,13 @@ pub struct Lift {
     door: DoorState,
     door_position: f64,
     door_timer: f64,
+    /// Time the current closing has taken (s).
+    closing_s: f64,
+    timing: DoorTiming,
+    /// How much slower closing gets per simulated hour (a fraction: 0.1 is 10 %).
+    closing_wear_per_h: f64,
+    /// Simulated time since the lift was made (s): what wear grows with.
+    age_s: f64,
     reopen_tries: u32,
     idle_s: f64,
     load_kg: u16,
@@ -265,6 +304,10 @@ impl Lift {
             door: DoorState::Closed,
             door_position: 0.0,
             door_timer: 0.0,
+            closing_s: 0.0,
+            timing: DoorTiming::default(),
+            closing_wear_per_h: 0.0,
+            age_s: 0.0,
             reopen_tries: 0,
             idle_s: 0.0,
             load_kg: 0,
@@ -407,6 +450,22 @@ impl Lift {
         self.active.iter().copied()
     }
 
+    /// Wear the door: closing takes `percent_per_h` % longer for every simulated hour from
+    /// now on (from the lift's start), until the closing supervision calls the door blocked.
+    pub fn set_door_wear(&mut self, percent_per_h: f64) {
+        self.closing_wear_per_h = percent_per_h.max(0.0) / 100.0;
+    }
+
+    /// How many times the nominal closing time a closing takes now.
+    pub fn closing_factor(&self) -> f64 {
+        1.0 + self.closing_wear_per_h * self.age_s / 3600.0
+    }
+
+    /// The door's timing record.
+    pub fn door_timing(&self) -> &DoorTiming {
+        &self.timing
+    }
+
     /// The counters.
     pub fn counters(&self) -> &Counters {
         &self.counters
@@ -445,6 +504,7 @@ impl Lift {
 
     fn step(&mut self, dt: f64) {
         self.counters.operating_s += dt;
+        self.age_s += dt;
         self.update_faults();
         if self.target.is_some() {
             self.drive(dt);
@@ -490,7 +550,11 @@ impl Lift {
         } else {
             self.clear(Fault::DriveFault);
         }
-        if !injected(Fault::DoorBlocked) {
+        // A worn door would take longer than its supervision allows: it counts as blocked.
+        let worn_out = self.closing_factor() > CLOSING_LIMIT;
+        if worn_out {
+            self.raise(Fault::DoorBlocked);
+        } else if !injected(Fault::DoorBlocked) {
             self.reopen_tries = 0;
             self.clear(Fault::DoorBlocked);
         }
@@ -716,6 +780,7 @@ impl Lift {
                 let overloaded = self.active.contains(&Fault::Overload);
                 if self.door_timer >= self.params.door_open_s && !blocked && !overloaded {
                     self.door = DoorState::Closing;
+                    self.closing_s = 0.0;
                 }
             }
             DoorState::Closing => {
@@ -728,8 +793,11 @@ impl Lift {
                     self.door = DoorState::Reopening;
                     return;
                 }
+                self.closing_s += dt;
+                let rate = rate / self.closing_factor();
                 self.door_position = (self.door_position - rate * dt).max(0.0);
                 if self.door_position <= 0.0 {
+                    self.timing.record((self.closing_s * 1000.0).round() as u32);
                     self.door = DoorState::Closed;
                     self.reopen_tries = 0;
                     self.counters.door_cycles += 1;

@@ -238,3 +238,46 @@ fn counters_continue_from_where_they_were() {
     assert!(lift.counters().operating_s > 3600.0 * 12.0);
     assert!((lift.counters().distance_mm - 7000.0).abs() < 1.0);
 }
+
+/// Serve a car call to the floor above or below and return the door's closing time; none when
+/// a fault stopped the lift first.
+fn one_closing(lift: &mut Lift) -> Option<u32> {
+    let floor = if lift.floor() == 1 { 2 } else { 1 };
+    let cycles = lift.counters().door_cycles;
+    lift.call(floor, CallKind::Car).unwrap();
+    run_until(lift, 120.0, |l, _| {
+        l.counters().door_cycles > cycles || l.faults().next().is_some()
+    });
+    (lift.counters().door_cycles > cycles).then(|| lift.door_timing().last_ms())
+}
+
+#[test]
+fn a_sound_door_closes_in_its_nominal_time() {
+    let mut lift = lift();
+    for _ in 0..5 {
+        let ms = one_closing(&mut lift).unwrap();
+        assert!((2490..=2510).contains(&ms), "{ms} ms");
+    }
+    assert!((2490..=2510).contains(&lift.door_timing().mean_ms()));
+    assert!(lift.faults().next().is_none());
+}
+
+#[test]
+fn a_wearing_door_closes_ever_more_slowly_until_its_supervision_calls_it_blocked() {
+    let mut lift = lift();
+    // 400 %/h: a closing takes 1 % longer every 9 s of simulated time.
+    lift.set_door_wear(400.0);
+    let first = one_closing(&mut lift).unwrap();
+    let mut last = first;
+    let mut closings = 1;
+    while let Some(ms) = one_closing(&mut lift) {
+        assert!(ms > last, "{ms} ms after {last} ms");
+        last = ms;
+        closings += 1;
+        assert!(closings < 100, "never blocked");
+    }
+    assert!(last > first * 3 / 2, "{first} → {last} ms before the fault");
+    assert_eq!(lift.faults().collect::<Vec<_>>(), [Fault::DoorBlocked]);
+    assert!(lift.closing_factor() > CLOSING_LIMIT);
+    assert_eq!(lift.state(), LiftState::OutOfService);
+}
