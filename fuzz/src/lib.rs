@@ -76,7 +76,7 @@ pub fn sample_dictionary() -> canopen::od::ObjectDictionary {
         .get_or_init(|| {
             let text = include_str!("../../tests/fixtures/controller.eds");
             match canopen::eds::import("controller.eds", text, Some(1)) {
-                Ok(d) => d.od,
+                Ok(d) => d.description.od,
                 Err(e) => panic!("the fixture EDS is broken: {e}"),
             }
         })

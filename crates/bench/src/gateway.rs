@@ -442,7 +442,7 @@ async fn cpu_per_request(
 ) -> anyhow::Result<()> {
     let exe = args.exe()?;
     // The controller's default SDO channel alone, then with the further ones the simulator
-    // offers (docs/GATEWAY.md §Nodes: a channel carries one transfer at a time).
+    // offers (docs/GATEWAY.md §Behaviour: a channel carries one transfer at a time).
     let mut modes = vec![("local dictionary".to_owned(), 0)];
     if args.sdo_channels > 0 {
         modes.push(("SDO via hub to sim".to_owned(), 1));

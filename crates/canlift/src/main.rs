@@ -47,6 +47,8 @@ enum Command {
     Pdo(cmd::pdo::PdoArgs),
     /// A node's configuration as a DCF: apply one (identity checked), or read one.
     Dcf(cmd::dcf::DcfArgs),
+    /// EDS and DCF files (CiA 306): `check` lists every defect with file, line and severity.
+    Eds(cmd::eds::EdsArgs),
     /// Produce SYNC at a period (with the counter if asked).
     Sync(cmd::sync::SyncArgs),
     /// Send the TIME object: the system's time or a given one.
@@ -111,6 +113,7 @@ impl Command {
             Command::Lss(_) => "lss",
             Command::Pdo(_) => "pdo",
             Command::Dcf(_) => "dcf",
+            Command::Eds(_) => "eds",
             Command::Sync(_) => "sync",
             Command::Time(_) => "time",
             Command::Emcy(_) => "emcy",
@@ -153,6 +156,7 @@ impl Command {
             | Command::Lss(_)
             | Command::Pdo(_)
             | Command::Dcf(_)
+            | Command::Eds(_)
             | Command::Sync(_)
             | Command::Time(_)
             | Command::Emcy(_)
@@ -239,6 +243,7 @@ fn main() -> std::process::ExitCode {
             Command::Lss(args) => cmd::lss::run(args).await,
             Command::Pdo(args) => cmd::pdo::run(args).await,
             Command::Dcf(args) => cmd::dcf::run(args).await,
+            Command::Eds(args) => cmd::eds::run(args),
             Command::Sync(args) => cmd::sync::run(args).await,
             Command::Time(args) => cmd::time::run(args).await,
             Command::Emcy(args) => cmd::emcy::run(args).await,

@@ -5,17 +5,92 @@
 //! decimal, `0x` hex and leading-zero octal numbers, `$NODEID` formulas in either order
 //! (`$NODEID+0x180`, `0x180 + $NODEID`), `CompactSubObj` arrays with their `[xxxxName]` and
 //! `[xxxxValue]` sections, `ObjectLinks`, `DummyUsage`, the `DeviceComissioning` section under
-//! its common spellings, and DCF `ParameterValue` / `Denotation`. Every error names the file, the
-//! line and the reason. Export writes the expanded form (one section per sub-object), so
-//! import → export → import gives the same dictionary.
+//! its common spellings, and DCF `ParameterValue` / `Denotation`, in UTF-8 or (as Windows tools
+//! write them) Windows-1252.
+//!
+//! Import is as tolerant as the files in the field need and as strict as safety needs: a defect
+//! of the file (a count that does not match, a listed object without its section, a default that
+//! is no value of its type, an undefined data type, a duplicate key) is a [`Finding`] naming the
+//! file and line, and only the defective part is left out — a sub-object without a usable type,
+//! an object without a usable sub-object; a sub-object whose limits cannot be read is kept
+//! read-only, so nothing without a usable description is ever written. Only a file without any
+//! usable object is refused ([`EdsError`]). Export writes the expanded form (one section per
+//! sub-object), so import → export → import gives the same dictionary.
 
+use std::cell::RefCell;
 use std::collections::{BTreeMap, HashMap};
 use std::fmt::{self, Write as _};
 
 use crate::od::{Access, Object, ObjectCode, ObjectDictionary, Variable};
 use crate::types::{self, DataType, Value};
 
-/// Why a file could not be imported.
+/// How much of a file a [`Finding`] cost.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Severity {
+    /// The file says something wrongly, and it was taken as meant (a count, a duplicate, a
+    /// default value dropped, the text's encoding).
+    Warning,
+    /// A part of the file is left out (an object or sub-object), or kept read-only.
+    Error,
+}
+
+impl Severity {
+    /// `warning` or `error`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Severity::Warning => "warning",
+            Severity::Error => "error",
+        }
+    }
+}
+
+/// A defect of an EDS or DCF (CiA 306) and what import made of it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Finding {
+    /// The file name as given.
+    pub file: String,
+    /// 1-based line number (0 for the file as a whole).
+    pub line: usize,
+    /// What it cost.
+    pub severity: Severity,
+    /// What is wrong, and what was done.
+    pub message: String,
+}
+
+impl fmt::Display for Finding {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "{}:{}: {}: {}",
+            self.file,
+            self.line,
+            self.severity.name(),
+            self.message
+        )
+    }
+}
+
+/// An imported file and what was wrong with it.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Imported {
+    /// What the file describes, the defective parts left out.
+    pub description: DeviceDescription,
+    /// Its defects, in the order of the file.
+    pub findings: Vec<Finding>,
+}
+
+impl Imported {
+    /// The description, each finding logged as a warning: for those that go on with what the
+    /// file describes well (a gateway serving its node, a tool decoding its frames).
+    pub fn logged(self) -> DeviceDescription {
+        for finding in &self.findings {
+            tracing::warn!(%finding, "device description");
+        }
+        self.description
+    }
+}
+
+/// Why a file could not be imported at all.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("{file}:{line}: {reason}")]
 pub struct EdsError {
@@ -88,6 +163,32 @@ impl Section {
     }
 }
 
+/// The findings of one import, each naming the file.
+struct Findings<'a> {
+    file: &'a str,
+    list: RefCell<Vec<Finding>>,
+}
+
+impl Findings<'_> {
+    fn add(&self, line: usize, severity: Severity, message: impl Into<String>) {
+        self.list.borrow_mut().push(Finding {
+            file: self.file.to_owned(),
+            line,
+            severity,
+            message: message.into(),
+        });
+    }
+
+    fn warn(&self, line: usize, message: impl Into<String>) {
+        self.add(line, Severity::Warning, message);
+    }
+
+    /// A part left out because of `e`.
+    fn left_out(&self, e: EdsError) {
+        self.add(e.line, Severity::Error, e.reason);
+    }
+}
+
 struct Ini<'a> {
     file: &'a str,
     sections: Vec<Section>,
@@ -95,12 +196,17 @@ struct Ini<'a> {
 }
 
 impl<'a> Ini<'a> {
-    fn parse(file: &'a str, text: &str) -> Result<Self, EdsError> {
+    /// The sections of `text`; what is not INI (a line without `=`, an entry before the first
+    /// section, a repeated section or key) is a finding and passed over — the first of two
+    /// sections or keys of one name counts.
+    fn parse(file: &'a str, text: &str, findings: &Findings) -> Self {
         let mut ini = Ini {
             file,
             sections: Vec::new(),
             by_name: HashMap::new(),
         };
+        // Where entries go: a section's index; none before the first and in a repeated one.
+        let mut current: Option<usize> = None;
         let text = text.strip_prefix('\u{feff}').unwrap_or(text);
         for (n, raw) in text.lines().enumerate() {
             let line = n + 1;
@@ -109,14 +215,26 @@ impl<'a> Ini<'a> {
                 continue;
             }
             if let Some(rest) = trimmed.strip_prefix('[') {
-                let name = rest
-                    .strip_suffix(']')
-                    .ok_or_else(|| ini.error(line, "section header without closing ']'"))?
-                    .trim();
+                current = None;
+                let Some(name) = rest.strip_suffix(']').map(str::trim) else {
+                    findings.warn(
+                        line,
+                        "section header without closing ']': its entries are passed over",
+                    );
+                    continue;
+                };
                 let key = name.to_ascii_lowercase();
-                if ini.by_name.contains_key(&key) {
-                    return Err(ini.error(line, format!("section [{name}] appears twice")));
+                if let Some(&first) = ini.by_name.get(&key) {
+                    findings.warn(
+                        line,
+                        format!(
+                            "section [{name}] appears twice (first at line {}): the second is passed over",
+                            ini.sections[first].line
+                        ),
+                    );
+                    continue;
                 }
+                current = Some(ini.sections.len());
                 ini.by_name.insert(key, ini.sections.len());
                 ini.sections.push(Section {
                     name: name.to_owned(),
@@ -126,18 +244,28 @@ impl<'a> Ini<'a> {
                 continue;
             }
             let Some((key, value)) = trimmed.split_once('=') else {
-                return Err(ini.error(line, format!("expected KEY=VALUE, found {trimmed:?}")));
+                findings.warn(
+                    line,
+                    format!("expected KEY=VALUE, found {trimmed:?}: passed over"),
+                );
+                continue;
             };
-            let Some(section) = ini.sections.last_mut() else {
-                return Err(ini.error(line, "entry before the first [section]"));
+            let Some(section) = current.and_then(|i| ini.sections.get_mut(i)) else {
+                if ini.sections.is_empty() {
+                    findings.warn(line, "entry before the first [section]: passed over");
+                }
+                continue;
             };
             let key = key.trim();
-            if section.get(key).is_some() {
-                return Err(EdsError {
-                    file: file.to_owned(),
+            if let Some(first) = section.get(key) {
+                findings.warn(
                     line,
-                    reason: format!("key {key} appears twice in [{}]", section.name),
-                });
+                    format!(
+                        "key {key} appears twice in [{}] (first at line {}): the second is passed over",
+                        section.name, first.line
+                    ),
+                );
+                continue;
             }
             section.entries.push(Entry {
                 key: key.to_owned(),
@@ -145,7 +273,7 @@ impl<'a> Ini<'a> {
                 line,
             });
         }
-        Ok(ini)
+        ini
     }
 
     fn error(&self, line: usize, reason: impl Into<String>) -> EdsError {
@@ -230,9 +358,20 @@ fn eval_value(ty: DataType, text: &str, node_id: u8) -> Option<Value> {
     }
 }
 
+/// Sub-index 0 of an array or record: the highest sub-index it has.
+fn highest_sub_index(highest: u8) -> Variable {
+    Variable::new(
+        "Highest sub-index supported",
+        DataType::Unsigned8,
+        Access::Ro,
+    )
+    .with_value(Value::Uint(highest.into()))
+}
+
 struct Importer<'a> {
     ini: Ini<'a>,
     node_id: u8,
+    findings: &'a Findings<'a>,
 }
 
 impl Importer<'_> {
@@ -247,72 +386,109 @@ impl Importer<'_> {
             })
     }
 
-    fn required<'s>(&self, section: &'s Section, key: &str) -> Result<&'s Entry, EdsError> {
-        section.get(key).ok_or_else(|| {
-            self.ini
-                .error(section.line, format!("[{}] has no {key}", section.name))
-        })
-    }
-
-    /// A sub-object from a section with DataType, AccessType and friends; `defaults` supplies
-    /// the attributes a CompactSubObj array shares.
+    /// A sub-object from a section with DataType, AccessType and friends; an error leaves it
+    /// out (no usable data type), a lesser defect is a finding and the sub-object is kept.
     fn variable(&self, section: &Section, name: String) -> Result<Variable, EdsError> {
-        let dt_entry = self.required(section, "DataType")?;
+        let dt_entry = section.get("DataType").ok_or_else(|| {
+            self.ini.error(
+                section.line,
+                format!("[{}] has no DataType: left out", section.name),
+            )
+        })?;
         let code: u16 = self.number(dt_entry, "DataType")?;
         let ty = DataType::from_code(code).ok_or_else(|| {
             self.ini.error(
                 dt_entry.line,
-                format!("DataType 0x{code:04X} is not a CiA 301 type"),
+                format!(
+                    "DataType 0x{code:04X} is not a CiA 301 type this file defines: [{}] left out",
+                    section.name
+                ),
             )
         })?;
         let access = match section.get("AccessType") {
-            Some(e) => Access::parse(&e.value).ok_or_else(|| {
-                self.ini.error(
+            Some(e) => Access::parse(&e.value).unwrap_or_else(|| {
+                self.findings.add(
                     e.line,
-                    format!("AccessType {:?} is not ro/wo/rw/rwr/rww/const", e.value),
-                )
-            })?,
+                    Severity::Error,
+                    format!(
+                        "AccessType {:?} is not ro/wo/rw/rwr/rww/const: read-only here",
+                        e.value
+                    ),
+                );
+                Access::Ro
+            }),
             None => Access::Ro,
         };
         let mut var = Variable::new(name, ty, access);
         if let Some(e) = section.get("PDOMapping") {
-            var.pdo_mappable = self.number::<u8>(e, "PDOMapping")? != 0;
+            match self.number::<u8>(e, "PDOMapping") {
+                Ok(v) => var.pdo_mappable = v != 0,
+                Err(e) => self
+                    .findings
+                    .warn(e.line, format!("{}: not mappable here", e.reason)),
+            }
         }
         for (key, slot) in [("LowLimit", &mut var.low), ("HighLimit", &mut var.high)] {
             if let Some(e) = section.get(key).filter(|e| !e.value.is_empty()) {
-                *slot = Some(eval_value(ty, &e.value, self.node_id).ok_or_else(|| {
-                    self.ini
-                        .error(e.line, format!("{key} {:?} is not a valid {ty}", e.value))
-                })?);
+                match eval_value(ty, &e.value, self.node_id) {
+                    Some(v) => *slot = Some(v),
+                    // Without its limit a value the device refuses, or worse takes, could be
+                    // written: the sub-object is not written at all.
+                    None => {
+                        self.findings.add(
+                            e.line,
+                            Severity::Error,
+                            format!("{key} {:?} is not a valid {ty}: read-only here", e.value),
+                        );
+                        var.access = Access::Ro;
+                    }
+                }
             }
         }
         let default = section.get("DefaultValue");
         let parameter = section.get("ParameterValue");
-        let initial = parameter.or(default);
-        let value = match initial {
-            Some(e) => eval_value(ty, &e.value, self.node_id).ok_or_else(|| {
-                self.ini.error(
+        let empty = || eval_value(ty, "", self.node_id).unwrap_or(Value::Bytes(Vec::new()));
+        let value = match parameter.or(default) {
+            Some(e) => eval_value(ty, &e.value, self.node_id).unwrap_or_else(|| {
+                self.findings.warn(
                     e.line,
-                    format!("{} {:?} is not a valid {ty}", e.key, e.value),
-                )
-            })?,
-            None => eval_value(ty, "", self.node_id).unwrap_or(Value::Bytes(Vec::new())),
+                    format!("{} {:?} is not a valid {ty}: left empty", e.key, e.value),
+                );
+                empty()
+            }),
+            None => empty(),
         };
         var = var.with_value(value);
-        var.default_text = default.map(|e| e.value.clone());
+        var.default_text = default
+            .filter(|e| eval_value(ty, &e.value, self.node_id).is_some())
+            .map(|e| e.value.clone());
         var.denotation = section.get("Denotation").map(|e| e.value.clone());
-        var.parameter_value = parameter.is_some();
+        // Only a usable ParameterValue is one to configure: an unreadable one is not written.
+        var.parameter_value =
+            parameter.is_some_and(|e| eval_value(ty, &e.value, self.node_id).is_some());
         Ok(var)
     }
 
     fn object(&self, index: u16, section: &Section) -> Result<Object, EdsError> {
-        let name = self.required(section, "ParameterName")?.value.clone();
+        let name = match section.get("ParameterName") {
+            Some(e) => e.value.clone(),
+            None => {
+                self.findings.warn(
+                    section.line,
+                    format!(
+                        "[{}] has no ParameterName: named {index:04X}h",
+                        section.name
+                    ),
+                );
+                format!("{index:04X}h")
+            }
+        };
         let code = match section.get("ObjectType") {
             Some(e) => {
                 let raw: u8 = self.number(e, "ObjectType")?;
                 ObjectCode::from_u8(raw).ok_or_else(|| {
                     self.ini
-                        .error(e.line, format!("ObjectType {raw} is unknown"))
+                        .error(e.line, format!("ObjectType {raw} is unknown: left out"))
                 })?
             }
             None => ObjectCode::Var,
@@ -329,74 +505,15 @@ impl Importer<'_> {
                 Ok(object)
             }
             ObjectCode::Array | ObjectCode::Record | ObjectCode::DefStruct => {
-                let compact = match section.get("CompactSubObj") {
-                    Some(e) => self.number::<u8>(e, "CompactSubObj")?,
-                    None => 0,
+                let subs = match section.get("CompactSubObj") {
+                    Some(e) => self.compact(
+                        index,
+                        section,
+                        &name,
+                        self.number::<u8>(e, "CompactSubObj")?,
+                    )?,
+                    None => self.expanded(index, section)?,
                 };
-                let mut subs = BTreeMap::new();
-                if compact > 0 {
-                    let names = self.ini.section(&format!("{index:04X}Name"));
-                    let values = self.ini.section(&format!("{index:04X}Value"));
-                    for sub in 1..=compact {
-                        let sub_name = names
-                            .and_then(|s| s.get(&sub.to_string()))
-                            .map(|e| e.value.clone())
-                            .unwrap_or_else(|| format!("{name}{sub}"));
-                        let mut var = self.variable(section, sub_name)?;
-                        if let Some(e) = values.and_then(|s| s.get(&sub.to_string())) {
-                            let v = eval_value(var.data_type, &e.value, self.node_id).ok_or_else(
-                                || {
-                                    self.ini.error(
-                                        e.line,
-                                        format!(
-                                            "value {:?} is not a valid {}",
-                                            e.value, var.data_type
-                                        ),
-                                    )
-                                },
-                            )?;
-                            let default = var.default_text.take();
-                            var = var.with_value(v);
-                            var.default_text = default;
-                            // A `[xxxxValue]` entry is the compact form of a ParameterValue.
-                            var.parameter_value = true;
-                        }
-                        subs.insert(sub, var);
-                    }
-                    let count = Variable::new(
-                        "Highest sub-index supported",
-                        DataType::Unsigned8,
-                        Access::Ro,
-                    )
-                    .with_value(Value::Uint(compact.into()));
-                    subs.insert(0, count);
-                } else {
-                    let prefix = format!("{index:04x}sub");
-                    for s in &self.ini.sections {
-                        let lower = s.name.to_ascii_lowercase();
-                        let Some(hex) = lower.strip_prefix(&prefix) else {
-                            continue;
-                        };
-                        let sub = u8::from_str_radix(hex, 16).map_err(|_| {
-                            self.ini
-                                .error(s.line, format!("[{}] has an invalid sub-index", s.name))
-                        })?;
-                        let sub_name = self.required(s, "ParameterName")?.value.clone();
-                        subs.insert(sub, self.variable(s, sub_name)?);
-                    }
-                    if let Some(e) = section.get("SubNumber") {
-                        let n: usize = self.number(e, "SubNumber")?;
-                        if n != subs.len() {
-                            return Err(self.ini.error(
-                                e.line,
-                                format!(
-                                    "SubNumber={n} but {} sub-object sections found",
-                                    subs.len()
-                                ),
-                            ));
-                        }
-                    }
-                }
                 Ok(Object {
                     index,
                     name,
@@ -407,30 +524,157 @@ impl Importer<'_> {
         }
     }
 
-    fn listed(&self) -> Result<Vec<(u16, usize)>, EdsError> {
+    /// The sub-objects of a `CompactSubObj` array: all share the object's section.
+    fn compact(
+        &self,
+        index: u16,
+        section: &Section,
+        name: &str,
+        compact: u8,
+    ) -> Result<BTreeMap<u8, Variable>, EdsError> {
+        let mut subs = BTreeMap::new();
+        if compact == 0 {
+            return self.expanded(index, section);
+        }
+        let names = self.ini.section(&format!("{index:04X}Name"));
+        let values = self.ini.section(&format!("{index:04X}Value"));
+        for sub in 1..=compact {
+            let sub_name = names
+                .and_then(|s| s.get(&sub.to_string()))
+                .map(|e| e.value.clone())
+                .unwrap_or_else(|| format!("{name}{sub}"));
+            let mut var = self.variable(section, sub_name)?;
+            if let Some(e) = values.and_then(|s| s.get(&sub.to_string())) {
+                match eval_value(var.data_type, &e.value, self.node_id) {
+                    Some(v) => {
+                        let default = var.default_text.take();
+                        var = var.with_value(v);
+                        var.default_text = default;
+                        // A `[xxxxValue]` entry is the compact form of a ParameterValue.
+                        var.parameter_value = true;
+                    }
+                    None => self.findings.warn(
+                        e.line,
+                        format!(
+                            "value {:?} is not a valid {}: passed over",
+                            e.value, var.data_type
+                        ),
+                    ),
+                }
+            }
+            subs.insert(sub, var);
+        }
+        subs.insert(0, highest_sub_index(compact));
+        Ok(subs)
+    }
+
+    /// The sub-objects of an array or record from their `[xxxxsubN]` sections: one that cannot
+    /// be used is left out, a missing sub 0 is made (the highest sub-index found).
+    fn expanded(&self, index: u16, section: &Section) -> Result<BTreeMap<u8, Variable>, EdsError> {
+        let mut subs = BTreeMap::new();
+        let prefix = format!("{index:04x}sub");
+        for s in &self.ini.sections {
+            let lower = s.name.to_ascii_lowercase();
+            let Some(hex) = lower.strip_prefix(&prefix) else {
+                continue;
+            };
+            let Ok(sub) = u8::from_str_radix(hex, 16) else {
+                self.findings.add(
+                    s.line,
+                    Severity::Error,
+                    format!("[{}] has an invalid sub-index: left out", s.name),
+                );
+                continue;
+            };
+            let sub_name = match s.get("ParameterName") {
+                Some(e) => e.value.clone(),
+                None => {
+                    self.findings
+                        .warn(s.line, format!("[{}] has no ParameterName", s.name));
+                    format!("Sub-index {sub}")
+                }
+            };
+            match self.variable(s, sub_name) {
+                Ok(var) => {
+                    subs.insert(sub, var);
+                }
+                Err(e) => self.findings.left_out(e),
+            }
+        }
+        if let Some(e) = section.get("SubNumber") {
+            match self.number::<usize>(e, "SubNumber") {
+                Ok(n) if n != subs.len() => self.findings.warn(
+                    e.line,
+                    format!(
+                        "SubNumber={n} but {} usable sub-objects found: those are taken",
+                        subs.len()
+                    ),
+                ),
+                Ok(_) => {}
+                Err(e) => self.findings.warn(e.line, e.reason),
+            }
+        }
+        let Some(&highest) = subs.keys().next_back() else {
+            return Err(self.ini.error(
+                section.line,
+                format!("[{}] has no usable sub-object: left out", section.name),
+            ));
+        };
+        if let std::collections::btree_map::Entry::Vacant(sub0) = subs.entry(0) {
+            self.findings.warn(
+                section.line,
+                format!(
+                    "[{}] has no sub-index 0: made, highest sub-index {highest}",
+                    section.name
+                ),
+            );
+            sub0.insert(highest_sub_index(highest));
+        }
+        Ok(subs)
+    }
+
+    /// The objects the lists name, with the line naming each; an entry that cannot be read is
+    /// a finding and passed over.
+    fn listed(&self) -> Vec<(u16, usize)> {
         let mut listed = Vec::new();
         for list in ["MandatoryObjects", "OptionalObjects", "ManufacturerObjects"] {
             let Some(section) = self.ini.section(list) else {
                 continue;
             };
-            let count: usize = match section.get("SupportedObjects") {
-                Some(e) => self.number(e, "SupportedObjects")?,
-                None => 0,
-            };
-            for i in 1..=count {
-                let entry = section.get(&i.to_string()).ok_or_else(|| {
-                    self.ini.error(
-                        section.line,
-                        format!(
-                            "[{}] lists {count} objects but has no entry {i}",
-                            section.name
-                        ),
-                    )
-                })?;
-                listed.push((self.number::<u16>(entry, "object index")?, entry.line));
+            let entries: Vec<&Entry> = section
+                .entries
+                .iter()
+                .filter(|e| !e.key.eq_ignore_ascii_case("SupportedObjects"))
+                .collect();
+            match section
+                .get("SupportedObjects")
+                .map(|e| (e, self.number::<usize>(e, "SupportedObjects")))
+            {
+                Some((_, Ok(count))) if count == entries.len() => {}
+                Some((e, Ok(count))) => self.findings.warn(
+                    e.line,
+                    format!(
+                        "[{}] counts {count} objects and lists {}: the listed are taken",
+                        section.name,
+                        entries.len()
+                    ),
+                ),
+                Some((_, Err(e))) => self.findings.warn(e.line, e.reason),
+                None => self.findings.warn(
+                    section.line,
+                    format!("[{}] has no SupportedObjects", section.name),
+                ),
+            }
+            for entry in entries {
+                match self.number::<u16>(entry, "object index") {
+                    Ok(index) => listed.push((index, entry.line)),
+                    Err(e) => self
+                        .findings
+                        .warn(e.line, format!("{}: passed over", e.reason)),
+                }
             }
         }
-        Ok(listed)
+        listed
     }
 
     fn run(self) -> Result<DeviceDescription, EdsError> {
@@ -451,7 +695,7 @@ impl Importer<'_> {
                 .unwrap_or_default(),
             ..DeviceDescription::default()
         };
-        let mut indices: Vec<(u16, usize)> = self.listed()?;
+        let mut indices: Vec<(u16, usize)> = self.listed();
         for s in &self.ini.sections {
             if s.name.len() == 4 {
                 if let Ok(index) = u16::from_str_radix(&s.name, 16) {
@@ -462,13 +706,26 @@ impl Importer<'_> {
             }
         }
         for (index, line) in indices {
-            let section = self.ini.section(&format!("{index:04X}")).ok_or_else(|| {
-                self.ini.error(
+            if description.od.object(index).is_some() {
+                continue;
+            }
+            let Some(section) = self.ini.section(&format!("{index:04X}")) else {
+                self.findings.add(
                     line,
-                    format!("object 0x{index:04X} is listed but has no [{index:04X}] section"),
-                )
-            })?;
-            description.od.insert(self.object(index, section)?);
+                    Severity::Error,
+                    format!(
+                        "object 0x{index:04X} is listed but has no [{index:04X}] section: left out"
+                    ),
+                );
+                continue;
+            };
+            match self.object(index, section) {
+                Ok(object) => description.od.insert(object),
+                Err(e) => {
+                    self.findings.left_out(e);
+                    continue;
+                }
+            }
             if let Some(links) = self.ini.section(&format!("{index:04X}ObjectLinks")) {
                 let mut linked = Vec::new();
                 for e in links
@@ -476,18 +733,30 @@ impl Importer<'_> {
                     .iter()
                     .filter(|e| !e.key.eq_ignore_ascii_case("ObjectLinks"))
                 {
-                    linked.push(self.number::<u16>(e, "object link")?);
+                    match self.number::<u16>(e, "object link") {
+                        Ok(l) => linked.push(l),
+                        Err(e) => self
+                            .findings
+                            .warn(e.line, format!("{}: passed over", e.reason)),
+                    }
                 }
                 description.object_links.insert(index, linked);
             }
         }
+        if description.od.objects().next().is_none() {
+            return Err(self.ini.error(0, "no usable object"));
+        }
         if let Some(section) = COMMISSIONING.iter().find_map(|n| self.ini.section(n)) {
             let mut c = Commissioning::default();
             for e in &section.entries {
+                let bad = |e: EdsError| {
+                    self.findings
+                        .warn(e.line, format!("{}: passed over", e.reason))
+                };
                 match e.key.to_ascii_lowercase().as_str() {
-                    "nodeid" => c.node_id = Some(self.number(e, "NodeID")?),
+                    "nodeid" => c.node_id = self.number(e, "NodeID").map_err(bad).ok(),
                     "nodename" => c.node_name = Some(e.value.clone()),
-                    "baudrate" => c.baudrate = Some(self.number(e, "Baudrate")?),
+                    "baudrate" => c.baudrate = self.number(e, "Baudrate").map_err(bad).ok(),
                     _ => c.other.push((e.key.clone(), e.value.clone())),
                 }
             }
@@ -498,9 +767,23 @@ impl Importer<'_> {
 }
 
 /// Import an EDS or DCF. `node_id` resolves `$NODEID`; without it the DCF's
-/// `[DeviceComissioning] NodeID` is used, else 0. `file` names the source in errors.
-pub fn import(file: &str, text: &str, node_id: Option<u8>) -> Result<DeviceDescription, EdsError> {
-    let ini = Ini::parse(file, text)?;
+/// `[DeviceComissioning] NodeID` is used, else 0. `file` names the source in findings and
+/// errors. Fails only when no object of the file is usable.
+pub fn import(file: &str, text: &str, node_id: Option<u8>) -> Result<Imported, EdsError> {
+    imported(file, text, node_id, Vec::new())
+}
+
+fn imported(
+    file: &str,
+    text: &str,
+    node_id: Option<u8>,
+    earlier: Vec<Finding>,
+) -> Result<Imported, EdsError> {
+    let findings = Findings {
+        file,
+        list: RefCell::new(earlier),
+    };
+    let ini = Ini::parse(file, text, &findings);
     let node_id = match node_id {
         Some(id) => id,
         None => COMMISSIONING
@@ -511,21 +794,70 @@ pub fn import(file: &str, text: &str, node_id: Option<u8>) -> Result<DeviceDescr
             .and_then(|v| u8::try_from(v).ok())
             .unwrap_or(0),
     };
-    Importer { ini, node_id }.run()
+    let description = Importer {
+        ini,
+        node_id,
+        findings: &findings,
+    }
+    .run()?;
+    let mut findings = findings.list.into_inner();
+    findings.sort_by_key(|f| f.line);
+    Ok(Imported {
+        description,
+        findings,
+    })
+}
+
+/// Windows-1252's characters for 80h–9Fh (where it differs from ISO 8859-1; the five it leaves
+/// undefined are taken as the C1 controls).
+const CP1252_80: [char; 32] = [
+    '€', '\u{81}', '‚', 'ƒ', '„', '…', '†', '‡', 'ˆ', '‰', 'Š', '‹', 'Œ', '\u{8d}', 'Ž', '\u{8f}',
+    '\u{90}', '‘', '’', '“', '”', '•', '–', '—', '˜', '™', 'š', '›', 'œ', '\u{9d}', 'ž', 'Ÿ',
+];
+
+/// `bytes` as text: UTF-8, or else Windows-1252 (what Windows tools write), with a finding.
+fn decode(file: &str, bytes: &[u8]) -> (String, Vec<Finding>) {
+    match std::str::from_utf8(bytes) {
+        Ok(text) => (text.to_owned(), Vec::new()),
+        Err(e) => {
+            let line = bytes[..e.valid_up_to()]
+                .iter()
+                .filter(|&&b| b == b'\n')
+                .count()
+                + 1;
+            let text = bytes
+                .iter()
+                .map(|&b| match b {
+                    0x80..=0x9F => CP1252_80[usize::from(b - 0x80)],
+                    _ => char::from(b),
+                })
+                .collect();
+            let finding = Finding {
+                file: file.to_owned(),
+                line,
+                severity: Severity::Warning,
+                message: "not UTF-8 (CiA 306 text is ASCII): read as Windows-1252".into(),
+            };
+            (text, vec![finding])
+        }
+    }
+}
+
+/// Import an EDS or DCF from its bytes (UTF-8, or Windows-1252 with a finding).
+pub fn import_bytes(file: &str, bytes: &[u8], node_id: Option<u8>) -> Result<Imported, EdsError> {
+    let (text, findings) = decode(file, bytes);
+    imported(file, &text, node_id, findings)
 }
 
 /// Read and import an EDS or DCF file.
-pub fn import_file(
-    path: &std::path::Path,
-    node_id: Option<u8>,
-) -> Result<DeviceDescription, EdsError> {
+pub fn import_file(path: &std::path::Path, node_id: Option<u8>) -> Result<Imported, EdsError> {
     let name = path.display().to_string();
-    let text = std::fs::read_to_string(path).map_err(|e| EdsError {
+    let bytes = std::fs::read(path).map_err(|e| EdsError {
         file: name.clone(),
         line: 0,
         reason: e.to_string(),
     })?;
-    import(&name, &text, node_id)
+    import_bytes(&name, &bytes, node_id)
 }
 
 fn write_pairs(out: &mut String, section: &str, pairs: &[(String, String)]) {

@@ -1,4 +1,4 @@
-//! What portal processes tell each other over NATS (docs/CLUSTER.md §Subjects): the holder
+//! What portal processes tell each other over NATS (docs/CLUSTER.md §What lives where): the holder
 //! entry of a lift in the KV bucket, an operator request relayed to the holder and its
 //! answer, and the names of keys and subjects.
 

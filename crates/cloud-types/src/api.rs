@@ -1,4 +1,4 @@
-//! The operator REST API's bodies as types (docs/PORTAL.md §REST API, `openapi.json`): what
+//! The operator REST API's bodies as types (docs/PORTAL.md §Operator REST API, `openapi.json`): what
 //! the portal's handlers read and write and what its client and `canlift lifts|get|put|watch`
 //! read back. Objects travel in the connector's own types
 //! ([`nxg::msg::ObjectAnswer`], [`nxg::msg::Notification`]); errors as

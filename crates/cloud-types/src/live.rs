@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 use crate::alarms::AlarmChange;
 
 /// An event for live viewers of a lift (in a cluster, published by the lift's holder for
-/// the other processes: docs/CLUSTER.md §Subjects).
+/// the other processes: docs/CLUSTER.md §What lives where).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(tag = "kind", content = "data", rename_all = "snake_case")]
 pub enum LiftEvent {

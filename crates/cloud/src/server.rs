@@ -324,7 +324,7 @@ impl Portal {
         };
         let store = Store::open_pooled(&config.database_url(), config.database.connections).await?;
         // Told at every start: anyone who guesses a short domain token adds lifts to its
-        // account (docs/SECURITY.md §Domain tokens).
+        // account (docs/SECURITY.md §Tenants).
         for account in store.short_domains(SHORT_DOMAIN_TOKEN).await? {
             tracing::warn!(
                 %account,

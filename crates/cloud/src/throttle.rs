@@ -1,4 +1,4 @@
-//! Throttling (docs/PORTAL.md §Throttling), sans-IO: every decision takes the time as input.
+//! Throttling (docs/PORTAL.md §Users and roles), sans-IO: every decision takes the time as input.
 //!
 //! - [`TokenBucket`]: a rate with bursts, for the messages of one gateway and the requests of
 //!   one API key.

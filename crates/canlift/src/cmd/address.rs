@@ -53,7 +53,7 @@ impl Names {
     /// The objects an EDS or DCF describes (`Object / Sub` for the sub-objects of a record
     /// or array, and the sub-object's own name).
     pub fn eds(path: &Path) -> anyhow::Result<Self> {
-        let description = canopen::eds::import_file(path, None)?;
+        let description = canopen::eds::import_file(path, None)?.logged();
         let mut names = ObjectNames::new();
         let mut types = BTreeMap::new();
         for object in description.od.objects() {

@@ -203,7 +203,7 @@ struct LiftName {
 }
 
 /// Domain tokens shorter than this need `--allow-short-domain-token` (docs/SECURITY.md
-/// §Domain tokens).
+/// §Tenants).
 use cloud::server::SHORT_DOMAIN_TOKEN;
 
 #[derive(Debug, clap::Subcommand)]

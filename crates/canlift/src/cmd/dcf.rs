@@ -68,7 +68,19 @@ pub async fn run(args: DcfArgs) -> anyhow::Result<()> {
         .with_context(|| format!("opening {}", args.bus.url))?;
     match args.op {
         DcfOp::Apply { node, file, store } => {
-            let dcf = eds::import_file(&file, Some(node))?;
+            // A configuration is written exactly or not at all: a defect of the file stops it.
+            let imported = eds::import_file(&file, Some(node))?;
+            if !imported.findings.is_empty() {
+                for finding in &imported.findings {
+                    eprintln!("{finding}");
+                }
+                bail!(
+                    "{}: {} defect(s); nothing written (canlift eds check lists them)",
+                    file.display(),
+                    imported.findings.len()
+                );
+            }
+            let dcf = imported.description;
             check_identity(&master, node, &dcf).await?;
             let failed = apply(&master, node, &dcf).await;
             if store {
@@ -85,7 +97,7 @@ pub async fn run(args: DcfArgs) -> anyhow::Result<()> {
             Ok(())
         }
         DcfOp::Read { node, eds } => {
-            let mut description = eds::import_file(&eds, Some(node))?;
+            let mut description = eds::import_file(&eds, Some(node))?.logged();
             read_values(&master, node, &mut description).await;
             description
                 .commissioning

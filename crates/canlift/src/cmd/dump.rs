@@ -47,7 +47,8 @@ fn load_eds_layouts(specs: &[String]) -> anyhow::Result<Layouts> {
         let node: u8 = node
             .parse()
             .with_context(|| format!("invalid node-ID in {spec:?}"))?;
-        let description = canopen::eds::import_file(std::path::Path::new(file), Some(node))?;
+        let description =
+            canopen::eds::import_file(std::path::Path::new(file), Some(node))?.logged();
         layouts.extend(pdo_layouts(&description.od, node));
     }
     Ok(layouts)

@@ -1,5 +1,5 @@
 //! Exit statuses of the operator commands (`lifts`, `get`, `put`, `watch`, `token`, `alarms`,
-//! `events`; docs/TOOLS.md §Exit statuses): a script tells a missing lift, a refused key, a
+//! `events`; docs/PORTAL.md §Command-line client): a script tells a missing lift, a refused key, a
 //! lift that said no and a portal it cannot reach apart without reading the message.
 
 use std::process::ExitCode;

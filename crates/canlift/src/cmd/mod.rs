@@ -11,6 +11,7 @@ pub mod dcf;
 #[cfg(feature = "portal")]
 pub mod demo;
 pub mod dump;
+pub mod eds;
 pub mod emcy;
 #[cfg(feature = "portal")]
 pub mod exit;

@@ -1,5 +1,5 @@
 //! `canlift lifts|get|put|watch`: the operator client of the portal's REST API
-//! (docs/PORTAL.md §CLI), reading and writing the API's own types.
+//! (docs/PORTAL.md §Command-line client), reading and writing the API's own types.
 
 use std::path::PathBuf;
 
@@ -129,7 +129,7 @@ pub struct WatchArgs {
 }
 
 /// The body of a 2xx answer as a `T`; any other answer is an error with the portal's message,
-/// and the exit status it means (docs/TOOLS.md §Exit statuses).
+/// and the exit status it means (docs/PORTAL.md §Command-line client).
 pub(crate) fn check<T: DeserializeOwned>((status, body): (u16, Value)) -> anyhow::Result<T> {
     if !(200..300).contains(&status) {
         return Err(super::exit::Refused::of(status, &body).into());

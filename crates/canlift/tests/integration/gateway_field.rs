@@ -651,17 +651,44 @@ async fn malformed_files_stop_the_gateway_with_file_line_and_reason() {
         c.bus.nodes = nodes;
         write("gateway.toml", &toml::to_string_pretty(&c).unwrap())
     };
+    // An EDS without any usable object stops it; a defect of one object does not (below).
+    let empty = "[FileInfo]\nFileName=empty.eds\n\n[1000]\nParameterName=x\nDataType=0x0040\n";
+    let empty_eds = write("empty.eds", empty);
+    let config = gateway_toml(vec![NodeSection::with_eds(1, empty_eds.clone())]);
+    let err = refused(&config).await;
+    let at = format!("{}:0: no usable object", empty_eds.display());
+    assert!(err.contains(&at), "{at} in {err}");
+
+    // A limit that is no number: the gateway starts, says where, and keeps the object read-only.
     let eds = std::fs::read_to_string(fixture("controller.eds")).unwrap();
     let broken = eds.replacen("HighLimit=600", "HighLimit=six hundred", 1);
     let broken_eds = write("broken.eds", &broken);
     let config = gateway_toml(vec![NodeSection::with_eds(1, broken_eds.clone())]);
-    let err = refused(&config).await;
+    let mut gateway = common::canlift()
+        .arg("gateway")
+        .arg("--config")
+        .arg(&config)
+        .spawn()
+        .unwrap();
+    let stderr = gateway.stderr.take().expect("piped");
     let at = format!(
-        "{}:{}:",
+        "{}:{}: error: HighLimit \"six hundred\"",
         broken_eds.display(),
         line_of(&broken, "six hundred")
     );
-    assert!(err.contains(&at), "{at} in {err}");
+    let mut lines = tokio::io::AsyncBufReadExt::lines(tokio::io::BufReader::new(stderr));
+    let warned = tokio::time::timeout(std::time::Duration::from_secs(10), async {
+        while let Ok(Some(line)) = lines.next_line().await {
+            if line.contains(&at) && line.contains("read-only here") {
+                return true;
+            }
+        }
+        false
+    })
+    .await;
+    assert_eq!(warned, Ok(true), "{at} not logged");
+    assert!(gateway.try_wait().unwrap().is_none(), "the gateway runs");
+    gateway.kill().await.unwrap();
 
     let vendor = std::fs::read_to_string(fixture("controller-nxg.toml")).unwrap();
     let typo = vendor.replacen("form = 15", "from = 15", 1);

@@ -359,8 +359,8 @@ async fn a_nats_user_key_for_its_owner_alone() {
     assert_eq!(std::fs::read_to_string(&file).expect("the seed file"), seed);
 }
 
-/// The operator commands' exit statuses tell what went wrong apart (docs/TOOLS.md §Exit
-/// statuses), and their text output shows local times, not epoch milliseconds.
+/// The operator commands' exit statuses tell what went wrong apart (docs/PORTAL.md §Command-line
+/// client), and their text output shows local times, not epoch milliseconds.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn exit_statuses_tell_failures_apart() {
     let mut rig = Rig::builder().start().await;

@@ -27,13 +27,17 @@ async fn export_eds_writes_both_nodes() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let controller = canopen::eds::import_file(&eds, Some(1)).unwrap().od;
+    let controller = canopen::eds::import_file(&eds, Some(1))
+        .unwrap()
+        .description
+        .od;
     assert_eq!(
         controller.get_value(0x4010, 0),
         Ok(canopen::types::Value::Uint(6))
     );
     let io = canopen::eds::import_file(&dir.join("io-node-12.eds"), Some(12))
         .unwrap()
+        .description
         .od;
     assert!(io.object(0x6100).is_some());
     let bad = canlift()

@@ -378,3 +378,84 @@ async fn dcf_read_then_apply_and_a_wrong_identity_refused() {
     drop(sim);
     hub.shutdown().await;
 }
+
+/// `canlift eds check` on files with the defects found in public device descriptions: every
+/// defect with its file, line and severity, in text and JSON; exit 1 while a file has an error,
+/// 0 when only warnings are left.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn eds_check_lists_each_defect_with_its_line() {
+    let dir = testkit::workspace().join("tests/fixtures/eds-defects");
+    let file = |name: &str| dir.join(name).display().to_string();
+    let names = [
+        "visible-string-default.eds",
+        "object-count.eds",
+        "domain-default.eds",
+        "subnumber-type.eds",
+        "sub7.dcf",
+        "windows-1252.eds",
+    ];
+    let mut args = vec!["eds".to_owned(), "check".to_owned(), "--json".to_owned()];
+    args.extend(names.iter().map(|n| file(n)));
+    let out = crate::common::canlift()
+        .args(&args)
+        .output()
+        .await
+        .expect("runs");
+    assert_eq!(out.status.code(), Some(1), "two files have errors");
+    let checked: serde_json::Value = serde_json::from_slice(&out.stdout).expect("JSON");
+    let mut found = Vec::new();
+    for c in checked.as_array().expect("per file") {
+        let name = c["file"]
+            .as_str()
+            .and_then(|f| f.rsplit('/').next())
+            .unwrap_or_default();
+        assert_eq!(
+            c["objects"],
+            4 - u64::from(name == "object-count.eds"),
+            "{c}"
+        );
+        for f in c["findings"].as_array().expect("findings") {
+            found.push((
+                name.to_owned(),
+                f["line"].as_u64().unwrap_or(0),
+                f["severity"].as_str().unwrap_or_default().to_owned(),
+            ));
+        }
+    }
+    let expected = [
+        ("visible-string-default.eds", 56, "warning"),
+        ("object-count.eds", 24, "warning"),
+        ("object-count.eds", 26, "error"),
+        ("domain-default.eds", 56, "warning"),
+        ("subnumber-type.eds", 55, "warning"),
+        ("subnumber-type.eds", 92, "error"),
+        ("sub7.dcf", 56, "warning"),
+        ("sub7.dcf", 59, "warning"),
+        ("windows-1252.eds", 52, "warning"),
+    ]
+    .map(|(n, l, s)| (n.to_owned(), l, s.to_owned()));
+    assert_eq!(found, expected);
+    // The line a finding names is the defect's.
+    let text = std::fs::read_to_string(dir.join("subnumber-type.eds")).expect("fixture");
+    assert_eq!(text.lines().nth(91), Some("DataType=0x0040"));
+    // Text for people, one line per finding; warnings alone pass.
+    let out = crate::common::canlift()
+        .args([
+            "eds",
+            "check",
+            &file("domain-default.eds"),
+            &file("sub7.dcf"),
+        ])
+        .output()
+        .await
+        .expect("runs");
+    assert!(out.status.success());
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains(&format!(
+            "{}:56: warning: DefaultValue \"@ABCD\" is not a valid DOMAIN",
+            file("domain-default.eds")
+        )),
+        "{text}"
+    );
+}

@@ -12,15 +12,24 @@ fn fixture(name: &str) -> (String, String) {
     )
 }
 
+/// A file that imports without a finding.
+fn clean(name: &str, text: &str, node_id: Option<u8>) -> DeviceDescription {
+    let imported = import(name, text, node_id).unwrap();
+    assert_eq!(imported.findings, [], "{name}");
+    imported.description
+}
+
 fn round_trip(d: &DeviceDescription, dcf: bool, node_id: Option<u8>) -> DeviceDescription {
     let text = export(d, dcf);
-    import("exported", &text, node_id).unwrap_or_else(|e| panic!("{e}\n{text}"))
+    let imported = import("exported", &text, node_id).unwrap_or_else(|e| panic!("{e}\n{text}"));
+    assert_eq!(imported.findings, [], "{text}");
+    imported.description
 }
 
 #[test]
 fn canopennode_style_eds() {
     let (name, text) = fixture("canopennode-style.eds");
-    let d = import(&name, &text, Some(5)).unwrap();
+    let d = clean(&name, &text, Some(5));
     let od = &d.od;
     assert_eq!(od.get_value(0x1000, 0).unwrap(), Value::Uint(0x0001_01A1));
     assert_eq!(
@@ -60,7 +69,7 @@ fn canopennode_style_eds() {
     );
     assert_eq!(d.comments, vec!["generated for the canlift EDS tests"]);
     // The same file for another node.
-    let other = import(&name, &text, Some(9)).unwrap();
+    let other = clean(&name, &text, Some(9));
     assert_eq!(other.od.get_value(0x1200, 1).unwrap(), Value::Uint(0x609));
     assert_eq!(round_trip(&d, false, Some(5)), d);
     assert_eq!(round_trip(&d, true, Some(5)), d);
@@ -69,7 +78,7 @@ fn canopennode_style_eds() {
 #[test]
 fn odd_style_dcf() {
     let (name, text) = fixture("odd-style.dcf");
-    let d = import(&name, &text, None).unwrap();
+    let d = clean(&name, &text, None);
     let c = d.commissioning.clone().unwrap();
     assert_eq!((c.node_id, c.baudrate), (Some(12), Some(250)));
     assert_eq!(c.node_name.as_deref(), Some("car terminal box"));
@@ -120,35 +129,93 @@ fn odd_style_dcf() {
 }
 
 #[test]
-fn errors_name_file_line_and_reason() {
-    let cases: &[(&str, usize, &str)] = &[
-        ("[FileInfo\nx=1\n", 1, "closing ']'"),
-        ("x=1\n", 1, "before the first"),
-        ("[FileInfo]\nnot a pair\n", 2, "KEY=VALUE"),
-        ("[A]\n[a]\n", 2, "appears twice"),
-        ("[MandatoryObjects]\nSupportedObjects=1\n1=0x1000\n", 3, "no [1000] section"),
-        ("[1000]\nParameterName=x\nDataType=0x0040\n", 3, "not a CiA 301 type"),
-        ("[1000]\nParameterName=x\nDataType=0x0005\nDefaultValue=300\n", 4, "not a valid UNSIGNED8"),
-        ("[1000]\nParameterName=x\nDataType=0x0005\nAccessType=readonly\n", 4, "AccessType"),
-        ("[1000]\nParameterName=x\nDataType=7\n", 0, ""),
-        ("[1018]\nParameterName=x\nObjectType=0x9\nSubNumber=2\n[1018sub0]\nParameterName=n\nDataType=5\n", 4, "SubNumber=2"),
-        ("[1000]\nDataType=7\n", 1, "no ParameterName"),
+fn defects_are_findings_with_file_line_and_what_was_done() {
+    use Severity::{Error, Warning};
+    // (file text, line, severity, reason, whether object 0x1000 is still there)
+    let cases: &[(&str, usize, Severity, &str, bool)] = &[
+        ("[FileInfo\nx=1\n[1000]\nParameterName=x\nDataType=7\n", 1, Warning, "closing ']'", true),
+        ("x=1\n[1000]\nParameterName=x\nDataType=7\n", 1, Warning, "before the first", true),
+        ("[1000]\nParameterName=x\nnot a pair\nDataType=7\n", 3, Warning, "KEY=VALUE", true),
+        ("[1000]\nParameterName=x\nDataType=7\n[1000]\nParameterName=y\n", 4, Warning, "appears twice", true),
+        ("[1000]\nParameterName=x\nDataType=7\nDataType=5\n", 4, Warning, "key DataType appears twice", true),
+        ("[MandatoryObjects]\nSupportedObjects=2\n1=0x1000\n2=0x1001\n[1000]\nParameterName=x\nDataType=7\n", 4, Error, "no [1001] section", true),
+        ("[ManufacturerObjects]\nSupportedObjects=3\n1=0x1000\n[1000]\nParameterName=x\nDataType=7\n", 2, Warning, "counts 3 objects and lists 1", true),
+        ("[1000]\nParameterName=x\nDataType=7\n[1001]\nParameterName=y\nDataType=0x0040\n", 6, Error, "0x0040 is not a CiA 301 type", true),
+        ("[1000]\nParameterName=x\nDataType=0x0005\nDefaultValue=300\n", 4, Warning, "not a valid UNSIGNED8: left empty", true),
+        ("[1000]\nParameterName=x\nDataType=0x0009\nDefaultValue=Türe\t€\n", 4, Warning, "VISIBLE_STRING", true),
+        ("[1000]\nParameterName=x\nDataType=0x000F\nDefaultValue=@ABCD\n", 4, Warning, "DOMAIN", true),
+        ("[1000]\nParameterName=x\nDataType=0x0005\nAccessType=readonly\n", 4, Error, "read-only here", true),
+        ("[1000]\nParameterName=x\nDataType=0x0005\nAccessType=rw\nHighLimit=x\n", 5, Error, "HighLimit", true),
+        ("[1000]\nDataType=7\n", 1, Warning, "no ParameterName", true),
+        ("[1000]\nParameterName=x\nDataType=7\n[1018]\nParameterName=x\nObjectType=0x9\nSubNumber=5\n[1018sub0]\nParameterName=n\nDataType=5\n[1018sub1]\nParameterName=v\nDataType=7\n", 7, Warning, "SubNumber=5 but 2", true),
+        ("[1000]\nParameterName=x\nDataType=7\n[1F51]\nParameterName=x\nObjectType=0x8\nSubNumber=8\n[1F51sub7]\nParameterName=s\nDataType=5\n", 4, Warning, "no sub-index 0: made", true),
+        ("[1000]\nParameterName=x\nDataType=7\n[1018]\nParameterName=x\nObjectType=0x9\n", 4, Error, "no usable sub-object", true),
     ];
-    for (text, line, reason) in cases {
-        match import("bad.eds", text, Some(1)) {
-            Ok(_) if reason.is_empty() => {}
-            Ok(d) => panic!("{text:?} imported: {d:?}"),
-            Err(e) => {
-                assert_eq!(
-                    (e.file.as_str(), e.line),
-                    ("bad.eds", *line),
-                    "{text:?}: {e}"
-                );
-                assert!(e.reason.contains(reason), "{text:?}: {e}");
-                assert!(e.to_string().starts_with(&format!("bad.eds:{line}: ")));
-            }
-        }
+    for (text, line, severity, reason, kept) in cases {
+        let imported = import("bad.eds", text, Some(1)).unwrap_or_else(|e| panic!("{text:?}: {e}"));
+        let found = imported
+            .findings
+            .iter()
+            .find(|f| f.message.contains(reason))
+            .unwrap_or_else(|| panic!("{text:?}: {:?}", imported.findings));
+        assert_eq!(
+            (found.line, found.severity),
+            (*line, *severity),
+            "{text:?}: {found}"
+        );
+        assert!(found
+            .to_string()
+            .starts_with(&format!("bad.eds:{line}: {}: ", severity.name())));
+        assert_eq!(
+            imported.description.od.object(0x1000).is_some(),
+            *kept,
+            "{text:?}"
+        );
     }
+    // What is left out is not there; what is kept read-only cannot be written.
+    let imported = import("bad.eds", cases[7].0, Some(1)).unwrap();
+    assert!(imported.description.od.object(0x1001).is_none());
+    let imported = import("bad.eds", cases[12].0, Some(1)).unwrap();
+    assert_eq!(
+        imported.description.od.variable(0x1000, 0).unwrap().access,
+        Access::Ro
+    );
+    let sub0 = import("bad.eds", cases[15].0, Some(1)).unwrap();
+    assert_eq!(
+        sub0.description.od.get_value(0x1F51, 0).unwrap(),
+        Value::Uint(7)
+    );
+}
+
+#[test]
+fn a_file_without_a_usable_object_or_unreadable_is_refused() {
+    for text in [
+        "",
+        "[FileInfo]\nFileName=x\n",
+        "[1000]\nParameterName=x\nDataType=0x0040\n",
+    ] {
+        let e = import("empty.eds", text, Some(1)).unwrap_err();
+        assert_eq!(
+            (e.line, e.reason.as_str()),
+            (0, "no usable object"),
+            "{text:?}"
+        );
+    }
+    let e = import_file(std::path::Path::new("/nonexistent/x.eds"), None).unwrap_err();
+    assert_eq!(e.file, "/nonexistent/x.eds");
+}
+
+#[test]
+fn windows_1252_text_is_read_with_a_finding() {
+    let bytes = b"[1000]\nParameterName=T\xfcr \x80\nDataType=7\n";
+    let imported = import_bytes("latin.eds", bytes, Some(1)).unwrap();
+    assert_eq!(
+        imported.description.od.object(0x1000).unwrap().name,
+        "Tür €"
+    );
+    assert_eq!(imported.findings.len(), 1);
+    assert_eq!(imported.findings[0].line, 2);
+    assert!(imported.findings[0].message.contains("Windows-1252"));
 }
 
 fn arb_variable() -> impl Strategy<Value = Variable> {

@@ -380,8 +380,10 @@ impl Node {
         now: Instant,
         out: &mut NodeOutput,
     ) {
+        // CiA 305 §8.3.2: the node-ID configured by LSS takes effect here — FFh too, after
+        // which the node has none and waits, silent, for LSS to give it one.
         let pending = self.lss.pending_node_id();
-        if pending != self.node_id && (1..=127).contains(&pending) {
+        if pending != self.node_id && ((1..=127).contains(&pending) || pending == UNCONFIGURED) {
             self.change_node_id(od, pending);
         }
         for object in self.initial.objects().filter(|o| range.contains(&o.index)) {
@@ -396,7 +398,9 @@ impl Node {
         }
         self.emcy = EmcyProducer::new(self.node_id);
         self.enter(NmtState::Initialising, now, out);
-        self.boot(od, now, out);
+        if self.node_id != UNCONFIGURED {
+            self.boot(od, now, out);
+        }
     }
 
     fn nmt_action(
@@ -733,6 +737,42 @@ mod tests {
             "segmented upload, size indicated"
         );
         assert_eq!(out.frames[0].data()[4], 12, "12 characters");
+    }
+
+    /// An LSS command frame (CiA 305) from the master.
+    fn lss(data: [u8; 8]) -> Frame {
+        Frame::standard(0x7E5, &data).unwrap()
+    }
+
+    #[test]
+    fn node_id_ff_by_lss_leaves_the_node_unconfigured_after_its_reset_until_lss_gives_one() {
+        let mut rig = Rig::new(NodeConfig::new(5));
+        rig.run(|n, od, now, out| n.start(od, now, out));
+        // Switch state global to configuration, configure node-ID FFh (accepted), back to waiting.
+        rig.frame(lss([0x04, 1, 0, 0, 0, 0, 0, 0]));
+        let out = rig.frame(lss([0x11, 0xFF, 0, 0, 0, 0, 0, 0]));
+        assert_eq!(
+            out.frames,
+            [Frame::standard(0x7E4, &[0x11, 0, 0, 0, 0, 0, 0, 0]).unwrap()]
+        );
+        rig.frame(lss([0x04, 0, 0, 0, 0, 0, 0, 0]));
+        // Reset communication: no boot-up, nothing served under the old node-ID.
+        let out = rig.frame(NmtCommand::ResetCommunication.frame(5));
+        assert!(out.frames.is_empty(), "{:?}", out.frames);
+        assert_eq!(rig.node.state(), NmtState::Initialising);
+        let out = rig.frame(Frame::standard(0x605, &[0x40, 0x00, 0x20, 0, 0, 0, 0, 0]).unwrap());
+        assert!(out.frames.is_empty(), "no SDO answer: {:?}", out.frames);
+        assert!(
+            rig.after(Duration::from_secs(5)).frames.is_empty(),
+            "silent"
+        );
+        // LSS gives it node-ID 7: it boots as 7.
+        rig.frame(lss([0x04, 1, 0, 0, 0, 0, 0, 0]));
+        rig.frame(lss([0x11, 7, 0, 0, 0, 0, 0, 0]));
+        let out = rig.frame(lss([0x04, 0, 0, 0, 0, 0, 0, 0]));
+        assert_eq!(out.frames, [Frame::standard(0x707, &[0]).unwrap()]);
+        let out = rig.frame(Frame::standard(0x607, &[0x40, 0x00, 0x20, 0, 0, 0, 0, 0]).unwrap());
+        assert_eq!(out.frames[0].id(), CanId::Standard(0x587));
     }
 
     #[test]

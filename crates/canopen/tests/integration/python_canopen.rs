@@ -117,7 +117,9 @@ fn python_canopen_imports_our_exported_eds() {
     let Some(python) = python() else { return };
     let fixture =
         std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/eds/canopennode-style.eds");
-    let description = canopen::eds::import_file(&fixture, Some(5)).unwrap();
+    let description = canopen::eds::import_file(&fixture, Some(5))
+        .unwrap()
+        .description;
     let dir = testkit::scratch();
     let exported = dir.path().join("exported.eds");
     std::fs::write(&exported, canopen::eds::export(&description, false)).unwrap();

@@ -394,3 +394,28 @@ async fn the_portal_gives_memory_back_after_a_burst_of_connections() {
     .await;
     rig.stop().await;
 }
+
+/// NXg §7.1's sample writes `"threshold": 1`: the portal's registrations write an integral
+/// threshold as an integer too, on the wire.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn registrations_write_an_integral_threshold_as_an_integer() {
+    use futures_util::StreamExt;
+    let rig = testkit::portal::Rig::builder().without_lift().start().await;
+    let mut ws = rig.hand_made_gateway("WIRE-1", "MAS").await;
+    let registration = loop {
+        let message = tokio::time::timeout(std::time::Duration::from_secs(10), ws.next())
+            .await
+            .expect("the portal registers the dashboard's objects")
+            .expect("open")
+            .expect("a message");
+        let text = message.to_text().unwrap_or_default().to_owned();
+        if text.contains("\"reg_canopen_object\"") {
+            break text;
+        }
+    };
+    assert!(
+        registration.contains(r#""inhibit":500,"threshold":0}"#),
+        "{registration}"
+    );
+    rig.stop().await;
+}

@@ -12,7 +12,9 @@
 //!   does); another node by its vendor file if it has one, else not at all (reads bring their
 //!   `datatype`, writes are refused).
 //!
-//! A malformed EDS or metadata file stops the gateway at start with `FILE:LINE: reason`.
+//! A defect of an EDS or DCF is logged as a warning naming `FILE:LINE` and only the defective
+//! part is left out (canopen::eds); an EDS without any usable object, or a malformed metadata
+//! file, stops the gateway at start with `FILE:LINE: reason`.
 
 mod cia301;
 
@@ -52,6 +54,19 @@ pub struct NodeMetadata {
     /// The vendor's metadata (catalog format).
     pub vendor: Option<Catalog>,
 }
+
+impl NodeMetadata {
+    /// Whether its EDS says it is a CiA 417 device (1000h names profile 417): only then does
+    /// the lift catalog describe its objects — a CiA 401 I/O module's 6000h is not a lift's.
+    fn lift_profile(&self) -> bool {
+        self.eds.as_ref().is_some_and(|od| {
+            matches!(od.get_value(0x1000, 0), Ok(Value::Uint(v)) if v & 0xFFFF == u64::from(PROFILE_417))
+        })
+    }
+}
+
+/// CiA 301 device profile number of CiA 417 (1000h bits 0–15).
+const PROFILE_417: u16 = 417;
 
 /// Metadata for the gateway's networks.
 pub struct BusMetadata {
@@ -141,14 +156,15 @@ impl BusMetadata {
 
     /// The NXg part of a description from the vendor file, the catalog or the communication
     /// profile, when one describes (`index`, `sub`) with the data type of `d` (the EDS's).
-    /// In the manufacturer-specific area (2000h–5FFFh), where the same index means something
-    /// else on every vendor's device, the catalog's texts apply only to an object the EDS
-    /// names as the catalog does (an EDS exported by `canlift sim`).
+    /// The catalog describes only a lift (`lift`: the lift controller, or a CiA 417 device);
+    /// in the manufacturer-specific area (2000h–5FFFh), where the same index means something
+    /// else on every vendor's device, its texts apply only to an object the EDS names as the
+    /// catalog does (an EDS exported by `canlift sim`).
     fn nxg_part(
         &self,
         vendor: Option<&Catalog>,
-        index: u16,
-        sub: u8,
+        lift: bool,
+        (index, sub): (u16, u8),
         d: &Description,
         eds_name: &str,
     ) -> Option<Description> {
@@ -160,7 +176,7 @@ impl BusMetadata {
             .and_then(|v| same_type(v.describe(None, index, sub)))
             .or_else(|| {
                 same_type(Catalog::builtin().describe(None, index, sub))
-                    .filter(|c| same_object(index, &c.name, eds_name))
+                    .filter(|c| lift && same_object(index, &c.name, eds_name))
             })
             .or_else(|| same_type(standard(index, sub)))
     }
@@ -170,6 +186,7 @@ impl BusMetadata {
         &self,
         od: &ObjectDictionary,
         vendor: Option<&Catalog>,
+        lift: bool,
         index: u16,
         sub: u8,
     ) -> Lookup {
@@ -193,7 +210,7 @@ impl BusMetadata {
         if let Some(len) = var.max_len {
             d.max = Some(Bound::Int(len as i128));
         }
-        if let Some(n) = self.nxg_part(vendor, index, sub, &d, &var.name) {
+        if let Some(n) = self.nxg_part(vendor, lift, (index, sub), &d, &var.name) {
             d.name = n.name.or_english(&var.name);
             d.hint = n.hint;
             d.formtype = n.formtype;
@@ -213,10 +230,11 @@ impl Metadata for BusMetadata {
     fn lookup(&self, target: Target, index: u16, sub: u8) -> Lookup {
         let node = self.nodes.get(&target);
         let vendor = node.and_then(|n| n.vendor.as_ref());
-        if let Some(od) = node.and_then(|n| n.eds.as_ref()) {
-            return self.merged(od, vendor, index, sub);
-        }
         let controller = target == self.controller;
+        if let Some(od) = node.and_then(|n| n.eds.as_ref()) {
+            let lift = controller || node.is_some_and(NodeMetadata::lift_profile);
+            return self.merged(od, vendor, lift, index, sub);
+        }
         if vendor.is_none() && !controller {
             return Lookup::Unknown;
         }
@@ -253,10 +271,11 @@ impl Metadata for BusMetadata {
         };
         let object = od.object(index)?;
         let eds = Texts::english(&object.name);
+        let lift = target == self.controller || node.is_some_and(NodeMetadata::lift_profile);
         let catalog = || {
             Catalog::builtin()
                 .object_texts(None, index)
-                .filter(|(name, _)| same_object(index, name, &object.name))
+                .filter(|(name, _)| lift && same_object(index, name, &object.name))
         };
         Some(
             match from_vendor()
@@ -282,7 +301,9 @@ impl Metadata for BusMetadata {
 /// Read a node's EDS and vendor metadata; the vendor's data types must agree with the EDS.
 fn load_node(n: &NodeSection) -> Result<NodeMetadata, GatewayError> {
     let eds = match &n.eds {
-        Some(path) => Some(Arc::new(canopen::eds::import_file(path, Some(n.id))?.od)),
+        Some(path) => Some(Arc::new(
+            canopen::eds::import_file(path, Some(n.id))?.logged().od,
+        )),
         None => None,
     };
     let vendor = match &n.metadata {

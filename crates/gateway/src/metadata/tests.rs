@@ -241,7 +241,7 @@ fn an_unknown_key_in_a_vendor_file_stops_the_gateway_at_its_line() {
 }
 
 #[test]
-fn a_broken_eds_line_stops_the_gateway_at_its_line() {
+fn a_broken_limit_is_a_finding_and_keeps_its_object_read_only() {
     let dir = tempfile::tempdir().expect("scratch");
     let good = std::fs::read_to_string(fixture("controller.eds")).expect("fixture");
     let broken = good.replacen(
@@ -253,12 +253,84 @@ fn a_broken_eds_line_stops_the_gateway_at_its_line() {
     let line = broken
         .lines()
         .position(|l| l == "LowLimit=zero")
-        .expect("the broken line")
-        + 1;
+        .expect("the broken line");
+    // The object whose section holds the broken line.
+    let index = broken.lines().take(line).filter_map(|l| {
+        let name = l.strip_prefix('[')?.strip_suffix(']')?;
+        u16::from_str_radix(name.get(..4)?, 16).ok()
+    });
+    let index = index.last().expect("its section");
     let eds = write_file(dir.path(), "broken.eds", &broken);
+    let m = load(vec![node(1, Some(eds), None)]).expect("the gateway starts");
+    let sub = if broken
+        .lines()
+        .take(line)
+        .any(|l| l.starts_with(&format!("[{index:04X}sub")))
+    {
+        1
+    } else {
+        0
+    };
+    let d = found(&m, CONTROLLER, index, sub);
+    assert_eq!(d.access, Access::Ro, "{index:04X}sub{sub}: never written");
+}
+
+#[test]
+fn an_eds_without_a_usable_object_stops_the_gateway() {
+    let dir = tempfile::tempdir().expect("scratch");
+    let eds = write_file(dir.path(), "empty.eds", "[FileInfo]\nFileName=empty.eds\n");
     let message = refused(vec![node(1, Some(eds.clone()), None)]);
-    let at = format!("{}:{line}:", eds.display());
-    assert!(message.starts_with(&at), "{message}");
+    assert!(
+        message.starts_with(&format!("{}:0: no usable object", eds.display())),
+        "{message}"
+    );
+}
+
+/// A CiA 401 I/O module's inputs (6000h), as such a module's EDS writes them, with `device`
+/// in 1000h.
+fn io_module(dir: &Path, device: u32) -> PathBuf {
+    let text = format!(
+        "[1000]\nParameterName=Device type\nObjectType=0x7\nDataType=0x0007\nAccessType=ro\nDefaultValue=0x{device:08X}\n\
+         [6000]\nParameterName=Read input 8-bit\nObjectType=0x8\nSubNumber=2\n\
+         [6000sub0]\nParameterName=Number of entries\nObjectType=0x7\nDataType=0x0005\nAccessType=ro\nDefaultValue=1\n\
+         [6000sub1]\nParameterName=Input block 1\nObjectType=0x7\nDataType=0x0005\nAccessType=ro\n"
+    );
+    write_file(dir, &format!("io-{device:08X}.eds"), &text)
+}
+
+#[test]
+fn the_lift_catalog_describes_only_a_lift() {
+    let dir = tempfile::tempdir().expect("scratch");
+    // A CiA 401 module (profile 401 = 0191h): its own names, none of the lift's.
+    let m = load(vec![node(
+        13,
+        Some(io_module(dir.path(), 0x000F_0191)),
+        None,
+    )])
+    .expect("loads");
+    for sub in [0, 1] {
+        let d = found(&m, IO_NODE, 0x6000, sub);
+        assert_eq!(d.name.get("de"), None, "6000sub{sub}: {:?}", d.name);
+    }
+    assert_eq!(
+        found(&m, IO_NODE, 0x6000, 0).name.get("en"),
+        Some("Number of entries")
+    );
+    assert_eq!(
+        m.object_texts(IO_NODE, 0x6000)
+            .map(|(name, _)| name.get("de").map(str::to_owned)),
+        Some(None),
+        "the object's name is its EDS's"
+    );
+    // The same module saying it is a CiA 417 device (01A1h): the catalog's texts.
+    let m = load(vec![node(
+        13,
+        Some(io_module(dir.path(), 0x0008_01A1)),
+        None,
+    )])
+    .expect("loads");
+    let d = found(&m, IO_NODE, 0x6000, 0);
+    assert!(d.name.get("de").is_some(), "{:?}", d.name);
 }
 
 #[test]

@@ -285,3 +285,81 @@ async fn mutual_tls_needs_the_client_certificate() {
     running.stop().await;
     sim.stop().await;
 }
+
+/// Device descriptions with the defects found in public files (tests/fixtures/eds-defects):
+/// the gateway starts, serves every object they describe well, and answers for what they left
+/// out as for an object the node does not have.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn defective_device_descriptions_are_served_where_they_are_well_described() {
+    let dir = testkit::scratch();
+    let pki = pki(dir.path());
+    let portal = Portal::start(&pki).await;
+    let bus = "mem://nodes-defects";
+    let sim = Simulator::start(bus, SimConfig::default()).await.unwrap();
+    let fixtures = testkit::workspace().join("tests/fixtures/eds-defects");
+    let files = [
+        (20, "visible-string-default.eds"),
+        (21, "object-count.eds"),
+        (22, "domain-default.eds"),
+        (23, "subnumber-type.eds"),
+        (24, "sub7.dcf"),
+        (25, "windows-1252.eds"),
+    ];
+    let mut devices = Vec::new();
+    let mut config = config(&portal.url(), &pki, bus, dir.path());
+    for (id, name) in files {
+        let path = fixtures.join(name);
+        // The device itself: what the file describes (a real one would have the rest too).
+        let od = canopen::eds::import_file(&path, Some(id))
+            .unwrap()
+            .description
+            .od;
+        let bus = canbus::Bus::open(bus).await.unwrap();
+        devices.push(canopen::node::LocalNode::start(
+            bus,
+            od,
+            canopen::node::NodeConfig::new(id),
+        ));
+        config.bus.nodes.push(NodeSection::with_eds(id, path));
+    }
+    let gateway = Gateway::bus_node(config)
+        .await
+        .expect("the gateway starts with every file");
+    let running = spawn(gateway);
+    let (mut ws, ..) = portal.accept().await;
+    connack(&mut ws).await;
+    let mut notes = Vec::new();
+    let get = |id: u8, mplex: &str| {
+        format!(
+            r#"{{"jsonrpc":"2.0","id":1,"method":"get_canopen_object","params":{{"node":{{"id":{id},"net":1}},"object":{{"mplex":"{mplex}"}}}}}}"#
+        )
+    };
+    for (id, _) in files {
+        let answer = ask(&mut ws, &get(id, "0x200000"), &mut notes).await;
+        let object = &answer["result"]["object"];
+        assert_eq!(object["value"], json!(["4660"]), "node {id}: {answer}");
+        assert_eq!(object["name"], "Well described", "node {id}");
+        assert_eq!(object["access"], "rw", "node {id}");
+    }
+    // Served although a part of their file was defective.
+    for (id, mplex, name) in [
+        (20, "0x100800", "Manufacturer device name"),
+        (22, "0x210000", "Program data"),
+        (23, "0x220002", "Setting 2"),
+        (24, "0x1F5107", "Program control 7"),
+        (25, "0x240000", "Türzustand – Schließen"),
+    ] {
+        let answer = ask(&mut ws, &get(id, mplex), &mut notes).await;
+        assert_eq!(
+            answer["result"]["object"]["name"], name,
+            "node {id}: {answer}"
+        );
+    }
+    // Left out: answered as an object the node does not have, never asked on the bus.
+    for (id, mplex) in [(21, "0x200100"), (23, "0x230000")] {
+        let answer = ask(&mut ws, &get(id, mplex), &mut notes).await;
+        assert_eq!(answer["error"]["code"], 0x0602_0000, "node {id}: {answer}");
+    }
+    running.stop().await;
+    sim.stop().await;
+}

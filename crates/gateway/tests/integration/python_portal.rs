@@ -83,9 +83,10 @@ async fn a_python_websockets_portal_talks_to_the_gateway() {
         answers["put"]["result"],
         json!({"object": {"mplex": "0x502200"}})
     );
+    // NXg §6.3.3: in the last requested language — the portal's get asked for German.
     assert_eq!(
         answers["readonly"]["error"],
-        json!({"code": 0x0601_0002, "message": "Attempt to write a read only object.", "data": "0x652001"})
+        json!({"code": 0x0601_0002, "message": "Versuch, ein nur lesbares Objekt zu schreiben.", "data": "0x652001"})
     );
     assert!(notes.contains(&json!({"jsonrpc": "2.0", "method": "canopen_object", "result": {"mplex": "0x652001", "value": "1"}})));
     assert!(portal.wait().await.unwrap().success());

@@ -172,14 +172,19 @@ fn the_exported_eds_describes_the_running_dictionary() {
         ..SimConfig::default()
     };
     let text = export_eds(&config, Device::Controller).unwrap();
-    let imported = canopen::eds::import("sim.eds", &text, Some(1)).unwrap();
+    let imported = canopen::eds::import("sim.eds", &text, Some(1))
+        .unwrap()
+        .description;
     let od = imported.od;
     assert_eq!(od.get_value(0x1000, 0), Ok(Value::Uint(0x0001_01A1)));
     assert_eq!(od.get_value(0x4010, 4), Ok(Value::Int(11_500)));
     assert!(od.object(0x6D20).is_some(), "lift 2 trip counter");
     assert_eq!(od.variable(0x6520, 1).unwrap().name, "Trip counter [trips]");
     let io = export_eds(&config, Device::Io).unwrap();
-    let io = canopen::eds::import("io.eds", &io, Some(12)).unwrap().od;
+    let io = canopen::eds::import("io.eds", &io, Some(12))
+        .unwrap()
+        .description
+        .od;
     assert_eq!(io.get_value(0x1000, 0), Ok(Value::Uint(0x0008_01A1)));
     assert!(io.object(0x2000).is_some());
     // Identity like any real device: 1008h, 1009h, 100Ah.

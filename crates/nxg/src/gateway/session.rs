@@ -216,6 +216,9 @@ pub struct Session {
     /// only, so holding thousands of quiet subscriptions costs a request nothing.
     owed: BTreeSet<(Target, u16, u8)>,
     events: Option<EventSubscription>,
+    /// The languages of the last request that named some (NXg §6.3.3: "in the last requested
+    /// language"): what a request without `lang` is answered in.
+    last_lang: Option<Langs>,
 }
 
 impl Session {
@@ -237,6 +240,7 @@ impl Session {
             subscriptions: BTreeMap::new(),
             owed: BTreeSet::new(),
             events: None,
+            last_lang: None,
         }
     }
 
@@ -412,6 +416,18 @@ impl Session {
         self.dispatch(id, method, params, now)
     }
 
+    /// A request's languages, kept for the requests after it that name none (NXg §6.3.3: an
+    /// error is worded "in the last requested language"); English before any.
+    fn languages(&mut self, lang: Option<msg::Lang>) -> Langs {
+        match lang.and_then(Langs::of) {
+            Some(asked) => {
+                self.last_lang = Some(asked.clone());
+                asked
+            }
+            None => self.last_lang.clone().unwrap_or_default(),
+        }
+    }
+
     fn dispatch(
         &mut self,
         id: Option<Id>,
@@ -419,8 +435,8 @@ impl Session {
         params: Option<&RawValue>,
         now: Instant,
     ) -> Vec<Output> {
-        // Refusals before the parameters are read are in English.
-        let mut lang = Langs::default();
+        // Refusals before the parameters are read are in the last requested language.
+        let mut lang = self.last_lang.clone().unwrap_or_default();
         let result = match method {
             Method::GetHeartbeat => Ok(vec![Output::Send(msg::response(id.as_ref(), &Done::OK))]),
             Method::UpdateUniqueToken => msg::params(params)
@@ -429,13 +445,13 @@ impl Session {
             Method::GetCanopenObject => msg::params::<GetParams>(params)
                 .map_err(Failure::Params)
                 .and_then(|mut p| {
-                    lang = languages(p.lang.take());
+                    lang = self.languages(p.lang.take());
                     self.get(&id, p, &lang)
                 }),
             Method::PutCanopenObject => msg::params::<PutParams>(params)
                 .map_err(Failure::Params)
                 .and_then(|mut p| {
-                    lang = languages(p.lang.take());
+                    lang = self.languages(p.lang.take());
                     let (node, mplex) = (p.node.map(|n| n.id.get()), p.object.mplex.text.clone());
                     self.put(&id, p, &lang, now).inspect_err(|f| {
                         if let Failure::Nxg(r) = f {
@@ -484,7 +500,7 @@ impl Session {
     /// `reg_canopen_event` (api ≥ 2): the kinds are added to those registered, and what waited
     /// for a portal follows the answer.
     fn register_events(&mut self, id: &Option<Id>, mut p: RegEventParams) -> Vec<Output> {
-        let lang = languages(p.lang.take());
+        let lang = self.languages(p.lang.take());
         let subscription = self.events.get_or_insert_with(|| EventSubscription {
             kinds: BTreeSet::new(),
             lang: lang.clone(),
@@ -627,7 +643,11 @@ impl Session {
                 })?;
                 let datatype = DataType::from_code(code)
                     .map_err(|e| Failure::Params(format!("node.datatype: {e}")))?;
-                Ok(bare(datatype))
+                // What the gateway does with it: reads it, never writes an object nothing
+                // describes (the policy refuses it), so it says read-only.
+                let mut d = bare(datatype);
+                d.access = crate::meta::Access::Ro;
+                Ok(d)
             }
         }
     }
@@ -1044,11 +1064,6 @@ impl Session {
             Vec::new()
         }
     }
-}
-
-/// The languages of a request's `lang`; English without one.
-fn languages(lang: Option<msg::Lang>) -> Langs {
-    lang.and_then(Langs::of).unwrap_or_default()
 }
 
 /// A notification; pushes of nodes other than the lift controller say which node they are from.

@@ -329,12 +329,26 @@ pub struct RegParams {
     /// Minimum gap between two pushes of one object (ms).
     #[serde(default)]
     pub inhibit: u64,
-    /// Smallest change (absolute) of a number that is pushed.
-    #[serde(default, deserialize_with = "non_negative")]
+    /// Smallest change (absolute) of a number that is pushed. Written as an integer when it is
+    /// one (`"threshold": 1`, as NXg §7.1's sample has it), not `1.0`.
+    #[serde(
+        default,
+        deserialize_with = "non_negative",
+        serialize_with = "integer_when_integral"
+    )]
     pub threshold: f64,
     /// Another node than the lift controller.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub node: Option<NodeRef>,
+}
+
+fn integer_when_integral<S: serde::Serializer>(t: &f64, s: S) -> Result<S::Ok, S::Error> {
+    // Exact as an integer up to 2⁵³, as JSON numbers are read.
+    if t.fract() == 0.0 && t.abs() < 9_007_199_254_740_992.0 {
+        s.serialize_i64(*t as i64)
+    } else {
+        s.serialize_f64(*t)
+    }
 }
 
 fn non_negative<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
@@ -405,6 +419,16 @@ mod tests {
             (2, 1000, 1.0)
         );
         assert!(serde_json::from_str::<RegParams>(r#"{"mplex":[],"threshold":-1}"#).is_err());
+        // Written as the sample writes it: an integer when it is one.
+        let text = serde_json::to_string(&reg).unwrap();
+        assert!(text.ends_with(r#""inhibit":1000,"threshold":1}"#), "{text}");
+        let half = RegParams {
+            threshold: 0.5,
+            ..reg.clone()
+        };
+        assert!(serde_json::to_string(&half)
+            .unwrap()
+            .contains(r#""threshold":0.5"#));
         assert!(serde_json::from_str::<NodeRef>(r#"{"id":128}"#).is_err());
         assert!(serde_json::from_str::<NodeRef>(r#"{"id":0}"#).is_err());
         // The caller's spelling is kept for the answer.

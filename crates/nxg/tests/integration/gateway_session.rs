@@ -492,6 +492,8 @@ fn other_nodes_are_read_with_their_datatype_and_written_only_when_described() {
     let answer = p.ask(get, &[&[2, 1, 1, 6, 0x10, 0]]);
     assert_eq!(answer["result"]["object"]["value"], json!(["68820205826"]));
     assert_eq!(answer["result"]["object"]["datatype"], 25);
+    // The description says what the gateway will do: read it, never write it.
+    assert_eq!(answer["result"]["object"]["access"], "ro");
     let put12 = format!(
         r#"{{"jsonrpc":"2.0","method":"put_canopen_object","id":"<ID>","params":{{"sernum":"{SERNUM}","node":{{"id":12,"net":1}},"object":{{"mplex":"0x502200","datatype":7,"physunit":0,"value":"4"}}}}}}"#
     );
@@ -771,17 +773,30 @@ fn put_values_are_decimal_and_out_of_type_range_is_too_high_or_low() {
 }
 
 #[test]
-fn errors_are_in_the_language_of_their_request() {
+fn errors_are_in_the_last_requested_language() {
     let mut p = Portal::connected();
+    // Before any request named a language: English.
+    let first = p.ask(&put("0x652001", 7, 26, "1"), &[]);
+    assert_eq!(
+        first["error"]["message"],
+        "Attempt to write a read only object."
+    );
     let de = GET_TRIP.replace(
         r#""preferred_language": "en""#,
         r#""preferred_language": "de""#,
     );
     p.ask(&de, &[&2510u32.to_le_bytes()]);
-    // A put without `lang` is answered in English, whatever an earlier request asked for.
+    // NXg §6.3.3: "in the last requested language" — a put without `lang` after a German get
+    // is answered in German.
     let after = p.ask(&put("0x652001", 7, 26, "1"), &[]);
+    let german = nxg::codes::ErrorCode(0x0601_0002).message("de");
+    assert_ne!(german, "Attempt to write a read only object.");
+    assert_eq!(after["error"]["message"], german);
+    // Until a request names another.
+    p.ask(GET_TRIP, &[&2510u32.to_le_bytes()]);
+    let english = p.ask(&put("0x652001", 7, 26, "1"), &[]);
     assert_eq!(
-        after["error"]["message"],
+        english["error"]["message"],
         "Attempt to write a read only object."
     );
 }
