@@ -70,6 +70,9 @@ enum Command {
     /// Write an object of a lift through the portal.
     Put(cmd::operator::PutArgs),
     #[cfg(feature = "portal")]
+    /// Ask a lift for service or setup rights (the password from CANLIFT_LIFT_PASSWORD or stdin).
+    Elevate(cmd::operator::ElevateArgs),
+    #[cfg(feature = "portal")]
     /// Print the values a lift pushes for some objects.
     Watch(cmd::operator::WatchArgs),
     #[cfg(feature = "portal")]
@@ -127,6 +130,8 @@ impl Command {
             #[cfg(feature = "portal")]
             Command::Put(_) => "put",
             #[cfg(feature = "portal")]
+            Command::Elevate(_) => "elevate",
+            #[cfg(feature = "portal")]
             Command::Watch(_) => "watch",
             #[cfg(feature = "portal")]
             Command::Token(_) => "token",
@@ -166,6 +171,7 @@ impl Command {
             Command::Lifts(_)
             | Command::Get(_)
             | Command::Put(_)
+            | Command::Elevate(_)
             | Command::Watch(_)
             | Command::Token(_)
             | Command::Alarms(_)
@@ -259,6 +265,8 @@ fn main() -> std::process::ExitCode {
             Command::Get(args) => cmd::operator::get(args).await,
             #[cfg(feature = "portal")]
             Command::Put(args) => cmd::operator::put(args).await,
+            #[cfg(feature = "portal")]
+            Command::Elevate(args) => cmd::operator::elevate(args).await,
             #[cfg(feature = "portal")]
             Command::Watch(args) => cmd::operator::watch(args).await,
             #[cfg(feature = "portal")]

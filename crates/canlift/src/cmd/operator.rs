@@ -1,13 +1,13 @@
-//! `canlift lifts|get|put|watch`: the operator client of the portal's REST API
+//! `canlift lifts|get|put|watch|elevate`: the operator client of the portal's REST API
 //! (docs/PORTAL.md §Command-line client), reading and writing the API's own types.
 
 use std::path::PathBuf;
 
 use anyhow::{bail, Context};
 use cloud::client::Client;
-use cloud_types::api::{EventsQuery, Form, GetQuery, LiftSummary, PutBody};
+use cloud_types::api::{EventsQuery, Form, GetQuery, LiftSummary, PrivilegeBody, PutBody};
 use cloud_types::live::ValueMessage;
-use nxg::msg::ObjectAnswer;
+use nxg::msg::{ElevateAnswer, ObjectAnswer};
 use serde::de::DeserializeOwned;
 use serde_json::Value;
 
@@ -105,6 +105,29 @@ pub struct PutArgs {
     physunit: Option<u32>,
     #[command(flatten)]
     portal: PortalArgs,
+}
+
+/// `canlift elevate LIFT --level service|setup`: the lift's password is read from
+/// `CANLIFT_LIFT_PASSWORD` or, without it, the first line of standard input — never from the
+/// command line, where other users of the machine could read it.
+#[derive(Debug, clap::Args)]
+pub struct ElevateArgs {
+    /// Lift id.
+    lift: String,
+    /// The rights wanted (NXg §8.4): `service` (1) or `setup` (2).
+    #[arg(long, value_enum)]
+    level: Level,
+    #[command(flatten)]
+    portal: PortalArgs,
+}
+
+/// A level of rights `canlift elevate` asks for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum Level {
+    /// Privilege 1.
+    Service,
+    /// Privilege 2.
+    Setup,
 }
 
 /// `canlift watch LIFT MPLEX…`.
@@ -286,6 +309,42 @@ pub async fn put(mut args: PutArgs) -> anyhow::Result<()> {
             .await?,
     )?;
     println!("{} {} = {}", args.lift, args.mplex, args.value);
+    Ok(())
+}
+
+/// `canlift elevate`: ask the lift for `service` or `setup` rights for this API key's user
+/// (docs/PORTAL.md §Command-line client); the writes that follow within the grant may change
+/// objects of that privilege.
+pub async fn elevate(args: ElevateArgs) -> anyhow::Result<()> {
+    let password = match std::env::var("CANLIFT_LIFT_PASSWORD") {
+        Ok(p) => p,
+        Err(_) => {
+            let mut line = String::new();
+            std::io::stdin()
+                .read_line(&mut line)
+                .context("reading the lift's password from standard input")?;
+            line.trim_end_matches(['\r', '\n']).to_owned()
+        }
+    };
+    if password.is_empty() {
+        bail!("no password: set CANLIFT_LIFT_PASSWORD or give it on standard input");
+    }
+    let (privilege, name) = match args.level {
+        Level::Service => (1, "service"),
+        Level::Setup => (2, "setup"),
+    };
+    let body = PrivilegeBody {
+        privilege,
+        password,
+    };
+    let path = format!("/api/v1/lifts/{}/privilege", args.lift);
+    let client = args.portal.client()?;
+    let granted: ElevateAnswer = check(
+        client
+            .call("POST", &path, Some(serde_json::to_value(&body)?))
+            .await?,
+    )?;
+    println!("{}: {name} rights for {} s", args.lift, granted.duration);
     Ok(())
 }
 

@@ -491,3 +491,54 @@ async fn operators_reach_the_portal_through_https_proxy() {
     );
     rig.stop().await;
 }
+
+/// `canlift elevate` from the command line: a wrong password is the lift's refusal (exit 5), the
+/// right one (from the environment, or standard input) grants the rights, and the write that
+/// needed them goes through.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn elevate_then_put_a_service_object() {
+    use testkit::constants::SERVICE_PASSWORD;
+    let rig = Rig::builder().start().await;
+    rig.online().await;
+    // 4113h (door open time) needs service rights.
+    let put = || canlift(&rig).args(["put", LIFT, "0x411300", "4"]).output();
+    let refused = put().await.unwrap();
+    assert_eq!(
+        refused.status.code(),
+        Some(4),
+        "{}",
+        common::stderr(&refused)
+    );
+    assert!(common::stderr(&refused).contains("elevate first"));
+    let wrong = canlift(&rig)
+        .args(["elevate", LIFT, "--level", "service"])
+        .env("CANLIFT_LIFT_PASSWORD", "not it")
+        .output()
+        .await
+        .unwrap();
+    assert_eq!(wrong.status.code(), Some(5), "{}", common::stderr(&wrong));
+    // The password on standard input, as a script would pipe it.
+    let mut elevate = canlift(&rig)
+        .args(["elevate", LIFT, "--level", "service"])
+        .env_remove("CANLIFT_LIFT_PASSWORD")
+        .stdin(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    use tokio::io::AsyncWriteExt;
+    let mut stdin = elevate.stdin.take().expect("piped");
+    stdin
+        .write_all(format!("{SERVICE_PASSWORD}\n").as_bytes())
+        .await
+        .unwrap();
+    drop(stdin);
+    let granted = elevate.wait_with_output().await.unwrap();
+    assert!(granted.status.success(), "{}", common::stderr(&granted));
+    let said = String::from_utf8_lossy(&granted.stdout);
+    assert!(
+        said.starts_with(&format!("{LIFT}: service rights for ")),
+        "{said}"
+    );
+    let written = put().await.unwrap();
+    assert!(written.status.success(), "{}", common::stderr(&written));
+    rig.stop().await;
+}

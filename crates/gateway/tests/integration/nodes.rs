@@ -355,6 +355,18 @@ async fn defective_device_descriptions_are_served_where_they_are_well_described(
             "node {id}: {answer}"
         );
     }
+    // NXg §6.1.1: a string's "max" is its count of characters — for the controller's constant
+    // 1008h, the characters it holds.
+    let name = ask(
+        &mut ws,
+        r#"{"jsonrpc":"2.0","id":1,"method":"get_canopen_object","params":{"object":{"mplex":"0x100800"}}}"#,
+        &mut notes,
+    )
+    .await;
+    let object = &name["result"]["object"];
+    let chars = object["value"][0].as_str().map(|v| v.chars().count());
+    assert!(chars.is_some_and(|n| n > 0), "{name}");
+    assert_eq!(object["max"].as_u64(), chars.map(|n| n as u64), "{name}");
     // Left out: answered as an object the node does not have, never asked on the bus.
     for (id, mplex) in [(21, "0x200100"), (23, "0x230000")] {
         let answer = ask(&mut ws, &get(id, mplex), &mut notes).await;

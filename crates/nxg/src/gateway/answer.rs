@@ -8,7 +8,7 @@ use canopen::types::{self, Value as CoValue};
 
 use super::metadata::Metadata;
 use crate::codes::ErrorCode;
-use crate::meta::{Bound, Description};
+use crate::meta::{Access, Bound, Description, Privilege};
 use crate::msg::{AnswerLang, ErrorObject, Lang, ObjectAnswer, ObjectData};
 
 /// Longest language tag kept from a request.
@@ -138,10 +138,32 @@ pub(crate) fn object(
     object.datatype = Some(u32::from(d.datatype.code()));
     object.formtype = Some(u32::from(d.formtype.code()));
     object.physunit = Some(u32::from(d.physunit.code()));
-    object.access = Some(d.access.text().to_owned());
-    object.privilege = Some(u32::from(d.privilege.code()));
+    // NXg §8.4 names privileges 0–2: an object only an engineer on site may write is, to a
+    // peer of the connector, one it cannot write — read-only, at the highest privilege the
+    // spec names (docs/PROTOCOL.md §Privileges).
+    let (access, privilege) = match (d.privilege, d.access) {
+        (Privilege::EngineerOnSite, Access::Rw) => (Access::Ro, Privilege::Setup),
+        (Privilege::EngineerOnSite, access) => (access, Privilege::Setup),
+        (privilege, access) => (access, privilege),
+    };
+    object.access = Some(access.text().to_owned());
+    object.privilege = Some(u32::from(privilege.code()));
     object.min = bound(d.min);
     object.max = bound(d.max);
+    // NXg §6.1.1: a string's `max` is its maximum count of characters — for one that cannot be
+    // written, the characters it holds (a writable one without a stated limit has none known).
+    let string = matches!(
+        ty,
+        canopen::types::DataType::VisibleString | canopen::types::DataType::UnicodeString
+    );
+    if object.max.is_none() && string && !access.writable() {
+        object.max = object
+            .value
+            .iter()
+            .map(|v| v.chars().count())
+            .max()
+            .map(serde_json::Number::from);
+    }
     object.zero = Some(d.zero);
     if form == Form::Stripped {
         return Ok(ObjectAnswer {

@@ -773,6 +773,23 @@ fn put_values_are_decimal_and_out_of_type_range_is_too_high_or_low() {
 }
 
 #[test]
+fn an_engineer_on_site_object_is_described_in_the_specs_terms() {
+    let mut p = Portal::connected();
+    // 6001h: rw for an engineer on site only (privilege 3, which NXg §8.4 does not know).
+    let get = GET_TRIP.replace("0x652001", "0x600100");
+    let answer = p.ask(&get, &[&[1]]);
+    let object = &answer["result"]["object"];
+    assert_eq!(
+        (&object["access"], &object["privilege"]),
+        (&json!("ro"), &json!(2)),
+        "{answer}"
+    );
+    // And it is not written remotely, whoever asks.
+    p.ask(&elevate(2, SETUP_SHA1), &[]);
+    assert_eq!(code(&p.ask(&put("0x600100", 5, 0, "1"), &[])), 0x0800_0021);
+}
+
+#[test]
 fn errors_are_in_the_last_requested_language() {
     let mut p = Portal::connected();
     // Before any request named a language: English.
