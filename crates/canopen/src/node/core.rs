@@ -17,7 +17,7 @@ use crate::emcy::{codes, EmcyMessage, EmcyProducer};
 use crate::guarding::{GuardEvent, GuardingSlave};
 use crate::heartbeat::{timeout_emcy, HeartbeatConsumer, HeartbeatEvent, HeartbeatProducer};
 use crate::lss::{LssAction, LssSlave, LssState, UNCONFIGURED};
-use crate::nmt::{NmtAction, NmtSlave, NmtState};
+use crate::nmt::{NmtAction, NmtCommand, NmtSlave, NmtState};
 use crate::objects::*;
 use crate::od::ObjectDictionary;
 use crate::pdo::{PdoEngine, PdoEvent};
@@ -52,6 +52,8 @@ pub struct Node {
     sdo_config: ServerConfig,
     /// The dictionary as it was configured: what resets restore.
     initial: ObjectDictionary,
+    /// Whether it enters operational by itself after each boot (CiA 302 1F80h bit 2).
+    self_starting: bool,
     nmt: NmtSlave,
     sdo: ServerChannels,
     producer: HeartbeatProducer,
@@ -129,6 +131,7 @@ impl Node {
             lss: LssSlave::new(config.identity, config.node_id),
             sdo_config: config.sdo.clone(),
             initial,
+            self_starting: config.self_starting,
             nmt: NmtSlave::new(config.node_id),
             sdo: ServerChannels::new(server_channels(od, config.node_id), &config.sdo),
             producer: HeartbeatProducer::new(config.node_id),
@@ -303,6 +306,11 @@ impl Node {
         self.nmt.boot(&mut out.frames);
         self.load_communication(od, now);
         self.enter(NmtState::PreOperational, now, out);
+        if self.self_starting {
+            if let Some(action) = self.nmt.handle(&NmtCommand::Start.frame(self.node_id)) {
+                self.nmt_action(od, action, now, out);
+            }
+        }
     }
 
     /// Take the node-ID configured by LSS (CiA 305: at reset communication, or at once for a
@@ -606,6 +614,11 @@ impl Node {
             }
             NodeCommand::SendPdo(n) => self.pdo.request(n, now),
             NodeCommand::SendTime(at) => self.send_time(at, out),
+            NodeCommand::Defaults(values) => {
+                for (index, sub, bytes) in values {
+                    let _ = self.initial.set(index, sub, &bytes);
+                }
+            }
         }
         self.write_history(od);
         self.settle(od, now, out);
@@ -662,7 +675,6 @@ mod tests {
     use std::time::Duration;
 
     use super::*;
-    use crate::nmt::NmtCommand;
     use crate::od::{Access, Object, Variable};
     use crate::types::DataType;
 
@@ -737,6 +749,62 @@ mod tests {
             "segmented upload, size indicated"
         );
         assert_eq!(out.frames[0].data()[4], 12, "12 characters");
+    }
+
+    #[test]
+    fn a_self_starting_node_restores_its_own_pdo_at_every_reset() {
+        let config = NodeConfig {
+            self_starting: true,
+            ..NodeConfig::new(5)
+        };
+        let mut rig = Rig::new(config);
+        let out = rig.run(|n, od, now, out| n.start(od, now, out));
+        assert_eq!(
+            out.events,
+            [
+                NodeEvent::Nmt(NmtState::PreOperational),
+                NodeEvent::Nmt(NmtState::Operational)
+            ]
+        );
+        // The application's own RPDO1 (what LocalNode::configure_pdo hands over as defaults).
+        let mut mappable = Variable::new("Input", DataType::Unsigned16, Access::Rw);
+        mappable.pdo_mappable = true;
+        rig.od.insert(Object::var(0x2001, mappable));
+        let setup = crate::node::PdoSetup {
+            transmit: false,
+            number: 1,
+            cob_id: 0x20C,
+            objects: vec![(0x2001, 0)],
+            transmission_type: 255,
+            inhibit_100us: 0,
+            event_ms: 0,
+        };
+        crate::node::configure_pdo(&mut rig.od, &setup).unwrap();
+        let defaults: Vec<(u16, u8, Vec<u8>)> = [0x1400, 0x1600]
+            .iter()
+            .flat_map(|&i| {
+                let o = rig.od.object(i).unwrap().clone();
+                o.subs
+                    .iter()
+                    .filter_map(|(s, v)| Some((i, *s, v.value_bytes()?.to_vec())))
+                    .collect::<Vec<_>>()
+            })
+            .collect();
+        rig.run(|n, od, now, out| n.handle_command(od, NodeCommand::Defaults(defaults), now, out));
+        for reset in [NmtCommand::ResetCommunication, NmtCommand::ResetNode] {
+            let out = rig.frame(reset.frame(5));
+            assert_eq!(
+                out.events.last(),
+                Some(&NodeEvent::Nmt(NmtState::Operational)),
+                "{reset:?}"
+            );
+            assert_eq!(rig.od.get_value(0x1600, 0), Ok(Value::Uint(1)), "{reset:?}");
+            assert_eq!(
+                rig.od.get_value(0x1400, 1),
+                Ok(Value::Uint(0x20C)),
+                "{reset:?}"
+            );
+        }
     }
 
     /// An LSS command frame (CiA 305) from the master.

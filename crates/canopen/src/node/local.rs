@@ -128,7 +128,20 @@ impl LocalNode {
     /// apply): invalidate, parameters, mapping, validate.
     pub fn configure_pdo(&self, setup: &PdoSetup) -> Result<(), AbortCode> {
         let mut od = self.od.lock().unwrap_or_else(PoisonError::into_inner);
-        super::configure_pdo(&mut od, setup)
+        super::configure_pdo(&mut od, setup)?;
+        // The device's own PDO: every reset restores it, as a device sets up its PDOs again.
+        let objects = super::pdo_objects(setup);
+        let values = objects
+            .iter()
+            .filter_map(|&index| od.object(index))
+            .flat_map(|o| {
+                o.subs
+                    .iter()
+                    .filter_map(move |(&sub, v)| Some((o.index, sub, v.value_bytes()?.to_vec())))
+            })
+            .collect();
+        let _ = self.commands.send(NodeCommand::Defaults(values));
+        Ok(())
     }
 
     /// Cut or restore the device's supply, as a simulated failure: while off it neither sends
@@ -233,10 +246,15 @@ impl Shell {
                     None => sleep_until(deadline).await,
                 }
             };
-            // Time-driven work first so that a busy bus never starves the timers.
+            // Time-driven work first so that a busy bus never starves the timers; then what the
+            // application asked before a frame came (a PDO it set up is its own before a reset
+            // from the bus restores it).
             tokio::select! {
                 biased;
                 _ = wake => self.step(|node, od, out| node.handle_timeout(od, Instant::now(), out)),
+                Some(command) = commands.recv() => {
+                    self.step(|node, od, out| node.handle_command(od, command, Instant::now(), out))
+                }
                 event = receiver.recv() => match event {
                     Some(canbus::BusEvent::Frame(f)) if self.powered => {
                         self.step(|node, od, out| node.handle_frame(od, &f, Instant::now(), out))
@@ -246,9 +264,6 @@ impl Shell {
                 },
                 Some((index, sub)) = changes.recv() => {
                     self.step(|node, od, out| node.handle_change(od, index, sub, Instant::now(), out))
-                }
-                Some(command) = commands.recv() => {
-                    self.step(|node, od, out| node.handle_command(od, command, Instant::now(), out))
                 }
                 Ok(()) = power.changed() => {
                     let on = *power.borrow_and_update();

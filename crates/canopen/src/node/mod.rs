@@ -67,6 +67,9 @@ pub struct NodeConfig {
     /// gateway, runs as many transfers to this node at once. A client may move one, as that
     /// section has it, only while it is not valid.
     pub sdo_servers: Vec<(canbus::CanId, canbus::CanId)>,
+    /// A self-starting device (CiA 302 1F80h bit 2): after every boot — power-on and each NMT
+    /// reset — it enters operational by itself instead of waiting for an NMT master.
+    pub self_starting: bool,
 }
 
 impl NodeConfig {
@@ -85,6 +88,7 @@ impl NodeConfig {
             storage: None,
             sdo: ServerConfig::default(),
             sdo_servers: Vec::new(),
+            self_starting: false,
         }
     }
 }
@@ -124,6 +128,9 @@ pub enum NodeCommand {
     Nmt(NmtCommand),
     /// Send TPDO n now.
     SendPdo(u16),
+    /// These values (index, sub-index, bytes) are the device's own configuration: every reset
+    /// restores them, as a device restores what it set up at boot (its PDOs, say).
+    Defaults(Vec<(u16, u8, Vec<u8>)>),
 }
 
 /// A PDO set up by the application in one call (the PLC style: identifier, objects in byte
@@ -146,16 +153,25 @@ pub struct PdoSetup {
     pub event_ms: u16,
 }
 
+/// The communication and mapping parameter objects of the PDO `setup` configures.
+pub(crate) fn pdo_objects(setup: &PdoSetup) -> [u16; 2] {
+    use crate::pdo::{RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP};
+    let n = setup.number.saturating_sub(1);
+    if setup.transmit {
+        [TPDO_COMM + n, TPDO_MAP + n]
+    } else {
+        [RPDO_COMM + n, RPDO_MAP + n]
+    }
+}
+
 /// Configure a PDO of `od` with the CiA 301 procedure (as an SDO client would, so the same
 /// checks apply): invalidate, parameters, mapping, validate.
 pub fn configure_pdo(od: &mut ObjectDictionary, setup: &PdoSetup) -> Result<(), AbortCode> {
-    use crate::pdo::{MapEntry, RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP};
-    let n = setup.number.checked_sub(1).ok_or(AbortCode::NO_OBJECT)?;
-    let (comm, map) = if setup.transmit {
-        (TPDO_COMM + n, TPDO_MAP + n)
-    } else {
-        (RPDO_COMM + n, RPDO_MAP + n)
-    };
+    use crate::pdo::MapEntry;
+    let [comm, map] = pdo_objects(setup);
+    if setup.number == 0 {
+        return Err(AbortCode::NO_OBJECT);
+    }
     let current = match od.get_value(comm, 1)? {
         Value::Uint(v) => v as u32,
         _ => return Err(AbortCode::GENERAL),

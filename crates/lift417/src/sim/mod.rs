@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 use canbus::{Bus, CanId};
 use canopen::cob::restricted;
 use canopen::eds::{self, DeviceDescription};
-use canopen::nmt::{NmtCommand, NmtState};
+use canopen::nmt::NmtState;
 use canopen::node::{add_communication_objects, LocalNode, NodeConfig, PdoSetup};
 use canopen::od::{ObjectDictionary, VariableHook};
 use canopen::sdo::abort::AbortCode;
@@ -196,6 +196,8 @@ impl SimConfig {
                 .state_dir
                 .as_ref()
                 .map(|d| d.join(format!("node{node_id}.params"))),
+            // Self-starting devices: operational after every boot and every reset.
+            self_starting: self.autostart,
             ..NodeConfig::new(node_id)
         }
     }
@@ -463,9 +465,7 @@ impl Simulator {
         if config.autostart {
             // Self-starting devices; the simulator is ready once both are operational, so a
             // button pressed right away is not lost to a controller still pre-operational.
-            controller.nmt(NmtCommand::Start);
             if let Some(io) = &io {
-                io.nmt(NmtCommand::Start);
                 io.wait_for_state(NmtState::Operational).await;
             }
             controller.wait_for_state(NmtState::Operational).await;
@@ -683,7 +683,7 @@ impl Runner {
     }
 
     /// The I/O node loses or regains its supply (0x5030 bit 3). Back on it boots, and — a
-    /// self-starting device, as at the simulator's start — goes operational by itself.
+    /// self-starting device, as after every boot — goes operational by itself.
     fn power_io(&mut self, on: bool) {
         let Some(io) = self.io.clone() else {
             return;
@@ -693,13 +693,8 @@ impl Runner {
         }
         self.io_powered = on;
         tracing::warn!(node = io.node_id(), on, "I/O node supply");
+        // Back on it boots, and (self-starting) goes operational by itself.
         io.set_powered(on);
-        if on && self.config.autostart {
-            tokio::spawn(async move {
-                io.wait_for_state(NmtState::PreOperational).await;
-                io.nmt(NmtCommand::Start);
-            });
-        }
     }
 
     fn call(&mut self, lift: u8, floor: u8, kind: CallKind) {

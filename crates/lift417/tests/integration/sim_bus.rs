@@ -139,6 +139,42 @@ async fn buttons_on_the_io_node_reach_the_controller_by_pdo() {
     sim.stop().await;
 }
 
+/// A reset restores what the devices set up at boot: both reset (communication, then the whole
+/// node), they start again by themselves, and the I/O node's buttons still reach the controller
+/// through the PDO between them.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn after_a_reset_the_nodes_start_by_themselves_with_their_pdos() {
+    use canopen::nmt::NmtCommand;
+    let url = "mem://sim-reset";
+    let sim = Simulator::start(url, config()).await.unwrap();
+    let master = Master::open(url, ClientConfig::default()).await.unwrap();
+    for command in [NmtCommand::ResetCommunication, NmtCommand::ResetNode] {
+        for node in [1, 12] {
+            master.nmt(command, node).await.unwrap();
+        }
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        // Operational again (the heartbeat of 200 ms says 05h), the controller's RPDO1 mapped.
+        assert_eq!(read_uint(&master, 1, 0x1600, 0).await, 1, "{command:?}");
+        assert_eq!(
+            read_u32(&master, 1, 0x1600, 1).await >> 16,
+            0x6010,
+            "{command:?}"
+        );
+        assert_eq!(read_uint(&master, 12, 0x1A00, 0).await, 1, "{command:?}");
+    }
+    let operational = canopen::heartbeat::NodeState::Operational;
+    assert_eq!(master.node_state(1), operational, "the heartbeat says 05h");
+    assert_eq!(master.node_state(12), operational);
+    // Car call to floor 3 on the I/O node's button: it reaches the controller, which travels.
+    master
+        .sdo()
+        .write_raw(12, 0x2000, 0, &0x0003u16.to_le_bytes())
+        .await
+        .unwrap();
+    until(&master, 0x6520, 1, |v| v == 1).await;
+    sim.stop().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_injected_drive_fault_raises_and_clears_emcy() {
     let url = "mem://sim-fault";
