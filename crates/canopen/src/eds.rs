@@ -505,14 +505,14 @@ impl Importer<'_> {
                 Ok(object)
             }
             ObjectCode::Array | ObjectCode::Record | ObjectCode::DefStruct => {
-                let subs = match section.get("CompactSubObj") {
-                    Some(e) => self.compact(
-                        index,
-                        section,
-                        &name,
-                        self.number::<u8>(e, "CompactSubObj")?,
-                    )?,
-                    None => self.expanded(index, section)?,
+                let compact = match section.get("CompactSubObj") {
+                    Some(e) => self.number::<u8>(e, "CompactSubObj")?,
+                    None => 0,
+                };
+                let subs = if compact > 0 {
+                    self.compact(index, section, &name, compact)?
+                } else {
+                    self.expanded(index, section)?
                 };
                 Ok(Object {
                     index,
@@ -524,7 +524,8 @@ impl Importer<'_> {
         }
     }
 
-    /// The sub-objects of a `CompactSubObj` array: all share the object's section.
+    /// The sub-objects of a `CompactSubObj` array (`compact` > 0): all share the object's
+    /// section.
     fn compact(
         &self,
         index: u16,
@@ -533,9 +534,6 @@ impl Importer<'_> {
         compact: u8,
     ) -> Result<BTreeMap<u8, Variable>, EdsError> {
         let mut subs = BTreeMap::new();
-        if compact == 0 {
-            return self.expanded(index, section);
-        }
         let names = self.ini.section(&format!("{index:04X}Name"));
         let values = self.ini.section(&format!("{index:04X}Value"));
         for sub in 1..=compact {

@@ -63,8 +63,6 @@ impl<'a> Lifts<'a> {
 /// The statements a report runs, each for all the lifts of an account at once.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Statement {
-    /// The lifts.
-    Lifts,
     /// Each lift's status in force at the period's start and its changes inside the period
     /// (one row per lift: the changes in one text, which the database joins far faster than
     /// a row per change would be sent).
@@ -77,8 +75,7 @@ pub enum Statement {
 
 impl Statement {
     /// Every statement, in the order a report runs them.
-    pub const ALL: [Statement; 4] = [
-        Statement::Lifts,
+    pub const ALL: [Statement; 3] = [
         Statement::Timelines,
         Statement::Faults,
         Statement::Counters(3),
@@ -87,7 +84,6 @@ impl Statement {
     /// What it is called.
     pub fn name(self) -> &'static str {
         match self {
-            Statement::Lifts => "lifts",
             Statement::Timelines => "statuses",
             Statement::Faults => "faults",
             Statement::Counters(_) => "counters at the edges",
@@ -102,7 +98,6 @@ impl Statement {
             "group_concat"
         };
         match self {
-            Statement::Lifts => format!("SELECT g.id FROM gateways g WHERE {lifts} ORDER BY g.id"),
             // Each change as `MS STATUS`, its time counted from the period's start and its
             // status by the first two letters of its name: a third of the text.
             Statement::Timelines => format!(
@@ -176,20 +171,8 @@ impl Store {
         statement.sql(self.copy.is_some())
     }
 
-    /// The ids (registry keys) of `lifts`, in order.
-    pub async fn report_lifts(&self, lifts: Lifts<'_>) -> Result<Vec<String>, StoreError> {
-        let rows = sqlx::query(&self.sql(Statement::Lifts))
-            .bind(lifts.domain)
-            .bind(lifts.only())
-            .fetch_all(&self.pool)
-            .await?;
-        Ok(rows
-            .iter()
-            .map(|r| r.try_get("id"))
-            .collect::<Result<_, _>>()?)
-    }
-
-    /// Each lift's [`Timeline`] from `from` to `to` (ms; `from` included, `to` excluded).
+    /// Each lift's [`Timeline`] from `from` to `to` (ms; `from` included, `to` excluded): every
+    /// lift of `lifts`, also one without a status recorded.
     pub async fn timelines(
         &self,
         lifts: Lifts<'_>,
@@ -299,12 +282,12 @@ impl Store {
         } else {
             "(CASE WHEN json_valid(trim(t.value)) THEN json_type(trim(t.value)) END) IN ('integer', 'real')"
         };
-        let of =
-            "FROM telemetry t WHERE t.lift = g.id AND t.mplex = $1 AND t.at >= $2 AND t.at < $3";
+        // One pass over the window's values per lift, along its index (the gateways first).
         let sql = format!(
-            "SELECT g.id AS lift, \
-             (SELECT AVG(CAST(t.value AS DOUBLE PRECISION)) {of} AND {number}) AS mean, \
-             (SELECT COUNT(*) {of} AND {number}) AS n FROM gateways g"
+            "SELECT t.lift, AVG(CAST(t.value AS DOUBLE PRECISION)) AS mean, COUNT(*) AS n \
+             FROM gateways g CROSS JOIN telemetry t \
+             WHERE t.lift = g.id AND t.mplex = $1 AND t.at >= $2 AND t.at < $3 AND {number} \
+             GROUP BY t.lift"
         );
         let mut out = HashMap::new();
         for r in sqlx::query(&sql)
@@ -316,7 +299,7 @@ impl Store {
         {
             let mean: Option<f64> = r.try_get("mean")?;
             let n: i64 = r.try_get("n")?;
-            if let Some(mean) = mean.filter(|m| m.is_finite() && n > 0) {
+            if let Some(mean) = mean.filter(|m| m.is_finite()) {
                 out.insert(r.try_get("lift")?, (mean, n as u64));
             }
         }
@@ -339,7 +322,6 @@ impl Store {
         let sql = format!("{prefix} {}", self.sql(statement));
         let query = sqlx::query(&sql).bind(lifts.domain).bind(lifts.only());
         let query = match statement {
-            Statement::Lifts => query,
             Statement::Timelines | Statement::Faults => query.bind(0i64).bind(1i64),
             Statement::Counters(n) => {
                 let mut query = query.bind(0i64).bind(1i64).bind(0i64).bind(1i64);

@@ -307,9 +307,20 @@ impl Node {
         self.load_communication(od, now);
         self.enter(NmtState::PreOperational, now, out);
         if self.self_starting {
-            if let Some(action) = self.nmt.handle(&NmtCommand::Start.frame(self.node_id)) {
-                self.nmt_action(od, action, now, out);
-            }
+            self.own_nmt(od, NmtCommand::Start, now, out);
+        }
+    }
+
+    /// `command` given by the node itself, as if an NMT master had sent it.
+    fn own_nmt(
+        &mut self,
+        od: &mut ObjectDictionary,
+        command: NmtCommand,
+        now: Instant,
+        out: &mut NodeOutput,
+    ) {
+        if let Some(action) = self.nmt.handle(&command.frame(self.node_id)) {
+            self.nmt_action(od, action, now, out);
         }
     }
 
@@ -607,11 +618,7 @@ impl Node {
         match command {
             NodeCommand::SetError(code, data) => self.emcy.set_error(code, data),
             NodeCommand::ClearError(code) => self.emcy.clear_error(code),
-            NodeCommand::Nmt(c) => {
-                if let Some(action) = self.nmt.handle(&c.frame(self.node_id)) {
-                    self.nmt_action(od, action, now, out);
-                }
-            }
+            NodeCommand::Nmt(c) => self.own_nmt(od, c, now, out),
             NodeCommand::SendPdo(n) => self.pdo.request(n, now),
             NodeCommand::SendTime(at) => self.send_time(at, out),
             NodeCommand::Defaults(values) => {

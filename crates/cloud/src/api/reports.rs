@@ -94,15 +94,6 @@ pub(super) async fn availability(
     .into_response())
 }
 
-/// The month a query names; the last complete one without.
-pub(crate) fn month_of(q: &MonthQuery) -> Result<Month, ApiError> {
-    match &q.month {
-        Some(text) => Month::parse(text)
-            .ok_or_else(|| error(StatusCode::BAD_REQUEST, "month: YYYY-MM, 1970 to 9999")),
-        None => Ok(Month::of(cloud_types::now_ms()).previous()),
-    }
-}
-
 /// `GET /api/v1/reports/monthly?month=YYYY-MM`.
 pub(super) async fn monthly(
     State(app): State<Arc<AppState>>,
@@ -110,7 +101,8 @@ pub(super) async fn monthly(
     ApiQuery(q): ApiQuery<MonthQuery>,
 ) -> Result<Json<MonthlyReport>, ApiError> {
     let operator = allowed(caller, Role::Viewer)?;
-    let month = month_of(&q)?;
+    let month = Month::asked(q.month.as_deref())
+        .ok_or_else(|| error(StatusCode::BAD_REQUEST, "month: YYYY-MM, 1970 to 9999"))?;
     Ok(Json(
         insights::monthly(&app.store, &app.insights, &operator.account, month).await?,
     ))

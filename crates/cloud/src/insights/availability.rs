@@ -42,6 +42,21 @@ impl Integrated {
     pub fn of(&self, status: Status) -> i64 {
         self.ms[status as usize]
     }
+
+    /// The availability of this time.
+    pub fn availability(&self) -> Option<f64> {
+        share(
+            self.of(Status::InService) as f64,
+            self.of(Status::OutOfService) as f64,
+        )
+    }
+}
+
+/// Availability: time in service over in and out of service (offline and unknown count
+/// neither way); none when neither was seen.
+pub fn share(in_service: f64, out_of_service: f64) -> Option<f64> {
+    let seen = in_service + out_of_service;
+    (seen > 0.0).then(|| in_service / seen)
 }
 
 /// `timeline` from `from` to `to` (ms) as consecutive spans of one status each (start, end,
@@ -100,7 +115,7 @@ pub fn figures(
     let per = |total: f64, n: u64| (n > 0).then(|| total / n as f64);
     LiftFigures {
         lift: lift.to_owned(),
-        availability: (up + down > 0.0).then(|| up / (up + down)),
+        availability: share(up, down),
         in_service_s: up,
         out_of_service_s: down,
         offline_s: seconds(Status::Offline),
@@ -124,7 +139,7 @@ pub fn combined<'a>(lifts: impl IntoIterator<Item = &'a LiftFigures>) -> Option<
     let (up, down) = lifts.into_iter().fold((0.0, 0.0), |(u, d), l| {
         (u + l.in_service_s, d + l.out_of_service_s)
     });
-    (up + down > 0.0).then(|| up / (up + down))
+    share(up, down)
 }
 
 #[cfg(test)]

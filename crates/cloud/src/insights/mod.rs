@@ -9,8 +9,8 @@ pub mod trends;
 use std::collections::{BTreeMap, HashMap};
 use std::sync::{Arc, PoisonError};
 
-use cloud_store::{Lifts, Store, StoreError};
-use cloud_types::insights::{LiftFigures, MonthAvailability, MonthlyReport, Status};
+use cloud_store::{Lifts, Store, StoreError, Timeline};
+use cloud_types::insights::{LiftFigures, MonthAvailability, MonthlyReport};
 use cloud_types::lifts::shown_id;
 use cloud_types::users::Account;
 
@@ -25,31 +25,49 @@ pub async fn figures(
     from: i64,
     to: i64,
 ) -> Result<Vec<LiftFigures>, StoreError> {
-    let ids = store.report_lifts(lifts).await?;
-    let mut timelines = store.timelines(lifts, from, to).await?;
+    let with = figures_and_timelines(store, insights, lifts, from, to).await?;
+    Ok(with.into_iter().map(|(figures, _)| figures).collect())
+}
+
+/// [`figures`], each with the lift's statuses it was made from (the lift page draws them).
+pub async fn figures_and_timelines(
+    store: &Store,
+    insights: &Insights,
+    lifts: Lifts<'_>,
+    from: i64,
+    to: i64,
+) -> Result<Vec<(LiftFigures, Timeline)>, StoreError> {
+    // One row per lift: the timelines name the lifts too.
+    let mut timelines: Vec<(String, Timeline)> = store
+        .timelines(lifts, from, to)
+        .await?
+        .into_iter()
+        .collect();
+    timelines.sort_by(|a, b| a.0.cmp(&b.0));
     let mut faults = store.faults(lifts, from, to).await?;
     let objects =
         [insights.trips, insights.door_cycles, insights.reopenings].map(|m| m.to_string());
     let mplexes = objects.each_ref().map(String::as_str);
     let mut counters = store.counters_at(lifts, &mplexes, from, to).await?;
-    Ok(ids
-        .iter()
-        .map(|id| {
-            let edges = counters.remove(id).unwrap_or_default();
+    Ok(timelines
+        .into_iter()
+        .map(|(id, timeline)| {
+            let edges = counters.remove(&id).unwrap_or_default();
             let edge = |i: usize| edges.get(i).copied().unwrap_or_default();
             let counters = Counters {
                 trips: edge(0),
                 door_cycles: edge(1),
                 reopenings: edge(2),
             };
-            availability::figures(
-                shown_id(id),
+            let figures = availability::figures(
+                shown_id(&id),
                 from,
                 to,
-                &timelines.remove(id).unwrap_or_default(),
-                faults.remove(id).unwrap_or_default(),
+                &timeline,
+                faults.remove(&id).unwrap_or_default(),
                 counters,
-            )
+            );
+            (figures, timeline)
         })
         .collect())
 }
@@ -68,12 +86,8 @@ pub async fn availabilities(
         .await?
         .into_iter()
         .map(|(lift, timeline)| {
-            let time = availability::integrate(&timeline, from, to);
-            let (up, down) = (time.of(Status::InService), time.of(Status::OutOfService));
-            (
-                lift,
-                (up + down > 0).then(|| up as f64 / (up + down) as f64),
-            )
+            let availability = availability::integrate(&timeline, from, to).availability();
+            (lift, availability)
         })
         .collect())
 }
@@ -133,15 +147,16 @@ async fn month_availability(
     month: Month,
 ) -> Result<MonthAvailability, StoreError> {
     let timelines = store.timelines(lifts, month.start(), month.end()).await?;
-    let (mut up, mut down) = (0, 0);
+    let mut all = availability::Integrated::default();
     for timeline in timelines.values() {
         let time = availability::integrate(timeline, month.start(), month.end());
-        up += time.of(Status::InService);
-        down += time.of(Status::OutOfService);
+        for (sum, ms) in all.ms.iter_mut().zip(time.ms) {
+            *sum += ms;
+        }
     }
     Ok(MonthAvailability {
         month: month.to_string(),
-        availability: (up + down > 0).then(|| up as f64 / (up + down) as f64),
+        availability: all.availability(),
     })
 }
 
@@ -162,6 +177,15 @@ impl Month {
         let year: i32 = y.parse().ok().filter(|y| (1970..=9999).contains(y))?;
         let month = time::Month::try_from(m.parse::<u8>().ok()?).ok()?;
         Some(Month { year, month })
+    }
+
+    /// The month a request asks for: `YYYY-MM`, or without one the last complete month; none
+    /// for a text that is no month.
+    pub fn asked(text: Option<&str>) -> Option<Month> {
+        match text {
+            Some(text) => Month::parse(text),
+            None => Some(Month::of(cloud_types::now_ms()).previous()),
+        }
     }
 
     /// The month `at` (ms) is in.
@@ -234,7 +258,7 @@ pub async fn monthly(
     };
     let before = [3, 2, 1].map(|back| (0..back).fold(month, |m, _| m.previous()));
     // The past months need only their statuses; all four are asked at once.
-    let (figures, m1, m2, m3) = futures_util::try_join!(
+    let (figures, m1, m2, m3) = tokio::try_join!(
         figures(store, insights, lifts, month.start(), month.end()),
         month_availability(store, lifts, before[0]),
         month_availability(store, lifts, before[1]),
@@ -285,14 +309,14 @@ pub fn csv(lifts: &[LiftFigures]) -> String {
         let _ = write!(
             out,
             "{},{},{},{},{},{},{},{},{},{},{},{},{},{}\r\n",
-            quoted(&l.lift),
+            crate::csv::cell(&l.lift),
             opt(l.availability),
             l.in_service_s,
             l.out_of_service_s,
             l.offline_s,
             l.unknown_s,
             l.faults,
-            quoted(&kinds.join(";")),
+            crate::csv::cell(&kinds.join(";")),
             count(l.trips),
             opt(l.faults_per_1000_trips),
             opt(l.mtbf_s),
@@ -302,21 +326,6 @@ pub fn csv(lifts: &[LiftFigures]) -> String {
         );
     }
     out
-}
-
-/// A CSV field, quoted when it holds a separator, a quote or a line break; a field a
-/// spreadsheet would take for a formula is prefixed with `'`.
-fn quoted(field: &str) -> String {
-    let field = if field.starts_with(['=', '+', '-', '@']) {
-        format!("'{field}")
-    } else {
-        field.to_owned()
-    };
-    if field.contains([',', '"', '\r', '\n']) {
-        format!("\"{}\"", field.replace('"', "\"\""))
-    } else {
-        field
-    }
 }
 
 #[cfg(test)]

@@ -49,11 +49,18 @@ pub async fn run(
     };
     let mut ticks = tokio::time::interval(every);
     ticks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    // Each rule at its own period: a rule over days is not asked every few seconds because
+    // another looks at minutes.
+    let mut due = vec![tokio::time::Instant::now(); rules.len()];
     loop {
-        ticks.tick().await;
+        let tick = ticks.tick().await;
         let now = cloud_types::now_ms();
         let mut out = Vec::new();
-        for (mplex, rule) in &rules {
+        for ((mplex, rule), due) in rules.iter().zip(&mut due) {
+            if *due > tick {
+                continue;
+            }
+            *due = tick + period(rule);
             let object = mplex.to_string();
             let split = now - hours_ms(rule.window_h);
             let start = split - hours_ms(rule.baseline_h);

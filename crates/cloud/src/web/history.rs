@@ -164,7 +164,12 @@ pub(super) async fn history_csv(
         csv.push_str("time,object,value\r\n");
         for (s, rows) in series.iter().zip(&raw) {
             for (at, value) in rows {
-                csv.push_str(&format!("{},{},{}\r\n", iso(*at), s.mplex, cell(value)));
+                csv.push_str(&format!(
+                    "{},{},{}\r\n",
+                    iso(*at),
+                    s.mplex,
+                    crate::csv::cell(value)
+                ));
             }
         }
     } else {
@@ -183,7 +188,7 @@ pub(super) async fn history_csv(
                     s.mplex,
                     number(b.min),
                     number(b.max),
-                    cell(&b.last),
+                    crate::csv::cell(&b.last),
                     b.count
                 ));
             }
@@ -217,25 +222,6 @@ fn attachment(file: &str) -> String {
         })
         .collect();
     format!("attachment; filename=\"{safe}\"; filename*=UTF-8''{safe}")
-}
-
-/// A value as a CSV cell: quoted when it holds a separator, a quote or a line break; a text a
-/// spreadsheet would take for a formula (it begins with `=`, `+`, `-`, `@`, a tab or a carriage
-/// return: OWASP's CSV injection) is prefixed with `'` so it stays text. Numbers, negative
-/// ones too, stay numbers.
-fn cell(value: &str) -> String {
-    let formula =
-        value.starts_with(['=', '+', '-', '@', '\t', '\r']) && value.trim().parse::<f64>().is_err();
-    let value = if formula {
-        format!("'{value}")
-    } else {
-        value.to_owned()
-    };
-    if value.contains([',', '"', '\r', '\n', '\t']) || formula {
-        format!("\"{}\"", value.replace('"', "\"\""))
-    } else {
-        value
-    }
 }
 
 /// Milliseconds since the epoch as ISO 8601 UTC with milliseconds.
@@ -491,8 +477,6 @@ fn figure(s: &Series, d: &Described, period: &Period, l: Locale) -> Markup {
 mod tests {
     use super::*;
 
-    /// A gateway's text a spreadsheet would run stays text; numbers stay numbers; a separator
-    /// or quote is quoted (RFC 4180).
     #[test]
     fn a_period_beyond_what_the_page_shows_is_the_last_hour() {
         let query = |from, to| HistoryQuery {
@@ -513,22 +497,6 @@ mod tests {
         }
         let p = Period::of(&query(1_000, 2_000));
         assert_eq!((p.from, p.to, p.minutes), (1_000, 2_000, None));
-    }
-
-    #[test]
-    fn csv_cells_hold_no_formulas() {
-        assert_eq!(
-            cell("=HYPERLINK(\"http://x\")"),
-            "\"'=HYPERLINK(\"\"http://x\"\")\""
-        );
-        assert_eq!(cell("+1+cmd|' /C calc'!A0"), "\"'+1+cmd|' /C calc'!A0\"");
-        assert_eq!(cell("@SUM(A1)"), "\"'@SUM(A1)\"");
-        assert_eq!(cell("\tx"), "\"'\tx\"");
-        assert_eq!(cell("-3.5"), "-3.5");
-        assert_eq!(cell("+7"), "+7");
-        assert_eq!(cell("12"), "12");
-        assert_eq!(cell("a,b"), "\"a,b\"");
-        assert_eq!(cell("plain text"), "plain text");
     }
 
     /// A download's name never carries the gateway's quotes, semicolons or a path.

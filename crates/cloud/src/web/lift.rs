@@ -385,25 +385,23 @@ pub(super) async fn lift_page(
         lift: Some(key),
     };
     // The gateway's answers and the database's at once: the page waits for the slower only.
-    let (mut objects, stored, alarms, events, figures, timelines) = tokio::join!(
+    let (mut objects, stored, alarms, events, recent) = tokio::join!(
         read_all(&app, key, &wanted, l),
         app.store.latest(key, &live_keys),
         app.store.alarms(&session.operator.account.domain, &active),
         app.store.event_log(key, None, 50),
-        crate::insights::figures(&app.store, &app.insights, this, from, to),
-        app.store.timelines(this, from, to),
+        crate::insights::figures_and_timelines(&app.store, &app.insights, this, from, to),
     );
-    let (stored, alarms, events, figures, mut timelines) =
-        match (stored, alarms, events, figures, timelines) {
-            (Ok(s), Ok(a), Ok(e), Ok(f), Ok(t)) => (s, a, e, f, t),
-            (Err(e), ..)
-            | (_, Err(e), ..)
-            | (_, _, Err(e), ..)
-            | (.., Err(e), _)
-            | (.., Err(e)) => return unavailable(e, who.viewer()),
-        };
-    let spans =
-        crate::insights::availability::spans(&timelines.remove(key).unwrap_or_default(), from, to);
+    let (stored, alarms, events, recent) = match (stored, alarms, events, recent) {
+        (Ok(s), Ok(a), Ok(e), Ok(r)) => (s, a, e, r),
+        (Err(e), ..) | (_, Err(e), ..) | (_, _, Err(e), _) | (.., Err(e)) => {
+            return unavailable(e, who.viewer())
+        }
+    };
+    let recent = recent.first().map(|(figures, timeline)| {
+        let spans = crate::insights::availability::spans(timeline, from, to);
+        (figures, spans)
+    });
     for o in &mut objects {
         o.stored = stored.get(&o.mplex.to_string()).cloned();
     }
@@ -468,8 +466,8 @@ pub(super) async fn lift_page(
                 (super::alarms::table(&alarms, &who, &lift_path(&id), false))
             }
         }
-        @if let Some(f) = figures.first() {
-            (super::reports::recent(f, &spans, from, to, l))
+        @if let Some((figures, spans)) = &recent {
+            (super::reports::recent(figures, spans, from, to, l))
         }
         p.rights.muted hidden role="status" {}
         h2 { (l.t("Live values")) }

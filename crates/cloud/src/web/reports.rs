@@ -119,18 +119,9 @@ pub(super) async fn reports_page(
     Query(q): Query<ReportQuery>,
 ) -> Response {
     let l = who.locale;
-    let month = match q.month.as_deref() {
-        Some(text) => match Month::parse(text) {
-            Some(m) => m,
-            None => {
-                return problem(
-                    StatusCode::BAD_REQUEST,
-                    who.viewer(),
-                    l.t("A month is written YYYY-MM."),
-                )
-            }
-        },
-        None => Month::of(cloud_types::now_ms()).previous(),
+    let Some(month) = Month::asked(q.month.as_deref()) else {
+        let message = l.t("A month is written YYYY-MM.");
+        return problem(StatusCode::BAD_REQUEST, who.viewer(), message);
     };
     let account = &who.session.operator.account;
     let report = match insights::monthly(&app.store, &app.insights, account, month).await {

@@ -50,18 +50,25 @@ fn same_object(index: u16, catalog: &Texts, eds_name: &str) -> bool {
 pub struct NodeMetadata {
     /// The dictionary of its EDS or DCF (shared: an embedded gateway's is its controller's,
     /// and many gateways in one process may describe the same controller).
-    pub eds: Option<Arc<ObjectDictionary>>,
+    eds: Option<Arc<ObjectDictionary>>,
     /// The vendor's metadata (catalog format).
-    pub vendor: Option<Catalog>,
+    vendor: Option<Catalog>,
+    /// Whether the EDS says it is a CiA 417 device (1000h names profile 417): only then does
+    /// the lift catalog describe its objects — a CiA 401 I/O module's 6000h is not a lift's.
+    /// Read once, when the EDS is.
+    lift_profile: bool,
 }
 
 impl NodeMetadata {
-    /// Whether its EDS says it is a CiA 417 device (1000h names profile 417): only then does
-    /// the lift catalog describe its objects — a CiA 401 I/O module's 6000h is not a lift's.
-    fn lift_profile(&self) -> bool {
-        self.eds.as_ref().is_some_and(|od| {
+    fn new(eds: Option<Arc<ObjectDictionary>>, vendor: Option<Catalog>) -> NodeMetadata {
+        let lift_profile = eds.as_ref().is_some_and(|od| {
             matches!(od.get_value(0x1000, 0), Ok(Value::Uint(v)) if v & 0xFFFF == u64::from(PROFILE_417))
-        })
+        });
+        NodeMetadata {
+            eds,
+            vendor,
+            lift_profile,
+        }
     }
 }
 
@@ -149,9 +156,14 @@ impl BusMetadata {
     pub fn with_dictionary(mut self, target: Target, od: Arc<ObjectDictionary>) -> BusMetadata {
         let node = self.nodes.entry(target).or_default();
         if node.eds.is_none() {
-            node.eds = Some(od);
+            *node = NodeMetadata::new(Some(od), node.vendor.take());
         }
         self
+    }
+
+    /// Whether the lift catalog describes `target`: the lift controller, or a CiA 417 device.
+    fn is_lift(&self, target: Target) -> bool {
+        target == self.controller || self.nodes.get(&target).is_some_and(|n| n.lift_profile)
     }
 
     /// The NXg part of a description from the vendor file, the catalog or the communication
@@ -232,8 +244,7 @@ impl Metadata for BusMetadata {
         let vendor = node.and_then(|n| n.vendor.as_ref());
         let controller = target == self.controller;
         if let Some(od) = node.and_then(|n| n.eds.as_ref()) {
-            let lift = controller || node.is_some_and(NodeMetadata::lift_profile);
-            return self.merged(od, vendor, lift, index, sub);
+            return self.merged(od, vendor, self.is_lift(target), index, sub);
         }
         if vendor.is_none() && !controller {
             return Lookup::Unknown;
@@ -271,7 +282,7 @@ impl Metadata for BusMetadata {
         };
         let object = od.object(index)?;
         let eds = Texts::english(&object.name);
-        let lift = target == self.controller || node.is_some_and(NodeMetadata::lift_profile);
+        let lift = self.is_lift(target);
         let catalog = || {
             Catalog::builtin()
                 .object_texts(None, index)
@@ -310,7 +321,7 @@ fn load_node(n: &NodeSection) -> Result<NodeMetadata, GatewayError> {
         Some(path) => Some(load_vendor(path, eds.as_deref())?),
         None => None,
     };
-    Ok(NodeMetadata { eds, vendor })
+    Ok(NodeMetadata::new(eds, vendor))
 }
 
 /// A vendor metadata file: the catalog's format; every object it describes that the EDS has
