@@ -1,9 +1,9 @@
-"""A fake api-2 gateway in Python `websockets` (an independent WebSocket and TLS stack) that
+"""A fake gateway (NXg api 1, with canlift's bus events) in Python `websockets` (an independent WebSocket and TLS stack) that
 pushes bus events as told and reports the subscriptions the portal registers
 (crates/cloud/tests/python_events.rs, crates/cloud/tests/python_subscriptions.rs).
 
 usage: event_gateway.py URL CA_FILE SERNUM
-Connects (api 2), answers the portal's requests (every request succeeds with {"done": 0}; the
+Connects (api 1), answers the portal's requests (every request succeeds with {"done": 0}; the
 cloud token is kept for reconnections) and reads commands from standard input:
   EVENT {json}   push the event as a canopen_event notification
   CLOSE          close the connection
@@ -38,7 +38,7 @@ class Gateway:
     async def connect(self):
         self.ws = await connect(URL, ssl=SSL, subprotocols=["cloud", "lift"])
         identity = {"sernum": SERNUM, "vendorid": 1050, "productcode": 4096, "liftnum": "py",
-                    "hardware": "python", "software": "1", "api": 2, "boardhash": "00"}
+                    "hardware": "python", "software": "1", "api": 1, "boardhash": "00"}
         if self.token is not None:
             identity["cloudtoken"] = self.token
         await self.ws.send(json.dumps({"jsonrpc": "2.0", "method": "CONNECT", "id": 1,

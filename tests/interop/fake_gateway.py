@@ -31,9 +31,24 @@ def connect_message(token=None):
                        "params": {"identity": identity, "domaintoken": "MAS"}})
 
 
+EVENTS_REFUSED = []
+
+
+async def next_request(ws, timeout=10):
+    """The portal's next message but `reg_canopen_event`, which this gateway (NXg SW003 v1.0.0
+    without canlift's extension) does not have: answered -32601 like any unknown method."""
+    while True:
+        message = json.loads(await asyncio.wait_for(ws.recv(), timeout))
+        if message.get("method") != "reg_canopen_event":
+            return message
+        EVENTS_REFUSED.append(message["params"]["events"])
+        await ws.send(json.dumps({"jsonrpc": "2.0", "id": message["id"],
+                                  "error": {"code": -32601, "message": "Method not found"}}))
+
+
 async def closed_without_answer(ws):
     try:
-        message = await asyncio.wait_for(ws.recv(), 10)
+        message = await next_request(ws)
         return f"answered: {message}"
     except ConnectionClosed:
         return "closed"
@@ -46,7 +61,7 @@ async def main():
         await ws.send(connect_message())
         connack = json.loads(await ws.recv())
         report("connack", connack)
-        update = json.loads(await ws.recv())
+        update = await next_request(ws)
         report("update_method", update["method"])
         token = update["params"]["token"]
         report("token_sernum", update["params"]["sernum"])
@@ -64,14 +79,32 @@ async def main():
     # The right token: accepted without a new token; a second valid connection replaces it.
     async with connect(URL, ssl=SSL, subprotocols=["lift"]) as first:
         await first.send(connect_message(token))
-        report("known", json.loads(await first.recv())["result"])
+        report("known", (await next_request(first))["result"])
         async with connect(URL, ssl=SSL, subprotocols=["lift"]) as second:
             await second.send(connect_message(token))
-            report("second", json.loads(await second.recv())["result"])
+            report("second", (await next_request(second))["result"])
             report("first_after_second", await closed_without_answer(first))
-            # The portal's heartbeat reaches the connection in service.
-            request = json.loads(await asyncio.wait_for(second.recv(), 10))
-            report("heartbeat", request["method"])
+            # The portal's heartbeat reaches the connection in service, events refused or not.
+            report("heartbeat", (await next_request(second))["method"])
+            report("events_refused", EVENTS_REFUSED)
+    # NXg §5.3: WebSocket pings prove nothing (a proxy may answer them for a gateway that is
+    # gone). A gateway that pings every 0.5 s and answers the portal's pings, yet leaves its
+    # get_heartbeat requests unanswered, is dropped after 2 × heartbeat + 30 s (32 s here).
+    async with connect(URL, ssl=SSL, subprotocols=["cloud"], ping_interval=0.5) as ws:
+        await ws.send(connect_message(token))
+        json.loads(await ws.recv())
+        started = asyncio.get_running_loop().time()
+        heartbeats = 0
+        try:
+            while True:
+                message = await next_request(ws, 45)
+                heartbeats += message.get("method") == "get_heartbeat"
+        except ConnectionClosed:
+            report("pinging_unanswered", "closed")
+        except asyncio.TimeoutError:
+            report("pinging_unanswered", "open")
+        report("pinging_lasted_s", round(asyncio.get_running_loop().time() - started))
+        report("pinging_heartbeats", heartbeats)
     # No CONNECT within the timeout: closed.
     async with connect(URL, ssl=SSL, subprotocols=["cloud"]) as ws:
         report("silent", await closed_without_answer(ws))

@@ -15,7 +15,7 @@ pub enum LiftEvent {
     Value(Notification),
     /// The gateway came online or went offline.
     Online(bool),
-    /// A bus event (api 2).
+    /// A bus event (docs/PROTOCOL.md §Events).
     Bus(Event),
     /// An alarm changed.
     Alarm(AlarmChange),

@@ -227,8 +227,8 @@ pub struct DashboardSection {
     pub inhibit_ms: u64,
     /// The lift page's parameter table.
     pub parameters: Vec<String>,
-    /// Bus event kinds registered on every gateway that speaks api 2 (docs/PROTOCOL.md
-    /// §Events); empty: none.
+    /// Bus event kinds registered on every gateway (docs/PROTOCOL.md §Events; one that does
+    /// not have them answers −32601); empty: none.
     pub events: Vec<EventKind>,
 }
 
@@ -241,7 +241,7 @@ pub struct Dashboard {
     pub inhibit_ms: u64,
     /// The lift page's parameter table.
     pub parameters: Vec<Mplex>,
-    /// Bus event kinds registered on api-2 gateways.
+    /// Bus event kinds registered on every gateway.
     pub events: Vec<EventKind>,
 }
 

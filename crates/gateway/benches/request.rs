@@ -31,7 +31,7 @@ fn session(now: Instant) -> (Session, Vec<u8>) {
         None,
         now,
     );
-    let connack = r#"{"jsonrpc":"2.0","id":1,"result":"CONNACK","api":2}"#;
+    let connack = r#"{"jsonrpc":"2.0","id":1,"result":"CONNACK","api":1}"#;
     let _ = session.connect();
     let _ = session.handle_text(connack, now);
     assert!(matches!(session.phase(), Phase::Connected(_)));

@@ -417,6 +417,13 @@ impl Config {
         if self.privileges.lockout_s == 0 {
             return err("privileges.lockout_s ≥ 1");
         }
+        if !(1..=nxg::msg::API).contains(&self.identity.api) {
+            return Err(ConfigError(format!(
+                "identity.api is 1–{}, the NXg API versions canlift speaks (bus events need no \
+                 API number: docs/PROTOCOL.md §Events)",
+                nxg::msg::API
+            )));
+        }
         if self.policy.default_privilege > 3 {
             return err(
                 "policy.default_privilege is 0 (user), 1 (service), 2 (setup) or 3 (never)",
@@ -437,7 +444,7 @@ impl Config {
         nets.extend(self.networks.iter().map(|n| n.net));
         Settings {
             identity: Identity {
-                api: self.identity.api.max(1),
+                api: self.identity.api.clamp(1, nxg::msg::API),
                 ..self.identity.clone()
             },
             service_sha1: self.privileges.service_sha1.clone(),

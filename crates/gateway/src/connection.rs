@@ -13,7 +13,7 @@ use tokio_tungstenite::tungstenite::client::IntoClientRequest;
 use tokio_tungstenite::tungstenite::http::HeaderValue;
 use tokio_tungstenite::tungstenite::protocol::frame::coding::CloseCode;
 use tokio_tungstenite::tungstenite::protocol::{CloseFrame, WebSocketConfig};
-use tokio_tungstenite::tungstenite::Message;
+use tokio_tungstenite::tungstenite::{self, Message};
 
 use crate::access::Objects;
 use crate::feed::{Feed, Update};
@@ -100,7 +100,7 @@ pub async fn run(shared: &Shared, shutdown: &mut tokio::sync::watch::Receiver<bo
     );
     let tls = match tokio::time::timeout(timeout, tls.connect(server_name, tcp)).await {
         Ok(Ok(s)) => s,
-        Ok(Err(e)) => return ended(false, format!("TLS with {host}: {e}")),
+        Ok(Err(e)) => return ended(false, format!("TLS with {host}: {}", refusal(&e))),
         Err(_) => {
             return ended(
                 false,
@@ -118,6 +118,9 @@ pub async fn run(shared: &Shared, shutdown: &mut tokio::sync::watch::Receiver<bo
     let handshake = tokio_tungstenite::client_async_with_config(request, tls, Some(ws_config));
     let (mut ws, response) = match tokio::time::timeout(timeout, handshake).await {
         Ok(Ok(pair)) => pair,
+        Ok(Err(tungstenite::Error::Io(e))) => {
+            return ended(false, format!("TLS with {host}: {}", refusal(&e)))
+        }
         Ok(Err(e)) => return ended(false, format!("WebSocket upgrade refused: {e}")),
         Err(_) => return ended(false, "WebSocket upgrade: no answer in time"),
     };
@@ -324,12 +327,10 @@ where
                 let now = Instant::now();
                 match message {
                     Some(Ok(Message::Text(text))) => session.handle_text(text.as_str(), now),
-                    Some(Ok(Message::Ping(_) | Message::Pong(_))) => {
-                        session.handle_activity(now);
-                        Vec::new()
-                    }
+                    // Liveness is the portal's NXg messages alone (NXg §5.3): a proxy may
+                    // answer pings for a portal that is gone.
+                    Some(Ok(Message::Ping(_) | Message::Pong(_))) => Vec::new(),
                     Some(Ok(Message::Binary(_))) => {
-                        session.handle_activity(now);
                         tracing::warn!("binary message ignored: the connector speaks JSON text");
                         Vec::new()
                     }
@@ -443,5 +444,67 @@ fn start_job(
             });
             None
         }
+    }
+}
+
+/// A TLS failure as the person reading the gateway's log needs it. Under TLS 1.3 the portal
+/// judges the client certificate after the gateway's side of the handshake is done, so its
+/// refusal arrives as an alert at the first read (the WebSocket upgrade): named here for what it
+/// means rather than as the alert or the end of stream it shows up as.
+fn refusal(e: &std::io::Error) -> String {
+    use rustls::AlertDescription as Alert;
+    let alert = e
+        .get_ref()
+        .and_then(|inner| inner.downcast_ref::<rustls::Error>())
+        .and_then(|inner| match inner {
+            rustls::Error::AlertReceived(alert) => Some(*alert),
+            _ => None,
+        });
+    match alert {
+        Some(Alert::CertificateRequired) => format!(
+            "the portal requires a client certificate (mutual TLS): set [cloud] client_cert and \
+             client_key ({e})"
+        ),
+        Some(
+            Alert::BadCertificate
+            | Alert::UnknownCA
+            | Alert::CertificateUnknown
+            | Alert::CertificateExpired
+            | Alert::CertificateRevoked
+            | Alert::UnsupportedCertificate
+            | Alert::AccessDenied,
+        ) => format!(
+            "the portal refused the gateway's client certificate ([cloud] client_cert: not \
+             signed by the CA the portal trusts, expired or revoked; {e})"
+        ),
+        _ => e.to_string(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn alert(description: rustls::AlertDescription) -> std::io::Error {
+        std::io::Error::new(
+            std::io::ErrorKind::InvalidData,
+            rustls::Error::AlertReceived(description),
+        )
+    }
+
+    #[test]
+    fn a_portals_refusal_of_the_client_certificate_is_named() {
+        let required = refusal(&alert(rustls::AlertDescription::CertificateRequired));
+        assert!(
+            required.starts_with("the portal requires a client certificate (mutual TLS): set [cloud] client_cert and client_key"),
+            "{required}"
+        );
+        let refused = refusal(&alert(rustls::AlertDescription::UnknownCA));
+        assert!(
+            refused.starts_with("the portal refused the gateway's client certificate"),
+            "{refused}"
+        );
+        let other = std::io::Error::new(std::io::ErrorKind::UnexpectedEof, "gone");
+        assert_eq!(refusal(&other), "gone");
     }
 }

@@ -2,7 +2,7 @@
 //! the sans-IO [`Supervisor`] on a bus endpoint of its own — EMCY, NMT states and heartbeat
 //! silence of every node, the network's state — reads each newly heard node's heartbeat period
 //! (1017h) by SDO, and queues what happened as bus events with their time and the EMCY texts,
-//! for the portal that registers for them (api 2).
+//! for the portal that registers for them (docs/PROTOCOL.md §Events).
 
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};

@@ -359,10 +359,12 @@ where
         Ok(step)
     }
 
-    /// After a TLS error: queue the alert rustls prepared and try to write it now.
+    /// After a TLS error: queue the alert rustls prepared and try to write it now. rustls is
+    /// given the records it has not discarded yet, as on every call: its handshake deframer
+    /// remembers positions in them (an empty slice instead panics inside rustls).
     fn queue_alert(&mut self) {
         for _ in 0..4 {
-            let UnbufferedStatus { state, .. } = self.conn.process_tls_records(&mut []);
+            let UnbufferedStatus { state, .. } = self.conn.process_tls_records(&mut self.incoming);
             let Ok(ConnectionState::EncodeTlsData(mut encode)) = state else {
                 break;
             };

@@ -131,7 +131,7 @@ async fn output(rig: &Rig, args: &[&str]) -> String {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn alarms_ack_and_events() {
-    let rig = Rig::builder().gateway(|g| g.identity.api = 2).start().await;
+    let rig = Rig::builder().start().await;
     rig.online().await;
     assert!(output(&rig, &["alarms"]).await.contains("no active alarm"));
     // A drive fault in the simulator (setup rights for 5030h).

@@ -1,5 +1,5 @@
 //! Faults that reach people (docs/PORTAL.md §Alarms): the portal stores every bus event its
-//! gateways push (api 2, docs/PROTOCOL.md §Events) and keeps **alarms** — fault conditions with
+//! gateways push (docs/PROTOCOL.md §Events) and keeps **alarms** — fault conditions with
 //! a lifecycle: raised → acknowledged (by whom, when, with what comment) → cleared (the
 //! condition is gone). The conditions: an EMCY of a node (per node and error code), a node that
 //! fell silent, a network in trouble, and a lift whose gateway has been offline for

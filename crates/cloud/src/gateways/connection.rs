@@ -232,10 +232,9 @@ impl Connection {
                         }
                         Ok(out)
                     }
-                    Some(Ok(Message::Ping(_) | Message::Pong(_))) => {
-                        self.session.handle_activity(now);
-                        Ok(Vec::new())
-                    }
+                    // Liveness is the gateway's NXg messages alone (NXg §5.3): a proxy may
+                    // answer pings for a gateway that is gone.
+                    Some(Ok(Message::Ping(_) | Message::Pong(_))) => Ok(Vec::new()),
                     Some(Ok(Message::Binary(_))) => Err("binary message".into()),
                     Some(Ok(Message::Close(_))) | None => {
                         Err("gateway closed the connection".into())
@@ -334,7 +333,7 @@ impl Connection {
                     Admission::FirstContact { subscribed, .. } => (*subscribed, true),
                     Admission::Refused(..) => (false, false),
                 };
-                self.register(&lift, &connect, api, subscribed);
+                self.register(&lift, &connect, subscribed);
                 tracing::info!(%lift, %peer, api, first, "gateway online");
                 self.shared.registry.publish(&lift, LiftEvent::Online(true));
                 self.shared.reports.report(Report::Online(lift)).await;
@@ -343,9 +342,9 @@ impl Connection {
         }
     }
 
-    /// Make the lift reachable for operators and subscribe the dashboard's objects (and, with
-    /// api ≥ 2, its bus events).
-    fn register(&mut self, lift: &str, connect: &Connect, api: u32, subscribed: bool) {
+    /// Make the lift reachable for operators and subscribe the dashboard's objects and its bus
+    /// events.
+    fn register(&mut self, lift: &str, connect: &Connect, subscribed: bool) {
         if self.admitted.is_some() {
             return;
         }
@@ -363,7 +362,6 @@ impl Connection {
             self.shared.subscriptions.clone(),
             lift.to_owned(),
             self.shared.dashboard.clone(),
-            api,
             subscribed,
         ));
     }

@@ -1,4 +1,4 @@
-//! What gateway connections report beyond their values: bus events (api 2, docs/PROTOCOL.md
+//! What gateway connections report beyond their values: bus events (docs/PROTOCOL.md
 //! §Events) and changes of their connection, on a bounded queue to whoever keeps alarms
 //! (docs/PORTAL.md §Alarms). The connections know nothing of alarms; the alarm service reads
 //! the queue.

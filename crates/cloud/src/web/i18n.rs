@@ -288,7 +288,7 @@ const GERMAN: &[(&str, &str)] = &[
     ("0x652001, 0x6520:1 or a name", "0x652001, 0x6520:1 oder ein Name"),
     ("Read", "Lesen"),
     ("Event log", "Ereignisse"),
-    ("No bus event stored (gateways that speak api 2 push them).", "Kein Busereignis gespeichert (Gateways mit API 2 senden sie)."),
+    ("No bus event stored (canlift gateways push them).", "Kein Busereignis gespeichert (canlift-Gateways senden sie)."),
     ("chart", "Verlauf"),
     ("Edit", "Ändern"),
     ("Object", "Objekt"),

@@ -489,7 +489,7 @@ pub(super) async fn lift_page(
         section #events {
             h2 { (l.t("Event log")) }
             @if events.is_empty() {
-                p.muted { (l.t("No bus event stored (gateways that speak api 2 push them).")) }
+                p.muted { (l.t("No bus event stored (canlift gateways push them).")) }
             } @else {
                 (super::alarms::event_log(&events, l))
             }

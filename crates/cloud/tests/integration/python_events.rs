@@ -1,4 +1,4 @@
-//! Events, alarms and webhooks on the portal, against a fake api-2 gateway written with Python
+//! Events, alarms and webhooks on the portal, against a fake gateway (NXg api 1 with the events) written with Python
 //! `websockets` and a webhook receiver written with Python's http.server that checks every
 //! delivery with the Standard Webhooks reference library and with the verifier of
 //! docs/PORTAL.md §Webhooks (independent implementations of the connector's client side and of
@@ -97,7 +97,7 @@ async fn events_become_alarms_that_reach_people() {
         "event_gateway.py",
         &[&rig.ws_url(), &ca, "PY-EVENTS"],
     );
-    assert_eq!(gateway.wait_for("CONNACK", 1, WAIT).await[0], "CONNACK 2");
+    assert_eq!(gateway.wait_for("CONNACK", 1, WAIT).await[0], "CONNACK 1");
     // The portal registers the dashboard's event kinds.
     let registered = gateway.wait_for("EVENTS", 1, WAIT).await;
     assert_eq!(registered[0], r#"EVENTS ["emcy", "state", "bus"]"#);

@@ -24,7 +24,7 @@ async fn identity_and_token_rules() {
         .start()
         .await;
     let out = tokio::time::timeout(
-        Duration::from_secs(60),
+        Duration::from_secs(120),
         tokio::process::Command::new(&python)
             .arg(testkit::interop_script("fake_gateway.py"))
             .arg(rig.ws_url())
@@ -60,7 +60,24 @@ async fn identity_and_token_rules() {
     assert_eq!(facts["second"], "CONNACK");
     assert_eq!(facts["first_after_second"], "closed");
     assert_eq!(facts["heartbeat"], "get_heartbeat");
+    // Bus events are asked for by name of every gateway (docs/PROTOCOL.md §Events): this one, NXg
+    // v1.0.0 only, answered −32601 (at least on the connection that got the heartbeat after it)
+    // and was served on.
+    let refused = facts["events_refused"].as_array().unwrap();
+    assert!(!refused.is_empty());
+    assert!(
+        refused
+            .iter()
+            .all(|e| *e == json!(["emcy", "state", "bus"])),
+        "{refused:?}"
+    );
     assert_eq!(facts["silent"], "closed");
+    // Liveness is NXg messages alone (NXg §5.3): websockets' pings and pongs every 0.5 s kept
+    // nothing alive; the silence limit (2 × 1 s + 30 s) ended it, heartbeats unanswered.
+    assert_eq!(facts["pinging_unanswered"], "closed");
+    let lasted = facts["pinging_lasted_s"].as_u64().unwrap();
+    assert!((31..=40).contains(&lasted), "closed after {lasted} s");
+    assert!(facts["pinging_heartbeats"].as_u64().unwrap() >= 20);
     assert_eq!(facts["no_subprotocol"], 400);
     // The refusals were recorded.
     let refusals = rig

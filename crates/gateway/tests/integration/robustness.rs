@@ -202,3 +202,48 @@ async fn a_flood_is_bounded_and_heartbeats_still_come_at_once() {
     );
     rig.finish().await;
 }
+
+/// NXg §5.3: the WebSocket heartbeat is not enough — a proxy may answer pings for a portal that
+/// is gone. A portal that pings every 0.5 s and answers the gateway's pings, yet sends no NXg
+/// message after CONNACK, is dropped after 2 × heartbeat + 30 s (32 s here), and the gateway
+/// dials again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn pings_alone_do_not_keep_the_portal_alive() {
+    use futures_util::SinkExt;
+    let rig = rig("pings-alone", |c| {
+        c.cloud.heartbeat_s = 1;
+        c.cloud.ping_s = 1;
+    })
+    .await;
+    let (mut ws, ..) = rig.portal.accept().await;
+    connack(&mut ws).await;
+    let started = std::time::Instant::now();
+    let mut tick = tokio::time::interval(std::time::Duration::from_millis(500));
+    let (mut pings, mut pongs) = (0, 0);
+    tokio::time::timeout(std::time::Duration::from_secs(45), async {
+        loop {
+            tokio::select! {
+                _ = tick.tick() => {
+                    if ws.send(Message::Ping(Vec::new().into())).await.is_err() {
+                        return;
+                    }
+                }
+                message = ws.next() => match message {
+                    Some(Ok(Message::Ping(_))) => pings += 1,
+                    Some(Ok(Message::Pong(_))) => pongs += 1,
+                    Some(Ok(Message::Close(_))) | None | Some(Err(_)) => return,
+                    Some(Ok(other)) => panic!("the gateway sent {other:?}"),
+                }
+            }
+        }
+    })
+    .await
+    .expect("the gateway drops a portal that only pings");
+    let lasted = started.elapsed().as_secs();
+    assert!((31..=40).contains(&lasted), "dropped after {lasted} s");
+    assert!(pings >= 20 && pongs >= 40, "{pings} pings, {pongs} pongs");
+    // It dials again.
+    let (mut ws, ..) = rig.portal.accept().await;
+    connack(&mut ws).await;
+    rig.finish().await;
+}

@@ -202,6 +202,8 @@ pub struct Session {
     token: Option<String>,
     phase: Phase,
     started: Instant,
+    /// When the peer's last NXg message arrived. WebSocket pings and pongs do not count: a
+    /// proxy may answer them for a peer that is gone (NXg §5.3, docs/PROTOCOL.md §Heartbeat).
     last_rx: Instant,
     next_job: JobId,
     waiting: HashMap<JobId, Waiting>,
@@ -284,11 +286,6 @@ impl Session {
         pushes.chain([self.silence_deadline()]).min()
     }
 
-    /// Something arrived (a text, a ping or pong): the connection is alive.
-    pub fn handle_activity(&mut self, now: Instant) {
-        self.last_rx = now;
-    }
-
     /// Time passed: pushes whose inhibit gap ended, or the end of a silent connection.
     pub fn handle_timeout(&mut self, now: Instant) -> Vec<Output> {
         match self.phase {
@@ -367,13 +364,13 @@ impl Session {
                     ErrorObject::rpc(rpc_codes::INVALID_REQUEST, "not connected: CONNACK first");
                 vec![Output::Send(msg::error_response(id.as_ref(), &error))]
             }
-            (Phase::Connected(api), Incoming::Request { id, method, params }) => {
-                // A method of a later API than the one in force is as unknown as any other.
-                let Some(method) = Method::from_name(&method).filter(|m| m.since_api() <= api)
-                else {
+            (Phase::Connected(_), Incoming::Request { id, method, params }) => {
+                // The bus events are served to any portal that calls them, whatever the api:
+                // they are canlift's extension, not a version of NXg (docs/PROTOCOL.md §Events).
+                let Some(method) = Method::from_name(&method) else {
                     let error = ErrorObject::rpc(
                         rpc_codes::METHOD_NOT_FOUND,
-                        format!("unknown method {method:?} (api {api} in force)"),
+                        format!("unknown method {method:?}"),
                     );
                     return vec![Output::Send(msg::error_response(id.as_ref(), &error))];
                 };
@@ -497,7 +494,7 @@ impl Session {
         }
     }
 
-    /// `reg_canopen_event` (api ≥ 2): the kinds are added to those registered, and what waited
+    /// `reg_canopen_event`: the kinds are added to those registered, and what waited
     /// for a portal follows the answer.
     fn register_events(&mut self, id: &Option<Id>, mut p: RegEventParams) -> Vec<Output> {
         let lang = self.languages(p.lang.take());
@@ -512,7 +509,7 @@ impl Session {
         out
     }
 
-    /// `unreg_canopen_event` (api ≥ 2): the kinds named, or all.
+    /// `unreg_canopen_event`: the kinds named, or all.
     fn unregister_events(&mut self, id: &Option<Id>, p: UnregEventParams) -> Vec<Output> {
         match (p.events, self.events.as_mut()) {
             (Some(kinds), Some(subscription)) => {

@@ -26,7 +26,7 @@ pub struct Identity {
     pub boardhash: String,
     /// Which account the unit belongs to.
     pub domaintoken: String,
-    /// Highest API version offered: 2 (bus events, docs/PROTOCOL.md §Events) unless set lower.
+    /// Highest NXg API version offered (NXg §5.2.1): [`crate::msg::API`] unless set otherwise.
     pub api: u32,
 }
 

@@ -1,5 +1,5 @@
-//! Bus events: the connector's api 2 extension (docs/PROTOCOL.md §Events). A portal that
-//! negotiated api ≥ 2 registers with `reg_canopen_event`; the gateway then pushes
+//! Bus events: canlift's extension of the connector (docs/PROTOCOL.md §Events), called by name
+//! at any NXg api. A portal registers with `reg_canopen_event`; the gateway then pushes
 //! `canopen_event` notifications — EMCY messages of any node, NMT states of the nodes it
 //! supervises, and the state of each CAN network — with the payload under `result`, like
 //! `canopen_object`.

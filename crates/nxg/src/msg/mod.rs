@@ -30,9 +30,10 @@ pub use object::{
     ObjectData, PutAnswer, PutObject, PutParams, RegParams, UnregParams, Written,
 };
 
-/// The highest API version canlift speaks: 1 is NXg SW003 v1.0.0, 2 adds bus events
-/// (docs/PROTOCOL.md §Events). Each side offers its highest; the lower of both is in force.
-pub const API: u32 = 2;
+/// The NXg API version canlift speaks: 1, NXg SW003 v1.0.0 (§5.2.1). Each side offers its
+/// highest; the lower of both is in force. The API numbers are NXg's: canlift's bus events are
+/// an extension called by name, not a version (docs/PROTOCOL.md §Events).
+pub const API: u32 = 1;
 
 /// The methods of the connector, each listed once (NXg SW003 §5–§7).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -55,11 +56,11 @@ pub enum Method {
     UnregCanopenObject,
     /// Gateway → portal notification: a subscribed object changed (§7.3).
     CanopenObject,
-    /// Portal → gateway (api ≥ 2): push bus events (docs/PROTOCOL.md §Events).
+    /// Portal → gateway (canlift's extension): push bus events (docs/PROTOCOL.md §Events).
     RegCanopenEvent,
-    /// Portal → gateway (api ≥ 2): stop pushing bus events.
+    /// Portal → gateway (canlift's extension): stop pushing bus events.
     UnregCanopenEvent,
-    /// Gateway → portal notification (api ≥ 2): a bus event.
+    /// Gateway → portal notification (canlift's extension): a bus event.
     CanopenEvent,
 }
 
@@ -95,14 +96,6 @@ impl Method {
             Method::RegCanopenEvent => "reg_canopen_event",
             Method::UnregCanopenEvent => "unreg_canopen_event",
             Method::CanopenEvent => "canopen_event",
-        }
-    }
-
-    /// The lowest API version that has the method (the bus events are api 2).
-    pub fn since_api(self) -> u32 {
-        match self {
-            Method::RegCanopenEvent | Method::UnregCanopenEvent | Method::CanopenEvent => 2,
-            _ => 1,
         }
     }
 

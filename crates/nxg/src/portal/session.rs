@@ -110,7 +110,7 @@ pub enum Output {
     Answer(RequestId, Result<String, Failure>),
     /// A `canopen_object` notification.
     Notification(Notification),
-    /// A `canopen_event` notification (api ≥ 2, docs/PROTOCOL.md §Events).
+    /// A `canopen_event` notification (docs/PROTOCOL.md §Events).
     Event(Event),
 }
 
@@ -140,6 +140,8 @@ pub struct Session {
     settings: Settings,
     phase: Phase,
     started: Instant,
+    /// When the peer's last NXg message arrived. WebSocket pings and pongs do not count: a
+    /// proxy may answer them for a peer that is gone (NXg §5.3, docs/PROTOCOL.md §Heartbeat).
     last_rx: Instant,
     next_heartbeat: Option<Instant>,
     connect_id: Option<Id>,
@@ -287,11 +289,6 @@ impl Session {
         }
     }
 
-    /// A WebSocket ping or pong arrived.
-    pub fn handle_activity(&mut self, now: Instant) {
-        self.last_rx = now;
-    }
-
     /// A text message from the gateway.
     pub fn handle_text(&mut self, text: &str, now: Instant) -> Vec<Output> {
         self.last_rx = now;
@@ -332,15 +329,13 @@ impl Session {
                             Vec::new()
                         }
                     },
-                    Some(Method::CanopenEvent) if self.api >= 2 => {
-                        match msg::params::<EventNotification>(params) {
-                            Ok(n) => vec![Output::Event(n.event)],
-                            Err(why) => {
-                                tracing::debug!(%why, "malformed canopen_event notification ignored");
-                                Vec::new()
-                            }
+                    Some(Method::CanopenEvent) => match msg::params::<EventNotification>(params) {
+                        Ok(n) => vec![Output::Event(n.event)],
+                        Err(why) => {
+                            tracing::debug!(%why, "malformed canopen_event notification ignored");
+                            Vec::new()
                         }
-                    }
+                    },
                     _ => Vec::new(),
                 }
             }

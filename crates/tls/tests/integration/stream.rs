@@ -261,6 +261,38 @@ async fn a_peer_that_speaks_no_tls_is_refused() {
     assert_eq!(alert[0], 21, "{alert:?}");
 }
 
+/// A server that requires a client certificate refuses a client without one with the
+/// certificate_required alert (RFC 8446 §4.4.2.4), which the client reads as such at its first
+/// read (under TLS 1.3 its side of the handshake is done by then) — not an end of stream without
+/// close_notify. The alert is encoded from the records rustls still holds: with none, rustls
+/// itself panicked here.
+#[tokio::test]
+async fn a_client_without_the_required_certificate_is_told_why() {
+    let dir = tempfile::tempdir().unwrap();
+    let files = testkit::pki::pki(dir.path());
+    let server = tls::server_config(&files.cert, &files.key, Some(&files.ca)).unwrap();
+    let client = tls::client_config(Some(&files.ca), None).unwrap();
+    let (near, far) = tokio::io::duplex(16 * 1024);
+    let acceptor = Acceptor::new(Arc::new(server));
+    let accept = acceptor.accept(near);
+    let name = ServerName::try_from("localhost").unwrap();
+    let connect = async {
+        let mut stream = TlsConnector::from(client).connect(name, far).await?;
+        stream.read(&mut [0; 16]).await
+    };
+    let (accepted, read) = tokio::join!(accept, connect);
+    assert!(accepted.is_err(), "no certificate, no connection");
+    let e = read.expect_err("the client learns it was refused");
+    let alert = e.get_ref().and_then(|e| e.downcast_ref::<rustls::Error>());
+    assert_eq!(
+        alert,
+        Some(&rustls::Error::AlertReceived(
+            rustls::AlertDescription::CertificateRequired
+        )),
+        "{e}"
+    );
+}
+
 /// A client that gave up while its connection waited (its ClientHello, then its end of stream,
 /// both there before the server looks) is dropped unanswered: no ServerHello, so no key
 /// agreement or signature was made for it. A client that waits is answered, its hello whole or
