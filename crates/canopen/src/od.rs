@@ -522,6 +522,22 @@ impl ObjectDictionary {
         self.objects.get_mut(&index)
     }
 
+    /// Make the values `index`'s sub-objects hold now their defaults: what a device sets up at
+    /// boot is what its description gives (CiA 306 `DefaultValue`).
+    pub fn keep_as_defaults(&mut self, index: u16) {
+        let Some(object) = self.objects.get_mut(&index) else {
+            return;
+        };
+        for var in object.subs.values_mut() {
+            let value = var
+                .value_bytes()
+                .and_then(|bytes| types::decode(var.data_type, bytes).ok());
+            if let Some(value) = value {
+                var.default_text = Some(types::to_text(var.data_type, &value));
+            }
+        }
+    }
+
     /// All objects in index order.
     pub fn objects(&self) -> impl Iterator<Item = &Object> {
         self.objects.values()

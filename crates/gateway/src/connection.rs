@@ -420,7 +420,21 @@ fn start_job(
         }
         job => {
             let objects = shared.objects.clone();
-            let mut run = Box::pin(async move { objects.run(job).await });
+            let interlock = shared.interlock.clone();
+            let mut run = Box::pin(async move {
+                if let (
+                    Job::Write {
+                        target, index, sub, ..
+                    },
+                    Some(lock),
+                ) = (&job, &interlock)
+                {
+                    if let Err(code) = lock.check(&objects, *target, *index, *sub).await {
+                        return JobResult::Failed(code);
+                    }
+                }
+                objects.run(job).await
+            });
             let metrics = shared.metrics.clone();
             let ok = |result: &JobResult| !matches!(result, JobResult::Failed(_));
             // The local dictionary answers at once: in this round, with no task and no wake-up.

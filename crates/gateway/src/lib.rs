@@ -92,6 +92,8 @@ pub struct Shared {
     context: Context,
     lockout: lockout::LockoutStore,
     objects: Objects,
+    /// The lift-safety interlock every remote write passes (none: `[policy] lift_state = ""`).
+    interlock: Option<access::Interlock>,
     mode: Mode,
     /// Whether a connection is in service (CONNACK came), for [`Gateway::online`].
     online: watch::Sender<bool>,
@@ -325,8 +327,16 @@ impl Gateway {
         context.events = Arc::new(std::sync::Mutex::new(nxg::gateway::EventQueue::new(
             config.limits.max_queued_events,
         )));
+        let interlock = access::Interlock::new(
+            &config.policy,
+            Target {
+                net: 1,
+                node: config.bus.lift_controller,
+            },
+        );
         Ok(Gateway {
             shared: Arc::new(Shared {
+                interlock,
                 token: TokenStore::new(&config.state.dir),
                 context,
                 lockout,

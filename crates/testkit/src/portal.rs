@@ -166,6 +166,11 @@ impl Rig {
         }
     }
 
+    /// The simulated lift (a rig built without one has none).
+    pub fn sim(&self) -> &lift417::sim::Simulator {
+        &self.lift.as_ref().expect("a rig with a lift").0.sim
+    }
+
     /// The scratch directory (the portal's state in `portal/`, the gateway's in `gateway/`).
     pub fn dir(&self) -> &std::path::Path {
         self.dir.path()

@@ -48,6 +48,7 @@ pub struct BusArg {
     #[arg(
         long = "bus",
         global = true,
+        env = "CANLIFT_BUS",
         default_value = "socketcand://127.0.0.1:29536/can0"
     )]
     pub url: String,

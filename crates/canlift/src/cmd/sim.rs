@@ -34,7 +34,8 @@ pub struct SimArgs {
     /// Directory for stored parameters and counters (kept across restarts).
     #[arg(long)]
     state: Option<PathBuf>,
-    /// Start lift 1 with faults: door-blocked, overload, drive, io-offline (comma-separated).
+    /// Start lift 1 with faults or in a special operation: door-blocked, overload, drive,
+    /// io-offline, fire-service, inspection (comma-separated; 0x5030 ends each).
     #[arg(long, value_delimiter = ',')]
     fault: Vec<FaultArg>,
     /// Wear a part: `door-closing=PERCENT` makes every lift's door close PERCENT % more slowly
@@ -92,6 +93,10 @@ enum FaultArg {
     Drive,
     /// The I/O node has lost its supply: silent until the fault is cleared (0x5030 bit 3).
     IoOffline,
+    /// Fire service: the car is recalled to the lowest floor and takes no calls (0x5030 bit 4).
+    FireService,
+    /// Inspection operation: the car takes no calls (0x5030 bit 5).
+    Inspection,
 }
 
 impl SimArgs {
@@ -102,6 +107,8 @@ impl SimArgs {
                 FaultArg::Overload => 2,
                 FaultArg::Drive => 4,
                 FaultArg::IoOffline => lift417::sim::IO_OFFLINE,
+                FaultArg::FireService => lift417::sim::FIRE_SERVICE,
+                FaultArg::Inspection => lift417::sim::INSPECTION,
             }
         });
         let passengers = match self.passengers {

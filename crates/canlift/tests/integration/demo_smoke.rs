@@ -3,83 +3,16 @@
 //! the trip counter rise, Ctrl-C stops everything cleanly, and a second run keeps the counters;
 //! schemathesis finds the demo's API as its OpenAPI document says.
 
-use std::collections::HashMap;
-use std::process::Stdio;
 use std::time::Duration;
 
 use cloud::client::Client;
 use serde_json::json;
-use tokio::io::{AsyncBufReadExt, BufReader};
 
 use crate::common;
-use common::{canlift, interrupt};
+use common::demo::{start, Demo};
+use common::interrupt;
 
 const LIFT: &str = "1050-4096-DEMO-0001";
-
-struct Demo {
-    child: tokio::process::Child,
-    client: Client,
-    /// The portal's URL and API key, as the banner prints them.
-    portal: String,
-    key: String,
-}
-
-async fn start(state: &std::path::Path) -> Demo {
-    let mut child = canlift()
-        .args(["demo", "--speed", "10", "--passengers", "0"])
-        .args([
-            "--hub-listen",
-            "127.0.0.1:0",
-            "--portal-listen",
-            "127.0.0.1:0",
-            "--state",
-        ])
-        .arg(state)
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
-    let mut printed = HashMap::new();
-    let mut example = None;
-    while printed.len() < 3 || example.is_none() {
-        let line = tokio::time::timeout(Duration::from_secs(60), lines.next_line())
-            .await
-            .expect("the demo prints its summary")
-            .unwrap()
-            .expect("the demo is running");
-        if line.contains(" get ") {
-            example = Some(line.clone());
-        }
-        let mut words = line.split_whitespace();
-        if let (Some(k @ ("portal" | "API" | "CA")), Some(v)) = (words.next(), words.next()) {
-            let v = if k == "API" {
-                words.next().unwrap_or_default()
-            } else {
-                v
-            };
-            printed.insert(k.to_owned(), v.to_owned());
-        }
-    }
-    tokio::spawn(async move { while let Ok(Some(_)) = lines.next_line().await {} });
-    // The example commands name a binary the user can run: `canlift` on the PATH, else its path.
-    let example = example.unwrap_or_default();
-    let command = example.split_whitespace().next().unwrap_or_default();
-    let runs_this = command == "canlift"
-        || std::fs::canonicalize(command).ok()
-            == std::fs::canonicalize(env!("CARGO_BIN_EXE_canlift")).ok();
-    assert!(
-        runs_this,
-        "the banner's example does not run this binary: {example}"
-    );
-    let ca = std::path::PathBuf::from(&printed["CA"]);
-    let client = Client::new(&printed["portal"], Some(&printed["API"]), Some(&ca)).unwrap();
-    Demo {
-        child,
-        client,
-        portal: printed["portal"].clone(),
-        key: printed["API"].clone(),
-    }
-}
 
 async fn trips(client: &Client) -> u64 {
     let (status, v) = client

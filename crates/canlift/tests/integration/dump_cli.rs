@@ -1,5 +1,5 @@
 //! `canlift dump` watching a live node: whole SDO transfers and PDOs decoded by mappings it
-//! reads over SDO.
+//! reads over SDO, or by the ones an EDS gives (the simulator's own export).
 
 use std::time::Duration;
 
@@ -69,5 +69,41 @@ async fn dump_shows_transfers_and_learned_pdos() {
     );
     assert!(text.contains("TPDO1 node 6: 2000:00=1234"), "{text}");
     node.stop().await;
+    hub.shutdown().await;
+}
+
+/// The EDS `canlift sim --export-eds` writes gives the PDOs the simulator maps at boot, so
+/// `dump --eds` decodes the running simulator's PDOs from the file alone.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn dump_decodes_the_simulators_pdos_by_its_exported_eds() {
+    let scratch = testkit::scratch();
+    let eds = scratch.path().join("lift.eds");
+    common::export_sim_eds(&eds).await;
+    let hub = testkit::hub().await;
+    let url = testkit::hub_url(&hub, "can0");
+    let mut dump = canlift()
+        .args(["dump", "--bus", &url, "--eds"])
+        .arg(format!("1={}", eds.display()))
+        .spawn()
+        .unwrap();
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let sim = lift417::sim::Simulator::start(&url, lift417::sim::SimConfig::default())
+        .await
+        .unwrap();
+    // Every TPDO of lift 1 has an event timer of at most 5 s.
+    tokio::time::sleep(Duration::from_millis(5500)).await;
+    let mut stdout = dump.stdout.take().unwrap();
+    dump.start_kill().unwrap();
+    let mut text = String::new();
+    let _ = tokio::time::timeout(Duration::from_secs(5), stdout.read_to_string(&mut text)).await;
+    for decoded in [
+        "TPDO1 node 1: 6383:01=",
+        "TPDO2 node 1: 6301:01=",
+        "5024:00=0",
+        "TPDO3 node 1: 6520:01=",
+    ] {
+        assert!(text.contains(decoded), "{decoded} not in {text}");
+    }
+    sim.stop().await;
     hub.shutdown().await;
 }

@@ -10,6 +10,8 @@ mod common;
 mod demo_smoke;
 #[cfg(feature = "portal")]
 mod docs_config;
+#[cfg(feature = "portal")]
+mod docs_run;
 mod dump_cli;
 #[cfg(feature = "portal")]
 mod faults;

@@ -58,13 +58,7 @@ async fn python_canopen_reads_and_calls_the_simulated_lift() {
     let scratch = testkit::scratch();
     let dir = scratch.path();
     let eds = dir.join("lift.eds");
-    let export = canlift()
-        .args(["sim", "--export-eds"])
-        .arg(&eds)
-        .output()
-        .await
-        .unwrap();
-    assert!(export.status.success());
+    common::export_sim_eds(&eds).await;
     let mut sim = canlift()
         .args(["sim", "--bus", &url, "--speed", "20", "--state"])
         .arg(dir.join("state"))

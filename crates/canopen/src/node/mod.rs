@@ -164,6 +164,16 @@ pub(crate) fn pdo_objects(setup: &PdoSetup) -> [u16; 2] {
     }
 }
 
+/// [`configure_pdo`], and the PDO so configured becomes the default of its objects: a device's
+/// description (its EDS) showing the PDOs the device sets up at boot.
+pub fn configure_default_pdo(od: &mut ObjectDictionary, setup: &PdoSetup) -> Result<(), AbortCode> {
+    configure_pdo(od, setup)?;
+    for index in pdo_objects(setup) {
+        od.keep_as_defaults(index);
+    }
+    Ok(())
+}
+
 /// Configure a PDO of `od` with the CiA 301 procedure (as an SDO client would, so the same
 /// checks apply): invalidate, parameters, mapping, validate.
 pub fn configure_pdo(od: &mut ObjectDictionary, setup: &PdoSetup) -> Result<(), AbortCode> {

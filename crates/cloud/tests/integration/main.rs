@@ -6,6 +6,7 @@ mod browser;
 mod contract;
 mod end_to_end;
 mod insights;
+mod interlock;
 mod operations;
 mod python_events;
 mod python_gateway;

@@ -31,6 +31,7 @@ use tokio::task::JoinHandle;
 use crate::catalog::{Catalog, CatalogError, Device};
 use crate::lift::MAX_LIFTS;
 use model::{CallKind, Counters, Event, Fault, Lift, Params};
+pub use model::{FIRE_SERVICE, INSPECTION};
 
 /// CiA 301 device profile number of CiA 417.
 pub const PROFILE_417: u32 = 417;
@@ -363,7 +364,8 @@ fn passenger_call(lift: u8, floors: u8, data: &[u8]) -> Result<Input, AbortCode>
 /// 0x5030 bit 3: the I/O node has lost its supply (silent: no heartbeat, no answers).
 pub const IO_OFFLINE: u8 = 0x08;
 
-/// 0x5030: fault injection bits (bits 0–2 the lift's faults, bit 3 the I/O node offline).
+/// 0x5030: fault injection bits (bits 0–2 the lift's faults, bit 3 the I/O node offline, bits 4
+/// and 5 fire service and inspection).
 fn fault_injection(lift: u8, data: &[u8]) -> Result<Input, AbortCode> {
     let bits = *data.first().ok_or(AbortCode::LENGTH_MISMATCH)?;
     Ok(Input::Inject(lift, bits))
@@ -441,27 +443,16 @@ impl Simulator {
                     input_hook(&tx, move |d| button_press(floors, d)),
                 );
                 let node = LocalNode::start(Bus::open(url).await?, od, config.io_config(id));
-                // 6010h travels from the I/O node's TPDO1 to the controller's RPDO1.
-                let link = PdoSetup {
-                    transmit: true,
-                    number: 1,
-                    cob_id: 0x180 + u32::from(id),
-                    objects: vec![(0x6010, 0)],
-                    transmission_type: 255,
-                    inhibit_100us: 0,
-                    event_ms: 0,
-                };
-                node.configure_pdo(&link).map_err(SimError::Pdo)?;
-                let receive = PdoSetup {
-                    transmit: false,
-                    ..link
-                };
-                controller.configure_pdo(&receive).map_err(SimError::Pdo)?;
+                for setup in io_pdos(id) {
+                    node.configure_pdo(&setup).map_err(SimError::Pdo)?;
+                }
                 Some(Arc::new(node))
             }
             None => None,
         };
-        configure_tpdos(&controller, &config)?;
+        for setup in controller_pdos(&config) {
+            controller.configure_pdo(&setup).map_err(SimError::Pdo)?;
+        }
         if config.autostart {
             // Self-starting devices; the simulator is ready once both are operational, so a
             // button pressed right away is not lost to a controller still pre-operational.
@@ -497,6 +488,15 @@ impl Simulator {
         let _ = self.inputs.send(Input::Press(floor, kind, lift));
     }
 
+    /// Set `lift`'s faults and special operations (the 0x5030 bits) as a switch on site does:
+    /// what a write of 0x5030 on the bus does, without the bus.
+    pub fn set_switches(&self, lift: u8, bits: u8) {
+        let _ = self
+            .controller
+            .set_value(manufacturer(0x5030, lift), 0, &Value::Uint(bits.into()));
+        let _ = self.inputs.send(Input::Inject(lift, bits));
+    }
+
     /// Stop the lifts, store the counters and stop both nodes.
     pub async fn stop(mut self) {
         if let Some(stop) = self.stop.take() {
@@ -513,11 +513,40 @@ impl Simulator {
     }
 }
 
-/// TPDOs per lift: (1) position, speed, acceleration; (2) door status, door position, light
-/// barrier, floor, state; (3) trip counter, load, load signal. Lift 1 uses the pre-defined
-/// COB-IDs (180h/280h/380h + node-ID); lifts 2–8 use 680h + 3 × (lift − 2) + k, a range CiA 301
-/// leaves free (one multi-lift simulator per bus).
-fn configure_tpdos(node: &LocalNode, config: &SimConfig) -> Result<(), SimError> {
+/// 6010h travels from the I/O node's TPDO1 to the controller's RPDO1.
+fn io_link(io_node: u8) -> PdoSetup {
+    PdoSetup {
+        transmit: true,
+        number: 1,
+        cob_id: 0x180 + u32::from(io_node),
+        objects: vec![(0x6010, 0)],
+        transmission_type: 255,
+        inhibit_100us: 0,
+        event_ms: 0,
+    }
+}
+
+/// The PDOs the I/O node sets up at boot: its button TPDO.
+fn io_pdos(io_node: u8) -> Vec<PdoSetup> {
+    vec![io_link(io_node)]
+}
+
+/// The PDOs the controller sets up at boot — what a running simulator maps and what its
+/// exported EDS gives as default values, so that a tool reading the file decodes its PDOs. The
+/// I/O node's buttons on RPDO1 (with an I/O node); TPDOs per lift: (1) position, speed,
+/// acceleration; (2) door status, door position, light barrier, floor, state; (3) trip counter,
+/// load, load signal. Lift 1 uses the pre-defined COB-IDs (180h/280h/380h + node-ID); lifts 2–8
+/// use 680h + 3 × (lift − 2) + k, a range CiA 301 leaves free (one multi-lift simulator per
+/// bus).
+fn controller_pdos(config: &SimConfig) -> Vec<PdoSetup> {
+    let mut setups: Vec<PdoSetup> = config
+        .io_node
+        .map(|id| PdoSetup {
+            transmit: false,
+            ..io_link(id)
+        })
+        .into_iter()
+        .collect();
     for lift in 1..=config.lifts {
         let p = |index| profile(index, lift);
         let m = |index| manufacturer(index, lift);
@@ -546,20 +575,18 @@ fn configure_tpdos(node: &LocalNode, config: &SimConfig) -> Result<(), SimError>
         ];
         for (k, (objects, inhibit_100us, event_ms)) in layouts.into_iter().enumerate() {
             let k16 = k as u16;
-            let cob_id = lift_tpdo_cob_id(config.node_id, lift, k16);
-            node.configure_pdo(&PdoSetup {
+            setups.push(PdoSetup {
                 transmit: true,
                 number: 3 * (u16::from(lift) - 1) + k16 + 1,
-                cob_id,
+                cob_id: lift_tpdo_cob_id(config.node_id, lift, k16),
                 objects,
                 transmission_type: 255,
                 inhibit_100us,
                 event_ms,
-            })
-            .map_err(SimError::Pdo)?;
+            });
         }
     }
-    Ok(())
+    setups
 }
 
 /// The COB-ID of TPDO `k` (0–2) of lift `lift`: lift 1 in the pre-defined connection set, lifts
@@ -970,18 +997,28 @@ fn read_params(node: &LocalNode, lift: u8, floors: u8) -> Option<Params> {
 /// The EDS of the simulated `device` as [`Simulator::start`] would run it.
 pub fn export_eds(config: &SimConfig, device: Device) -> Result<String, SimError> {
     config.check()?;
-    let (mut od, node, product) = match device {
+    let (mut od, node, product, pdos) = match device {
         Device::Controller => (
             controller_dictionary(config)?,
             config.controller_config(),
             CONTROLLER_NAME,
+            controller_pdos(config),
         ),
         Device::Io => {
             let id = config.io_node.unwrap_or(12);
-            (io_dictionary(config)?, config.io_config(id), IO_NAME)
+            (
+                io_dictionary(config)?,
+                config.io_config(id),
+                IO_NAME,
+                io_pdos(id),
+            )
         }
     };
     add_communication_objects(&mut od, &node);
+    // The PDOs as the device sets them up at boot are the file's defaults.
+    for setup in &pdos {
+        canopen::node::configure_default_pdo(&mut od, setup).map_err(SimError::Pdo)?;
+    }
     if let Some(path) = node.storage.clone() {
         canopen::storage::add_storage_objects(&mut od, path);
     }

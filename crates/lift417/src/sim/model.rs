@@ -91,7 +91,21 @@ pub enum CallError {
     /// Hall up at the top floor or hall down at the bottom.
     #[error("no hall call in that direction at floor {0}")]
     NoDirection(u8),
+    /// In fire service or inspection the lift takes no call.
+    #[error("no calls in {0}")]
+    SpecialOperation(&'static str),
 }
+
+/// 0x5030 bit 4: fire service — the fire alarm input or the fire service key switch (CiA 417's
+/// virtual input functions 0Bh/0Ch): every call is cancelled, the car is recalled to the lowest
+/// floor, opens its doors there, and takes no further call.
+pub const FIRE_SERVICE: u8 = 0x10;
+/// 0x5030 bit 5: inspection operation — the inspection switch on the car roof: every call is
+/// cancelled, the car stops after its travel and takes no call.
+pub const INSPECTION: u8 = 0x20;
+
+/// The 0x5030 bits the lift itself acts on: its three faults and the two special operations.
+const LIFT_BITS: u8 = 0x07 | FIRE_SERVICE | INSPECTION;
 
 /// What the lift did.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -160,6 +174,11 @@ pub enum LiftState {
     OutOfService = 4,
     /// Braking after a drive fault.
     FastStop = 5,
+    /// In fire service: recalled to the lowest floor, taking no calls (0x5030 bit 4).
+    FireService = 6,
+    /// In inspection operation: taking no calls (0x5030 bit 5). Value 7, fire brigade service,
+    /// is left for controllers that have it.
+    Inspection = 8,
 }
 
 /// Settings the controller reads from its dictionary.
@@ -331,6 +350,13 @@ impl Lift {
 
     /// Register a call to 1-based `floor`.
     pub fn call(&mut self, floor: u8, kind: CallKind) -> Result<(), CallError> {
+        match self.special_operation() {
+            Some(LiftState::FireService) => {
+                return Err(CallError::SpecialOperation("fire service"))
+            }
+            Some(_) => return Err(CallError::SpecialOperation("inspection")),
+            None => {}
+        }
         let floors = self.params.levels.len();
         let f = usize::from(floor)
             .checked_sub(1)
@@ -347,7 +373,12 @@ impl Lift {
 
     /// Set the injected faults (bits of [`Fault::bit`]); they begin and end as the lift runs.
     pub fn inject(&mut self, bits: u8) {
-        self.injected = bits & 0x07;
+        let fire_begins = bits & FIRE_SERVICE != 0 && self.injected & FIRE_SERVICE == 0;
+        self.injected = bits & LIFT_BITS;
+        if fire_begins {
+            // The recall: a call of the lift's own that no passenger can make now.
+            self.car_calls.insert(0);
+        }
     }
 
     /// The injected fault bits.
@@ -433,6 +464,9 @@ impl Lift {
         if !self.active.is_empty() {
             return LiftState::OutOfService;
         }
+        if let Some(special) = self.special_operation() {
+            return special;
+        }
         if self.target.is_some() {
             return match self.moving_up {
                 Some(false) => LiftState::Down,
@@ -502,10 +536,37 @@ impl Lift {
         self.seed
     }
 
+    /// Fire service or inspection, if the lift is switched to one (fire service first).
+    fn special_operation(&self) -> Option<LiftState> {
+        if self.injected & FIRE_SERVICE != 0 {
+            Some(LiftState::FireService)
+        } else if self.injected & INSPECTION != 0 {
+            Some(LiftState::Inspection)
+        } else {
+            None
+        }
+    }
+
+    /// In a special operation the passengers' calls are gone; fire service keeps one call of
+    /// its own, the recall to the lowest floor (until the car is there).
+    fn cancel_calls(&mut self) {
+        let Some(special) = self.special_operation() else {
+            return;
+        };
+        self.hall_up.clear();
+        self.hall_down.clear();
+        let recalled = special == LiftState::FireService && self.car_calls.contains(&0);
+        self.car_calls.clear();
+        if recalled {
+            self.car_calls.insert(0);
+        }
+    }
+
     fn step(&mut self, dt: f64) {
         self.counters.operating_s += dt;
         self.age_s += dt;
         self.update_faults();
+        self.cancel_calls();
         if self.target.is_some() {
             self.drive(dt);
         } else {
@@ -625,6 +686,9 @@ impl Lift {
     }
 
     fn park(&mut self, here: usize, dt: f64) {
+        if self.special_operation().is_some() {
+            return;
+        }
         self.idle_s += dt;
         if let Some((after, floor)) = self.params.parking {
             let park = usize::from(floor.max(1)) - 1;

@@ -10,6 +10,10 @@
 //! - an object without a description (no EDS, catalog or vendor metadata) is never written;
 //! - `default_privilege` is what writing an object needs when no metadata says.
 //!
+//! - the lift-safety interlock: while the lift controller's state object (`lift_state`) holds a
+//!   value of `refuse_writes_in` — out of order, fire service, fire brigade service, inspection —
+//!   every put is refused with 08000022h and reads go on (docs/GATEWAY.md §Lift-safety interlock).
+//!
 //! A rule is an index (`"0x5022"`), a range (`"0x1010-0x1FFF"`), or a table with a node:
 //! `{ index = "0x1010-0x1FFF", node = 12 }`.
 
@@ -21,6 +25,7 @@ use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use super::metadata::Target;
 use crate::codes::ErrorCode;
 use crate::meta::Privilege;
+use crate::mplex::Mplex;
 
 /// Whether the cloud may write at all.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -141,6 +146,45 @@ pub struct Policy {
     pub hide: Vec<Rule>,
     /// The privilege writing needs where no metadata says (0 user, 1 service, 2 setup, 3 never).
     pub default_privilege: u8,
+    /// The lift controller's state object read before every put (the lift-safety interlock);
+    /// `""`: no interlock. Default 0x502400, the lift state of canlift's controller
+    /// (docs/SIMULATOR.md).
+    #[serde(with = "optional_mplex")]
+    pub lift_state: Option<Mplex>,
+    /// The values of `lift_state` in which every put is refused with 08000022h. Default: 4 out
+    /// of order, 6 fire service, 7 fire brigade service, 8 inspection.
+    pub refuse_writes_in: Vec<u64>,
+    /// Objects the interlock lets through in any state. Default 0x5030, the simulator's fault
+    /// and special-operation switches (lift 1): they stand for what is switched on site.
+    pub interlock_exempt: Vec<Rule>,
+}
+
+/// The interlock's default values of the lift state: out of order, fire service, fire brigade
+/// service, inspection (canlift's 0x5024, docs/SIMULATOR.md).
+pub const REFUSE_WRITES_IN: [u64; 4] = [4, 6, 7, 8];
+
+/// `lift_state` as the configuration writes it: an mplex, or `""` for none.
+mod optional_mplex {
+    use serde::{Deserialize, Deserializer, Serializer};
+
+    use crate::mplex::Mplex;
+
+    pub fn serialize<S: Serializer>(value: &Option<Mplex>, s: S) -> Result<S::Ok, S::Error> {
+        match value {
+            Some(m) => s.collect_str(m),
+            None => s.serialize_str(""),
+        }
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Option<Mplex>, D::Error> {
+        let text = String::deserialize(d)?;
+        if text.is_empty() {
+            return Ok(None);
+        }
+        Mplex::parse(&text)
+            .map(Some)
+            .map_err(serde::de::Error::custom)
+    }
 }
 
 impl Default for Policy {
@@ -151,6 +195,15 @@ impl Default for Policy {
             allow: Vec::new(),
             hide: Vec::new(),
             default_privilege: Privilege::Setup.code(),
+            lift_state: Some(Mplex {
+                index: 0x5024,
+                sub: 0,
+            }),
+            refuse_writes_in: REFUSE_WRITES_IN.to_vec(),
+            interlock_exempt: vec![Rule {
+                indices: 0x5030..=0x5030,
+                node: None,
+            }],
         }
     }
 }
@@ -196,6 +249,21 @@ impl Policy {
             ));
         }
         Ok(())
+    }
+
+    /// Whether the lift-safety interlock guards a put of `index` on `target` (then the lift
+    /// state is read first).
+    pub fn guarded(&self, target: Target, index: u16) -> bool {
+        self.lift_state.is_some()
+            && !self
+                .interlock_exempt
+                .iter()
+                .any(|r| r.matches(target, index))
+    }
+
+    /// Whether the lift-safety interlock refuses writes while the lift state is `state`.
+    pub fn interlocked(&self, state: u64) -> bool {
+        self.lift_state.is_some() && self.refuse_writes_in.contains(&state)
     }
 
     /// The `allow` rules that can never take effect, each with why (logged as warnings at
@@ -244,8 +312,16 @@ impl Policy {
                     .join(", ")
             }
         };
+        let interlock = match self.lift_state {
+            Some(state) => format!(
+                "interlock {state} in {:?} (exempt {})",
+                self.refuse_writes_in,
+                list(&self.interlock_exempt)
+            ),
+            None => "no interlock".to_owned(),
+        };
         format!(
-            "remote writes {}; deny {}; allow {}; hide {}; default privilege {}",
+            "remote writes {}; deny {}; allow {}; hide {}; default privilege {}; {interlock}",
             match self.remote_writes {
                 RemoteWrites::Allowed => "allowed",
                 RemoteWrites::ReadOnly => "read-only",
@@ -268,6 +344,43 @@ mod tests {
 
     const CONTROLLER: Target = Target { net: 1, node: 1 };
     const IO: Target = Target { net: 1, node: 12 };
+
+    #[test]
+    fn the_interlock_is_on_by_default_and_can_be_moved_or_turned_off() {
+        let default = Policy::default();
+        assert_eq!(
+            default.lift_state.map(|m| m.to_string()).as_deref(),
+            Some("0x502400")
+        );
+        for state in REFUSE_WRITES_IN {
+            assert!(default.interlocked(state));
+        }
+        assert!(!default.interlocked(0) && !default.interlocked(5));
+        assert!(default.guarded(IO, 0x6200) && default.guarded(CONTROLLER, 0x5022));
+        assert!(
+            !default.guarded(CONTROLLER, 0x5030),
+            "the simulator's switches"
+        );
+        let vendor = policy(r#"{"lift_state": "0x2100a0", "refuse_writes_in": [17]}"#).unwrap();
+        assert_eq!(
+            vendor.lift_state,
+            Some(Mplex {
+                index: 0x2100,
+                sub: 0xA0
+            })
+        );
+        assert!(vendor.interlocked(17) && !vendor.interlocked(6));
+        let off = policy(r#"{"lift_state": ""}"#).unwrap();
+        assert!(off.lift_state.is_none() && !off.interlocked(6));
+        assert!(!off.guarded(CONTROLLER, 0x5022));
+        assert!(off.summary().ends_with("no interlock"));
+        assert!(policy(r#"{"lift_state": "0x5024"}"#).is_err());
+        // What --print-config writes reads back the same.
+        for p in [default, vendor, off] {
+            let text = serde_json::to_string(&p).unwrap();
+            assert_eq!(policy(&text).unwrap(), p, "{text}");
+        }
+    }
 
     #[test]
     fn an_allow_that_cannot_take_effect_is_named() {

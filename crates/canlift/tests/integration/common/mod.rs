@@ -13,6 +13,17 @@ pub fn canlift() -> tokio::process::Command {
     cmd
 }
 
+/// `canlift sim --export-eds EDS`: the simulated controller's EDS (and its I/O node's beside it).
+pub async fn export_sim_eds(eds: &std::path::Path) {
+    let export = canlift()
+        .args(["sim", "--export-eds"])
+        .arg(eds)
+        .output()
+        .await
+        .expect("canlift runs");
+    assert!(export.status.success(), "{}", stderr(&export));
+}
+
 /// Run `canlift ARGS` to its end.
 pub async fn run(args: &[&str]) -> Output {
     canlift().args(args).output().await.expect("canlift runs")
@@ -126,3 +137,5 @@ pub async fn kill(child: &mut tokio::process::Child) {
 mod portal;
 #[cfg(feature = "portal")]
 pub use portal::PortalProcess;
+#[cfg(feature = "portal")]
+pub mod demo;

@@ -281,3 +281,46 @@ fn a_wearing_door_closes_ever_more_slowly_until_its_supervision_calls_it_blocked
     assert!(lift.closing_factor() > CLOSING_LIMIT);
     assert_eq!(lift.state(), LiftState::OutOfService);
 }
+
+#[test]
+fn fire_service_recalls_the_car_and_refuses_calls_until_it_ends() {
+    let mut lift = lift();
+    lift.call(6, CallKind::Car).unwrap();
+    lift.call(3, CallKind::HallUp).unwrap();
+    lift.advance(Duration::from_secs(2));
+    lift.inject(FIRE_SERVICE);
+    assert_eq!(lift.state(), LiftState::FireService);
+    assert!(matches!(
+        lift.call(5, CallKind::Car),
+        Err(CallError::SpecialOperation("fire service"))
+    ));
+    // The travel under way ends at its floor; the passengers' calls are gone, and the car
+    // comes back to the lowest floor and opens there.
+    let (_, events) = run_until(&mut lift, 120.0, |l, events| {
+        l.floor() == 1 && events.contains(&Event::DoorsOpen) && !l.has_calls()
+    });
+    assert!(events.contains(&Event::Arrived { floor: 1 }), "{events:?}");
+    assert!(!events.contains(&Event::Arrived { floor: 6 }), "{events:?}");
+    lift.advance(Duration::from_secs(60));
+    assert_eq!((lift.floor(), lift.state()), (1, LiftState::FireService));
+    // Back to normal: calls are taken again.
+    lift.inject(0);
+    lift.call(4, CallKind::Car).unwrap();
+    run_until(&mut lift, 60.0, |l, _| l.floor() == 4);
+}
+
+#[test]
+fn inspection_stops_taking_calls_and_faults_still_come_first() {
+    let mut lift = lift();
+    lift.inject(INSPECTION);
+    assert_eq!(lift.state(), LiftState::Inspection);
+    assert!(matches!(
+        lift.call(2, CallKind::HallUp),
+        Err(CallError::SpecialOperation("inspection"))
+    ));
+    lift.advance(Duration::from_secs(30));
+    assert_eq!(lift.floor(), 1);
+    lift.inject(INSPECTION | Fault::DriveFault.bit());
+    lift.advance(Duration::from_secs(1));
+    assert_eq!(lift.state(), LiftState::OutOfService);
+}
