@@ -359,18 +359,16 @@ where
         Ok(step)
     }
 
-    /// After a TLS error: queue the alert rustls prepared and try to write it now. rustls is
-    /// given the records it has not discarded yet, as on every call: its handshake deframer
-    /// remembers positions in them (an empty slice instead panics inside rustls).
+    /// After a TLS error: queue the alert rustls prepared and try to write it now. The alert is
+    /// the one record rustls queued in the failing call (what came before went out with the
+    /// steps before), so rustls is asked once: a second call would go on to the records again —
+    /// a record that could not be deframed would be refused a second time (a second fatal alert:
+    /// rustls asserts there is none), and with an empty slice instead of the records it has not
+    /// discarded, its handshake deframer reads positions that are gone (a panic inside rustls).
     fn queue_alert(&mut self) {
-        for _ in 0..4 {
-            let UnbufferedStatus { state, .. } = self.conn.process_tls_records(&mut self.incoming);
-            let Ok(ConnectionState::EncodeTlsData(mut encode)) = state else {
-                break;
-            };
-            if append(&mut self.outgoing, |out| encoded(encode.encode(out))).is_err() {
-                break;
-            }
+        let UnbufferedStatus { state, .. } = self.conn.process_tls_records(&mut self.incoming);
+        if let Ok(ConnectionState::EncodeTlsData(mut encode)) = state {
+            let _ = append(&mut self.outgoing, |out| encoded(encode.encode(out)));
         }
         let mut cx = Context::from_waker(std::task::Waker::noop());
         let _ = self.poll_write_out(&mut cx);
