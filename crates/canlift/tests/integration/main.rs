@@ -7,6 +7,8 @@ mod ascii_cli;
 mod cluster;
 mod common;
 #[cfg(feature = "portal")]
+mod cross_gateway;
+#[cfg(feature = "portal")]
 mod demo_smoke;
 #[cfg(feature = "portal")]
 mod docs_config;
