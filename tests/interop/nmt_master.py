@@ -10,6 +10,7 @@ prints WAIT-EMCY and waits for EMCY 0x4210.
 import logging
 import sys
 import threading
+import time
 
 import canopen
 
@@ -40,7 +41,14 @@ def main():
         node.nmt.wait_for_heartbeat(2)  # may still carry the old state
         print("HEARTBEAT", node.nmt.wait_for_heartbeat(2), flush=True)
     print("WAIT-EMCY", flush=True)
-    error = node.emcy.wait(0x4210, timeout=5)
+    # From the consumer's log, not emcy.wait(): wait() sees only what arrives after it is called,
+    # and the node may send as soon as it reads WAIT-EMCY.
+    deadline = time.monotonic() + 5
+    error = None
+    while error is None and time.monotonic() < deadline:
+        error = next((e for e in list(node.emcy.log) if e.code == 0x4210), None)
+        if error is None:
+            time.sleep(0.01)
     if error is None:
         sys.exit("FAIL: no EMCY 0x4210")
     print(f"EMCY {error.code:04X} {error.register:02X} {bytes(error.data).hex()}", flush=True)
