@@ -275,6 +275,14 @@ impl Rig {
             .expect("the portal answers")
     }
 
+    /// The lift's value of `mplex` as the portal reads it now (`?form=naked`, first value).
+    pub async fn naked(&self, mplex: &str) -> Value {
+        let path = format!("/api/v1/lifts/{LIFT}/objects/{mplex}?form=naked");
+        let (status, body) = self.call("GET", &path, Some(&self.key), None).await;
+        assert_eq!(status, 200, "{mplex}: {body}");
+        body["object"]["value"][0].clone()
+    }
+
     /// One counter or gauge of the portal's `/metrics`.
     pub async fn metric(&self, name: &str) -> f64 {
         let client = cloud::client::Client::new(&self.url(), Some(METRICS_TOKEN), Some(&self.ca))

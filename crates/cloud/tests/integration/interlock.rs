@@ -7,16 +7,9 @@ use serde_json::{json, Value};
 use testkit::constants::{LIFT, WAIT};
 use testkit::portal::{until, Rig};
 
-async fn naked(rig: &Rig, mplex: &str) -> Value {
-    let path = format!("/api/v1/lifts/{LIFT}/objects/{mplex}?form=naked");
-    let (status, body) = rig.call("GET", &path, Some(&rig.key), None).await;
-    assert_eq!(status, 200, "{mplex}: {body}");
-    body["object"]["value"][0].clone()
-}
-
 async fn until_state(rig: &Rig, state: &str) {
     until(WAIT, &format!("lift state {state}"), || async {
-        naked(rig, "0x502400").await == state
+        rig.naked("0x502400").await == state
     })
     .await;
 }
@@ -49,7 +42,7 @@ async fn a_passenger_call_is_refused_in_fire_service_and_inspection_and_taken_af
         "{refused}"
     );
     // Reads go on, and the car stays where fire service recalled it.
-    assert_eq!(naked(&rig, "0x502300").await, "1");
+    assert_eq!(rig.naked("0x502300").await, "1");
 
     // Inspection, the same.
     rig.sim().set_switches(1, lift417::sim::INSPECTION);
@@ -59,13 +52,13 @@ async fn a_passenger_call_is_refused_in_fire_service_and_inspection_and_taken_af
     // Normal operation: the call is taken and the car travels to floor 4.
     rig.sim().set_switches(1, 0);
     until(WAIT, "the lift back in normal operation", || async {
-        !["6", "7", "8", "4"].contains(&naked(&rig, "0x502400").await.as_str().unwrap_or(""))
+        !["6", "7", "8", "4"].contains(&rig.naked("0x502400").await.as_str().unwrap_or(""))
     })
     .await;
     let (status, body) = call_car(&rig, 4).await;
     assert_eq!(status, 200, "{body}");
     until(WAIT * 2, "the car at floor 4", || async {
-        naked(&rig, "0x502300").await == "4"
+        rig.naked("0x502300").await == "4"
     })
     .await;
 

@@ -877,9 +877,8 @@ async fn each_role_sees_what_it_may_do() {
     // Repaired: the lift-safety interlock lets parameters be written again.
     rig.sim().set_switches(1, 0);
     until("the lift back in service", 30, || async {
-        let path = format!("/api/v1/lifts/{LIFT}/objects/0x502400?form=naked");
-        let (_, state) = rig.call("GET", &path, Some(&rig.key), None).await;
-        (!["4", "5"].contains(&state["object"]["value"][0].as_str()?)).then_some(())
+        let state = rig.naked("0x502400").await;
+        (!["4", "5"].contains(&state.as_str()?)).then_some(())
     })
     .await;
     open_editor(&client, "0x411300").await;
