@@ -392,7 +392,7 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
         config.database.connections = connections;
         portals
             .processes
-            .push(PortalProcess::start_with(&pdir, &config, pki.ca.clone()).await?);
+            .push(PortalProcess::start_with(&pdir, &config, pki.ca.clone(), None).await?);
         portals.configs.push((pdir, config));
     }
     tokio::time::sleep(Duration::from_secs(1)).await;
@@ -532,7 +532,7 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
         let (pdir, config) = portals.configs[0].clone();
         let killed = Instant::now();
         victim.daemon.kill().await;
-        let restarted = PortalProcess::start_with(&pdir, &config, pki.ca.clone()).await?;
+        let restarted = PortalProcess::start_with(&pdir, &config, pki.ca.clone(), None).await?;
         portals.processes.insert(0, restarted);
         let back = portals.all_held(args.gateways, killed, limit).await?;
         println!(

@@ -473,7 +473,7 @@ async fn cpu_per_request(
             }
             let path = dir.join("cpu-gateway.toml");
             std::fs::write(&path, toml::to_string_pretty(&config)?)?;
-            Daemon::start(&exe, "gateway", &path)?
+            Daemon::start(&exe, "gateway", &path, None)?
         };
         let mut ws = portal.accept().await?;
         // Warm up (first reads, allocations) and let the start settle.
@@ -512,7 +512,7 @@ async fn memory(args: &GatewayBench, pki: &DevPki, bus: &str, dir: &Path) -> any
     let config = config(&portal.url()?, pki, bus, &dir.join("process"));
     let path = dir.join("gateway.toml");
     std::fs::write(&path, toml::to_string_pretty(&config)?)?;
-    let mut daemon = Daemon::start(&args.exe()?, "gateway", &path)?;
+    let mut daemon = Daemon::start(&args.exe()?, "gateway", &path, None)?;
     let pid = daemon.pid;
     let mut ws = portal.accept().await?;
     tokio::time::sleep(Duration::from_secs(2)).await;

@@ -60,13 +60,23 @@ pub(crate) struct Daemon {
 }
 
 impl Daemon {
-    /// `exe COMMAND --config CONFIG`, its warnings on the benchmark's standard error.
-    pub(crate) fn start(exe: &Path, command: &str, config: &Path) -> anyhow::Result<Daemon> {
-        Daemon::spawn(
-            exe,
-            &[command.as_ref(), "--config".as_ref(), config.as_os_str()],
-            Stdio::inherit(),
-        )
+    /// `exe COMMAND --config CONFIG`, its warnings on the benchmark's standard error; on
+    /// `cpus` only when given (`taskset -c CPUS`, which execs it: the process id is the
+    /// daemon's, and each of its threads keeps the CPUs).
+    pub(crate) fn start(
+        exe: &Path,
+        command: &str,
+        config: &Path,
+        cpus: Option<&str>,
+    ) -> anyhow::Result<Daemon> {
+        let args = [command.as_ref(), "--config".as_ref(), config.as_os_str()];
+        match cpus {
+            Some(cpus) => {
+                let pinned = [&["-c".as_ref(), cpus.as_ref(), exe.as_os_str()], &args[..]].concat();
+                Daemon::spawn(Path::new("taskset"), &pinned, Stdio::inherit())
+            }
+            None => Daemon::spawn(exe, &args, Stdio::inherit()),
+        }
     }
 
     /// `exe ARGS…` with its standard error to `stderr` (a load generator's thousands of

@@ -164,6 +164,193 @@ impl GatewayRow {
     }
 }
 
+/// Rows of one kind written in one statement at most.
+const ROWS_PER_STATEMENT: usize = 256;
+
+/// A [`GatewayRecord::Connected`] row to write: what the last of the records merged into it
+/// says, the latest time among them, and which records they were.
+struct ConnectedRow<'a> {
+    lift: &'a str,
+    identity: &'a Identity,
+    domain: &'a str,
+    api: u32,
+    at: i64,
+    indexes: Vec<usize>,
+}
+
+/// A [`GatewayRecord::Token`] to write.
+struct TokenRow<'a> {
+    lift: &'a str,
+    domain: &'a str,
+    digest: &'a str,
+    at: i64,
+}
+
+/// Records grouped for [`Store::record_batch`].
+struct RecordBatch<'a> {
+    /// Rows to make or refresh, in rounds: a lift appears once per round, its records of the
+    /// n-th account to name it in the n-th.
+    connected: Vec<Vec<ConnectedRow<'a>>>,
+    /// Lifts last heard, each at its latest.
+    seen: Vec<(&'a str, i64)>,
+    /// The last token record of each lift and account.
+    tokens: Vec<TokenRow<'a>>,
+}
+
+impl<'a> RecordBatch<'a> {
+    /// `records` cut where grouping would change what they do: a token or a last-heard time
+    /// written before its lift's row was made is lost when written in order, so a row of a
+    /// lift heard of earlier (or of a lift and account whose token came earlier) starts a batch
+    /// of its own. Never so in the portal, which writes a gateway's row before anything else
+    /// of it; the rows must end the same all the same.
+    fn all(records: &'a [GatewayRecord]) -> Vec<RecordBatch<'a>> {
+        use std::collections::HashSet;
+        let mut batches = Vec::new();
+        let mut start = 0;
+        let mut seen: HashSet<&str> = HashSet::new();
+        let mut tokens: HashSet<(&str, &str)> = HashSet::new();
+        for (i, record) in records.iter().enumerate() {
+            match record {
+                GatewayRecord::Connected { lift, domain, .. }
+                    if seen.contains(lift.as_str())
+                        || tokens.contains(&(lift.as_str(), domain.as_str())) =>
+                {
+                    batches.push(RecordBatch::of(&records[start..i], start));
+                    start = i;
+                    seen.clear();
+                    tokens.clear();
+                }
+                GatewayRecord::Seen { lift, .. } => {
+                    seen.insert(lift);
+                }
+                GatewayRecord::Token { lift, domain, .. } => {
+                    tokens.insert((lift, domain));
+                }
+                GatewayRecord::Connected { .. } => {}
+            }
+        }
+        batches.push(RecordBatch::of(&records[start..], start));
+        batches
+    }
+
+    /// `records`, the first of which is the `offset`-th of the batch, grouped.
+    fn of(records: &'a [GatewayRecord], offset: usize) -> RecordBatch<'a> {
+        use std::collections::HashMap;
+        let mut connected: Vec<Vec<ConnectedRow<'a>>> = Vec::new();
+        // Per lift, the accounts that named it in order; per (lift, account), its row's place.
+        let mut accounts: HashMap<&str, Vec<&str>> = HashMap::new();
+        let mut placed: HashMap<(&str, &str), (usize, usize)> = HashMap::new();
+        let mut seen: Vec<(&str, i64)> = Vec::new();
+        let mut seen_at: HashMap<&str, usize> = HashMap::new();
+        let mut tokens: Vec<TokenRow<'a>> = Vec::new();
+        let mut token_at: HashMap<(&str, &str), usize> = HashMap::new();
+        for (i, record) in (offset..).zip(records) {
+            match record {
+                GatewayRecord::Connected {
+                    lift,
+                    identity,
+                    domain,
+                    api,
+                    at,
+                } => match placed.get(&(lift.as_str(), domain.as_str())) {
+                    Some(&(round, slot)) => {
+                        let row = &mut connected[round][slot];
+                        row.identity = identity;
+                        row.api = *api;
+                        row.at = row.at.max(*at);
+                        row.indexes.push(i);
+                    }
+                    None => {
+                        let named = accounts.entry(lift).or_default();
+                        let round = named.len();
+                        named.push(domain);
+                        if connected.len() <= round {
+                            connected.push(Vec::new());
+                        }
+                        placed.insert((lift, domain), (round, connected[round].len()));
+                        connected[round].push(ConnectedRow {
+                            lift,
+                            identity,
+                            domain,
+                            api: *api,
+                            at: *at,
+                            indexes: vec![i],
+                        });
+                    }
+                },
+                GatewayRecord::Seen { lift, at } => match seen_at.get(lift.as_str()) {
+                    Some(&slot) => seen[slot].1 = seen[slot].1.max(*at),
+                    None => {
+                        seen_at.insert(lift, seen.len());
+                        seen.push((lift, *at));
+                    }
+                },
+                GatewayRecord::Token {
+                    lift,
+                    domain,
+                    digest,
+                    at,
+                } => {
+                    let row = TokenRow {
+                        lift,
+                        domain,
+                        digest,
+                        at: *at,
+                    };
+                    match token_at.get(&(lift.as_str(), domain.as_str())) {
+                        Some(&slot) => tokens[slot] = row,
+                        None => {
+                            token_at.insert((lift, domain), tokens.len());
+                            tokens.push(row);
+                        }
+                    }
+                }
+            }
+        }
+        RecordBatch {
+            connected,
+            seen,
+            tokens,
+        }
+    }
+}
+
+/// Make or refresh the rows of `rows` (one statement): the keys of those written, which are
+/// all but those another account's row holds (its row is left as it is).
+async fn upsert_rows(
+    tx: &mut sqlx::Transaction<'_, sqlx::Any>,
+    rows: &[ConnectedRow<'_>],
+) -> Result<std::collections::HashSet<String>, sqlx::Error> {
+    let sql = format!(
+        "INSERT INTO gateways (id, vendorid, productcode, sernum, liftnum, hardware, software, boardhash, domain, api, last_seen) \
+         VALUES {} \
+         ON CONFLICT (id) DO UPDATE SET liftnum = excluded.liftnum, hardware = excluded.hardware, \
+         software = excluded.software, boardhash = excluded.boardhash, api = excluded.api, \
+         last_seen = CASE WHEN gateways.last_seen > excluded.last_seen THEN gateways.last_seen ELSE excluded.last_seen END \
+         WHERE gateways.domain = excluded.domain \
+         RETURNING id",
+        parameter_rows(rows.len(), 11)
+    );
+    let mut query = sqlx::query(&sql);
+    for row in rows {
+        let identity = row.identity;
+        query = query
+            .bind(row.lift)
+            .bind(i64::from(identity.vendorid))
+            .bind(i64::from(identity.productcode))
+            .bind(&identity.sernum)
+            .bind(&identity.liftnum)
+            .bind(&identity.hardware)
+            .bind(&identity.software)
+            .bind(&identity.boardhash)
+            .bind(row.domain)
+            .bind(i64::from(row.api))
+            .bind(row.at);
+    }
+    let written = query.fetch_all(&mut **tx).await?;
+    written.iter().map(|row| row.try_get("id")).collect()
+}
+
 impl Store {
     /// What the registry holds of each of `connects` (NXg §5.2, §5.4), in their order, read in
     /// one statement: a reconnect storm's admissions take a pooled connection and a round trip
@@ -213,75 +400,75 @@ impl Store {
             .collect()
     }
 
-    /// Write `records` in order, in one transaction (a storm of reconnects costs one commit
-    /// per batch, not one per gateway). `last_seen` only moves forward, so a record written
-    /// late never takes it back.
+    /// Write `records` as if in order, in one transaction (a storm of reconnects costs one
+    /// commit per batch, not one per gateway). `last_seen` only moves forward, so a record
+    /// written late never takes it back.
     pub async fn record(&self, records: &[GatewayRecord]) -> Result<(), StoreError> {
+        self.record_batch(records).await.map(drop)
+    }
+
+    /// [`Store::record`], in a statement per kind of record (and per 256 rows), not one per
+    /// record: a fleet's first contacts cost the database a round trip per batch
+    /// (docs/PORTAL.md §Stores). For each record, in order: whether its lift's row is its
+    /// account's — false only for a [`GatewayRecord::Connected`] of a key another account's
+    /// row holds (two first contacts of one identity from two accounts at once), which is left
+    /// as it is.
+    ///
+    /// The records are grouped (rows made or refreshed, then last heard, then tokens) and
+    /// those of one lift merged: each kind touches other columns, a row's identity is the last
+    /// one given and `last_seen` the latest, so the rows end as the records one by one in order
+    /// would leave them. A lift named by two accounts' records is written once per account, in
+    /// the order they came, so the row's owner decides as it did.
+    pub async fn record_batch(&self, records: &[GatewayRecord]) -> Result<Vec<bool>, StoreError> {
+        let batches = RecordBatch::all(records);
         let mut conn = self.writer().await?;
         let outcome: Result<_, sqlx::Error> = async {
-        let mut tx = sqlx::Connection::begin(&mut *conn).await?;
-        for record in records {
-            match record {
-                GatewayRecord::Connected {
-                    lift,
-                    identity,
-                    domain,
-                    api,
-                    at,
-                } => {
-                    // Another account's row of the key (two first contacts of one identity
-                    // from two accounts at once) is left as it is: the admission checks whose
-                    // row it is after writing (`Store::domain_of`).
-                    sqlx::query(
-                        "INSERT INTO gateways (id, vendorid, productcode, sernum, liftnum, hardware, software, boardhash, domain, api, token_hash, last_seen) \
-                         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, NULL, $11) \
-                         ON CONFLICT (id) DO UPDATE SET liftnum = $5, hardware = $6, software = $7, boardhash = $8, api = $10, \
-                         last_seen = CASE WHEN gateways.last_seen > $11 THEN gateways.last_seen ELSE $11 END \
-                         WHERE gateways.domain = $9",
-                    )
-                    .bind(lift)
-                    .bind(i64::from(identity.vendorid))
-                    .bind(i64::from(identity.productcode))
-                    .bind(&identity.sernum)
-                    .bind(&identity.liftnum)
-                    .bind(&identity.hardware)
-                    .bind(&identity.software)
-                    .bind(&identity.boardhash)
-                    .bind(domain)
-                    .bind(i64::from(*api))
-                    .bind(*at)
-                    .execute(&mut *tx)
-                    .await?;
-                }
-                GatewayRecord::Seen { lift, at } => {
-                    sqlx::query(
-                        "UPDATE gateways SET last_seen = $1 WHERE id = $2 AND last_seen < $1",
-                    )
-                    .bind(*at)
-                    .bind(lift)
-                    .execute(&mut *tx)
-                    .await?;
-                }
-                GatewayRecord::Token {
-                    lift,
-                    domain,
-                    digest,
-                    at,
-                } => {
-                    sqlx::query(
-                        "UPDATE gateways SET token_hash = $1, token_set = $2, token_next = NULL WHERE id = $3 AND domain = $4",
-                    )
-                    .bind(digest)
-                    .bind(*at)
-                    .bind(lift)
-                    .bind(domain)
-                    .execute(&mut *tx)
-                    .await?;
+            let mut tx = sqlx::Connection::begin(&mut *conn).await?;
+            let mut ours = vec![true; records.len()];
+            for batch in &batches {
+            for round in &batch.connected {
+                for rows in crate::chunks_by_binary_digits(round, ROWS_PER_STATEMENT) {
+                    let written = upsert_rows(&mut tx, rows).await?;
+                    for row in rows {
+                        if !written.contains(row.lift) {
+                            for &i in &row.indexes {
+                                ours[i] = false;
+                            }
+                        }
+                    }
                 }
             }
-        }
-        tx.commit().await?;
-        Ok(())
+            for rows in crate::chunks_by_binary_digits(&batch.seen, ROWS_PER_STATEMENT) {
+                let sql = format!(
+                    "UPDATE gateways SET last_seen = v.column2 FROM (VALUES {}) AS v \
+                     WHERE gateways.id = v.column1 AND gateways.last_seen < v.column2",
+                    parameter_rows(rows.len(), 2)
+                );
+                let mut query = sqlx::query(&sql);
+                for (lift, at) in rows {
+                    query = query.bind(*lift).bind(*at);
+                }
+                query.execute(&mut *tx).await?;
+            }
+            for rows in crate::chunks_by_binary_digits(&batch.tokens, ROWS_PER_STATEMENT) {
+                let sql = format!(
+                    "UPDATE gateways SET token_hash = v.column3, token_set = v.column4, token_next = NULL \
+                     FROM (VALUES {}) AS v WHERE gateways.id = v.column1 AND gateways.domain = v.column2",
+                    parameter_rows(rows.len(), 4)
+                );
+                let mut query = sqlx::query(&sql);
+                for row in rows {
+                    query = query
+                        .bind(row.lift)
+                        .bind(row.domain)
+                        .bind(row.digest)
+                        .bind(row.at);
+                }
+                query.execute(&mut *tx).await?;
+            }
+            }
+            tx.commit().await?;
+            Ok(ours)
         }
         .await;
         self.settle(conn, outcome).await
@@ -335,15 +522,6 @@ impl Store {
         .fetch_optional(&self.pool)
         .await?;
         Ok(row.map(|r| r.try_get("name")).transpose()?)
-    }
-
-    /// The domain (account) a registered lift belongs to.
-    pub async fn domain_of(&self, lift: &str) -> Result<Option<String>, StoreError> {
-        let row = sqlx::query("SELECT domain FROM gateways WHERE id = $1")
-            .bind(lift)
-            .fetch_optional(&self.pool)
-            .await?;
-        Ok(row.map(|r| r.try_get("domain")).transpose()?)
     }
 
     fn lift_from(row: &AnyRow) -> Result<LiftRecord, sqlx::Error> {
@@ -473,5 +651,167 @@ impl Store {
         }
         .await;
         self.settle(conn, outcome).await
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// A record of lift `l` (of three) of account `d` (of two) at time `at`.
+    fn record(kind: u8, l: u8, d: u8, at: i64) -> GatewayRecord {
+        let lift = format!("1050-4096-L{l}");
+        let domain = ["MAS", "OTH"][usize::from(d)].to_owned();
+        match kind {
+            0 => {
+                let mut connect = testkit::connect(&format!("L{l}"), &domain, None);
+                connect.identity.software = format!("v{at}");
+                GatewayRecord::Connected {
+                    lift,
+                    identity: connect.identity,
+                    domain,
+                    api: 1,
+                    at,
+                }
+            }
+            1 => GatewayRecord::Seen { lift, at },
+            _ => GatewayRecord::Token {
+                lift,
+                domain,
+                digest: format!("digest {at}"),
+                at,
+            },
+        }
+    }
+
+    async fn fresh(dir: &tempfile::TempDir, name: &str) -> Store {
+        let url = format!("sqlite://{}", dir.path().join(name).display());
+        let store = Store::open(&url).await.unwrap();
+        store.add_account("masora", "MAS").await.unwrap();
+        store.add_account("other", "OTH").await.unwrap();
+        store
+    }
+
+    /// Every column of every row, in key order.
+    async fn rows(store: &Store) -> Vec<String> {
+        let rows = sqlx::query(
+            "SELECT id, liftnum, software, domain, api, token_hash, token_set, token_next, last_seen \
+             FROM gateways ORDER BY id",
+        )
+        .fetch_all(&store.pool)
+        .await
+        .unwrap();
+        rows.iter()
+            .map(|r| {
+                format!(
+                    "{} {} {} {} {} {:?} {} {:?} {}",
+                    r.get::<String, _>("id"),
+                    r.get::<String, _>("liftnum"),
+                    r.get::<String, _>("software"),
+                    r.get::<String, _>("domain"),
+                    r.get::<i64, _>("api"),
+                    r.get::<Option<String>, _>("token_hash"),
+                    r.get::<i64, _>("token_set"),
+                    r.get::<Option<String>, _>("token_next"),
+                    r.get::<i64, _>("last_seen"),
+                )
+            })
+            .collect()
+    }
+
+    /// `records` in one batch leave `batched` as they leave `one_by_one` written one at a
+    /// time in order, and say of each whether the row is its account's as the one-by-one
+    /// writes do.
+    async fn a_batch_is_its_records_in_order(
+        batched: &Store,
+        one_by_one: &Store,
+        records: &[GatewayRecord],
+    ) {
+        let ours = batched.record_batch(records).await.unwrap();
+        let mut expected = Vec::new();
+        for record in records {
+            let alone = one_by_one
+                .record_batch(std::slice::from_ref(record))
+                .await
+                .unwrap();
+            expected.extend(alone);
+        }
+        assert_eq!(rows(batched).await, rows(one_by_one).await, "{records:#?}");
+        assert_eq!(ours, expected, "{records:#?}");
+    }
+
+    /// The sequence that needs every rule: a lift first named by one account, then by the
+    /// other, then by the first again; a token before and after its row; times out of order.
+    fn crafted() -> Vec<GatewayRecord> {
+        vec![
+            record(2, 0, 0, 5),
+            record(0, 0, 0, 10),
+            record(0, 0, 1, 12),
+            record(1, 0, 0, 30),
+            record(0, 0, 0, 20),
+            record(2, 0, 1, 40),
+            record(2, 0, 0, 41),
+            record(0, 1, 1, 50),
+            record(1, 1, 0, 45),
+            record(0, 1, 0, 60),
+            record(2, 1, 0, 61),
+            record(1, 2, 0, 65),
+            record(0, 2, 0, 66),
+            record(1, 2, 0, 70),
+        ]
+    }
+
+    #[tokio::test]
+    async fn sqlite_crafted() {
+        let dir = tempfile::tempdir().unwrap();
+        let (batched, one_by_one) = (fresh(&dir, "a.db").await, fresh(&dir, "b.db").await);
+        a_batch_is_its_records_in_order(&batched, &one_by_one, &crafted()).await;
+        // Again, on the rows the first left.
+        a_batch_is_its_records_in_order(&batched, &one_by_one, &crafted()).await;
+    }
+
+    /// PostgreSQL refuses a statement that changes one row twice: the rounds keep a lift to
+    /// one row of each statement.
+    #[tokio::test]
+    async fn postgres_crafted() {
+        let (Some(a), Some(b)) = (
+            testkit::postgres("batch_a").await,
+            testkit::postgres("batch_b").await,
+        ) else {
+            return;
+        };
+        let open = |url: String| async move {
+            let store = Store::open(&url).await.unwrap();
+            store.add_account("masora", "MAS").await.unwrap();
+            store.add_account("other", "OTH").await.unwrap();
+            store
+        };
+        let (batched, one_by_one) = (open(a).await, open(b).await);
+        a_batch_is_its_records_in_order(&batched, &one_by_one, &crafted()).await;
+        a_batch_is_its_records_in_order(&batched, &one_by_one, &crafted()).await;
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(48))]
+        #[test]
+        fn any_batch_is_its_records_in_order(
+            first in prop::collection::vec((0u8..3, 0u8..3, 0u8..2, 0i64..100), 0..24),
+            second in prop::collection::vec((0u8..3, 0u8..3, 0u8..2, 0i64..100), 0..24),
+        ) {
+            let runtime = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+                .unwrap();
+            runtime.block_on(async {
+                let dir = tempfile::tempdir().unwrap();
+                let (batched, one_by_one) = (fresh(&dir, "a.db").await, fresh(&dir, "b.db").await);
+                for batch in [first, second] {
+                    let records: Vec<_> =
+                        batch.into_iter().map(|(k, l, d, at)| record(k, l, d, at)).collect();
+                    a_batch_is_its_records_in_order(&batched, &one_by_one, &records).await;
+                }
+            });
+        }
     }
 }

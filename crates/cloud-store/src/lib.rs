@@ -765,8 +765,8 @@ pub(crate) mod tests {
         let registered = gateway_row(&store, &gw(None)).await.registered.unwrap();
         assert_eq!((registered.token_hash, registered.token_next), (None, None));
         assert_eq!(
-            store.domain_of(&lift).await.unwrap().as_deref(),
-            Some("MAS")
+            store.account_of(&lift).await.unwrap().as_deref(),
+            Some("masora")
         );
         assert_eq!(store.lifts("MAS").await.unwrap().len(), 1);
         assert!(store.lifts("OTH").await.unwrap().is_empty());

@@ -1,7 +1,7 @@
 //! TLS for the connector (NXg SW003 §5: TLS only, public or private CA) and the portal's
-//! operator API: rustls with ring, PEM certificates and keys, the private CA of a file or the
-//! system's roots, client configurations (optionally with a client certificate) and server
-//! configurations (optionally requiring one). Shared by the gateway, the portal and the
+//! operator API: rustls with aws-lc-rs (or ring, [`PROVIDER`]), PEM certificates and keys, the
+//! private CA of a file or the system's roots, client configurations (optionally with a client
+//! certificate) and server configurations (optionally requiring one). Shared by the gateway, the portal and the
 //! operator client, without bringing either side's stack to the other.
 
 #![warn(missing_docs)]
@@ -80,20 +80,33 @@ pub fn private_key(path: &Path) -> Result<PrivateKeyDer<'static>, TlsError> {
     PrivateKeyDer::from_pem_file(path).map_err(|e| file_error(path, e))
 }
 
-/// The provider every canlift TLS endpoint uses: ring's, with the AES-128-GCM suites first.
+/// The crypto provider of this build: `"aws-lc-rs"` (feature `aws-lc-rs`) or `"ring"`.
+pub const PROVIDER: &str = if cfg!(feature = "aws-lc-rs") {
+    "aws-lc-rs"
+} else {
+    "ring"
+};
+
+/// The provider every canlift TLS endpoint uses ([`PROVIDER`]: aws-lc-rs's where it builds,
+/// faster at the key exchange and RSA signatures a full handshake costs, docs/BENCHMARKS.md
+/// §Crypto providers; else ring's), with the AES-128-GCM suites first.
 ///
-/// Their key schedule (TLS 1.3) and PRF (TLS 1.2) hash with SHA-256, which ring computes with
-/// the CPU's SHA instructions where it has them (x86 since AMD Zen and Intel Ice Lake, ARMv8),
-/// while SHA-384 — rustls's first choice, AES-256-GCM — runs in plain code on AMD: in a reconnect
-/// storm SHA-384 was 4 % of a gateway's CPU (docs/BENCHMARKS.md §Reconnect storms). AES-128 also
-/// has 10 rounds to AES-256's 14. TLS_AES_128_GCM_SHA256 is the suite every TLS 1.3 endpoint must
-/// offer (RFC 8446 §9.1); browsers and Go's TLS prefer it the same way. A server follows the
-/// client's order, so peers that prefer another suite still get it.
+/// Their key schedule (TLS 1.3) and PRF (TLS 1.2) hash with SHA-256, which both providers
+/// compute with the CPU's SHA instructions where it has them (x86 since AMD Zen and Intel Ice
+/// Lake, ARMv8), while SHA-384 — rustls's first choice, AES-256-GCM — ran in plain code on AMD
+/// with ring: in a reconnect storm SHA-384 was 4 % of a gateway's CPU (docs/BENCHMARKS.md
+/// §Reconnect storms). AES-128 also has 10 rounds to AES-256's 14. TLS_AES_128_GCM_SHA256 is the
+/// suite every TLS 1.3 endpoint must offer (RFC 8446 §9.1); browsers and Go's TLS prefer it the
+/// same way. A server follows the client's order, so peers that prefer another suite still get
+/// it.
 pub fn provider() -> Arc<rustls::crypto::CryptoProvider> {
     use rustls::CipherSuite::{
         TLS13_AES_128_GCM_SHA256, TLS_ECDHE_ECDSA_WITH_AES_128_GCM_SHA256,
         TLS_ECDHE_RSA_WITH_AES_128_GCM_SHA256,
     };
+    #[cfg(feature = "aws-lc-rs")]
+    let mut provider = rustls::crypto::aws_lc_rs::default_provider();
+    #[cfg(not(feature = "aws-lc-rs"))]
     let mut provider = rustls::crypto::ring::default_provider();
     // Stable: the others keep rustls's order.
     provider.cipher_suites.sort_by_key(|s| {

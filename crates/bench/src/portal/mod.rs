@@ -62,6 +62,11 @@ pub struct PortalBench {
     /// Where the `curves` phase writes its CSV and SVG files.
     #[arg(long, default_value = "docs/bench")]
     curves: PathBuf,
+    /// The CPUs the portal runs on (`taskset -c` list, e.g. `0`); with the benchmark itself
+    /// started on others (`taskset -c 1 canlift-bench portal --portal-cpus 0`) the load
+    /// generator takes none of the portal's cores, and its figures are the portal's alone.
+    #[arg(long)]
+    portal_cpus: Option<String>,
 }
 
 /// A phase of `bench portal`.
@@ -85,6 +90,8 @@ pub(crate) struct PortalProcess {
     pub(crate) daemon: Daemon,
     pub(crate) port: u16,
     pub(crate) ca: PathBuf,
+    /// The CPUs it runs on (`--portal-cpus`), for a restart to keep.
+    cpus: Option<String>,
     /// A client with the `/metrics` token.
     pub(crate) client: cloud::client::Client,
 }
@@ -106,24 +113,29 @@ pub(crate) fn bench_config(dir: &Path, database: &str) -> anyhow::Result<cloud::
 }
 
 impl PortalProcess {
-    async fn start(dir: &Path, database: &str) -> anyhow::Result<PortalProcess> {
+    async fn start(
+        dir: &Path,
+        database: &str,
+        cpus: Option<String>,
+    ) -> anyhow::Result<PortalProcess> {
         let config = bench_config(dir, database)?;
         let ca = config.state.dir.join("dev-ca.pem");
-        PortalProcess::start_with(dir, &config, ca).await
+        PortalProcess::start_with(dir, &config, ca, cpus).await
     }
 
-    /// Start `canlift cloud` with `config` (written into `dir`); `ca` is what its certificate
-    /// is of. Returns once it listens.
+    /// Start `canlift cloud` with `config` (written into `dir`), on `cpus` when given; `ca` is
+    /// what its certificate is of. Returns once it listens.
     pub(crate) async fn start_with(
         dir: &Path,
         config: &cloud::config::Config,
         ca: PathBuf,
+        cpus: Option<String>,
     ) -> anyhow::Result<PortalProcess> {
         let port = config.server.listen.port();
         let path = dir.join("portal.toml");
         std::fs::create_dir_all(dir)?;
         std::fs::write(&path, toml::to_string_pretty(config)?)?;
-        let daemon = Daemon::start(&crate::canlift()?, "cloud", &path)?;
+        let daemon = Daemon::start(&crate::canlift()?, "cloud", &path, cpus.as_deref())?;
         // The portal writes its development CA before it listens.
         listening(port, "the portal", Duration::from_secs(30)).await?;
         if !ca.exists() {
@@ -137,6 +149,7 @@ impl PortalProcess {
             daemon,
             port,
             ca,
+            cpus,
             client,
         })
     }
@@ -167,7 +180,7 @@ impl PortalProcess {
     /// own).
     async fn restart(&mut self, dir: &Path, database: &str) -> anyhow::Result<()> {
         self.daemon.stop(Duration::from_secs(10)).await;
-        *self = PortalProcess::start(dir, database).await?;
+        *self = PortalProcess::start(dir, database, self.cpus.take()).await?;
         Ok(())
     }
 }
@@ -750,7 +763,7 @@ async fn measure(args: &PortalBench, dir: &Path) -> anyhow::Result<()> {
         "portal on {kind}; gateways from 127.0.0.1…127.0.0.{}",
         args.sources
     );
-    let mut portal = PortalProcess::start(dir, &url).await?;
+    let mut portal = PortalProcess::start(dir, &url, args.portal_cpus.clone()).await?;
     let outcome = async {
         for phase in &args.phases {
             match phase {

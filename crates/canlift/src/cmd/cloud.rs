@@ -306,7 +306,7 @@ pub async fn run(args: CloudArgs) -> anyhow::Result<()> {
             let portal = Portal::bind(&config, lift417::catalog::Catalog::builtin().names())
                 .await
                 .context("starting the portal")?;
-            tracing::info!(listen = %portal.local_addr(), database = %cloud_store::shown_url(&config.database_url()), "portal running");
+            tracing::info!(listen = %portal.local_addr(), database = %cloud_store::shown_url(&config.database_url()), tls = tls::PROVIDER, "portal running");
             let reload = portal.tls_reload();
             crate::service::on_hangup("the TLS certificate, key and client CA", move || {
                 reload.reload()

@@ -46,6 +46,7 @@ pub async fn run(args: GatewayArgs) -> anyhow::Result<()> {
         bus = %config.bus.url,
         node = config.bus.node_id,
         lift_controller = config.bus.lift_controller,
+        tls = tls::PROVIDER,
         "gateway running"
     );
     let reload = gateway.tls_reload();

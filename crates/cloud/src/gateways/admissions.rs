@@ -525,14 +525,14 @@ mod tests {
         // A record with another account's domain never lands on this account's row.
         let mut stray = connect(serial, "EVL", None);
         stray.identity.liftnum = "stray".into();
-        store
-            .record(&[
+        let ours = store
+            .record_batch(&[
                 GatewayRecord::connected(&id, &stray, 2),
                 GatewayRecord::token(&id, "EVL", "stray"),
             ])
             .await
             .unwrap();
-        assert_eq!(store.domain_of(&id).await.unwrap().as_deref(), Some("MAS"));
+        assert_eq!(ours, [false, true], "the row is not the stray's account's");
         let masora = cloud_types::users::Account {
             name: "masora".into(),
             domain: "MAS".into(),

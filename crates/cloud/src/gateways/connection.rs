@@ -479,8 +479,8 @@ impl Connection {
 
 /// A first contact of lift `key`: its row is written before CONNACK, and it must be this
 /// account's. Two first contacts of one identity from two accounts at once both find the key
-/// free; the second's row is not written over the first's (`Store::record`), and it is
-/// refused here, to be admitted under a key of its own when it tries again (docs/PORTAL.md
+/// free; the second's row is not written over the first's, which the write reports
+/// (`Store::record_batch`), and it is refused here, to be admitted under a key of its own when it tries again (docs/PORTAL.md
 /// §Lifts and accounts).
 async fn first_contact(
     shared: &Shared,
@@ -489,15 +489,13 @@ async fn first_contact(
     subscribed: bool,
 ) -> Result<Admission, cloud_store::StoreError> {
     let record = GatewayRecord::connected(&key, connect, connect.identity.api);
-    shared.records.write_now(record).await?;
-    match shared.store.domain_of(&key).await? {
-        Some(domain) if domain == connect.domaintoken => {
-            Ok(Admission::FirstContact { key, subscribed })
-        }
-        _ => Ok(Admission::Refused(
+    if shared.records.write_now(record).await? {
+        Ok(Admission::FirstContact { key, subscribed })
+    } else {
+        Ok(Admission::Refused(
             Reason::Taken,
             "another account's lift took this identity's key at the same moment: try again".into(),
-        )),
+        ))
     }
 }
 

@@ -21,7 +21,7 @@ use cloud_store::{GatewayRecord, Store, StoreError};
 /// A record in the queue, and whoever waits until it is written.
 struct Queued {
     record: GatewayRecord,
-    written: Option<oneshot::Sender<Result<(), StoreError>>>,
+    written: Option<oneshot::Sender<Result<bool, StoreError>>>,
 }
 
 /// Confirmed tokens queued and not yet written, counted by lift (its id and its account's
@@ -136,8 +136,10 @@ impl Records {
     }
 
     /// [`Records::write`], returning once the record is written (with the others of its
-    /// batch): for what the next admission decides on.
-    pub async fn write_now(&self, record: GatewayRecord) -> Result<(), StoreError> {
+    /// batch): for what the next admission decides on. True when the lift's row is the
+    /// record's account's ([`Store::record_batch`]: a first contact learns whether another
+    /// account's lift holds its key without asking again).
+    pub async fn write_now(&self, record: GatewayRecord) -> Result<bool, StoreError> {
         let (written, done) = oneshot::channel();
         self.send(self.queued(record, Some(written))).await?;
         // The writer dropped the batch unanswered only if it ended mid-way: the portal stops.
@@ -146,12 +148,12 @@ impl Records {
     }
 
     /// Into the queue; without a writer (the portal is stopping) written at once.
-    async fn send(&self, queued: Queued) -> Result<(), StoreError> {
+    async fn send(&self, queued: Queued) -> Result<bool, StoreError> {
         let Err(unsent) = self.tx.send(queued).await else {
-            return Ok(());
+            return Ok(true);
         };
         let record = unsent.0.record;
-        let written = self.store.record(std::slice::from_ref(&record)).await;
+        let written = write_alone(&self.store, &record).await;
         self.unwritten.done(&record);
         written
     }
@@ -160,7 +162,7 @@ impl Records {
     fn queued(
         &self,
         record: GatewayRecord,
-        written: Option<oneshot::Sender<Result<(), StoreError>>>,
+        written: Option<oneshot::Sender<Result<bool, StoreError>>>,
     ) -> Queued {
         self.unwritten.queued(&record);
         Queued { record, written }
@@ -196,14 +198,18 @@ pub async fn writer(
             waiting.push(queued.written);
         }
         match timer
-            .statement("gateway records", records.len(), store.record(&records))
+            .statement(
+                "gateway records",
+                records.len(),
+                store.record_batch(&records),
+            )
             .await
         {
             // One record the database refuses fails the transaction for all: each is written
             // alone, so only that one is lost.
             Err(e) if !e.is_unavailable() && records.len() > 1 => {
                 for (record, waiter) in records.drain(..).zip(waiting.drain(..)) {
-                    let written = store.record(std::slice::from_ref(&record)).await;
+                    let written = write_alone(&store, &record).await;
                     unwritten.done(&record);
                     if let Err(e) = &written {
                         // The lift, not the record: a CONNECT's identity holds its token.
@@ -218,8 +224,13 @@ pub async fn writer(
                 if let Err(e) = &written {
                     tracing::error!(error = %e, records = records.len(), "gateways not recorded");
                 }
-                for waiter in waiting.drain(..).flatten() {
-                    let _ = waiter.send(written.clone());
+                for (i, waiter) in waiting.drain(..).enumerate() {
+                    if let Some(waiter) = waiter {
+                        let ours = written
+                            .as_ref()
+                            .map(|ours| ours.get(i).copied() == Some(true));
+                        let _ = waiter.send(ours.map_err(Clone::clone));
+                    }
                 }
                 for record in records.drain(..) {
                     unwritten.done(&record);
@@ -231,6 +242,12 @@ pub async fn writer(
     // Nothing is written any more: nobody waits for it.
     unwritten.lock().clear();
     unwritten.batches.send_modify(|n| *n += 1);
+}
+
+/// `record` written in a transaction of its own: whether the lift's row is its account's.
+async fn write_alone(store: &Store, record: &GatewayRecord) -> Result<bool, StoreError> {
+    let ours = store.record_batch(std::slice::from_ref(record)).await?;
+    Ok(ours.first().copied() == Some(true))
 }
 
 #[cfg(test)]
