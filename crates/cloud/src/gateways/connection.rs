@@ -480,8 +480,8 @@ impl Connection {
 /// A first contact of lift `key`: its row is written before CONNACK, and it must be this
 /// account's. Two first contacts of one identity from two accounts at once both find the key
 /// free; the second's row is not written over the first's, which the write reports
-/// (`Store::record_batch`), and it is refused here, to be admitted under a key of its own when it tries again (docs/PORTAL.md
-/// §Lifts and accounts).
+/// (`Store::record_batch`), and it is refused here, to be admitted under a key of its own when
+/// it tries again (docs/PORTAL.md §Lifts and accounts).
 async fn first_contact(
     shared: &Shared,
     connect: &Connect,
