@@ -13,6 +13,7 @@ pub const PENDING: &str = "pending";
 
 /// One audit entry.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct AuditEntry {
     /// When (ms since the epoch).
     pub at: i64,

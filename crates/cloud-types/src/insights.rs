@@ -48,22 +48,41 @@ impl Status {
 /// The query of `GET /api/v1/reports/availability`: a period (RFC 3339 or ms since the epoch),
 /// optionally one lift, and the answer's form.
 #[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::IntoParams))]
+#[cfg_attr(feature = "openapi", into_params(parameter_in = Query))]
 #[serde(deny_unknown_fields)]
 pub struct AvailabilityQuery {
-    /// Start of the period (included).
+    /// Start of the period (included): RFC 3339 with any offset, or ms since the epoch.
+    #[cfg_attr(
+        feature = "openapi",
+        param(
+            pattern = r"^([0-9]{1,15}|[0-9]{4}-(0[1-9]|1[0-2])-(0[1-9]|[12][0-9]|3[01])[Tt]([01][0-9]|2[0-3]):[0-5][0-9]:[0-5][0-9](\.[0-9]{1,9})?([Zz]|[+-]([01][0-9]|2[0-3]):[0-5][0-9]))$",
+            example = "2026-03-01T00:00:00Z"
+        )
+    )]
     pub from: String,
-    /// End of the period (excluded).
+    /// End of the period (excluded): after `from`, at most 400 days later.
+    #[cfg_attr(
+        feature = "openapi",
+        param(
+            pattern = r"^([0-9]{1,15}|[0-9]{4}-(0[1-9]|1[0-2])-(0[1-9]|[12][0-9]|3[01])[Tt]([01][0-9]|2[0-3]):[0-5][0-9]:[0-5][0-9](\.[0-9]{1,9})?([Zz]|[+-]([01][0-9]|2[0-3]):[0-5][0-9]))$",
+            example = "2026-04-01T00:00:00+02:00"
+        )
+    )]
     pub to: String,
     /// Only this lift.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[cfg_attr(feature = "openapi", param(example = "1050-4096-180917010200000102"))]
     pub lift: Option<String>,
     /// `json` (default) or `csv`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[cfg_attr(feature = "openapi", param(pattern = "^(json|csv)$"))]
     pub format: Option<String>,
 }
 
 /// One lift's figures over a period (docs/PORTAL.md §Availability defines each).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct LiftFigures {
     /// The lift.
     pub lift: String,
@@ -99,6 +118,7 @@ pub struct LiftFigures {
 
 /// `GET /api/v1/reports/availability`: the period and each lift's figures.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct AvailabilityReport {
     /// Start (RFC 3339, UTC).
     pub from: String,
@@ -129,15 +149,25 @@ pub const CSV_COLUMNS: [&str; 14] = [
 
 /// The query of the monthly report: `YYYY-MM`.
 #[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::IntoParams))]
+#[cfg_attr(feature = "openapi", into_params(parameter_in = Query))]
 #[serde(deny_unknown_fields)]
 pub struct MonthQuery {
     /// The month (UTC), `YYYY-MM`; default: the last complete month.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[cfg_attr(
+        feature = "openapi",
+        param(
+            pattern = "^(19[7-9][0-9]|[2-9][0-9]{3})-(0[1-9]|1[0-2])$",
+            example = "2026-03"
+        )
+    )]
     pub month: Option<String>,
 }
 
 /// One month of an account's lifts against its availability target.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct MonthlyReport {
     /// The month, `YYYY-MM`.
     pub month: String,
@@ -157,6 +187,7 @@ pub struct MonthlyReport {
 
 /// A month's availability of an account.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct MonthAvailability {
     /// `YYYY-MM`.
     pub month: String,

@@ -37,6 +37,7 @@ pub fn shown_id(key: &str) -> &str {
 
 /// A lift as the registry knows it.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct LiftRecord {
     /// The registry's key ([`shown_id`] is what the account sees: `VENDORID-PRODUCTCODE-SERNUM`).
     pub id: String,

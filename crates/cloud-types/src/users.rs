@@ -14,6 +14,7 @@ pub struct Account {
 #[derive(
     Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, serde::Serialize, serde::Deserialize,
 )]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[serde(rename_all = "lowercase")]
 pub enum Role {
     /// Reads objects, live values, events, alarms, history and the audit log.
@@ -82,6 +83,7 @@ impl Operator {
 
 /// A user as listed.
 #[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct User {
     /// Name (unique on the portal).
     pub name: String,
@@ -95,6 +97,7 @@ pub struct User {
 
 /// An API key as listed (the key itself is shown only when it is made).
 #[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct KeyInfo {
     /// Its id (for `key revoke`).
     pub id: String,

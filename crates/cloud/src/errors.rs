@@ -113,16 +113,77 @@ impl<T: DeserializeOwned + Send, S: Send + Sync> FromRequestParts<S> for ApiQuer
 }
 
 /// A JSON body read into `T`; a malformed one answers with an error object (400, or 415 without
-/// a JSON content type, 422 for a body of the wrong shape).
+/// a JSON content type, 422 for a body of the wrong shape). A number with a zero fraction is
+/// the integer it equals (`2.0` is 2): JSON has one number type, and the OpenAPI document's
+/// `integer` is JSON Schema's, which holds `2.0` (JSON Schema 2020-12 §6.1.1).
 pub struct ApiJson<T>(pub T);
 
 impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for ApiJson<T> {
     type Rejection = ApiError;
 
     async fn from_request(request: Request, state: &S) -> Result<Self, ApiError> {
-        Json::<T>::from_request(request, state)
+        let Json(mut body) = Json::<serde_json::Value>::from_request(request, state)
             .await
-            .map(|j| ApiJson(j.0))
-            .map_err(|e: JsonRejection| error(e.status(), e.body_text()))
+            .map_err(|e: JsonRejection| error(e.status(), e.body_text()))?;
+        integral(&mut body);
+        serde_path_to_error::deserialize(body)
+            .map(ApiJson)
+            .map_err(|e| {
+                error(
+                    StatusCode::UNPROCESSABLE_ENTITY,
+                    format!("Failed to deserialize the JSON body into the target type: {e}"),
+                )
+            })
+    }
+}
+
+/// `value` with every number that has a zero fraction and fits an integer as that integer.
+fn integral(value: &mut serde_json::Value) {
+    use serde_json::Value;
+    match value {
+        Value::Number(n) if n.is_f64() => {
+            let f = n.as_f64().unwrap_or(f64::NAN);
+            // 2^64 and -2^63 are exact in an f64; between them an f64 without fraction is an
+            // integer the casts keep exactly. Beyond, it stays a number (refused as out of range
+            // by an integer field).
+            if f.fract() == 0.0 && (0.0..18_446_744_073_709_551_616.0).contains(&f) {
+                *n = (f as u64).into();
+            } else if f.fract() == 0.0 && (-9_223_372_036_854_775_808.0..0.0).contains(&f) {
+                *n = (f as i64).into();
+            }
+        }
+        Value::Array(items) => items.iter_mut().for_each(integral),
+        Value::Object(fields) => fields.values_mut().for_each(integral),
+        _ => {}
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use serde_json::json;
+
+    #[test]
+    fn numbers_without_fraction_are_integers() {
+        let mut body = json!({
+            "privilege": 2.0,
+            "inhibit": 1e19,
+            "offset": -3.0,
+            "threshold": 0.5,
+            "huge": 1e300,
+            "list": [29.0, {"net": 207.0}],
+        });
+        super::integral(&mut body);
+        assert_eq!(
+            body,
+            json!({
+                "privilege": 2,
+                "inhibit": 10_000_000_000_000_000_000_u64,
+                "offset": -3,
+                "threshold": 0.5,
+                "huge": 1e300,
+                "list": [29, {"net": 207}],
+            })
+        );
+        assert!(body["privilege"].is_u64() && body["offset"].is_i64() && body["huge"].is_f64());
     }
 }

@@ -4,12 +4,14 @@
 //! leading byte-order mark. `canlift watch` and the tests read the portal's streams with it.
 
 /// One event: its type (`message` when the stream names none) and its data (the `data:` lines
-/// joined with `\n`).
-#[derive(Debug, Clone, PartialEq, Eq)]
+/// joined with `\n`). As a schema, the events of the portal's streams: each named, with one
+/// line of JSON.
+#[derive(Debug, Clone, PartialEq, Eq, utoipa::ToSchema)]
 pub struct SseEvent {
-    /// The event type.
+    /// The event type: `value`, `online`, `event` or `alarm` on the portal's streams.
+    #[schema(pattern = "^(value|online|event|alarm)$")]
     pub event: String,
-    /// The data.
+    /// The data: a ValueMessage, OnlineMessage, BusEventMessage or an alarm, as JSON.
     pub data: String,
 }
 

@@ -592,6 +592,7 @@ impl Bound {
 
 /// Presentation hints of `get_canopen_object` (NXg SW003 §6.1.1).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[serde(default)]
 pub struct Hints {
     /// Show 0 as "off".

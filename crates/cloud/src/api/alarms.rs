@@ -16,13 +16,18 @@ use crate::state::AppState;
 use cloud_types::alarms::Alarm;
 use cloud_types::api::{AckBody, AlarmList, AlarmState, AlarmsQuery, EventLog, EventLogQuery};
 use cloud_types::users::Role;
+use nxg::msg::ErrorObject;
 
 use cloud_store::AlarmFilter;
 
 /// The most alarms or events one answer lists (the OpenAPI document's `limit` maximum).
 const LIMIT_MAX: u32 = 10_000;
 
-/// `GET /api/v1/alarms`.
+/// Alarms of the account's lifts, newest first.
+#[utoipa::path(get, path = "/api/v1/alarms", operation_id = "listAlarms", tag = "alarms",
+    params(AlarmsQuery), extensions(("x-least-role" = json!("viewer"))),
+    responses((status = 200, description = "the alarms", body = AlarmList),
+        (status = 400, description = "a limit beyond its bounds, an unknown state", body = ErrorObject)))]
 pub(super) async fn list(
     State(app): State<Arc<AppState>>,
     caller: Caller,
@@ -55,8 +60,17 @@ pub(crate) fn shown(mut alarm: Alarm) -> Alarm {
     alarm
 }
 
-/// `POST /api/v1/alarms/{id}/ack`: 404 for an alarm of another account, 409 for one taken on
-/// before.
+/// Acknowledge an alarm: who (the caller), when, with a comment. 404 for an alarm of another
+/// account, 409 for one taken on before.
+#[utoipa::path(post, path = "/api/v1/alarms/{id}/ack", operation_id = "acknowledgeAlarm",
+    tag = "alarms",
+    params(("id" = i64, Path, description = "the alarm", example = 1)),
+    request_body(content((AckBody = "application/json", example = json!({"comment": "technician on the way"})))),
+    extensions(("x-least-role" = json!("technician"))),
+    responses((status = 200, description = "the alarm, acknowledged", body = Alarm),
+        (status = 400, description = "a comment longer than 1000 characters", body = ErrorObject),
+        (status = 404, description = "no such alarm in the caller's account", body = ErrorObject),
+        (status = 409, description = "acknowledged before (the message says by whom)", body = ErrorObject)))]
 pub(super) async fn acknowledge(
     State(app): State<Arc<AppState>>,
     caller: Caller,
@@ -91,11 +105,17 @@ pub(super) async fn acknowledge(
     }
 }
 
-/// `GET /api/v1/lifts/{id}/event-log`.
+/// Stored bus events of a lift, oldest first.
+#[utoipa::path(get, path = "/api/v1/lifts/{id}/event-log", operation_id = "listBusEvents",
+    tag = "alarms", params(super::LiftPath, EventLogQuery),
+    extensions(("x-least-role" = json!("viewer"))),
+    responses((status = 200, description = "the events", body = EventLog),
+        (status = 400, description = "a time that is neither RFC 3339 nor ms since the epoch, a limit beyond its bounds", body = ErrorObject),
+        super::document::NoLift))]
 pub(super) async fn event_log(
     State(app): State<Arc<AppState>>,
     caller: Caller,
-    Path(id): Path<String>,
+    Path(super::LiftPath { id }): Path<super::LiftPath>,
     ApiQuery(q): ApiQuery<EventLogQuery>,
 ) -> Result<Json<EventLog>, ApiError> {
     let (_, id) = lift_of(&app, caller, &id, Role::Viewer).await?;

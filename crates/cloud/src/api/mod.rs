@@ -6,6 +6,7 @@
 //! and keys in `users`, availability reports in `reports`; who the caller is and what it may do in [`crate::auth`].
 
 mod alarms;
+mod document;
 mod idempotency;
 mod reports;
 mod users;
@@ -17,16 +18,18 @@ use std::sync::Arc;
 use axum::extract::{ConnectInfo, Path, State};
 use axum::http::{Method, StatusCode};
 use axum::response::sse::{Event, KeepAlive, Sse};
-use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::{Json, Router};
+use document::{GatewayAway, NoLift, NoObject, WriteRefused};
 use futures_util::Stream;
 use nxg::msg::{
-    Done, ElevateAnswer, ElevateParams, Lang, MplexText, NodeId, NodeRef, ObjectAnswer, PutAnswer,
-    PutObject, PutParams, TokenParams,
+    Done, ElevateAnswer, ElevateParams, ErrorObject, Lang, MplexText, NodeId, NodeRef,
+    ObjectAnswer, PutAnswer, PutObject, PutParams, TokenParams,
 };
 use nxg::names::ObjectNames;
 use nxg::portal::Failure;
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
 
 use crate::auth::{allowed, Caller};
 use crate::errors::{error, ApiError, ApiJson, ApiQuery};
@@ -117,6 +120,38 @@ fn node(node: Option<u8>, net: Option<u8>) -> Result<Option<NodeRef>, ApiError> 
     .transpose()
 }
 
+/// A lift in a path, as its account knows it.
+#[derive(Debug, serde::Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Path)]
+pub(crate) struct LiftPath {
+    /// The lift: VENDORID-PRODUCTCODE-SERNUM.
+    #[param(
+        pattern = "^[0-9]+-[0-9]+-[^/]+$",
+        example = "1050-4096-180917010200000102"
+    )]
+    id: String,
+}
+
+/// An object of a lift in a path.
+#[derive(Debug, serde::Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Path)]
+pub(crate) struct ObjectPath {
+    /// The lift: VENDORID-PRODUCTCODE-SERNUM.
+    #[param(
+        pattern = "^[0-9]+-[0-9]+-[^/]+$",
+        example = "1050-4096-180917010200000102"
+    )]
+    id: String,
+    /// The object: 0x652001, 652001, 0x6520:1, 6520sub1, an index alone (sub-index 0), or a
+    /// name of the CiA 417 catalog (any case, a unique prefix).
+    #[param(example = "0x652001")]
+    mplex: String,
+}
+
+/// The account's lifts: identity, liftnum, online, last_seen, api.
+#[utoipa::path(get, path = "/api/v1/lifts", operation_id = "listLifts", tag = "lifts",
+    extensions(("x-least-role" = json!("viewer"))),
+    responses((status = 200, description = "the lifts", body = Vec<LiftSummary>)))]
 async fn lifts(
     State(app): State<Arc<AppState>>,
     caller: Caller,
@@ -136,9 +171,16 @@ async fn lifts(
     Ok(Json(lifts))
 }
 
-/// `DELETE /api/v1/lifts/{id}` (admin): the lift is retired with everything stored of it,
-/// audited; its gateway, if connected, is closed, and its next CONNECT is a first contact
-/// (docs/PORTAL.md §Lifts and accounts).
+/// Retire the lift: its registry entry and everything stored of it (telemetry, roll-ups, bus
+/// events, alarms, subscriptions) are removed in one transaction, audited; its gateway, if
+/// connected, is closed and its next CONNECT is a first contact (docs/PORTAL.md §Lifts and
+/// accounts).
+#[utoipa::path(delete, path = "/api/v1/lifts/{id}", operation_id = "retireLift", tag = "lifts",
+    // An example no lift has: a contract test does not retire the lift it tests the rest on.
+    params(("id" = String, Path, description = "the lift: VENDORID-PRODUCTCODE-SERNUM",
+        pattern = "^[0-9]+-[0-9]+-[^/]+$", example = "1050-4096-RETIRED-EXAMPLE")),
+    extensions(("x-least-role" = json!("admin"))),
+    responses((status = 204, description = "retired"), NoLift))]
 async fn retire(
     State(app): State<Arc<AppState>>,
     caller: Caller,
@@ -157,10 +199,17 @@ async fn retire(
     Ok(StatusCode::NO_CONTENT)
 }
 
+/// `get_canopen_object` on the lift (NXg §6.1).
+#[utoipa::path(get, path = "/api/v1/lifts/{id}/objects/{mplex}", operation_id = "getObject",
+    tag = "objects", params(ObjectPath, GetQuery),
+    extensions(("x-least-role" = json!("viewer"))),
+    responses((status = 200, description = "the gateway's answer", body = ObjectAnswer),
+        (status = 400, description = "not an object address, or an unknown or ambiguous name; or the gateway's refusal with its NXg error", body = ErrorObject),
+        NoObject, GatewayAway))]
 async fn get_object(
     State(app): State<Arc<AppState>>,
     caller: Caller,
-    Path((id, text)): Path<(String, String)>,
+    Path(ObjectPath { id, mplex: text }): Path<ObjectPath>,
     ApiQuery(q): ApiQuery<GetQuery>,
 ) -> Result<Json<ObjectAnswer>, ApiError> {
     let (_, id) = lift_of(&app, caller, &id, Role::Viewer).await?;
@@ -180,11 +229,19 @@ async fn get_object(
     Ok(Json(app.registry.call(&id, &params).await?))
 }
 
+/// `put_canopen_object` on the lift (NXg §6.3), audited.
+#[utoipa::path(put, path = "/api/v1/lifts/{id}/objects/{mplex}", operation_id = "putObject",
+    tag = "objects", params(ObjectPath),
+    request_body(content((PutBody = "application/json", example = json!({"value": "2", "datatype": 7, "physunit": 0})))),
+    extensions(("x-least-role" = json!("technician"))),
+    responses((status = 200, description = "the gateway's answer", body = PutAnswer),
+        (status = 400, description = "not an object address, or an unknown or ambiguous name; or the gateway's refusal of the value with its NXg error", body = ErrorObject),
+        WriteRefused, NoObject, GatewayAway))]
 async fn put_object(
     State(app): State<Arc<AppState>>,
     caller: Caller,
     ConnectInfo(client): ConnectInfo<SocketAddr>,
-    Path((id, text)): Path<(String, String)>,
+    Path(ObjectPath { id, mplex: text }): Path<ObjectPath>,
     ApiJson(body): ApiJson<PutBody>,
 ) -> Result<Json<PutAnswer>, ApiError> {
     let (operator, id) = lift_of(&app, caller, &id, Role::Technician).await?;
@@ -273,37 +330,47 @@ async fn may_write(
         .map_err(|r| error(StatusCode::FORBIDDEN, r.to_string()))
 }
 
-/// The name of `…/objects?name=NAME`.
-fn named(name: Option<String>) -> Result<String, ApiError> {
-    name.ok_or_else(|| {
-        error(
-            StatusCode::BAD_REQUEST,
-            "name: give ?name=OBJECT, or the object's address in the path",
-        )
-    })
-}
-
-/// `GET …/objects?name=Trip%20counter`: [`get_object`] by name.
+/// `get_canopen_object` on the lift, the object given by name ([`get_object`]).
+#[utoipa::path(get, path = "/api/v1/lifts/{id}/objects", operation_id = "getObjectByName",
+    tag = "objects", params(LiftPath, NameQuery, GetQuery),
+    extensions(("x-least-role" = json!("viewer"))),
+    responses((status = 200, description = "the gateway's answer", body = ObjectAnswer),
+        (status = 400, description = "no name, an unknown name, or a name several objects start with (the message lists them); or the gateway's refusal with its NXg error", body = ErrorObject),
+        NoObject, GatewayAway))]
 async fn get_named(
     app: State<Arc<AppState>>,
     caller: Caller,
-    Path(id): Path<String>,
-    ApiQuery(q): ApiQuery<GetQuery>,
+    Path(LiftPath { id }): Path<LiftPath>,
+    ApiQuery(NameQuery { name }): ApiQuery<NameQuery>,
+    query: ApiQuery<GetQuery>,
 ) -> Result<Json<ObjectAnswer>, ApiError> {
-    let name = named(q.name.clone())?;
-    get_object(app, caller, Path((id, name)), ApiQuery(q)).await
+    get_object(app, caller, Path(ObjectPath { id, mplex: name }), query).await
 }
 
-/// `PUT …/objects?name=Trip%20counter`: [`put_object`] by name.
+/// `put_canopen_object` on the lift (audited), the object given by name ([`put_object`]).
+#[utoipa::path(put, path = "/api/v1/lifts/{id}/objects", operation_id = "putObjectByName",
+    tag = "objects", params(LiftPath, NameQuery),
+    request_body(content((PutBody = "application/json", example = json!({"value": "2", "datatype": 7, "physunit": 0})))),
+    extensions(("x-least-role" = json!("technician"))),
+    responses((status = 200, description = "the gateway's answer", body = PutAnswer),
+        (status = 400, description = "no name, an unknown name, or a name several objects start with (the message lists them); or the gateway's refusal of the value with its NXg error", body = ErrorObject),
+        WriteRefused, NoObject, GatewayAway))]
 async fn put_named(
     app: State<Arc<AppState>>,
     caller: Caller,
     client: ConnectInfo<SocketAddr>,
-    Path(id): Path<String>,
-    ApiQuery(q): ApiQuery<NameQuery>,
+    Path(LiftPath { id }): Path<LiftPath>,
+    ApiQuery(NameQuery { name }): ApiQuery<NameQuery>,
     body: ApiJson<PutBody>,
 ) -> Result<Json<PutAnswer>, ApiError> {
-    put_object(app, caller, client, Path((id, named(q.name)?)), body).await
+    put_object(
+        app,
+        caller,
+        client,
+        Path(ObjectPath { id, mplex: name }),
+        body,
+    )
+    .await
 }
 
 /// What the audit log says about a gateway request's outcome.
@@ -316,11 +383,20 @@ fn outcome<T>(result: &Result<T, Failure>) -> String {
     }
 }
 
+/// `elevate_privilege` with the SHA-1 of the password (NXg §6.4), audited; the grant is the
+/// caller's alone, on the gateway's current connection.
+#[utoipa::path(post, path = "/api/v1/lifts/{id}/privilege", operation_id = "elevatePrivilege",
+    tag = "objects", params(LiftPath),
+    request_body(content((PrivilegeBody = "application/json", example = json!({"privilege": 1, "password": "service"})))),
+    extensions(("x-least-role" = json!("engineer"))),
+    responses((status = 200, description = "the gateway's answer", body = ElevateAnswer),
+        (status = 400, description = "the gateway's refusal with its NXg error (a wrong password)", body = ErrorObject),
+        NoLift, GatewayAway))]
 async fn privilege(
     State(app): State<Arc<AppState>>,
     caller: Caller,
     ConnectInfo(client): ConnectInfo<SocketAddr>,
-    Path(id): Path<String>,
+    Path(LiftPath { id }): Path<LiftPath>,
     ApiJson(body): ApiJson<PrivilegeBody>,
 ) -> Result<Json<ElevateAnswer>, ApiError> {
     let (operator, id) = lift_of(&app, caller, &id, Role::Engineer).await?;
@@ -370,30 +446,45 @@ async fn privilege(
     Ok(Json(result?))
 }
 
-/// The lift's cloud token (NXg §5.4). POST replaces it now on the online gateway
-/// (`update_unique_token`; the new one is recorded as the next token before it is sent, so a
-/// lost answer does not lock the gateway out); DELETE forgets it, so the gateway's next CONNECT
-/// is a first contact that gets a new one — for a gateway that was replaced or wiped. Both are
-/// audited; neither shows a token.
-async fn token(
+/// Forget the lift's cloud token (NXg §5.4): the gateway's next CONNECT is a first contact
+/// that gets a new one — for a gateway that was replaced or wiped. Audited; no token is shown.
+#[utoipa::path(delete, path = "/api/v1/lifts/{id}/token", operation_id = "resetToken",
+    tag = "tokens", params(LiftPath),
+    extensions(("x-least-role" = json!("admin"))),
+    responses((status = 204, description = "forgotten"), NoLift))]
+async fn reset_token(
     State(app): State<Arc<AppState>>,
-    method: Method,
     caller: Caller,
-    ConnectInfo(client): ConnectInfo<SocketAddr>,
-    Path(id): Path<String>,
+    Path(LiftPath { id }): Path<LiftPath>,
 ) -> Result<StatusCode, ApiError> {
     let (operator, id) = lift_of(&app, caller, &id, Role::Admin).await?;
-    if method == Method::DELETE {
-        return if app
-            .store
-            .reset_token(&operator.account.domain, &id, &operator.user)
-            .await?
-        {
-            Ok(StatusCode::NO_CONTENT)
-        } else {
-            Err(error(StatusCode::NOT_FOUND, "no such lift"))
-        };
+    if app
+        .store
+        .reset_token(&operator.account.domain, &id, &operator.user)
+        .await?
+    {
+        Ok(StatusCode::NO_CONTENT)
+    } else {
+        Err(error(StatusCode::NOT_FOUND, "no such lift"))
     }
+}
+
+/// Replace the online gateway's cloud token now (`update_unique_token`, NXg §5.4): the new one
+/// is recorded as the next token before it is sent, so a lost answer does not lock the gateway
+/// out. Audited; the token is never shown.
+#[utoipa::path(post, path = "/api/v1/lifts/{id}/token", operation_id = "rotateToken",
+    tag = "tokens", params(LiftPath),
+    extensions(("x-least-role" = json!("admin"))),
+    responses((status = 204, description = "the gateway stored the new token; the portal expects it from now on"),
+        (status = 400, description = "the gateway refused the token", body = ErrorObject),
+        NoLift, GatewayAway))]
+async fn rotate_token(
+    State(app): State<Arc<AppState>>,
+    caller: Caller,
+    ConnectInfo(client): ConnectInfo<SocketAddr>,
+    Path(LiftPath { id }): Path<LiftPath>,
+) -> Result<StatusCode, ApiError> {
+    let (operator, id) = lift_of(&app, caller, &id, Role::Admin).await?;
     let sernum = app.registry.sernum(&id).ok_or(Failure::Gone)?;
     let audited = app
         .audit
@@ -437,14 +528,48 @@ async fn token(
     Ok(StatusCode::NO_CONTENT)
 }
 
-/// The user holds (POST) or lets go of (DELETE) subscriptions of objects; the gateway is
-/// asked for the union of what everyone holds on the lift (docs/PORTAL.md §Subscriptions), so
-/// one holder's terms or `DELETE` never change another's pushes.
+/// The caller holds subscriptions of the objects; the gateway gets the union of what everyone
+/// holds on the lift (the smallest inhibit and threshold: docs/PORTAL.md §Subscriptions).
+#[utoipa::path(post, path = "/api/v1/lifts/{id}/subscriptions", operation_id = "subscribe",
+    tag = "subscriptions", params(LiftPath),
+    request_body(content((SubscriptionBody = "application/json", example = json!({"mplex": ["0x652001", "Car speed unit 1"], "inhibit": 500, "threshold": 0.5})))),
+    extensions(("x-least-role" = json!("technician"))),
+    responses((status = 200, description = "the gateway took them", body = Done),
+        (status = 400, description = "an object that is no address or name, a threshold below 0; or the gateway's refusal with its NXg error", body = ErrorObject),
+        NoObject, GatewayAway))]
+async fn subscribe(
+    app: State<Arc<AppState>>,
+    caller: Caller,
+    Path(LiftPath { id }): Path<LiftPath>,
+    body: ApiJson<SubscriptionBody>,
+) -> Result<Json<Done>, ApiError> {
+    subscriptions(app, Method::POST, caller, id, body).await
+}
+
+/// The caller lets go of its own subscriptions of the objects; an object leaves the gateway
+/// when its last holder lets go, one holder's `DELETE` never changes another's pushes.
+#[utoipa::path(delete, path = "/api/v1/lifts/{id}/subscriptions", operation_id = "unsubscribe",
+    tag = "subscriptions", params(LiftPath),
+    request_body(content((SubscriptionBody = "application/json", example = json!({"mplex": ["0x652001"]})))),
+    extensions(("x-least-role" = json!("technician"))),
+    responses((status = 200, description = "let go of", body = Done),
+        (status = 400, description = "an object that is no address or name; or the gateway's refusal with its NXg error", body = ErrorObject),
+        NoObject, GatewayAway))]
+async fn unsubscribe(
+    app: State<Arc<AppState>>,
+    caller: Caller,
+    Path(LiftPath { id }): Path<LiftPath>,
+    body: ApiJson<SubscriptionBody>,
+) -> Result<Json<Done>, ApiError> {
+    subscriptions(app, Method::DELETE, caller, id, body).await
+}
+
+/// [`subscribe`] (POST) and [`unsubscribe`] (DELETE).
 async fn subscriptions(
     State(app): State<Arc<AppState>>,
     method: Method,
     caller: Caller,
-    Path(id): Path<String>,
+    id: String,
     ApiJson(body): ApiJson<SubscriptionBody>,
 ) -> Result<Json<Done>, ApiError> {
     let (operator, id) = lift_of(&app, caller, &id, Role::Technician).await?;
@@ -492,14 +617,24 @@ fn terms(inhibit: Option<u64>, threshold: Option<f64>) -> Result<Terms, ApiError
     })
 }
 
-/// The lift's live events. With `?mplex=A,B…` (and `inhibit`, `threshold`) the stream holds
-/// subscriptions of those objects for as long as it is open — kept while the gateway is
-/// offline and registered when it connects — and lets go of them when it ends; that takes a
-/// technician (a viewer's stream holds nothing: 403).
+/// The lift's live events as Server-Sent Events: `value` (notifications), `online` changes,
+/// `event` (bus events) and `alarm` (alarm changes). With `?mplex=A,B…` (and `inhibit`,
+/// `threshold`) the stream holds subscriptions of those objects for as long as it is open —
+/// kept while the gateway is offline and registered when it connects — and lets go of them
+/// when it ends; that takes a technician (a viewer's stream holds nothing: 403).
+#[utoipa::path(get, path = "/api/v1/lifts/{id}/events", operation_id = "streamEvents",
+    tag = "subscriptions", params(LiftPath, EventsQuery),
+    extensions(("x-least-role" = json!("viewer"))),
+    responses((status = 200, description = "the event stream: value, online, event and alarm events, each with one data line of JSON (ValueMessage, OnlineMessage, BusEventMessage, an alarm)",
+            content_type = "text/event-stream", body = crate::sse::SseEvent),
+        (status = 400, description = "an object that is no address or name, or a threshold below 0", body = ErrorObject),
+        (status = 403, description = "with mplex: holding subscriptions needs the role technician (a viewer may watch without mplex)", body = ErrorObject),
+        NoLift,
+        (status = 504, description = "the gateway did not answer the registration in time", body = ErrorObject)))]
 async fn events(
     State(app): State<Arc<AppState>>,
     caller: Caller,
-    Path(id): Path<String>,
+    Path(LiftPath { id }): Path<LiftPath>,
     ApiQuery(q): ApiQuery<EventsQuery>,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
     // Holding subscriptions on the gateway is a technician's (docs/PORTAL.md §Users and
@@ -578,10 +713,18 @@ impl Drop for Watching {
     }
 }
 
+/// Stored values of an object over a period, in at most `points` buckets (docs/PORTAL.md
+/// §History).
+#[utoipa::path(get, path = "/api/v1/lifts/{id}/objects/{mplex}/history",
+    operation_id = "getObjectHistory", tag = "history", params(ObjectPath, HistoryQuery),
+    extensions(("x-least-role" = json!("viewer"))),
+    responses((status = 200, description = "the buckets", body = History),
+        (status = 400, description = "not an object address or name, or a time or point count beyond its bounds", body = ErrorObject),
+        NoLift))]
 async fn history(
     State(app): State<Arc<AppState>>,
     caller: Caller,
-    Path((id, text)): Path<(String, String)>,
+    Path(ObjectPath { id, mplex: text }): Path<ObjectPath>,
     ApiQuery(q): ApiQuery<HistoryQuery>,
 ) -> Result<Json<History>, ApiError> {
     let (_, id) = lift_of(&app, caller, &id, Role::Viewer).await?;
@@ -617,6 +760,10 @@ pub(crate) fn point_of(b: cloud_store::Bucket) -> HistoryPoint {
     }
 }
 
+/// Audit log of the account's lifts: who, when, lift, object, old and new value, result.
+#[utoipa::path(get, path = "/api/v1/audit", operation_id = "listAudit", tag = "audit",
+    extensions(("x-least-role" = json!("viewer"))),
+    responses((status = 200, description = "the entries", body = Vec<AuditEntry>)))]
 async fn audit(
     State(app): State<Arc<AppState>>,
     caller: Caller,
@@ -625,67 +772,65 @@ async fn audit(
     Ok(Json(app.store.audit_log(&operator.account.domain).await?))
 }
 
-async fn openapi() -> Response {
-    (
-        [(axum::http::header::CONTENT_TYPE, "application/json")],
-        OPENAPI,
-    )
-        .into_response()
+/// The operations and their routes, from one list: a route is registered with its operation
+/// in the document ([`document`]).
+fn operations() -> OpenApiRouter<Arc<AppState>> {
+    OpenApiRouter::with_openapi(<document::Frame as utoipa::OpenApi>::openapi())
+        .routes(routes!(lifts))
+        .routes(routes!(retire))
+        .routes(routes!(get_named, put_named))
+        .routes(routes!(get_object, put_object))
+        .routes(routes!(history))
+        .routes(routes!(privilege))
+        .routes(routes!(rotate_token, reset_token))
+        .routes(routes!(subscribe, unsubscribe))
+        .routes(routes!(events))
+        .routes(routes!(alarms::event_log))
+        .routes(routes!(alarms::list))
+        .routes(routes!(alarms::acknowledge))
+        .routes(routes!(audit))
+        .routes(routes!(reports::availability))
+        .routes(routes!(reports::monthly))
+        .routes(routes!(reports::target))
+        .routes(routes!(users::list, users::add))
+        .routes(routes!(users::role))
+        .routes(routes!(users::disable))
+        .routes(routes!(users::reset))
+        .routes(routes!(users::keys, users::add_key))
+        .routes(routes!(users::revoke))
 }
 
-/// The OpenAPI document of this API.
-pub const OPENAPI: &str = include_str!("openapi.json");
+/// The routes and the document of the operations.
+fn parts() -> (Router<Arc<AppState>>, utoipa::openapi::OpenApi) {
+    let (router, mut document) = operations().split_for_parts();
+    utoipa::Modify::modify(&document::Refusals, &mut document);
+    (router, document)
+}
+
+/// The OpenAPI document of this API, generated from the handlers and the body types
+/// (docs/PORTAL.md §Operator REST API).
+pub fn document() -> utoipa::openapi::OpenApi {
+    parts().1
+}
 
 /// The `/api/v1` routes.
 pub fn routes(app: Arc<AppState>) -> Router {
-    Router::new()
-        .route("/api/v1/openapi.json", get(openapi))
-        .route("/api/v1/lifts", get(lifts))
-        .route("/api/v1/lifts/{id}", axum::routing::delete(retire))
-        .route("/api/v1/lifts/{id}/objects", get(get_named).put(put_named))
+    let (router, document) = parts();
+    // Made once: every request for it is answered with the same bytes.
+    let document: Arc<str> = document
+        .to_json()
+        .unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}"))
+        .into();
+    router
         .route(
-            "/api/v1/lifts/{id}/objects/{mplex}",
-            get(get_object).put(put_object),
+            "/api/v1/openapi.json",
+            get(move || async move {
+                (
+                    [(axum::http::header::CONTENT_TYPE, "application/json")],
+                    document.to_string(),
+                )
+            }),
         )
-        .route("/api/v1/lifts/{id}/objects/{mplex}/history", get(history))
-        .route(
-            "/api/v1/lifts/{id}/privilege",
-            axum::routing::post(privilege),
-        )
-        .route(
-            "/api/v1/lifts/{id}/token",
-            axum::routing::post(token).delete(token),
-        )
-        .route(
-            "/api/v1/lifts/{id}/subscriptions",
-            axum::routing::post(subscriptions).delete(subscriptions),
-        )
-        .route("/api/v1/lifts/{id}/events", get(events))
-        .route("/api/v1/lifts/{id}/event-log", get(alarms::event_log))
-        .route("/api/v1/alarms", get(alarms::list))
-        .route(
-            "/api/v1/alarms/{id}/ack",
-            axum::routing::post(alarms::acknowledge),
-        )
-        .route("/api/v1/audit", get(audit))
-        .route("/api/v1/reports/availability", get(reports::availability))
-        .route("/api/v1/reports/monthly", get(reports::monthly))
-        .route(
-            "/api/v1/reports/target",
-            axum::routing::put(reports::target),
-        )
-        .route("/api/v1/users", get(users::list).post(users::add))
-        .route("/api/v1/users/{name}/role", axum::routing::put(users::role))
-        .route(
-            "/api/v1/users/{name}/disable",
-            axum::routing::post(users::disable),
-        )
-        .route(
-            "/api/v1/users/{name}/reset",
-            axum::routing::post(users::reset),
-        )
-        .route("/api/v1/keys", get(users::keys).post(users::add_key))
-        .route("/api/v1/keys/{id}", axum::routing::delete(users::revoke))
         .layer(axum::middleware::from_fn_with_state(
             app.clone(),
             idempotency::once,

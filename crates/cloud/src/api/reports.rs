@@ -16,6 +16,7 @@ use crate::state::AppState;
 use cloud_store::Lifts;
 use cloud_types::insights::{AvailabilityQuery, AvailabilityReport, MonthQuery, MonthlyReport};
 use cloud_types::users::Role;
+use nxg::msg::ErrorObject;
 
 /// The longest period one report covers (ms): 400 days, as far as the status changes are kept
 /// by default.
@@ -38,7 +39,14 @@ fn instant(what: &str, text: &str) -> Result<i64, ApiError> {
         })
 }
 
-/// `GET /api/v1/reports/availability?from=&to=[&lift=][&format=csv]`.
+/// Availability and fault figures of the account's lifts over a period, as JSON or CSV
+/// (docs/PORTAL.md §Availability).
+#[utoipa::path(get, path = "/api/v1/reports/availability", operation_id = "availabilityReport",
+    tag = "reports", params(AvailabilityQuery), extensions(("x-least-role" = json!("viewer"))),
+    responses((status = 200, description = "the figures; with format=csv one line per lift, a header line first (faults_by_kind as CODE=N pairs joined by ;)",
+            content((AvailabilityReport = "application/json"), (String = "text/csv"))),
+        (status = 400, description = "a time that is neither, an end not after the start or more than 400 days after it, an unknown format", body = ErrorObject),
+        (status = 404, description = "no such lift in the caller's account", body = ErrorObject)))]
 pub(super) async fn availability(
     State(app): State<Arc<AppState>>,
     caller: Caller,
@@ -94,7 +102,12 @@ pub(super) async fn availability(
     .into_response())
 }
 
-/// `GET /api/v1/reports/monthly?month=YYYY-MM`.
+/// The account's month: availability against its target, faults by kind, the three months
+/// before, the lifts least available first (docs/PORTAL.md §Monthly report).
+#[utoipa::path(get, path = "/api/v1/reports/monthly", operation_id = "monthlyReport",
+    tag = "reports", params(MonthQuery), extensions(("x-least-role" = json!("viewer"))),
+    responses((status = 200, description = "the report", body = MonthlyReport),
+        (status = 400, description = "not a month", body = ErrorObject)))]
 pub(super) async fn monthly(
     State(app): State<Arc<AppState>>,
     caller: Caller,
@@ -109,12 +122,14 @@ pub(super) async fn monthly(
 }
 
 /// The body of `PUT /api/v1/reports/target` and its answer.
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
+#[schema(as = Target)]
 pub struct TargetBody {
-    /// The availability promised (0–1); null: the portal's default. Required: absent is not
-    /// null (the outer `None`).
+    /// The availability promised (0–1); null: the portal's default ([insights] target).
+    /// Required: absent is not null (the outer `None`).
     #[serde(default, deserialize_with = "present")]
+    #[schema(value_type = Option<f64>, required = true, minimum = 0, maximum = 1)]
     pub target: Option<Option<f64>>,
 }
 
@@ -123,7 +138,13 @@ fn present<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<Option<f64>>
     serde::Deserialize::deserialize(d).map(Some)
 }
 
-/// `PUT /api/v1/reports/target` (admin): the availability the account promises.
+/// Set the availability the account promises (the monthly report's target).
+#[utoipa::path(put, path = "/api/v1/reports/target", operation_id = "setAvailabilityTarget",
+    tag = "reports",
+    request_body(content((TargetBody = "application/json", example = json!({"target": 0.995})))),
+    extensions(("x-least-role" = json!("admin"))),
+    responses((status = 200, description = "the target in force", body = TargetBody),
+        (status = 400, description = "a target outside 0–1", body = ErrorObject)))]
 pub(super) async fn target(
     State(app): State<Arc<AppState>>,
     caller: Caller,

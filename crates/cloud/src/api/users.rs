@@ -7,7 +7,9 @@ use std::sync::Arc;
 use axum::extract::{Path, State};
 use axum::http::StatusCode;
 use axum::Json;
+use nxg::msg::ErrorObject;
 use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
 
 use crate::auth::{allowed, Caller};
 use crate::errors::{error, ApiError, ApiJson};
@@ -29,50 +31,65 @@ impl From<UserError> for ApiError {
 }
 
 /// The body of `POST /api/v1/users`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub(super) struct NewUser {
+    /// Unique within the account.
+    #[schema(pattern = "^[A-Za-z0-9._@-]{1,64}$")]
     name: String,
+    /// What the user may do.
     role: Role,
 }
 
 /// The body of `PUT /api/v1/users/{name}/role`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub(super) struct NewRole {
+    /// The role from now on.
     role: Role,
 }
 
 /// A user with its sign-in secret, shown once.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, ToSchema)]
 pub(super) struct UserSecret {
+    /// The user.
     user: String,
+    /// Its account.
     account: String,
+    /// Its role.
     role: Role,
+    /// The sign-in secret, shown only now.
     secret: String,
 }
 
 /// The body of `POST /api/v1/keys`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub(super) struct NewKey {
+    /// The user the key acts for, with its role.
     user: String,
-    /// Days it works (absent: until revoked).
+    /// Days it works (absent or null: until revoked).
     #[serde(default)]
+    #[schema(minimum = 1, maximum = 36500)]
     expires_days: Option<u32>,
 }
 
 /// A new key, shown once.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, ToSchema)]
 pub(super) struct KeySecret {
+    /// The key, shown only now.
     api_key: String,
+    /// Its id (for revoking it).
     id: String,
 }
 
 /// Longest user name.
 const NAME_MAX: usize = 64;
 
-/// `GET /api/v1/users`.
+/// The account's users.
+#[utoipa::path(get, path = "/api/v1/users", operation_id = "listUsers", tag = "users",
+    extensions(("x-least-role" = json!("admin"))),
+    responses((status = 200, description = "the users", body = Vec<User>)))]
 pub(super) async fn list(
     State(app): State<Arc<AppState>>,
     caller: Caller,
@@ -81,7 +98,13 @@ pub(super) async fn list(
     Ok(Json(app.store.users(&admin.account.name).await?))
 }
 
-/// `POST /api/v1/users`: 201 with the secret; 409 when the account has a user of the name.
+/// Add a user; its sign-in secret is in the answer, shown only now.
+#[utoipa::path(post, path = "/api/v1/users", operation_id = "addUser", tag = "users",
+    request_body(content((NewUser = "application/json", example = json!({"name": "ann", "role": "engineer"})))),
+    extensions(("x-least-role" = json!("admin"))),
+    responses((status = 201, description = "added", body = UserSecret),
+        (status = 400, description = "a malformed name", body = ErrorObject),
+        (status = 409, description = "the account has a user of that name (names are unique within their account)", body = ErrorObject)))]
 pub(super) async fn add(
     State(app): State<Arc<AppState>>,
     caller: Caller,
@@ -108,7 +131,12 @@ pub(super) async fn add(
     Ok((StatusCode::CREATED, Json(made)))
 }
 
-/// `PUT /api/v1/users/{name}/role`.
+/// Give a user another role.
+#[utoipa::path(put, path = "/api/v1/users/{name}/role", operation_id = "setUserRole", tag = "users",
+    params(("name" = String, Path, description = "the user", example = "ann")),
+    request_body(content((NewRole = "application/json", example = json!({"role": "technician"})))),
+    extensions(("x-least-role" = json!("admin"))),
+    responses((status = 204, description = "changed"), super::document::NoSuchUser))]
 pub(super) async fn role(
     State(app): State<Arc<AppState>>,
     caller: Caller,
@@ -123,7 +151,11 @@ pub(super) async fn role(
     Ok(StatusCode::NO_CONTENT)
 }
 
-/// `POST /api/v1/users/{name}/disable`: its keys and sessions stop working.
+/// Disable a user: its keys and sessions stop working within a second.
+#[utoipa::path(post, path = "/api/v1/users/{name}/disable", operation_id = "disableUser",
+    tag = "users", params(("name" = String, Path, description = "the user", example = "ann")),
+    extensions(("x-least-role" = json!("admin"))),
+    responses((status = 204, description = "disabled"), super::document::NoSuchUser))]
 pub(super) async fn disable(
     State(app): State<Arc<AppState>>,
     caller: Caller,
@@ -135,7 +167,11 @@ pub(super) async fn disable(
     Ok(StatusCode::NO_CONTENT)
 }
 
-/// `POST /api/v1/users/{name}/reset`: a new sign-in secret, shown once.
+/// A new sign-in secret for a user, shown only now; the old one stops working.
+#[utoipa::path(post, path = "/api/v1/users/{name}/reset", operation_id = "resetUserSecret",
+    tag = "users", params(("name" = String, Path, description = "the user", example = "ann")),
+    extensions(("x-least-role" = json!("admin"))),
+    responses((status = 200, description = "the new secret", body = UserSecret), super::document::NoSuchUser))]
 pub(super) async fn reset(
     State(app): State<Arc<AppState>>,
     caller: Caller,
@@ -153,7 +189,10 @@ pub(super) async fn reset(
     }))
 }
 
-/// `GET /api/v1/keys`.
+/// The account's users' API keys (never the keys themselves).
+#[utoipa::path(get, path = "/api/v1/keys", operation_id = "listKeys", tag = "users",
+    extensions(("x-least-role" = json!("admin"))),
+    responses((status = 200, description = "the keys", body = Vec<KeyInfo>)))]
 pub(super) async fn keys(
     State(app): State<Arc<AppState>>,
     caller: Caller,
@@ -162,7 +201,13 @@ pub(super) async fn keys(
     Ok(Json(app.store.keys(&admin.account.name).await?))
 }
 
-/// `POST /api/v1/keys`: 201 with the key, shown once.
+/// A new API key acting for a user with its role, shown only now.
+#[utoipa::path(post, path = "/api/v1/keys", operation_id = "addKey", tag = "users",
+    request_body(content((NewKey = "application/json", example = json!({"user": "ann", "expires_days": 90})))),
+    extensions(("x-least-role" = json!("admin"))),
+    responses((status = 201, description = "made", body = KeySecret),
+        (status = 400, description = "expires_days beyond its bounds", body = ErrorObject),
+        super::document::NoSuchUser))]
 pub(super) async fn add_key(
     State(app): State<Arc<AppState>>,
     caller: Caller,
@@ -179,7 +224,11 @@ pub(super) async fn add_key(
     Ok((StatusCode::CREATED, Json(KeySecret { api_key, id })))
 }
 
-/// `DELETE /api/v1/keys/{id}`: it stops working.
+/// Revoke a key: it stops working within a second.
+#[utoipa::path(delete, path = "/api/v1/keys/{id}", operation_id = "revokeKey", tag = "users",
+    params(("id" = String, Path, description = "the key's id", example = "0123456789ab")),
+    extensions(("x-least-role" = json!("admin"))),
+    responses((status = 204, description = "revoked"), super::document::NoSuchUser))]
 pub(super) async fn revoke(
     State(app): State<Arc<AppState>>,
     caller: Caller,

@@ -4,24 +4,28 @@
 //! operation, any JSON answer that does not match the schema documented for its status, any 5xx,
 //! and any schema-valid request the portal refuses as malformed (400, 415, 422 of its own).
 //!
+//! Each operation's `x-least-role` is held too: a valid request with a key of every lower role
+//! is refused with 403 naming the role.
+//!
 //! Valid values come from the document: a parameter's or body's `examples` where the lift
 //! decides what is valid (an object's address, a value for its type), otherwise from the schema
 //! (enum, integer and number bounds, `pattern`). A refusal by the lift's gateway (a value a
 //! read-only object does not take) is an answer, not a contract breach: it carries the CiA/NXg
 //! code, while the portal's own refusals carry the HTTP status as their code.
 //!
-//! The schema checker below covers the subset of OpenAPI 3.0 the document uses (`$ref`, `type`,
-//! `nullable`, `enum`, `required`, `properties`, `items`, `minimum`, `maximum`); a general JSON
-//! Schema crate would bring more than the test needs and still not read OpenAPI's `nullable`.
+//! The schema checker below covers the subset of OpenAPI 3.1 (JSON Schema 2020-12) the document
+//! uses (`$ref`, `type` as a name or a list of names, `oneOf`, `allOf`, `enum`, `required`,
+//! `properties`, `items`, `minimum`, `maximum`); schemathesis checks the rest.
 
 use std::collections::BTreeMap;
 
 use cloud::client::{Body, Client, Reply};
+use cloud_types::users::Role;
 use proptest::prelude::*;
 use proptest::strategy::ValueTree;
 use proptest::test_runner::TestRunner;
 use serde_json::{json, Value};
-use testkit::constants::LIFT;
+use testkit::constants::{ACCOUNT, LIFT};
 use testkit::portal::Rig;
 
 /// Requests generated per operation and kind.
@@ -67,26 +71,38 @@ impl Document {
     /// Whether `value` matches `schema`; the path to the first mismatch otherwise.
     fn check(&self, schema: &Value, value: &Value, at: &str) -> Result<(), String> {
         let schema = self.resolve(schema);
-        if value.is_null() && schema["nullable"] == true {
-            return Ok(());
+        if let Some(all) = schema.get("allOf").and_then(Value::as_array) {
+            for part in all {
+                self.check(part, value, at)?;
+            }
+        }
+        if let Some(options) = schema.get("oneOf").and_then(Value::as_array) {
+            let fitting = options
+                .iter()
+                .filter(|o| self.check(o, value, at).is_ok())
+                .count();
+            if fitting != 1 {
+                return Err(format!("{at}: {value} fits {fitting} of {options:?}"));
+            }
         }
         if let Some(options) = schema.get("enum").and_then(Value::as_array) {
             if !options.contains(value) {
                 return Err(format!("{at}: {value} is not one of {options:?}"));
             }
         }
-        let kind = schema.get("type").and_then(Value::as_str);
-        let fits = match kind {
-            Some("object") => value.is_object(),
-            Some("array") => value.is_array(),
-            Some("string") => value.is_string(),
-            Some("integer") => value.is_i64() || value.is_u64(),
-            Some("number") => value.is_number(),
-            Some("boolean") => value.is_boolean(),
+        let kinds = types(schema);
+        let fits = |kind: &str| match kind {
+            "object" => value.is_object(),
+            "array" => value.is_array(),
+            "string" => value.is_string(),
+            "integer" => value.is_i64() || value.is_u64(),
+            "number" => value.is_number(),
+            "boolean" => value.is_boolean(),
+            "null" => value.is_null(),
             _ => true,
         };
-        if !fits {
-            return Err(format!("{at}: {value} is not of type {kind:?}"));
+        if !kinds.is_empty() && !kinds.iter().any(|k| fits(k)) {
+            return Err(format!("{at}: {value} is not of type {kinds:?}"));
         }
         if let Some(n) = value.as_f64() {
             if schema
@@ -124,12 +140,14 @@ impl Document {
         Ok(())
     }
 
-    /// Values valid for `schema` (or one of `examples`, when the document gives some).
-    fn valid(&self, schema: &Value, examples: Option<&Value>) -> BoxedStrategy<Value> {
-        let listed: Vec<Value> = examples
-            .and_then(Value::as_object)
+    /// Values valid for `schema`, or the `example` or one of the `examples` of `place` (a
+    /// parameter or a media type) when the document gives some.
+    fn valid(&self, schema: &Value, place: &Value) -> BoxedStrategy<Value> {
+        let mut listed: Vec<Value> = place["examples"]
+            .as_object()
             .map(|e| e.values().map(|x| x["value"].clone()).collect())
             .unwrap_or_default();
+        listed.extend(place.get("example").cloned());
         if !listed.is_empty() {
             return proptest::sample::select(listed).boxed();
         }
@@ -138,7 +156,7 @@ impl Document {
             return proptest::sample::select(options.clone()).boxed();
         }
         let int = |key: &str, default: i64| schema[key].as_i64().unwrap_or(default);
-        match schema["type"].as_str() {
+        match types(&schema).into_iter().find(|t| *t != "null") {
             Some("integer") => (int("minimum", 0)..=int("maximum", 1000))
                 .prop_map(|n| json!(n))
                 .boxed(),
@@ -153,6 +171,15 @@ impl Document {
             }
             _ => Just(json!({})).boxed(),
         }
+    }
+}
+
+/// The type names of `schema`: `type` as one name or a list of them (JSON Schema 2020-12).
+fn types(schema: &Value) -> Vec<&str> {
+    match &schema["type"] {
+        Value::String(one) => vec![one.as_str()],
+        Value::Array(many) => many.iter().filter_map(Value::as_str).collect(),
+        _ => Vec::new(),
     }
 }
 
@@ -180,7 +207,7 @@ fn valid_request(
             p["name"].as_str().unwrap_or_default(),
             p["in"].as_str().unwrap_or_default(),
         );
-        let values = doc.valid(&p["schema"], p.get("examples"));
+        let values = doc.valid(&p["schema"], p);
         let (name, place) = (name.to_owned(), place.to_owned());
         let part = if p["required"] == true || place == "path" {
             values
@@ -198,7 +225,7 @@ fn valid_request(
     let body = if media.is_null() {
         Just(Payload::None).boxed()
     } else {
-        doc.valid(&media["schema"], media.get("examples"))
+        doc.valid(&media["schema"], media)
             .prop_map(Payload::Json)
             .boxed()
     };
@@ -377,6 +404,7 @@ async fn the_portal_keeps_the_contract_of_its_openapi_document() {
         }
     }
     eprintln!("contract: requests per operation {sent:?}");
+    failures.extend(roles_below(&rig, &doc, &mut runner).await);
     assert!(
         sent.len() >= 16,
         "every operation of the document: {sent:?}"
@@ -388,6 +416,46 @@ async fn the_portal_keeps_the_contract_of_its_openapi_document() {
         failures.join("\n")
     );
     rig.stop().await;
+}
+
+/// The breaches of the operations' `x-least-role`: a valid request with a key of each lower
+/// role must be refused (403, naming the role).
+async fn roles_below(rig: &Rig, doc: &Document, runner: &mut TestRunner) -> Vec<String> {
+    let store = rig.store().await;
+    let mut clients = Vec::new();
+    for role in Role::ALL {
+        let name = format!("contract-{role}");
+        store.add_user(ACCOUNT, &name, role).await.expect("a user");
+        let key = store.add_key(ACCOUNT, &name, None).await.expect("a key").1;
+        let client = Client::new(&rig.url(), Some(&key), Some(&rig.ca)).expect("a client");
+        clients.push((role, client));
+    }
+    let anonymous = Client::new(&rig.url(), None, Some(&rig.ca)).expect("a client");
+    let mut failures = Vec::new();
+    let mut refused = 0;
+    for (method, template, op) in operations(doc) {
+        let least = op["x-least-role"]
+            .as_str()
+            .and_then(Role::from_name)
+            .unwrap_or_else(|| panic!("{method} {template}: no x-least-role"));
+        let strategy = valid_request(doc, &method, &template, &op);
+        for (role, client) in clients.iter().filter(|(role, _)| *role < least) {
+            let r = strategy.new_tree(runner).expect("a request").current();
+            let reply = send(client, &anonymous, &r).await;
+            refused += 1;
+            let named = reply.body["message"]
+                .as_str()
+                .is_some_and(|m| m.contains("role"));
+            if reply.status != 403 || !named {
+                failures.push(format!(
+                    "{method} {}: a {role} (the document says {least} at least) got {} {}",
+                    r.path, reply.status, reply.body
+                ));
+            }
+        }
+    }
+    assert!(refused >= 30, "requests below the least role: {refused}");
+    failures
 }
 
 fn with_query(r: &Request) -> String {

@@ -273,7 +273,7 @@ async fn operator_reads_writes_and_watches_a_simulated_lift(database: Option<Str
     assert_eq!(other_audit, json!([]));
     // The OpenAPI document and health.
     let (status, doc) = client.call("GET", "/api/v1/openapi.json", None, None).await;
-    assert_eq!((status, &doc["openapi"]), (200, &json!("3.0.3")));
+    assert_eq!((status, &doc["openapi"]), (200, &json!("3.1.0")));
     assert_eq!(client.call("GET", "/healthz", None, None).await.0, 200);
     // The gateway goes away: offline → 503.
     rig.stop_gateway().await;

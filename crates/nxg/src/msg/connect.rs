@@ -168,6 +168,7 @@ pub struct ElevateParams {
 
 /// The answer to `elevate_privilege` (NXg SW003 §6.4.2).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct ElevateAnswer {
     /// Seconds the privilege lasts.
     pub duration: u64,

@@ -10,6 +10,7 @@ use crate::codes::{rpc_codes, ErrorCode};
 /// string in decimal or `0x` hex, since the specification shows both (docs/PROTOCOL.md
 /// §Errors).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct ErrorObject {
     /// A CiA 301 abort code (positive) or a JSON-RPC code (negative).
     #[serde(deserialize_with = "lenient_code")]

@@ -64,6 +64,7 @@ pub struct UnregEventParams {
 
 /// An NMT state as events name it (CiA 301 §7.3.2), or silence.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[serde(rename_all = "kebab-case")]
 pub enum NodeState {
     /// The node (re)started: its boot-up message.
@@ -93,6 +94,7 @@ impl NodeState {
 
 /// The state of a CAN network as the gateway's interface sees it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[serde(rename_all = "kebab-case")]
 pub enum BusState {
     /// The controller takes part normally (also: the link came back).
@@ -123,6 +125,7 @@ impl BusState {
 /// One event. `time` is when the gateway saw it (UTC, RFC 3339 with milliseconds), kept when
 /// the event waited for a portal.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[serde(tag = "type", rename_all = "lowercase")]
 pub enum Event {
     /// An EMCY message (CiA 301 §7.2.7).

@@ -113,8 +113,10 @@ impl std::fmt::Display for Method {
 
 /// The answer `{"done": 0}` of heartbeats, tokens and subscriptions (NXg SW003 §5.3.2).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct Done {
     /// Always 0.
+    #[cfg_attr(feature = "openapi", schema(minimum = 0, maximum = 0))]
     pub done: u32,
 }
 

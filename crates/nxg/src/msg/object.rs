@@ -90,8 +90,10 @@ impl<'de> Deserialize<'de> for NodeId {
 
 /// Another node than the lift controller (NXg SW003 §6.5, §6.6).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct NodeRef {
     /// Node-ID.
+    #[cfg_attr(feature = "openapi", schema(value_type = u8, minimum = 1, maximum = 127))]
     pub id: NodeId,
     /// CAN network (1 = the gateway's bus).
     #[serde(default = "net_one")]
@@ -179,6 +181,7 @@ pub struct PutParams {
 
 /// `{"mplex": …}`: which object a put wrote.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct Written {
     /// The mplex as the caller wrote it.
     pub mplex: String,
@@ -186,6 +189,7 @@ pub struct Written {
 
 /// The answer to `put_canopen_object` (NXg SW003 §6.3.2).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct PutAnswer {
     /// The object written.
     pub object: Written,
@@ -204,6 +208,7 @@ impl PutAnswer {
 
 /// `{"language": …}` of a full answer: the language names and hints are in.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct AnswerLang {
     /// Language tag.
     pub language: String,
@@ -214,6 +219,7 @@ pub struct AnswerLang {
 /// Fields a form leaves out are `None`; `min` and `max` are written whenever the metadata is
 /// (as `null` when the object has no limit).
 #[derive(Debug, Clone, Default, PartialEq, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct ObjectData {
     /// The mplex as the caller wrote it.
     pub mplex: String,
@@ -246,9 +252,11 @@ pub struct ObjectData {
     pub value: Vec<String>,
     /// Lowest value.
     #[serde(default)]
+    #[cfg_attr(feature = "openapi", schema(value_type = Option<f64>))]
     pub min: Option<serde_json::Number>,
     /// Highest value (strings: most characters).
     #[serde(default)]
+    #[cfg_attr(feature = "openapi", schema(value_type = Option<f64>))]
     pub max: Option<serde_json::Number>,
     /// 0 is valid outside `min..=max`.
     #[serde(default)]
@@ -310,6 +318,7 @@ impl ObjectData {
 /// The answer to `get_canopen_object` (NXg SW003 §6.1.1): `lang` and `hints` only in the full
 /// form.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct ObjectAnswer {
     /// The language of names and hints.
     #[serde(default, skip_serializing_if = "Option::is_none")]
