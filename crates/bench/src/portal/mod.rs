@@ -344,6 +344,9 @@ pub(super) async fn storm_once(
 ) -> anyhow::Result<(Sessions, Duration)> {
     let fleet_args = fleet_args(args, portal, dir, args.storm);
     let (full0, resumed0) = handshakes(portal).await?;
+    // A mark for whoever profiles the portal alongside (docs/BENCHMARKS.md §Reconnect storm):
+    // the storm begins now, and ends at its figures' line.
+    eprintln!("reconnect storm begins: {what}");
     let fleet = Fleet::start(&fleet_args, sessions).await?;
     let meter = CpuMeter::start(portal);
     let took = fleet
@@ -629,10 +632,11 @@ async fn latency(args: &PortalBench, portal: &PortalProcess, dir: &Path) -> anyh
         format!("127.0.0.1:{relay_port}"),
         harness.addr()?.to_string(),
     );
+    // The relay is this benchmark's own hidden subcommand, not canlift's.
+    let bench = std::env::current_exe().context("locating canlift-bench")?;
     let relay = Daemon::spawn(
-        &exe,
+        &bench,
         &[
-            "bench".as_ref(),
             "relay".as_ref(),
             "--listen".as_ref(),
             listen.as_ref(),
