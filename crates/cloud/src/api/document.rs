@@ -6,6 +6,7 @@
 //! alike — an unknown key, a role below the operation's, too many requests, a body that is not
 //! JSON of the documented shape, the database away — is added here once ([`Refusals`]).
 
+use std::collections::btree_map::Entry;
 use std::collections::BTreeMap;
 
 use utoipa::openapi::extensions::Extensions;
@@ -119,9 +120,20 @@ fn add_refusals(operation: &mut Operation) {
     shared.push((503, "the database is unavailable".into()));
     let responses = &mut operation.responses.responses;
     for (status, text) in shared {
-        responses
-            .entry(status.to_string())
-            .or_insert_with(|| refusal(&text));
+        match responses.entry(status.to_string()) {
+            Entry::Vacant(place) => {
+                place.insert(refusal(&text));
+            }
+            // The operation's own meaning of the status first, then the shared one: a 400 is
+            // both "no such name" and "a malformed query".
+            Entry::Occupied(mut place) => {
+                if let RefOr::T(response) = place.get_mut() {
+                    if !response.description.contains(&text) {
+                        response.description = format!("{}; or {text}", response.description);
+                    }
+                }
+            }
+        }
     }
     responses.entry("429".into()).or_insert_with(|| {
         ResponseBuilder::new()
@@ -183,7 +195,7 @@ refusals! {
     /// A user or key of another account, or none.
     NoSuchUser: 404 "no such user or key in the caller's account";
     /// The lift's gateway could not be asked.
-    GatewayAway: 503 "the gateway is offline (or the database unavailable)",
+    GatewayAway: 503 "the gateway is offline",
         504 "the gateway did not answer in time";
 }
 
