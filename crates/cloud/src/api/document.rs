@@ -136,8 +136,7 @@ fn add_refusals(operation: &mut Operation) {
         }
     }
     responses.entry("429".into()).or_insert_with(|| {
-        ResponseBuilder::new()
-            .description("too many requests with this API key ([server] requests_per_key_s), or for this lift's gateway")
+        refused("too many requests with this API key ([server] requests_per_key_s), or for this lift's gateway")
             .header(
                 "Retry-After",
                 HeaderBuilder::new()
@@ -145,7 +144,6 @@ fn add_refusals(operation: &mut Operation) {
                     .description(Some("seconds to wait"))
                     .build(),
             )
-            .content("application/json", error_content())
             .build()
             .into()
     });
@@ -158,17 +156,15 @@ fn least_role(extensions: Option<&Extensions>) -> Option<String> {
 
 /// A refusal: `text` with an error object.
 fn refusal(text: &str) -> RefOr<Response> {
-    ResponseBuilder::new()
-        .description(text)
-        .content("application/json", error_content())
-        .build()
-        .into()
+    refused(text).build().into()
 }
 
-fn error_content() -> Content {
-    Content::new(Some(RefOr::Ref(utoipa::openapi::Ref::from_schema_name(
-        ErrorObject::name(),
-    ))))
+/// A refusal to build on: `text` with an error object.
+fn refused(text: &str) -> ResponseBuilder {
+    let error = RefOr::Ref(utoipa::openapi::Ref::from_schema_name(ErrorObject::name()));
+    ResponseBuilder::new()
+        .description(text)
+        .content("application/json", Content::new(Some(error)))
 }
 
 /// Refusals that several operations share, named once.

@@ -16,7 +16,7 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 
 use axum::extract::{ConnectInfo, Path, State};
-use axum::http::{Method, StatusCode};
+use axum::http::StatusCode;
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::routing::get;
 use axum::{Json, Router};
@@ -538,12 +538,32 @@ async fn rotate_token(
         (status = 400, description = "an object that is no address or name, a threshold below 0; or the gateway's refusal with its NXg error", body = ErrorObject),
         NoObject, GatewayAway))]
 async fn subscribe(
-    app: State<Arc<AppState>>,
+    State(app): State<Arc<AppState>>,
     caller: Caller,
     Path(LiftPath { id }): Path<LiftPath>,
-    body: ApiJson<SubscriptionBody>,
+    ApiJson(body): ApiJson<SubscriptionBody>,
 ) -> Result<Json<Done>, ApiError> {
-    subscriptions(app, Method::POST, caller, id, body).await
+    let held = Held::of(&app, caller, &id, &body.mplex).await?;
+    let terms = terms(body.inhibit, body.threshold)?;
+    app.subscriptions
+        .subscribe(
+            &held.lift,
+            &held.subscriber,
+            &held.objects,
+            terms,
+            WhenOffline::Refuse,
+        )
+        .await?;
+    app.store
+        .subscribe_objects(
+            &held.lift,
+            &held.user,
+            &held.listed,
+            terms.inhibit,
+            terms.threshold,
+        )
+        .await?;
+    Ok(Json(Done::OK))
 }
 
 /// The caller lets go of its own subscriptions of the objects; an object leaves the gateway
@@ -556,45 +576,50 @@ async fn subscribe(
         (status = 400, description = "an object that is no address or name; or the gateway's refusal with its NXg error", body = ErrorObject),
         NoObject, GatewayAway))]
 async fn unsubscribe(
-    app: State<Arc<AppState>>,
+    State(app): State<Arc<AppState>>,
     caller: Caller,
     Path(LiftPath { id }): Path<LiftPath>,
-    body: ApiJson<SubscriptionBody>,
-) -> Result<Json<Done>, ApiError> {
-    subscriptions(app, Method::DELETE, caller, id, body).await
-}
-
-/// [`subscribe`] (POST) and [`unsubscribe`] (DELETE).
-async fn subscriptions(
-    State(app): State<Arc<AppState>>,
-    method: Method,
-    caller: Caller,
-    id: String,
     ApiJson(body): ApiJson<SubscriptionBody>,
 ) -> Result<Json<Done>, ApiError> {
-    let (operator, id) = lift_of(&app, caller, &id, Role::Technician).await?;
-    let objects = objects(&app.names, &body.mplex)?;
-    let listed: Vec<String> = objects.iter().map(ToString::to_string).collect();
-    let subscriber = Subscriber::User(operator.user.clone());
-    // Recorded for the gateway's next connection, to whichever process (docs/PORTAL.md
-    // §Subscriptions): released whatever the gateway answers, held once it took them.
-    if method == Method::DELETE {
-        app.store
-            .unsubscribe_objects(&id, &operator.user, &listed)
-            .await?;
-        app.subscriptions
-            .unsubscribe(&id, &subscriber, Some(&objects))
-            .await?;
-    } else {
-        let terms = terms(body.inhibit, body.threshold)?;
-        app.subscriptions
-            .subscribe(&id, &subscriber, &objects, terms, WhenOffline::Refuse)
-            .await?;
-        app.store
-            .subscribe_objects(&id, &operator.user, &listed, terms.inhibit, terms.threshold)
-            .await?;
-    }
+    let held = Held::of(&app, caller, &id, &body.mplex).await?;
+    app.store
+        .unsubscribe_objects(&held.lift, &held.user, &held.listed)
+        .await?;
+    app.subscriptions
+        .unsubscribe(&held.lift, &held.subscriber, Some(&held.objects))
+        .await?;
     Ok(Json(Done::OK))
+}
+
+/// What [`subscribe`] and [`unsubscribe`] act on: the caller's lift and the objects it names,
+/// recorded for the gateway's next connection, to whichever process (docs/PORTAL.md
+/// §Subscriptions): taken once the gateway took them, let go of whatever it answers.
+struct Held {
+    lift: String,
+    user: String,
+    subscriber: Subscriber,
+    objects: Vec<nxg::mplex::Mplex>,
+    /// The objects as the store keeps them.
+    listed: Vec<String>,
+}
+
+impl Held {
+    async fn of(
+        app: &AppState,
+        caller: Caller,
+        id: &str,
+        mplex: &[String],
+    ) -> Result<Held, ApiError> {
+        let (operator, lift) = lift_of(app, caller, id, Role::Technician).await?;
+        let objects = objects(&app.names, mplex)?;
+        Ok(Held {
+            lift,
+            subscriber: Subscriber::User(operator.user.clone()),
+            user: operator.user,
+            listed: objects.iter().map(ToString::to_string).collect(),
+            objects,
+        })
+    }
 }
 
 /// The objects of a subscription, each as an mplex or a name.
@@ -816,18 +841,19 @@ pub fn document() -> utoipa::openapi::OpenApi {
 /// The `/api/v1` routes.
 pub fn routes(app: Arc<AppState>) -> Router {
     let (router, document) = parts();
-    // Made once: every request for it is answered with the same bytes.
-    let document: Arc<str> = document
-        .to_json()
-        .unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}"))
-        .into();
+    // Made once: every request for it is answered with the same bytes, shared, not copied.
+    let document = axum::body::Bytes::from(
+        document
+            .to_json()
+            .unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}")),
+    );
     router
         .route(
             "/api/v1/openapi.json",
             get(move || async move {
                 (
                     [(axum::http::header::CONTENT_TYPE, "application/json")],
-                    document.to_string(),
+                    document.clone(),
                 )
             }),
         )

@@ -25,7 +25,7 @@ use proptest::prelude::*;
 use proptest::strategy::ValueTree;
 use proptest::test_runner::TestRunner;
 use serde_json::{json, Value};
-use testkit::constants::{ACCOUNT, LIFT};
+use testkit::constants::LIFT;
 use testkit::portal::Rig;
 
 /// Requests generated per operation and kind.
@@ -421,12 +421,9 @@ async fn the_portal_keeps_the_contract_of_its_openapi_document() {
 /// The breaches of the operations' `x-least-role`: a valid request with a key of each lower
 /// role must be refused (403, naming the role).
 async fn roles_below(rig: &Rig, doc: &Document, runner: &mut TestRunner) -> Vec<String> {
-    let store = rig.store().await;
     let mut clients = Vec::new();
     for role in Role::ALL {
-        let name = format!("contract-{role}");
-        store.add_user(ACCOUNT, &name, role).await.expect("a user");
-        let key = store.add_key(ACCOUNT, &name, None).await.expect("a key").1;
+        let key = crate::roles::user(rig, &format!("contract-{role}"), role).await;
         let client = Client::new(&rig.url(), Some(&key), Some(&rig.ca)).expect("a client");
         clients.push((role, client));
     }

@@ -11,7 +11,7 @@ use testkit::constants::{LIFT, SERVICE_PASSWORD, WAIT};
 use testkit::portal::{until, Rig};
 
 /// User `name` of the lift's account with `role`, and an API key of it.
-async fn user(rig: &Rig, name: &str, role: Role) -> String {
+pub(crate) async fn user(rig: &Rig, name: &str, role: Role) -> String {
     let store = rig.store().await;
     store.add_user("masora", name, role).await.expect("a user");
     store.add_key("masora", name, None).await.expect("a key").1
