@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context};
 use futures_util::StreamExt;
 
-use crate::portal::{bench_config, lift_id, PortalProcess};
+use crate::portal::{bench_config, lift_id, metric, PortalProcess};
 use crate::process::cpu_time;
 use crate::process::listening;
 use crate::process::{memory_kib, percentile, Daemon};
@@ -186,11 +186,14 @@ struct Portals {
 impl Portals {
     /// The lifts held in all, and whether they are `n` and each process knows all `n`.
     async fn count(&self, n: usize) -> anyhow::Result<(usize, bool)> {
+        // All at once, one scrape each: a busy process does not hold up the others' answers.
+        let scraped = futures_util::future::join_all(self.processes.iter().map(|p| p.scrape()));
         let (mut held, mut known) = (0, Vec::with_capacity(self.processes.len()));
-        for p in &self.processes {
-            let here = p.metric("canlift_cluster_lifts_held").await? as usize;
+        for scraped in scraped.await {
+            let scraped = scraped?;
+            let here = metric(&scraped, "canlift_cluster_lifts_held")? as usize;
             held += here;
-            known.push(here + p.metric("canlift_cluster_lifts_elsewhere").await? as usize);
+            known.push(here + metric(&scraped, "canlift_cluster_lifts_elsewhere")? as usize);
         }
         Ok((held, held == n && known.iter().all(|&k| k == n)))
     }
@@ -459,13 +462,14 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
     );
     let mut admissions = [0.0; 4];
     for p in &portals.processes {
+        let scraped = p.scrape().await?;
         for (sum, name) in admissions.iter_mut().zip([
             "canlift_gateways_admitted_total",
             "canlift_gateways_refused_total",
             "canlift_gateways_registry_unavailable_total",
             "canlift_admission_lookups_total",
         ]) {
-            *sum += p.metric(name).await?;
+            *sum += metric(&scraped, name)?;
         }
     }
     let [admitted, refused, unavailable, lookups] = admissions;
@@ -474,14 +478,18 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
          \"registry unavailable\"; {lookups:.0} lookups ({:.1} CONNECTs each)",
         (admitted + refused + unavailable) / lookups.max(1.0)
     );
-    let mut unwatched = 0.0;
+    let (mut unwatched, mut swept) = (0.0, 0.0);
     for p in &portals.processes {
-        unwatched += p.metric("canlift_cluster_events_unwatched_total").await?;
+        let scraped = p.scrape().await?;
+        unwatched += metric(&scraped, "canlift_cluster_events_unwatched_total")?;
+        swept += metric(&scraped, "canlift_cluster_entries_swept_total")?;
     }
     println!(
         "live events kept off NATS (no other process watched their lift): {unwatched:.0}, {:.1} per gateway",
         unwatched / args.gateways as f64
     );
+    // No process has died yet: every entry swept was a living holder's (taken for dead).
+    println!("holder entries swept while every process lived: {swept:.0}");
     let idle = IDLE_WINDOW.as_secs_f64();
     let before = (portals.cpu(), nats.cpu());
     tokio::time::sleep(IDLE_WINDOW).await;

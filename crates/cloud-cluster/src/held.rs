@@ -84,14 +84,14 @@ impl Cluster {
         loop {
             // A write that failed on a live connection is tried again (after NATS was lost,
             // the generation's change writes it): within a second or two, spread.
-            let retry = matches!(written, Written::Not) && self.connected();
+            let retry = matches!(written, Written::Not | Written::Unsure(_)) && self.connected();
             let pause = Duration::from_millis(1_000 + rand::random::<u64>() % 1_000);
             let write_from = tokio::select! {
                 changed = held.changed() => match changed {
                     Ok(()) => written,
                     Err(_) => break,
                 },
-                _ = tokio::time::sleep(pause), if retry => Written::Not,
+                _ = tokio::time::sleep(pause), if retry => written,
                 _ = generation.changed() => Written::Not,
                 Some(message) = next_message(&mut rpc) => {
                     tokio::spawn(answer(self.clone(), lift.clone(), message));
@@ -152,9 +152,11 @@ impl Cluster {
                     },
                 }
             }
+            // A timeout may or may not have written it; a sweep may have deleted the entry
+            // meanwhile: written again over the revision it stood at.
             Err(e) => {
-                tracing::debug!(key, error = %e, "NATS: holder entry not written");
-                Written::At(revision)
+                tracing::debug!(key, error = %e, "NATS: holder entry perhaps not written");
+                Written::Unsure(revision)
             }
         }
     }
@@ -167,6 +169,8 @@ enum Written {
     At(u64),
     /// Not written (no NATS, or the bucket is new): the next write is unconditional.
     Not,
+    /// Perhaps not written over this revision (NATS did not answer in time).
+    Unsure(u64),
     /// Another process holds a newer connection of the lift.
     Superseded(HolderEntry),
 }
@@ -174,7 +178,7 @@ enum Written {
 impl Written {
     fn revision(&self) -> Option<u64> {
         match self {
-            Written::At(revision) => Some(*revision),
+            Written::At(revision) | Written::Unsure(revision) => Some(*revision),
             _ => None,
         }
     }

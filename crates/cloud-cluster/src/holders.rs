@@ -5,7 +5,7 @@
 //! (and when the lift's status changes), never refreshed: it stands while its process's lease
 //! is fresh and names the entry's incarnation.
 
-use std::collections::HashMap;
+use std::collections::{BTreeSet, HashMap};
 use std::time::{Duration, Instant};
 
 use crate::msgs::HolderEntry;
@@ -134,6 +134,12 @@ impl Holders {
         if node == self.node {
             return;
         }
+        // A lease read from the bucket ([`Holders::suspects`]) may be newer than what a
+        // lagging watch delivers after it.
+        let written = match self.leases.get(node) {
+            Some(known) if known.incarnation == incarnation => written.max(known.written),
+            _ => written,
+        };
         let lease = Lease {
             incarnation,
             written,
@@ -159,32 +165,50 @@ impl Holders {
         self.leases.retain(|_, l| l.watch == watch);
     }
 
-    /// The entries left of processes that died (lease lapsed, or the process started again
-    /// as another incarnation), each once, to be deleted at their revision — when this process
-    /// is the one that sweeps: the first by name of those alive, so that one process deletes
-    /// them, not all. Nothing until the watch has delivered the bucket's contents and run for
-    /// a lease's time (a lease not yet delivered, or not yet renewed since, is not a lapsed one).
-    pub(crate) fn sweep(&mut self, now: Instant) -> Vec<(String, u64)> {
+    /// The processes (name and incarnation) whose entries look left behind to this view (lease
+    /// lapsed, or the process started again as another incarnation) — when this process is the
+    /// one that sweeps: the first by name of those alive, so that one process deletes them, not
+    /// all. Nothing until the watch has delivered the bucket's contents and run for a lease's
+    /// time (a lease not yet delivered, or not yet renewed since, is not a lapsed one). A view
+    /// can lag the bucket (a watch behind a burst of entries): the suspects' leases are read
+    /// from the bucket itself ([`Holders::lease`]) before [`Holders::sweep`] believes it.
+    pub(crate) fn suspects(&self, now: Instant) -> Vec<(String, u64)> {
         if !self.caught_up || now.saturating_duration_since(self.watching_since) < self.ttl {
             return Vec::new();
         }
-        let Holders {
-            node,
-            ttl,
-            lifts,
-            leases,
-            ..
-        } = self;
-        let sweeper = leases
+        let sweeper = self
+            .leases
             .iter()
-            .filter(|(_, l)| l.fresh(now, *ttl))
-            .all(|(other, _)| other > node);
+            .filter(|(_, l)| l.fresh(now, self.ttl))
+            .all(|(other, _)| *other > self.node);
         if !sweeper {
             return Vec::new();
         }
+        let suspects: BTreeSet<(&str, u64)> = self
+            .lifts
+            .values()
+            .filter(|e| !e.swept && !self.alive(&e.entry, now))
+            .map(|e| (e.entry.node.as_str(), e.entry.incarnation))
+            .collect();
+        suspects
+            .into_iter()
+            .map(|(node, incarnation)| (node.to_owned(), incarnation))
+            .collect()
+    }
+
+    /// The entries of `checked` processes (suspects whose leases were read from the bucket
+    /// since) that are still left behind, each once, to be deleted at their revision.
+    pub(crate) fn sweep(&mut self, now: Instant, checked: &[(String, u64)]) -> Vec<(String, u64)> {
+        let Holders {
+            ttl, lifts, leases, ..
+        } = self;
         let mut dead = Vec::new();
         for (lift, entry) in lifts {
-            if !entry.swept && !lives(leases, &entry.entry, now, *ttl) {
+            let of = &entry.entry;
+            let checked = checked
+                .iter()
+                .any(|(node, incarnation)| *node == of.node && *incarnation == of.incarnation);
+            if !entry.swept && checked && !lives(leases, of, now, *ttl) {
                 entry.swept = true;
                 dead.push((lift.clone(), entry.revision));
             }
@@ -262,6 +286,35 @@ mod tests {
         assert_eq!(holders.others_alive(t0), 1, "its own lease is not kept");
     }
 
+    /// A sweep whose suspects' leases, read from the bucket, are as the view has them.
+    fn swept(holders: &mut Holders, now: Instant) -> Vec<(String, u64)> {
+        let suspects = holders.suspects(now);
+        holders.sweep(now, &suspects)
+    }
+
+    #[test]
+    fn a_view_behind_the_bucket_does_not_sweep_a_living_process() {
+        let t0 = Instant::now();
+        let at = |s: u64| t0 + Duration::from_secs(s);
+        let mut holders = holders(t0);
+        holders.put("a", written("p2", 7, 1), 11);
+        // The watch has not delivered p2's renewals: its lease looks lapsed here.
+        assert_eq!(holders.suspects(at(20)), vec![("p2".into(), 7)]);
+        // The bucket has p2's lease of 5 s ago: alive, nothing swept, nothing marked.
+        holders.lease("p2", 7, at(15));
+        assert!(holders.sweep(at(20), &[("p2".into(), 7)]).is_empty());
+        assert!(holders.holder("a", at(20)).is_some());
+        // The watch delivers an older renewal late: the newer one stands.
+        holders.lease("p2", 7, at(3));
+        assert!(holders.suspects(at(25)).is_empty());
+        // Only suspects whose leases were read are swept.
+        assert!(holders.sweep(at(40), &[]).is_empty());
+        assert_eq!(
+            holders.sweep(at(40), &[("p2".into(), 7)]),
+            vec![("a".into(), 11)]
+        );
+    }
+
     #[test]
     fn the_first_living_process_by_name_sweeps_the_dead_ones_entries_once() {
         let t0 = Instant::now();
@@ -272,33 +325,33 @@ mod tests {
         holders.put("b", written("p3", 1, 1), 12);
         holders.put("c", written("p0", 1, 1), 13);
         assert!(
-            holders.sweep(at(10)).is_empty(),
+            swept(&mut holders, at(10)).is_empty(),
             "not before a lease's time"
         );
         // p0 lives and comes first: it sweeps, not p1.
         holders.lease("p0", 1, at(14));
-        assert!(holders.sweep(at(16)).is_empty());
+        assert!(swept(&mut holders, at(16)).is_empty());
         // p0's lease lapsed too: p1 is the first alive, and p2 and p3 are dead.
-        let mut dead = holders.sweep(at(30));
+        let mut dead = swept(&mut holders, at(30));
         dead.sort();
         assert_eq!(
             dead,
             vec![("a".into(), 11), ("b".into(), 12), ("c".into(), 13)]
         );
-        assert!(holders.sweep(at(31)).is_empty(), "each once");
+        assert!(swept(&mut holders, at(31)).is_empty(), "each once");
         holders.put("a", written("p2", 7, 1), 14);
         assert_eq!(
-            holders.sweep(at(32)),
+            swept(&mut holders, at(32)),
             vec![("a".into(), 14)],
             "written again"
         );
         // A new watch sweeps nothing before it has caught up and run for a lease's time.
         holders.rewatch(at(40));
         holders.put("d", written("p2", 7, 1), 15);
-        assert!(holders.sweep(at(60)).is_empty(), "not caught up");
+        assert!(swept(&mut holders, at(60)).is_empty(), "not caught up");
         holders.caught_up();
-        assert!(holders.sweep(at(50)).is_empty(), "not a lease's time");
-        assert_eq!(holders.sweep(at(60)), vec![("d".into(), 15)]);
+        assert!(swept(&mut holders, at(50)).is_empty(), "not a lease's time");
+        assert_eq!(swept(&mut holders, at(60)), vec![("d".into(), 15)]);
     }
 
     #[test]

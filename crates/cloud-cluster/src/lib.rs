@@ -532,19 +532,36 @@ impl Cluster {
     }
 
     /// Delete the entries left of processes that died, when this process is the one that
-    /// sweeps ([`Holders::sweep`]), each at the revision it saw (a lift that connected again
-    /// meanwhile keeps its new entry).
+    /// sweeps ([`Holders::suspects`]), each at the revision it saw (a lift that connected again
+    /// meanwhile keeps its new entry). A suspect's lease is read from the bucket first: a view
+    /// behind the bucket took living processes for dead, and under load its sweeps deleted
+    /// their entries faster than they wrote them again.
     fn sweep(self: &Arc<Self>, kv: &kv::Store) {
-        let dead = lock(&self.holders).sweep(Instant::now());
-        if dead.is_empty() {
+        let suspects = lock(&self.holders).suspects(Instant::now());
+        if suspects.is_empty() {
             return;
         }
-        tracing::info!(
-            entries = dead.len(),
-            "NATS: deleting the holder entries of processes that died"
-        );
         let (kv, cluster) = (kv.clone(), self.clone());
         tokio::spawn(async move {
+            let mut checked = Vec::with_capacity(suspects.len());
+            for (node, incarnation) in suspects {
+                let Ok(lease) = kv.entry(Key::Process(node.clone()).encode()).await else {
+                    // Not known now: asked again at the next renewal.
+                    continue;
+                };
+                if let Some(entry) = lease.filter(|e| e.operation == kv::Operation::Put) {
+                    cluster.learn(entry);
+                }
+                checked.push((node, incarnation));
+            }
+            let dead = lock(&cluster.holders).sweep(Instant::now(), &checked);
+            if dead.is_empty() {
+                return;
+            }
+            tracing::info!(
+                entries = dead.len(),
+                "NATS: deleting the holder entries of processes that died"
+            );
             for (lift, revision) in dead {
                 let key = Key::Lift(lift).encode();
                 if kv.delete_expect_revision(key, Some(revision)).await.is_ok() {

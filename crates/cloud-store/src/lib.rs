@@ -31,6 +31,7 @@ pub mod sessions;
 pub mod subscriptions;
 pub mod telemetry;
 pub mod ticket_keys;
+pub mod turns;
 pub mod users;
 
 pub use alarms::{new_id, AlarmFilter, EventRow, OutboxEntry};
@@ -46,6 +47,7 @@ pub use secrets::{digest, passhash, secret};
 pub use sessions::SessionRecord;
 pub use subscriptions::StoredSubscription;
 pub use telemetry::TelemetryRow;
+pub use turns::Turn;
 pub use users::{secret_matches, UserError};
 
 use sqlx::any::AnyPoolOptions;

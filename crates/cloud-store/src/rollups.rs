@@ -166,8 +166,18 @@ impl Store {
     }
 
     /// Roll up the minutes that ended by `now` less [`LAG_MS`] (at most an hour of them per
-    /// round), and the hours they are in.
+    /// round), and the hours they are in; nothing while another process of a cluster does
+    /// (its round reads the same minutes: two at once merged them into their hours twice).
     pub async fn roll_up(&self, now: i64) -> Result<RolledUp, StoreError> {
+        let Some(turn) = self.turn("roll-up").await? else {
+            return Ok(RolledUp::default());
+        };
+        let rolled = self.roll_up_round(now).await;
+        turn.end().await;
+        rolled
+    }
+
+    async fn roll_up_round(&self, now: i64) -> Result<RolledUp, StoreError> {
         let minute = Grain::Minute;
         let end_now = minute.floor(now - LAG_MS);
         let rewind = self.rewind.swap(i64::MAX, Ordering::Relaxed);
@@ -409,4 +419,68 @@ async fn remake_hour(conn: &mut sqlx::AnyConnection, hour: i64) -> Result<u64, s
         .execute(&mut *conn)
         .await?;
     write(conn, Grain::Hour, &hours, Write::Replace).await
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::TelemetryRow;
+
+    /// Four stores on one PostgreSQL are four processes of a cluster, each rolling up once a
+    /// minute: started together, every value is still read once and counted once in its
+    /// minute and its hour (without turns, the rounds merged the same minutes into the hours
+    /// up to four times, or deadlocked).
+    #[tokio::test]
+    async fn a_cluster_rolls_each_value_up_once() {
+        let Some(url) = testkit::postgres("rollup_turns").await else {
+            return;
+        };
+        let stores =
+            futures_util::future::try_join_all((0..4).map(|_| Store::open_pooled(&url, 4)))
+                .await
+                .unwrap();
+        // An hour's values of 20 lifts, one a second: one round's worth.
+        let hour = 1_700_000_000_000i64 - 1_700_000_000_000i64 % 3_600_000;
+        let rows: Vec<TelemetryRow> = (0..20)
+            .flat_map(|lift| {
+                (0..3_600).map(move |s| TelemetryRow {
+                    lift: format!("1050-4096-ROLL-{lift:02}"),
+                    mplex: "0x638301".into(),
+                    node: 0,
+                    value: (s % 50).to_string(),
+                    at: hour + s * 1_000,
+                })
+            })
+            .collect();
+        for chunk in rows.chunks(10_000) {
+            stores[0].telemetry(chunk).await.unwrap();
+        }
+        let now = hour + 3_600_000 + LAG_MS;
+        let start = std::sync::Arc::new(tokio::sync::Barrier::new(stores.len()));
+        let rounds = futures_util::future::join_all(stores.iter().map(|store| {
+            let start = start.clone();
+            async move {
+                start.wait().await;
+                store.roll_up(now).await
+            }
+        }))
+        .await;
+        let read: u64 = rounds.iter().map(|r| r.as_ref().unwrap().values).sum();
+        assert_eq!(
+            read,
+            rows.len() as u64,
+            "each value read by one round: {rounds:?}"
+        );
+        for lift in ["1050-4096-ROLL-00", "1050-4096-ROLL-19"] {
+            for (grain, buckets) in [(Grain::Minute, 60), (Grain::Hour, 1)] {
+                let rolled = stores[3]
+                    .roll_ups(grain, lift, "0x638301", hour, hour + 3_600_000)
+                    .await
+                    .unwrap();
+                assert_eq!(rolled.len(), buckets, "{grain:?}");
+                let counted: i64 = rolled.iter().map(|b| b.count).sum();
+                assert_eq!(counted, 3_600, "{lift} {grain:?}: each value counted once");
+            }
+        }
+    }
 }

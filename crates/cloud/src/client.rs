@@ -354,6 +354,52 @@ fn sample_sum(text: &str, name: &str) -> Option<f64> {
     (!values.is_empty()).then(|| values.iter().sum())
 }
 
+/// The portal's `/metrics` read from its own listener (`[server] metrics_listen`, plain HTTP),
+/// as a scraper on the portal's network reads it: beside the public port, it answers while
+/// that port's queue is full of gateways (docs/PORTAL.md §Metrics).
+pub async fn scrape(listen: std::net::SocketAddr) -> Result<Scraped, ClientError> {
+    let io = |e: &dyn std::fmt::Display| ClientError::Io(format!("{listen}: {e}"));
+    let tcp = tokio::net::TcpStream::connect(listen)
+        .await
+        .map_err(|e| io(&e))?;
+    let (mut sender, conn) =
+        hyper::client::conn::http1::handshake(hyper_util::rt::TokioIo::new(tcp))
+            .await
+            .map_err(|e| io(&e))?;
+    let request = hyper::Request::get("/metrics")
+        .header(hyper::header::HOST, listen.to_string())
+        .body(Full::new(Bytes::new()))
+        .map_err(|e| io(&e))?;
+    let exchange = async {
+        let response = send(&mut sender, request).await?;
+        let status = response.status();
+        let body = response.into_body().collect().await.map_err(|e| io(&e))?;
+        if !status.is_success() {
+            return Err(io(&format!("/metrics answered {status}")));
+        }
+        Ok(Scraped(
+            String::from_utf8_lossy(&body.to_bytes()).into_owned(),
+        ))
+    };
+    // The connection is driven beside the exchange and dropped with it.
+    tokio::select! {
+        scraped = exchange => scraped,
+        ended = conn => Err(io(&ended.map_or_else(|e| e.to_string(), |()| "closed".into()))),
+    }
+}
+
+/// A `/metrics` answer (Prometheus text).
+#[derive(Debug, Clone)]
+pub struct Scraped(pub String);
+
+impl Scraped {
+    /// A counter or gauge: the sum of its samples whatever their labels, or with
+    /// `name{label="…"}` that sample alone; `None` when there is no such line.
+    pub fn sum(&self, name: &str) -> Option<f64> {
+        sample_sum(&self.0, name)
+    }
+}
+
 /// `e`, saying which portal when it is a connection's.
 fn at(host: &str, e: ClientError) -> ClientError {
     match e {

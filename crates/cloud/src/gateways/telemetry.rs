@@ -309,13 +309,25 @@ impl Retained {
 }
 
 /// Delete `kept` rows older than `days` once an hour (and at start); 0 days keeps everything.
+/// In a cluster, one process at a time ([`Store::turn`]): the others' rounds found the same
+/// rows and waited for each other's locks on them.
 pub async fn retention(kept: Retained, store: Store, days: u32) {
     if days == 0 {
         return;
     }
+    let job = format!("retention {}", kept.name());
     let mut hourly = tokio::time::interval(std::time::Duration::from_secs(3600));
     loop {
         hourly.tick().await;
+        let turn = match store.turn(&job).await {
+            Ok(Some(turn)) => turn,
+            // Another process deletes them now.
+            Ok(None) => continue,
+            Err(e) => {
+                tracing::error!(error = %e, kept = kept.name(), "old rows not deleted");
+                continue;
+            }
+        };
         let before = cloud_types::now_ms() - i64::from(days) * 86_400_000;
         let deleted = match kept {
             Retained::Telemetry => store.forget_telemetry(before).await,
@@ -328,6 +340,7 @@ pub async fn retention(kept: Retained, store: Store, days: u32) {
             Retained::Refused { rows } => store.forget_refused(before, rows).await,
             Retained::Idempotency => store.forget_idempotency(cloud_types::now_ms()).await,
         };
+        turn.end().await;
         match deleted {
             Ok(0) => {}
             Ok(n) => tracing::info!(rows = n, days, kept = kept.name(), "old rows deleted"),

@@ -71,14 +71,17 @@ async fn metrics_pass_promtool_and_contrib_names_only_what_exists() {
         testkit::constants::WAIT,
         "the gateway's metrics",
         || async {
-            plain_get(listen)
+            cloud::client::scrape(listen)
                 .await
-                .is_some_and(|t| t.contains("canlift_gateway_connected 1"))
+                .is_ok_and(|m| m.0.contains("canlift_gateway_connected 1"))
         },
     )
     .await;
     eprintln!("gateway metrics after {gateway:?}");
-    let gateway = plain_get(listen).await.unwrap_or_default();
+    let gateway = cloud::client::scrape(listen)
+        .await
+        .map(|m| m.0)
+        .unwrap_or_default();
     assert!(
         gateway.contains("canlift_gateway_accesses_total{outcome=\"ok\"}"),
         "{gateway}"
@@ -118,20 +121,6 @@ async fn metrics_pass_promtool_and_contrib_names_only_what_exists() {
     );
     assert!(ok, "promtool check rules: {said}");
     rig.stop().await;
-}
-
-/// `GET /metrics` in plain HTTP on `addr`: the body, if any.
-async fn plain_get(addr: std::net::SocketAddr) -> Option<String> {
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let mut tcp = tokio::net::TcpStream::connect(addr).await.ok()?;
-    tcp.write_all(b"GET /metrics HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
-        .await
-        .ok()?;
-    let mut answer = String::new();
-    tcp.read_to_string(&mut answer).await.ok()?;
-    answer
-        .split_once("\r\n\r\n")
-        .map(|(_, body)| body.to_owned())
 }
 
 /// A site that reaches the internet only through an HTTP proxy: the gateway tunnels through

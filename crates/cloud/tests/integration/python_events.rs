@@ -204,6 +204,10 @@ async fn events_become_alarms_that_reach_people() {
     gateway.say("CONNECT").await;
     gateway.wait_for("CONNACK", 2, WAIT).await;
     until(&rig, "/api/v1/alarms", |b| alarms_of(b).is_empty()).await;
+    // The offline alarm's two notifications reach this receiver (not, late, the next one).
+    receiver
+        .wait_for("HOOK 204", 5, Duration::from_secs(30))
+        .await;
 
     // A notification queued while the receiver is down survives a portal restart.
     drop(receiver);

@@ -525,22 +525,11 @@ async fn metrics_are_for_their_token_alone() {
         .await;
     assert_eq!(rig.call("GET", "/metrics", None, None).await.0, 404);
     let scraped = until(WAIT, "the metrics listener answers", || async {
-        plain_get(listen, "/metrics")
+        cloud::client::scrape(listen)
             .await
-            .is_some_and(|t| t.contains("canlift_gateways_online"))
+            .is_ok_and(|m| m.sum("canlift_gateways_online").is_some())
     })
     .await;
     eprintln!("metrics listener answered after {scraped:?}");
     rig.stop().await;
-}
-
-/// A plain HTTP GET of `path` on `addr`: the whole answer, if any.
-async fn plain_get(addr: std::net::SocketAddr, path: &str) -> Option<String> {
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let mut tcp = tokio::net::TcpStream::connect(addr).await.ok()?;
-    let request = format!("GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n");
-    tcp.write_all(request.as_bytes()).await.ok()?;
-    let mut answer = String::new();
-    tcp.read_to_string(&mut answer).await.ok()?;
-    Some(answer)
 }
