@@ -249,12 +249,15 @@ async fn the_ascii_gateway_speaks_cia_309_3() {
     .await;
     r.iter().for_each(ok);
 
-    // LSS: Fastscan finds the lowest unconfigured address, which then gets node-ID 42.
+    // LSS: Fastscan finds the lowest unconfigured address, which then gets node-ID 42. Each
+    // step waits its timeout for the nodes (another process, through the hub): 60 ms was
+    // missed on a loaded two-core machine running the suite, and a step answered late reads
+    // as a bit of 1 — the scan then finds nobody. 250 ms costs only the steps nobody answers.
     let r = session(
         &python,
         &addr,
         &[
-            "_lss_fastscan 60",
+            "_lss_fastscan 250",
             "lss_get_node",
             "lss_inquire_addr",
             "lss_inquire_addr 3",
@@ -285,7 +288,7 @@ async fn the_ascii_gateway_speaks_cia_309_3() {
     let r = session(
         &python,
         &addr,
-        &["lss_allnodes 60 50 0", "_lss_fastscan 60"],
+        &["lss_allnodes 250 50 0", "_lss_fastscan 250"],
     )
     .await;
     ok(&r[0]);
