@@ -460,30 +460,27 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
         args.portals,
         nats_rss as f64 / args.gateways as f64
     );
-    let mut admissions = [0.0; 4];
+    // One scrape per process for every total below.
+    let mut totals = [0.0; 6];
     for p in &portals.processes {
         let scraped = p.scrape().await?;
-        for (sum, name) in admissions.iter_mut().zip([
+        for (sum, name) in totals.iter_mut().zip([
             "canlift_gateways_admitted_total",
             "canlift_gateways_refused_total",
             "canlift_gateways_registry_unavailable_total",
             "canlift_admission_lookups_total",
+            "canlift_cluster_events_unwatched_total",
+            "canlift_cluster_entries_swept_total",
         ]) {
             *sum += metric(&scraped, name)?;
         }
     }
-    let [admitted, refused, unavailable, lookups] = admissions;
+    let [admitted, refused, unavailable, lookups, unwatched, swept] = totals;
     println!(
         "CONNECTs: {admitted:.0} admitted, {refused:.0} refused, {unavailable:.0} refused \
          \"registry unavailable\"; {lookups:.0} lookups ({:.1} CONNECTs each)",
         (admitted + refused + unavailable) / lookups.max(1.0)
     );
-    let (mut unwatched, mut swept) = (0.0, 0.0);
-    for p in &portals.processes {
-        let scraped = p.scrape().await?;
-        unwatched += metric(&scraped, "canlift_cluster_events_unwatched_total")?;
-        swept += metric(&scraped, "canlift_cluster_entries_swept_total")?;
-    }
     println!(
         "live events kept off NATS (no other process watched their lift): {unwatched:.0}, {:.1} per gateway",
         unwatched / args.gateways as f64
