@@ -433,11 +433,12 @@ fn subscribable(n: usize) -> Vec<String> {
 /// portal: an embedded-mode gateway on a local dictionary (`canlift loadgen --gateways 1`: the
 /// real gateway in a process of its own) and `canlift gateway` in bus-node mode, reading the
 /// simulator by SDO through the hub. Naked gets of 0x652001, every answer checked; one at a time,
-/// then `--window` outstanding.
+/// then `--window` outstanding. Then the least such a request can cost this machine
+/// (`least::measure`), for scale.
 async fn cpu_per_request(
     args: &GatewayBench,
     pki: &DevPki,
-    bus: &str,
+    (hub, bus): (std::net::SocketAddr, &str),
     dir: &Path,
 ) -> anyhow::Result<()> {
     let exe = args.exe()?;
@@ -503,6 +504,15 @@ async fn cpu_per_request(
             );
         }
         daemon.stop(Duration::from_secs(5)).await;
+    }
+    if args.sdo_channels > 0 {
+        let (hub, requests) = (hub, args.requests);
+        let least =
+            tokio::task::spawn_blocking(move || crate::least::measure(hub, requests)).await??;
+        println!(
+            "the least a request on one SDO channel costs here: {:.1} µs CPU, {:.2} wake-ups (a thread writing the SDO request to the hub, blocking for the answer, writing 200 bytes to a socket: no TLS, JSON or runtime; {requests} requests)",
+            least.cpu_us, least.wakeups,
+        );
     }
     Ok(())
 }
@@ -705,7 +715,7 @@ async fn measure(args: &GatewayBench, pki: &DevPki, dir: &Path) -> anyhow::Resul
     if args.cpu_only || args.memory_only {
         let (hub, bus, sim) = hub_with_simulator().await?;
         let measured = if args.cpu_only {
-            cpu_per_request(args, pki, &bus, dir).await
+            cpu_per_request(args, pki, (hub.local_addr(), &bus), dir).await
         } else {
             memory(args, pki, &bus, dir).await
         };
@@ -752,7 +762,7 @@ async fn measure(args: &GatewayBench, pki: &DevPki, dir: &Path) -> anyhow::Resul
     let _ = stop.send(true);
     let _ = task.await;
     emcy_flood(args, pki, dir).await?;
-    cpu_per_request(args, pki, &bus, dir).await?;
+    cpu_per_request(args, pki, (hub.local_addr(), &bus), dir).await?;
     memory(args, pki, &bus, dir).await?;
     sim.stop().await;
     hub.shutdown().await;

@@ -9,6 +9,7 @@ mod bus;
 mod cluster;
 mod gateway;
 mod ingest;
+mod least;
 mod plot;
 mod portal;
 mod process;

@@ -18,12 +18,27 @@ pub(crate) fn schedstat(pid: u32) -> Option<(Duration, u64)> {
     let tasks = std::fs::read_dir(format!("/proc/{pid}/task")).ok()?;
     let (mut total, mut slices) = (0u64, 0u64);
     for task in tasks.flatten() {
-        let text = std::fs::read_to_string(task.path().join("schedstat")).ok()?;
-        let mut fields = text.split_whitespace();
-        total += fields.next()?.parse::<u64>().ok()?;
-        slices += fields.nth(1)?.parse::<u64>().ok()?;
+        let (cpu, n) = task_schedstat(&task.path().join("schedstat"))?;
+        total += cpu;
+        slices += n;
     }
     Some((Duration::from_nanos(total), slices))
+}
+
+/// The calling thread's CPU time so far and how many times it was put on a CPU
+/// (`/proc/thread-self/schedstat`).
+pub(crate) fn thread_schedstat() -> Option<(Duration, u64)> {
+    let (cpu, slices) = task_schedstat(Path::new("/proc/thread-self/schedstat"))?;
+    Some((Duration::from_nanos(cpu), slices))
+}
+
+/// One thread's `schedstat`: nanoseconds on a CPU, and time slices.
+fn task_schedstat(path: &Path) -> Option<(u64, u64)> {
+    let text = std::fs::read_to_string(path).ok()?;
+    let mut fields = text.split_whitespace();
+    let cpu = fields.next()?.parse::<u64>().ok()?;
+    let slices = fields.nth(1)?.parse::<u64>().ok()?;
+    Some((cpu, slices))
 }
 
 /// What process `pid` used since `before` (its [`schedstat`] then): CPU time and wake-ups.

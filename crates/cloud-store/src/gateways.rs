@@ -315,6 +315,32 @@ impl<'a> RecordBatch<'a> {
     }
 }
 
+/// The statement [`Store::gateway_rows`] asks `rows` CONNECTs about. Per CONNECT: the account
+/// of its domain, the row of its lift in that account (its plain id, or the id scoped by the
+/// account's name: column 4 is the id and the scope's separator), whether another account's
+/// lift has the plain id, and whether users hold subscriptions of the lift (most hold none:
+/// then they are not read at CONNACK).
+///
+/// Each candidate row (the plain key's, the scoped key's) is joined on its key, then the lift's
+/// row on the key found. Joined on `id = plain OR id = scoped` instead, PostgreSQL's generic
+/// plan for a full batch hashed the join on the domain and tested every lift of the account
+/// against every CONNECT: 13 s a look-up with 100,000 lifts in one account
+/// (docs/BENCHMARKS.md §First contact on a durable PostgreSQL).
+fn lookup_sql(rows: usize) -> String {
+    format!(
+        "SELECT v.column1 AS i, a.name AS account, g.id AS key, \
+         (SELECT COUNT(*) FROM (SELECT 1 FROM gateways WHERE id = v.column2 LIMIT 1) AS t) AS taken, \
+         (SELECT COUNT(*) FROM (SELECT 1 FROM subscriptions WHERE lift = g.id LIMIT 1) AS s) AS subscribed, \
+         g.token_hash, g.token_next, g.token_set, g.domain, g.boardhash \
+         FROM (VALUES {}) AS v \
+         LEFT JOIN accounts AS a ON a.domain = v.column3 \
+         LEFT JOIN gateways AS gp ON gp.id = v.column2 AND gp.domain = v.column3 \
+         LEFT JOIN gateways AS gs ON gs.id = v.column4 || a.name AND gs.domain = v.column3 \
+         LEFT JOIN gateways AS g ON g.id = COALESCE(gp.id, gs.id)",
+        parameter_rows(rows, 4)
+    )
+}
+
 /// Make or refresh the rows of `rows` (one statement): the keys of those written, which are
 /// all but those another account's row holds (its row is left as it is).
 async fn upsert_rows(
@@ -363,20 +389,7 @@ impl Store {
         // Batches padded to a power of two (repeating the last CONNECT) make a few distinct
         // statements, each prepared once per connection, not one per batch size.
         let rows = connects.len().next_power_of_two();
-        let values = parameter_rows(rows, 4);
-        // Per CONNECT: the account of its domain, the row of its lift in that account (its
-        // plain id, or the id scoped by the account's name: column 4 is the id and the scope's
-        // separator), whether another account's lift has the plain id, and whether users hold
-        // subscriptions of the lift (most hold none: then they are not read at CONNACK).
-        let sql = format!(
-            "SELECT v.column1 AS i, a.name AS account, g.id AS key, \
-             (SELECT COUNT(*) FROM (SELECT 1 FROM gateways WHERE id = v.column2 LIMIT 1) AS t) AS taken, \
-             (SELECT COUNT(*) FROM (SELECT 1 FROM subscriptions WHERE lift = g.id LIMIT 1) AS s) AS subscribed, \
-             g.token_hash, g.token_next, g.token_set, g.domain, g.boardhash \
-             FROM (VALUES {values}) AS v \
-             LEFT JOIN accounts AS a ON a.domain = v.column3 \
-             LEFT JOIN gateways AS g ON g.domain = v.column3 AND (g.id = v.column2 OR g.id = v.column4 || a.name)"
-        );
+        let sql = lookup_sql(rows);
         let mut query = sqlx::query(&sql);
         let ids: Vec<String> = connects.iter().map(|c| lift_id(&c.identity)).collect();
         for i in 0..rows {
@@ -790,6 +803,69 @@ mod tests {
         let (batched, one_by_one) = (open(a).await, open(b).await);
         a_batch_is_its_records_in_order(&batched, &one_by_one, &crafted()).await;
         a_batch_is_its_records_in_order(&batched, &one_by_one, &crafted()).await;
+    }
+
+    /// A full batch's look-up as PostgreSQL runs a prepared statement from its sixth execution
+    /// on (its generic plan, forced here) finds each CONNECT's lift by its key: the rows its
+    /// joins test and throw away stay fewer than the account's lifts, where testing every lift
+    /// of the account against every CONNECT threw away 256 × 2,000 (what made a restarted
+    /// portal's look-ups take 13 s with 100,000 lifts in one account).
+    #[tokio::test]
+    async fn postgres_lookup_reads_each_lift_by_its_key() {
+        let Some(url) = testkit::postgres("lookup_plan").await else {
+            return;
+        };
+        let store = Store::open(&url).await.unwrap();
+        store.add_account("masora", "MAS").await.unwrap();
+        let connects: Vec<Connect> = (0..2000)
+            .map(|n| testkit::connect(&format!("L{n}"), "MAS", None))
+            .collect();
+        let records: Vec<GatewayRecord> = connects
+            .iter()
+            .map(|c| GatewayRecord::connected(&lift_id(&c.identity), c, 1))
+            .collect();
+        store.record_batch(&records).await.unwrap();
+        sqlx::query("ANALYZE").execute(&store.pool).await.unwrap();
+        let mut conn = store.pool.acquire().await.unwrap();
+        let rows = 256;
+        for statement in [
+            "SET plan_cache_mode = force_generic_plan".to_owned(),
+            format!("PREPARE lookup AS {}", lookup_sql(rows)),
+        ] {
+            sqlx::query(&statement).execute(&mut *conn).await.unwrap();
+        }
+        let arguments: Vec<String> = connects[..rows]
+            .iter()
+            .enumerate()
+            .map(|(i, c)| {
+                let id = lift_id(&c.identity);
+                let scoped = cloud_types::lifts::scoped_key(&id, "");
+                format!("'{i}', '{id}', 'MAS', '{scoped}'")
+            })
+            .collect();
+        let plan: Vec<String> = sqlx::query_scalar(&format!(
+            "EXPLAIN (ANALYZE, FORMAT TEXT) EXECUTE lookup({})",
+            arguments.join(", ")
+        ))
+        .fetch_all(&mut *conn)
+        .await
+        .unwrap();
+        let thrown_away: u64 = plan
+            .iter()
+            .filter_map(|line| line.split_once("Rows Removed by Join Filter: "))
+            .filter_map(|(_, n)| n.trim().parse::<u64>().ok())
+            .sum();
+        assert!(
+            thrown_away < 2000,
+            "{thrown_away} rows thrown away:\n{}",
+            plan.join("\n")
+        );
+        // And it found them: each CONNECT's row, once.
+        let found = store
+            .gateway_rows(&connects[..rows].iter().collect::<Vec<_>>())
+            .await
+            .unwrap();
+        assert!(found.iter().all(|row| row.registered.is_some()));
     }
 
     proptest! {
