@@ -131,7 +131,7 @@ pub struct PrivilegeBody {
     pub password: String,
 }
 
-/// The body of `POST` and `DELETE /api/v1/lifts/{id}/subscriptions`.
+/// The body of `POST /api/v1/lifts/{id}/subscriptions`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 pub struct SubscriptionBody {
@@ -145,6 +145,16 @@ pub struct SubscriptionBody {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[cfg_attr(feature = "openapi", schema(minimum = 0))]
     pub threshold: Option<f64>,
+}
+
+/// The body of `DELETE /api/v1/lifts/{id}/subscriptions`: the objects alone. Letting go has no
+/// terms; a client that sends its subscribe body again has its `inhibit` and `threshold`
+/// ignored, not judged against a schema that would promise to refuse them.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+pub struct UnsubscribeBody {
+    /// The objects (mplex or name).
+    pub mplex: Vec<String>,
 }
 
 /// The query of `GET …/lifts/{id}/events`: objects the stream holds subscriptions of while it

@@ -37,7 +37,7 @@ use crate::gateways::subscriptions::{Subscriptions, WhenOffline};
 use crate::state::AppState;
 use cloud_types::api::{
     EventsQuery, Form, GetQuery, History, HistoryPoint, HistoryQuery, LiftSummary, NameQuery,
-    PrivilegeBody, PutBody, SubscriptionBody, HISTORY_POINTS, HISTORY_POINTS_MAX,
+    PrivilegeBody, PutBody, SubscriptionBody, UnsubscribeBody, HISTORY_POINTS, HISTORY_POINTS_MAX,
 };
 use cloud_types::audit::{AuditEntry, PENDING};
 use cloud_types::lifts::shown_id;
@@ -570,7 +570,7 @@ async fn subscribe(
 /// when its last holder lets go, one holder's `DELETE` never changes another's pushes.
 #[utoipa::path(delete, path = "/api/v1/lifts/{id}/subscriptions", operation_id = "unsubscribe",
     tag = "subscriptions", params(LiftPath),
-    request_body(content((SubscriptionBody = "application/json", example = json!({"mplex": ["0x652001"]})))),
+    request_body(content((UnsubscribeBody = "application/json", example = json!({"mplex": ["0x652001"]})))),
     extensions(("x-least-role" = json!("technician"))),
     responses((status = 200, description = "let go of", body = Done),
         (status = 400, description = "an object that is no address or name; or the gateway's refusal with its NXg error", body = ErrorObject),
@@ -579,7 +579,7 @@ async fn unsubscribe(
     State(app): State<Arc<AppState>>,
     caller: Caller,
     Path(LiftPath { id }): Path<LiftPath>,
-    ApiJson(body): ApiJson<SubscriptionBody>,
+    ApiJson(body): ApiJson<UnsubscribeBody>,
 ) -> Result<Json<Done>, ApiError> {
     let held = Held::of(&app, caller, &id, &body.mplex).await?;
     app.store

@@ -271,8 +271,9 @@ fn percent_encoded(text: &str) -> String {
         .collect()
 }
 
-/// `request` with one part broken as the document says it must not be.
-fn broken(request: &Request, op: &Value, which: usize) -> Option<Request> {
+/// `request` with one part broken as the document says it must not be: one request, or for a
+/// body with bounded properties one per property.
+fn broken(doc: &Document, request: &Request, op: &Value, which: usize) -> Vec<Request> {
     let mut r = request.clone();
     r.valid = false;
     let has_body = !op["requestBody"].is_null();
@@ -282,7 +283,7 @@ fn broken(request: &Request, op: &Value, which: usize) -> Option<Request> {
         .flatten()
         .filter(|p| p["in"] == "query" && p["schema"]["type"] != "string")
         .collect();
-    match which % 7 {
+    match which % 8 {
         0 => {
             r.anonymous = true;
             r.broken = "no API key";
@@ -318,9 +319,51 @@ fn broken(request: &Request, op: &Value, which: usize) -> Option<Request> {
             r.body = Payload::Form;
             r.broken = "a form instead of JSON";
         }
-        _ => return None,
+        7 if has_body => {
+            let schema = &op["requestBody"]["content"]["application/json"]["schema"];
+            let Payload::Json(Value::Object(body)) = &r.body else {
+                return Vec::new();
+            };
+            return out_of_range(doc, doc.resolve(schema))
+                .into_iter()
+                .map(|(name, value)| {
+                    let mut body = body.clone();
+                    body.insert(name, value);
+                    Request {
+                        body: Payload::Json(Value::Object(body)),
+                        broken: "a body property out of its documented range",
+                        ..r.clone()
+                    }
+                })
+                .collect();
+        }
+        _ => return Vec::new(),
     }
-    Some(r)
+    vec![r]
+}
+
+/// For each documented bound of a property of the object `schema`, the property and a value
+/// just past it (bounds beyond what a JSON number holds exactly are left alone).
+fn out_of_range(doc: &Document, schema: &Value) -> Vec<(String, Value)> {
+    const EXACT: f64 = 9_007_199_254_740_992.0;
+    let mut past = Vec::new();
+    for (name, property) in schema["properties"].as_object().into_iter().flatten() {
+        let property = doc.resolve(property);
+        let integer = types(property).contains(&"integer");
+        let bounds = [
+            property["minimum"].as_f64().map(|min| min - 1.0),
+            property["maximum"].as_f64().map(|max| max + 1.0),
+        ];
+        for value in bounds.into_iter().flatten().filter(|v| v.abs() < EXACT) {
+            let value = if integer {
+                json!(value as i64)
+            } else {
+                json!(value)
+            };
+            past.push((name.clone(), value));
+        }
+    }
+    past
 }
 
 async fn send(client: &Client, anonymous: &Client, r: &Request) -> Reply {
@@ -370,8 +413,8 @@ async fn the_portal_keeps_the_contract_of_its_openapi_document() {
         let strategy = valid_request(&doc, &method, &template, &op);
         for case in 0..CASES {
             let valid = strategy.new_tree(&mut runner).expect("a request").current();
-            let requests = [Some(valid.clone()), broken(&valid, &op, case)];
-            for r in requests.into_iter().flatten() {
+            let requests = std::iter::once(valid.clone()).chain(broken(&doc, &valid, &op, case));
+            for r in requests {
                 *sent.entry(format!("{method} {template}")).or_default() += 1;
                 let reply = if streams && !r.anonymous && r.path.contains(LIFT) {
                     // An event stream stays open: only its status is checked.
