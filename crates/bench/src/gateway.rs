@@ -438,10 +438,11 @@ fn subscribable(n: usize) -> Vec<String> {
 async fn cpu_per_request(
     args: &GatewayBench,
     pki: &DevPki,
-    (hub, bus): (std::net::SocketAddr, &str),
+    hub: std::net::SocketAddr,
     dir: &Path,
 ) -> anyhow::Result<()> {
     let exe = args.exe()?;
+    let bus = &bus_url(hub);
     // The controller's default SDO channel alone, then with the further ones the simulator
     // offers (docs/GATEWAY.md §Behaviour: a channel carries one transfer at a time).
     let mut modes = vec![("local dictionary".to_owned(), 0)];
@@ -506,7 +507,7 @@ async fn cpu_per_request(
         daemon.stop(Duration::from_secs(5)).await;
     }
     if args.sdo_channels > 0 {
-        let (hub, requests) = (hub, args.requests);
+        let requests = args.requests;
         let least =
             tokio::task::spawn_blocking(move || crate::least::measure(hub, requests)).await??;
         println!(
@@ -604,6 +605,11 @@ fn sim_sdo_servers() -> impl Iterator<Item = SdoChannel> {
     })
 }
 
+/// The bus of the hub listening on `hub`.
+fn bus_url(hub: std::net::SocketAddr) -> String {
+    format!("socketcand://{hub}/can0")
+}
+
 /// A hub on a loopback port with the simulated lift on it; the bus URL.
 async fn hub_with_simulator() -> anyhow::Result<(canbus::hub::HubHandle, String, Simulator)> {
     let hub = canbus::hub::Hub::bind(canbus::hub::HubConfig {
@@ -612,7 +618,7 @@ async fn hub_with_simulator() -> anyhow::Result<(canbus::hub::HubHandle, String,
     })
     .await?
     .spawn()?;
-    let bus = format!("socketcand://{}/can0", hub.local_addr());
+    let bus = bus_url(hub.local_addr());
     let sim = SimConfig {
         sdo_servers: sim_sdo_servers().map(|c| c.ids()).collect(),
         ..SimConfig::default()
@@ -715,7 +721,7 @@ async fn measure(args: &GatewayBench, pki: &DevPki, dir: &Path) -> anyhow::Resul
     if args.cpu_only || args.memory_only {
         let (hub, bus, sim) = hub_with_simulator().await?;
         let measured = if args.cpu_only {
-            cpu_per_request(args, pki, (hub.local_addr(), &bus), dir).await
+            cpu_per_request(args, pki, hub.local_addr(), dir).await
         } else {
             memory(args, pki, &bus, dir).await
         };
@@ -762,7 +768,7 @@ async fn measure(args: &GatewayBench, pki: &DevPki, dir: &Path) -> anyhow::Resul
     let _ = stop.send(true);
     let _ = task.await;
     emcy_flood(args, pki, dir).await?;
-    cpu_per_request(args, pki, (hub.local_addr(), &bus), dir).await?;
+    cpu_per_request(args, pki, hub.local_addr(), dir).await?;
     memory(args, pki, &bus, dir).await?;
     sim.stop().await;
     hub.shutdown().await;

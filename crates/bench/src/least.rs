@@ -108,12 +108,13 @@ impl Bus {
         self.socket.write_all(request)?;
         loop {
             if let Message::Frame(frame) = self.next()? {
+                // An SDO frame is 8 bytes (CiA 301 §7.2.4.3), as the SDO client takes it.
+                let Some(payload) = canopen::sdo::payload(frame.data()) else {
+                    continue;
+                };
                 if frame.id().as_raw() != 0x581 {
                     continue;
                 }
-                let mut payload = [0u8; 8];
-                let data = frame.data();
-                payload[..data.len().min(8)].copy_from_slice(&data[..data.len().min(8)]);
                 return match Response::read(&payload) {
                     Ok(Response::InitiateUpload { index, sub, .. })
                         if (index, sub) == (INDEX, SUB) =>
