@@ -108,13 +108,13 @@ impl Bus {
         self.socket.write_all(request)?;
         loop {
             if let Message::Frame(frame) = self.next()? {
+                if frame.id().as_raw() != 0x581 {
+                    continue;
+                }
                 // An SDO frame is 8 bytes (CiA 301 §7.2.4.3), as the SDO client takes it.
                 let Some(payload) = canopen::sdo::payload(frame.data()) else {
                     continue;
                 };
-                if frame.id().as_raw() != 0x581 {
-                    continue;
-                }
                 return match Response::read(&payload) {
                     Ok(Response::InitiateUpload { index, sub, .. })
                         if (index, sub) == (INDEX, SUB) =>
