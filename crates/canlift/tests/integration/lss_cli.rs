@@ -1,5 +1,5 @@
-//! `canlift lss` against unconfigured canlift nodes on a hub, in a test binary of its own:
-//! Fastscan steps are timed and must not compete with other tests for the CPU. Each step
+//! `canlift lss` against unconfigured canlift nodes on a hub. Fastscan steps are timed: under
+//! cargo-nextest these tests run with no other beside them (.config/nextest.toml). Each step
 //! listens 60 ms: a hub round trip takes well under a millisecond, the margin is for a loaded
 //! machine.
 

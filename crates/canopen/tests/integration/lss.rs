@@ -1,5 +1,5 @@
-//! LSS between `Master` and `LocalNode`s, in a test binary of its own: Fastscan steps are timed
-//! and must not compete with other tests for the CPU.
+//! LSS between `Master` and `LocalNode`s. Fastscan steps are timed: under cargo-nextest these
+//! tests run with no other beside them (.config/nextest.toml).
 
 use std::time::Duration;
 
