@@ -9,7 +9,7 @@ use std::ops::RangeInclusive;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use canbus::{CanId, Frame};
+use canbus::{CanId, Filter, Frame};
 
 use super::objects::renumber;
 use super::{NodeCommand, NodeConfig, NodeEvent};
@@ -150,6 +150,34 @@ impl Node {
     /// The node-ID (changes when LSS configures one).
     pub fn node_id(&self) -> u8 {
         self.node_id
+    }
+
+    /// The frames this node's bus endpoint takes: all but the default SDO channels of the other
+    /// nodes (581h–5FFh, 601h–67Fh). CiA 301 §7.3.5 reserves those for SDO
+    /// ([`crate::cob::restricted`]: no PDO, SYNC, TIME, EMCY or further SDO channel may use
+    /// them), so nothing the node serves arrives there but requests on its own default channel;
+    /// refused at the endpoint, a gateway's SDO traffic with the other nodes does not wake the
+    /// node for every frame. It depends on the node-ID alone: ask again when that changes.
+    pub fn receive_filters(&self) -> Vec<Filter> {
+        let mut filters = vec![
+            Filter::standard(0x000, 0x400), // 000h–3FFh
+            Filter::standard(0x400, 0x700), // 400h–4FFh
+            Filter::standard(0x500, 0x780), // 500h–57Fh
+            Filter::exact(CanId::Standard(0x580)),
+            Filter::exact(CanId::Standard(0x600)),
+            Filter::standard(0x680, 0x780), // 680h–6FFh
+            Filter::standard(0x700, 0x700), // 700h–7FFh: error control, LSS
+            Filter::extended(0, 0),         // every 29-bit identifier
+            Filter {
+                id: canbus::ERR_FLAG,
+                mask: canbus::ERR_FLAG,
+            },
+        ];
+        if (1..=127).contains(&self.node_id) {
+            let own = 0x600 + u16::from(self.node_id);
+            filters.push(Filter::exact(CanId::Standard(own)));
+        }
+        filters
     }
 
     /// The NMT state.
@@ -720,6 +748,29 @@ mod tests {
         fn after(&mut self, d: Duration) -> NodeOutput {
             self.now += d;
             self.run(|n, od, now, out| n.handle_timeout(od, now, out))
+        }
+    }
+
+    #[test]
+    fn the_endpoint_refuses_only_other_nodes_default_sdo_channels() {
+        for node_id in [1u8, 5, 127, UNCONFIGURED] {
+            let rig = Rig::new(NodeConfig::new(node_id));
+            let filters = rig.node.receive_filters();
+            let takes = |frame: Frame| filters.iter().any(|f| f.matches(&frame));
+            for id in 0..=0x7FFu16 {
+                let others_sdo = matches!(id, 0x581..=0x5FF | 0x601..=0x67F)
+                    && u32::from(id) != 0x600 + u32::from(node_id);
+                let frame = Frame::standard(id, &[0]).unwrap();
+                assert_eq!(takes(frame), !others_sdo, "node {node_id}: {id:03X}h");
+                let remote = Frame::remote(CanId::Standard(id), 0).unwrap();
+                assert_eq!(takes(remote), !others_sdo, "node {node_id}: RTR {id:03X}h");
+                if others_sdo {
+                    assert!(crate::cob::restricted(id), "{id:03X}h is not reserved");
+                }
+            }
+            let extended = CanId::extended(0x1234_5678).unwrap();
+            assert!(takes(Frame::new(extended, &[1]).unwrap()));
+            assert!(takes(Frame::error(0x004, &[0; 8]).unwrap()), "error frames");
         }
     }
 

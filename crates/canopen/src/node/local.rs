@@ -219,6 +219,8 @@ impl Shell {
         mut power: watch::Receiver<bool>,
     ) {
         let (sender, mut receiver) = bus.split();
+        let mut filtered_for = self.node.node_id();
+        receiver.set_filters(&self.node.receive_filters());
         // Microsecond wake-ups for SYNC periods and inhibit times; tokio's timer as fallback.
         let alarm =
             crate::wake::PreciseWake::new(&format!("canopen-node-{}", self.node.node_id())).ok();
@@ -232,6 +234,12 @@ impl Shell {
                     break;
                 };
                 self.step(|node, od, out| node.handle_change(od, index, sub, Instant::now(), out));
+            }
+            // A new node-ID (LSS, then a reset) takes its SDO requests in before its boot-up
+            // goes out and tells the master it is there.
+            if self.node.node_id() != filtered_for {
+                filtered_for = self.node.node_id();
+                receiver.set_filters(&self.node.receive_filters());
             }
             if !self.flush(&sender).await {
                 return;
