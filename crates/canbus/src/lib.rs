@@ -30,7 +30,7 @@ pub mod wire;
 
 #[cfg(feature = "tokio")]
 pub use bus::{
-    Bus, BusError, BusEvent, BusOptions, BusReceiver, BusSender, BusUrl, Interface,
+    Bus, BusError, BusEvent, BusOptions, BusReceiver, BusSender, BusUrl, Handled, Interface,
     DEFAULT_RX_QUEUE, SOCKETCAND_DEFAULT_PORT,
 };
 pub use frame::{

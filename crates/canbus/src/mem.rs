@@ -114,6 +114,37 @@ mod tests {
     }
 
     #[tokio::test]
+    async fn a_handled_endpoint_gets_what_was_queued_then_what_comes_in_order() {
+        let a = Bus::open("mem://t-handled").await.unwrap();
+        let (_, mut receiver) = Bus::open("mem://t-handled").await.unwrap().split();
+        receiver.set_filters(&[Filter::standard(0x580, 0x780)]);
+        let send = |id| a.send(Frame::standard(id, &[id as u8]).unwrap());
+        for id in [0x581, 0x181, 0x582] {
+            send(id).await.unwrap();
+        }
+        let seen = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+        let handled = {
+            let seen = seen.clone();
+            receiver.handle_with(move |event| match event {
+                BusEvent::Frame(f) => seen.lock().unwrap().push(f.id().as_raw()),
+                other => panic!("{other:?}"),
+            })
+        };
+        // Handed over at once, by the sender's own delivery: nothing to wait for.
+        for id in [0x583, 0x701, 0x5FF] {
+            send(id).await.unwrap();
+        }
+        assert_eq!(*seen.lock().unwrap(), vec![0x581, 0x582, 0x583, 0x5FF]);
+        // Dropping the handle closes the endpoint.
+        drop(handled);
+        send(0x584).await.unwrap();
+        assert_eq!(seen.lock().unwrap().len(), 4);
+        let registry = super::registry().lock().unwrap();
+        let bus = registry.get("t-handled").and_then(|w| w.upgrade()).unwrap();
+        assert_eq!(bus.endpoints.len(), 1);
+    }
+
+    #[tokio::test]
     async fn dropped_receivers_are_pruned() {
         let a = Bus::open("mem://t-prune").await.unwrap();
         let b = Bus::open("mem://t-prune").await.unwrap();

@@ -2,8 +2,12 @@
 //!
 //! [`SharedLink::open`] connects and completes the handshake (`< hi >`, `< open CHANNEL >`,
 //! `< rawmode >`) before it returns, so a wrong address fails at once. Afterwards one task owns
-//! the connection: it writes queued frames (batched into as few TCP segments as the queue allows)
-//! and reads frames into the receive queues of the link's endpoints concurrently. A frame one
+//! the connection: it reads frames into the receive queues of the link's endpoints, and writes
+//! what senders could not write themselves. A send writes its frame to the socket at once when
+//! nothing is waiting before it and no send has since the task last ran (no hand-over to the
+//! task and no wake-up of it: an SDO request goes out from the task that makes it); otherwise,
+//! or when the socket takes only part, the frame waits in order behind the others and the task
+//! writes them, as many per TCP write as have collected (a block transfer's segments). A frame one
 //! endpoint sends reaches the link's other endpoints at once, as the server would have delivered
 //! it to them over connections of their own. When the link breaks every receiver gets
 //! [`BusEvent::LinkDown`], sends fail with [`BusError::Offline`], and the task reconnects with
@@ -11,13 +15,13 @@
 //! handle is dropped.
 
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant, SystemTime};
 
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
 use tokio::net::TcpStream;
-use tokio::sync::{mpsc, oneshot};
+use tokio::sync::{mpsc, oneshot, Notify};
 
 use super::codec::{self, DecodeError, Decoder, Message};
 use crate::backoff::Backoff;
@@ -26,10 +30,9 @@ use crate::frame::{Frame, FrameKind};
 
 /// How long connecting plus the handshake may take.
 const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(5);
-/// Frames queued for transmission before `send` waits.
-const TX_QUEUE: usize = 1024;
-/// Frames written per TCP write at most.
-const TX_BATCH: usize = 64;
+/// Bytes of encoded frames waiting for the link's task before `send` waits (about a thousand
+/// frames).
+const TX_QUEUE_BYTES: usize = 48 * 1024;
 /// A link that stayed up this long resets the reconnect backoff.
 const STABLE_LINK: Duration = Duration::from_secs(60);
 
@@ -37,18 +40,43 @@ struct Link {
     name: String,
     online: AtomicBool,
     endpoints: Endpoints,
+    out: Mutex<Outgoing>,
+    /// Wakes the link's task: bytes wait in `out` for it.
+    wanted: Notify,
+    /// Wakes senders waiting for room in `out`: the task wrote what waited.
+    drained: Notify,
 }
 
-/// What the writer task takes: frames, and requests to confirm everything before is written.
-enum Tx {
-    Frame(Frame),
-    Flush(oneshot::Sender<()>),
+/// What goes to the server: the connection's writing half, and the bytes that wait for it.
+#[derive(Default)]
+struct Outgoing {
+    /// While the link is up.
+    writer: Option<Arc<OwnedWriteHalf>>,
+    /// Encoded frames not yet written, in order; a frame's rest when the socket took only part.
+    waiting: Vec<u8>,
+    /// The task is writing what waited: new frames wait behind it, not write past it.
+    busy: bool,
+    /// A send wrote to the socket itself since the link's task last ran: the next frames wait
+    /// for the task, which writes them together. A sender of many frames in a row (an SDO
+    /// block) thus costs a system call per batch, not per frame, while a lone frame (an SDO
+    /// request, answered before the next) still goes out at once.
+    recent: bool,
 }
+
+impl Link {
+    fn out(&self) -> MutexGuard<'_, Outgoing> {
+        self.out.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+}
+
+/// The link's task takes requests to confirm that everything sent before is written; the
+/// channel's senders also tell it whether anyone can still send.
+type FlushRequest = oneshot::Sender<()>;
 
 /// The sending side of a `socketcand://` endpoint.
 #[derive(Clone)]
 pub(crate) struct ClientSender {
-    tx: mpsc::Sender<Tx>,
+    tx: mpsc::Sender<FlushRequest>,
     link: Arc<Link>,
     endpoint: u64,
 }
@@ -60,28 +88,51 @@ impl ClientSender {
                 "socketcand raw mode carries data frames only (no remote or error frames)".into(),
             ));
         }
-        if !self.link.online.load(Ordering::Acquire) {
-            return Err(BusError::Offline {
-                link: self.link.name.clone(),
-            });
+        let mut text = String::with_capacity(48);
+        codec::encode_send(&frame, &mut text);
+        loop {
+            let room = self.link.drained.notified();
+            tokio::pin!(room);
+            room.as_mut().enable();
+            {
+                let mut out = self.link.out();
+                if !self.link.online.load(Ordering::Acquire) {
+                    return Err(BusError::Offline {
+                        link: self.link.name.clone(),
+                    });
+                }
+                if out.waiting.len() < TX_QUEUE_BYTES {
+                    let rest = match &out.writer {
+                        Some(writer) if !out.busy && !out.recent && out.waiting.is_empty() => {
+                            match writer.try_write(text.as_bytes()) {
+                                Ok(n) => &text.as_bytes()[n..],
+                                // Would block, or failed: the task writes it and sees why.
+                                Err(_) => text.as_bytes(),
+                            }
+                        }
+                        _ => text.as_bytes(),
+                    };
+                    if rest.is_empty() {
+                        out.recent = true;
+                    } else {
+                        out.waiting.extend_from_slice(rest);
+                        self.link.wanted.notify_one();
+                    }
+                    break;
+                }
+            }
+            room.await;
         }
-        self.tx
-            .send(Tx::Frame(frame))
-            .await
-            .map_err(|_| BusError::Closed)?;
         self.link
             .endpoints
             .deliver(Some(self.endpoint), frame.with_timestamp(SystemTime::now()));
         Ok(())
     }
 
-    /// Wait until every frame queued so far is written to the socket.
+    /// Wait until every frame sent so far is written to the socket.
     pub(crate) async fn flush(&self) -> Result<(), BusError> {
         let (done, written) = oneshot::channel();
-        self.tx
-            .send(Tx::Flush(done))
-            .await
-            .map_err(|_| BusError::Closed)?;
+        self.tx.send(done).await.map_err(|_| BusError::Closed)?;
         written.await.map_err(|_| BusError::Offline {
             link: self.link.name.clone(),
         })
@@ -209,7 +260,7 @@ async fn connect(host: &str, port: u16, channel: &str) -> Result<Connection, Bus
 /// [`Interface`](crate::Interface).
 #[derive(Clone)]
 pub(crate) struct SharedLink {
-    tx: mpsc::Sender<Tx>,
+    tx: mpsc::Sender<FlushRequest>,
     link: Arc<Link>,
 }
 
@@ -220,8 +271,11 @@ impl SharedLink {
             name: format!("socketcand://{host}:{port}/{channel}"),
             online: AtomicBool::new(true),
             endpoints: Endpoints::default(),
+            out: Mutex::default(),
+            wanted: Notify::new(),
+            drained: Notify::new(),
         });
-        let (tx, rx) = mpsc::channel(TX_QUEUE);
+        let (tx, rx) = mpsc::channel(16);
         let target = (host.to_owned(), port, channel.to_owned());
         tokio::spawn(supervise(conn, target, link.clone(), rx));
         Ok(SharedLink { tx, link })
@@ -248,17 +302,28 @@ async fn supervise(
     mut conn: Connection,
     (host, port, channel): (String, u16, String),
     link: Arc<Link>,
-    mut frames: mpsc::Receiver<Tx>,
+    mut frames: mpsc::Receiver<FlushRequest>,
 ) {
     let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(10));
     loop {
         let since = Instant::now();
-        let reason = match run(conn, &mut frames, &link.endpoints).await {
+        let reason = match run(conn, &mut frames, &link).await {
             End::Shutdown => return,
             End::Lost(reason) => reason,
         };
         link.online.store(false, Ordering::Release);
-        let dropped = std::iter::from_fn(|| frames.try_recv().ok()).count();
+        let dropped = {
+            let mut out = link.out();
+            out.writer = None;
+            out.busy = false;
+            // Each encoded frame ends with `>`, also the rest of one the socket took part of.
+            let dropped = out.waiting.iter().filter(|&&b| b == b'>').count();
+            out.waiting = Vec::new();
+            dropped
+        };
+        link.drained.notify_waiters();
+        // Flushes asked meanwhile are answered by the channel's end: their frames are gone.
+        while frames.try_recv().is_ok() {}
         tracing::warn!(link = %link.name, %reason, dropped, "bus link down; reconnecting");
         link.endpoints
             .announce(BusEvent::LinkDown {
@@ -288,29 +353,27 @@ async fn supervise(
     }
 }
 
-async fn run(conn: Connection, frames: &mut mpsc::Receiver<Tx>, endpoints: &Endpoints) -> End {
+async fn run(conn: Connection, flushes: &mut mpsc::Receiver<FlushRequest>, link: &Link) -> End {
     let Connection {
         mut reader,
         writer,
         mut decoder,
     } = conn;
+    let writer = Arc::new(writer);
+    link.out().writer = Some(writer.clone());
     tokio::select! {
-        end = read_loop(&mut reader, &mut decoder, endpoints) => end,
-        end = write_loop(writer, frames, endpoints) => end,
+        end = read_loop(&mut reader, &mut decoder, link) => end,
+        end = write_loop(&writer, flushes, link) => end,
     }
 }
 
-async fn read_loop(
-    reader: &mut OwnedReadHalf,
-    decoder: &mut Decoder,
-    endpoints: &Endpoints,
-) -> End {
+async fn read_loop(reader: &mut OwnedReadHalf, decoder: &mut Decoder, link: &Link) -> End {
     let mut buf = vec![0u8; 16 * 1024];
     let mut reported = 0u32;
     loop {
         while let Some(message) = decoder.next_message() {
             match message {
-                Ok(Message::Frame(frame)) => endpoints.deliver(None, frame),
+                Ok(Message::Frame(frame)) => link.endpoints.deliver(None, frame),
                 Ok(Message::Echo) | Ok(Message::Ok) => {}
                 Ok(other) => tracing::warn!(?other, "unexpected socketcand message in raw mode"),
                 Err(DecodeError::Oversized) => {
@@ -325,43 +388,70 @@ async fn read_loop(
         }
         match reader.read(&mut buf).await {
             Ok(0) => return End::Lost("connection closed by the server".into()),
-            Ok(n) => decoder.feed(&buf[..n]),
+            Ok(n) => {
+                // The link's task ran: the next send may write to the socket itself again
+                // (before the frames read are delivered, so that a request sent in answer to
+                // them does).
+                link.out().recent = false;
+                decoder.feed(&buf[..n]);
+            }
             Err(e) => return End::Lost(format!("read failed: {e}")),
         }
     }
 }
 
+/// Write what senders left waiting, and answer flushes once all that was sent before them is
+/// written.
 async fn write_loop(
-    mut writer: OwnedWriteHalf,
-    frames: &mut mpsc::Receiver<Tx>,
-    endpoints: &Endpoints,
+    writer: &OwnedWriteHalf,
+    flushes: &mut mpsc::Receiver<FlushRequest>,
+    link: &Link,
 ) -> End {
-    let mut text = String::with_capacity(TX_BATCH * 48);
-    let mut flushed = Vec::new();
+    let mut batch = Vec::new();
+    let mut flushed: Vec<FlushRequest> = Vec::new();
     loop {
-        let Some(first) = frames.recv().await else {
-            // Every sender is gone: keep receiving until the receivers are gone too.
-            endpoints.closed().await;
-            return End::Shutdown;
-        };
-        text.clear();
-        let mut next = Some(first);
-        let mut batched = 0;
-        while let Some(item) = next.take() {
-            match item {
-                Tx::Frame(frame) => codec::encode_send(&frame, &mut text),
-                Tx::Flush(done) => flushed.push(done),
-            }
-            batched += 1;
-            if batched < TX_BATCH {
-                next = frames.try_recv().ok();
-            }
+        {
+            let mut out = link.out();
+            std::mem::swap(&mut batch, &mut out.waiting);
+            out.busy = !batch.is_empty();
+            out.recent = false;
         }
-        if let Err(e) = writer.write_all(text.as_bytes()).await {
-            return End::Lost(format!("write failed: {e}"));
+        if !batch.is_empty() {
+            if let Err(e) = write_all(writer, &batch).await {
+                return End::Lost(format!("write failed: {e}"));
+            }
+            batch.clear();
+            link.drained.notify_waiters();
+            // What senders left meanwhile goes next, before anyone writes past it.
+            continue;
         }
+        // Nothing waits: frames sent before a flush request are on the socket.
         for done in flushed.drain(..) {
             let _ = done.send(());
         }
+        tokio::select! {
+            () = link.wanted.notified() => {}
+            request = flushes.recv() => match request {
+                Some(done) => flushed.push(done),
+                None => {
+                    // Every sender is gone: keep receiving until the receivers are gone too.
+                    link.endpoints.closed().await;
+                    return End::Shutdown;
+                }
+            },
+        }
     }
+}
+
+async fn write_all(writer: &OwnedWriteHalf, mut bytes: &[u8]) -> std::io::Result<()> {
+    while !bytes.is_empty() {
+        writer.writable().await?;
+        match writer.try_write(bytes) {
+            Ok(0) => return Err(std::io::ErrorKind::WriteZero.into()),
+            Ok(n) => bytes = &bytes[n..],
+            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {}
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(())
 }

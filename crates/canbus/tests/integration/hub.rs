@@ -452,3 +452,87 @@ async fn flush_delivers_queued_frames_before_the_process_ends() {
     }
     hub.shutdown().await;
 }
+
+/// A socketcand server that completes the handshake, then reads nothing for a while (a busy
+/// server, a slow link): senders' frames fill the socket, wait, and must still arrive whole,
+/// each sender's in its order, none lost, and a flush must wait for all of them.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_server_that_reads_late_gets_every_frame_whole_and_in_order() {
+    use canbus::socketcand::codec::{Decoder, Message};
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+    const SENDERS: u16 = 3;
+    const EACH: u32 = 50_000;
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let server = tokio::spawn(async move {
+        let (mut stream, _) = listener.accept().await.unwrap();
+        let mut decoder = Decoder::new();
+        let mut buf = vec![0u8; 64 * 1024];
+        stream.write_all(b"< hi >").await.unwrap();
+        let mut frames = Vec::new();
+        let mut quiet_from = None;
+        loop {
+            while let Some(message) = decoder.next_message() {
+                match message.unwrap() {
+                    Message::Open(_) | Message::RawMode => {
+                        stream.write_all(b"< ok >").await.unwrap()
+                    }
+                    Message::Echo => {
+                        stream.write_all(b"< echo >").await.unwrap();
+                        quiet_from = Some(tokio::time::Instant::now());
+                    }
+                    Message::Send(frame) => frames.push(frame),
+                    other => panic!("{other:?}"),
+                }
+            }
+            if frames.len() == usize::from(SENDERS) * EACH as usize {
+                break;
+            }
+            // Raw mode reached: read nothing for a while.
+            if let Some(from) = quiet_from.take() {
+                tokio::time::sleep_until(from + Duration::from_millis(500)).await;
+            }
+            let n = stream.read(&mut buf).await.unwrap();
+            assert!(n > 0, "the client closed after {} frames", frames.len());
+            decoder.feed(&buf[..n]);
+        }
+        frames
+    });
+    let interface = Interface::open(&format!("socketcand://{addr}/can0"))
+        .await
+        .unwrap();
+    let mut senders = Vec::new();
+    for k in 0..SENDERS {
+        let bus = interface.endpoint().unwrap();
+        senders.push(tokio::spawn(async move {
+            for i in 0..EACH {
+                let frame = Frame::standard(0x200 + k, &i.to_le_bytes()).unwrap();
+                bus.send(frame).await.unwrap();
+            }
+            bus.sender.flush().await.unwrap();
+        }));
+    }
+    for sender in senders {
+        timeout(Duration::from_secs(30), sender)
+            .await
+            .expect("sent and flushed within 30 s")
+            .unwrap();
+    }
+    let frames = timeout(Duration::from_secs(30), server)
+        .await
+        .expect("all frames within 30 s")
+        .unwrap();
+    let mut next = [0u32; SENDERS as usize];
+    for frame in frames {
+        let k = usize::from(u16::try_from(frame.id().as_raw() - 0x200).unwrap());
+        let i = u32::from_le_bytes(frame.data().try_into().unwrap());
+        assert_eq!(
+            i, next[k],
+            "sender {k}: frame {i} where {} was due",
+            next[k]
+        );
+        next[k] += 1;
+    }
+    assert_eq!(next, [EACH; SENDERS as usize]);
+}

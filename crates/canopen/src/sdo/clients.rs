@@ -9,7 +9,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
-use canbus::{Bus, BusSender, CanId, Filter, Frame};
+use canbus::{Bus, BusEvent, BusSender, CanId, Filter, Frame, Handled};
 use tokio::sync::mpsc;
 
 use crate::od::ObjectDictionary;
@@ -75,7 +75,7 @@ pub enum ClientError {
     /// The bus failed.
     #[error(transparent)]
     Bus(#[from] canbus::BusError),
-    /// The client's dispatcher is gone (the bus closed).
+    /// The client or its channel is gone (the bus closed).
     #[error("SDO client closed")]
     Closed,
     /// Writing uploaded data to the caller's sink failed (the transfer was aborted).
@@ -125,6 +125,8 @@ impl Default for TransferOptions<'_> {
 
 struct ClientInner {
     sender: BusSender,
+    /// The client's endpoint, its frames routed by [`ClientInner::route`].
+    _receiver: Handled,
     config: ClientConfig,
     /// Responses for the transfer in progress, by response COB-ID.
     routes: Mutex<HashMap<CanId, mpsc::Sender<Payload>>>,
@@ -135,6 +137,17 @@ struct ClientInner {
     nodes: Mutex<HashMap<u8, Arc<NodeChannels>>>,
     /// How often a channel set aside is asked again.
     probe_nanos: AtomicU64,
+}
+
+impl ClientInner {
+    /// Hand a response to the transfer waiting on its COB-ID, if any.
+    fn route(&self, f: &Frame) {
+        let Some(p) = payload(f.data()) else { return };
+        let routes = self.routes.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some(route) = routes.get(&f.id()) {
+            let _ = route.try_send(p);
+        }
+    }
 }
 
 /// Timeouts in a row on one channel after which it is set aside — each after the first
@@ -306,7 +319,7 @@ pub struct SdoClients {
 
 impl SdoClients {
     /// Use `bus` for SDO client transfers on the default channels (0x600/0x580 + node-ID);
-    /// spawns the task that routes responses.
+    /// responses are routed to their transfers as the bus delivers them.
     pub fn new(bus: Bus, config: ClientConfig) -> Self {
         Self::with_channels(bus, config, &[])
     }
@@ -324,36 +337,32 @@ impl SdoClients {
                 .map(|&(_, _, response)| Filter::exact(response)),
         );
         receiver.set_filters(&filters);
-        let inner = Arc::new(ClientInner {
-            sender,
-            config,
-            routes: Mutex::new(HashMap::new()),
-            channels: channels
-                .iter()
-                .fold(HashMap::new(), |mut by_node, &(node, req, resp)| {
-                    by_node
-                        .entry(node)
-                        .or_insert_with(Vec::new)
-                        .push((req, resp));
-                    by_node
-                }),
-            nodes: Mutex::new(HashMap::new()),
-            probe_nanos: AtomicU64::new(10_000_000_000),
-        });
-        let weak = Arc::downgrade(&inner);
-        tokio::spawn(async move {
-            while let Some(f) = receiver.recv_frame().await {
-                let Some(inner) = weak.upgrade() else { return };
-                let Some(p) = payload(f.data()) else { continue };
-                let route = inner
-                    .routes
-                    .lock()
-                    .unwrap_or_else(PoisonError::into_inner)
-                    .get(&f.id())
-                    .cloned();
-                if let Some(route) = route {
-                    let _ = route.try_send(p);
+        let inner = Arc::new_cyclic(|client: &std::sync::Weak<ClientInner>| {
+            let client = client.clone();
+            // Responses are routed where the bus delivers them, not by a task of the client's
+            // own: one hand-over less between the answer and the transfer waiting for it.
+            let receiver = receiver.handle_with(move |event| {
+                if let (BusEvent::Frame(f), Some(inner)) = (event, client.upgrade()) {
+                    inner.route(&f);
                 }
+            });
+            ClientInner {
+                sender,
+                _receiver: receiver,
+                config,
+                routes: Mutex::new(HashMap::new()),
+                channels: channels.iter().fold(
+                    HashMap::new(),
+                    |mut by_node, &(node, req, resp)| {
+                        by_node
+                            .entry(node)
+                            .or_insert_with(Vec::new)
+                            .push((req, resp));
+                        by_node
+                    },
+                ),
+                nodes: Mutex::new(HashMap::new()),
+                probe_nanos: AtomicU64::new(10_000_000_000),
             }
         });
         SdoClients { inner }
