@@ -4,7 +4,8 @@
 
 use std::time::{Duration, Instant};
 
-use futures_util::{SinkExt, StreamExt};
+use futures_util::stream::FuturesUnordered;
+use futures_util::{FutureExt, SinkExt, StreamExt};
 use nxg::gateway::{Job, JobId, JobResult, Output, Phase, Session};
 
 use tokio::sync::mpsc;
@@ -160,10 +161,34 @@ enum Wake {
     Shutdown,
 }
 
+/// A job that did not finish at once (an SDO transfer, the token written to disk): polled by
+/// the connection's own task, so that its wake-ups and its result need no task and no channel
+/// of their own.
+type Running = std::pin::Pin<Box<dyn std::future::Future<Output = (JobId, JobResult)> + Send>>;
+
+/// The connection's jobs in flight. Those still running when the connection ends finish in a
+/// task of their own, as a request sent to the bus does: a transfer cut off mid-way would
+/// leave the node's SDO server waiting for its next segment (CiA 301 §7.2.4.3), and a write
+/// the node has taken would go unlogged.
+#[derive(Default)]
+struct InFlight(FuturesUnordered<Running>);
+
+impl Drop for InFlight {
+    fn drop(&mut self) {
+        let mut rest = std::mem::take(&mut self.0);
+        if rest.is_empty() {
+            return;
+        }
+        if let Ok(runtime) = tokio::runtime::Handle::try_current() {
+            runtime.spawn(async move { while rest.next().await.is_some() {} });
+        }
+    }
+}
+
 /// What the loop waits on, borrowed for one wait.
 struct Sources<'a, S> {
     ws: &'a mut tokio_tungstenite::WebSocketStream<S>,
-    jobs: &'a mut mpsc::UnboundedReceiver<(JobId, JobResult)>,
+    jobs: &'a mut FuturesUnordered<Running>,
     feed: &'a mut mpsc::Receiver<Update>,
     shared: &'a Shared,
     ping: &'a mut tokio::time::Interval,
@@ -179,7 +204,7 @@ where
     async fn next(&mut self, deadline: Option<Instant>) -> Wake {
         tokio::select! {
             message = self.ws.next() => Wake::Message(message),
-            Some((id, result)) = self.jobs.recv() => Wake::Job(id, result),
+            Some((id, result)) = self.jobs.next(), if !self.jobs.is_empty() => Wake::Job(id, result),
             Some(update) = self.feed.recv() => Wake::Update(update),
             _ = canopen::wake::sleep_until(deadline) => Wake::Timer,
             _ = self.shared.events_ready.notified() => Wake::Events,
@@ -189,23 +214,15 @@ where
     }
 
     /// What is ready now; otherwise flush what was written (when `unflushed`, which is then
-    /// cleared) and wait. With jobs running it first lets the other ready tasks run once:
-    /// answers of several SDO channels arrive in one read from the bus, and each job is a task
-    /// of its own — the first one done would otherwise flush alone, one TLS write per answer.
+    /// cleared) and wait. The jobs are polled here too, so the answers of several SDO channels
+    /// that came in one read from the bus are all written before the one flush.
     async fn wait(
         &mut self,
         deadline: Option<Instant>,
         unflushed: &mut bool,
-        jobs_running: bool,
     ) -> Result<Wake, tokio_tungstenite::tungstenite::Error> {
-        if let Some(wake) = futures_util::FutureExt::now_or_never(self.next(deadline)) {
+        if let Some(wake) = FutureExt::now_or_never(self.next(deadline)) {
             return Ok(wake);
-        }
-        if *unflushed && jobs_running {
-            tokio::task::yield_now().await;
-            if let Some(wake) = futures_util::FutureExt::now_or_never(self.next(deadline)) {
-                return Ok(wake);
-            }
         }
         if *unflushed {
             self.ws.flush().await?;
@@ -230,7 +247,7 @@ where
         shared.token.load(),
         now,
     );
-    let (job_tx, mut job_rx) = mpsc::unbounded_channel::<(JobId, JobResult)>();
+    let mut running = InFlight::default();
     let (feed_tx, mut feed_rx) = mpsc::channel::<Update>(1024);
     let feed: Feed = shared.feed(feed_tx).await;
     let mut ping = tokio::time::interval(Duration::from_secs(shared.config.cloud.ping_s.max(1)));
@@ -238,7 +255,6 @@ where
     let mut outputs = vec![session.connect()];
     let max_jobs = shared.config.limits.max_in_flight.max(1);
     let mut jobs = std::collections::VecDeque::new();
-    let mut running = 0usize;
     let mut served = false;
     // Answers written since the last flush: they go out together, in one TLS write, once
     // nothing else is ready (a portal with 32 requests in flight gets one write, not 32).
@@ -275,15 +291,15 @@ where
             }
         }
         // Jobs run at most `max_in_flight` at once (with the subscriptions' first reads there
-        // can be more jobs than requests); the rest wait here as small values, not as tasks.
+        // can be more jobs than requests); the rest wait here as small values, not as futures.
         // A job that is done at once (the local dictionary) is answered in this round.
-        while running < max_jobs {
+        while running.0.len() < max_jobs {
             let Some((id, job)) = jobs.pop_front() else {
                 break;
             };
-            match start_job(shared, id, job, job_tx.clone()) {
-                Some(result) => outputs.extend(session.handle_job(id, result, Instant::now())),
-                None => running += 1,
+            match start_job(shared, id, job) {
+                Ok(result) => outputs.extend(session.handle_job(id, result, Instant::now())),
+                Err(job) => running.0.push(job),
             }
         }
         if !outputs.is_empty() {
@@ -309,16 +325,13 @@ where
         }
         let mut sources = Sources {
             ws: &mut ws,
-            jobs: &mut job_rx,
+            jobs: &mut running.0,
             feed: &mut feed_rx,
             shared,
             ping: &mut ping,
             shutdown,
         };
-        let wake = match sources
-            .wait(session.poll_timeout(), &mut unflushed, running > 0)
-            .await
-        {
+        let wake = match sources.wait(session.poll_timeout(), &mut unflushed).await {
             Ok(wake) => wake,
             Err(e) => return ended(served, format!("sending failed: {e}")),
         };
@@ -355,10 +368,7 @@ where
                     None => return ended(served, "portal went away"),
                 }
             }
-            Wake::Job(id, result) => {
-                running -= 1;
-                session.handle_job(id, result, Instant::now())
-            }
+            Wake::Job(id, result) => session.handle_job(id, result, Instant::now()),
             Wake::Update((target, index, sub, bytes)) => {
                 let out = session.handle_bytes(target, index, sub, &bytes, Instant::now());
                 if let Some(metrics) = &shared.metrics {
@@ -393,30 +403,27 @@ where
 }
 
 /// Start `job`: its result now when it has it at once (a read or write of the local
-/// dictionary), or `None` and the result comes through `tx` (SDO, the token on disk).
-fn start_job(
-    shared: &Shared,
-    id: JobId,
-    job: Job,
-    tx: mpsc::UnboundedSender<(JobId, JobResult)>,
-) -> Option<JobResult> {
+/// dictionary), or the job to poll until it has (SDO, the token on disk).
+fn start_job(shared: &Shared, id: JobId, job: Job) -> Result<JobResult, Running> {
     match job {
         Job::StoreToken(token) => {
             let store = shared.token.clone();
-            tokio::task::spawn_blocking(move || {
-                let result = match store.store(&token) {
-                    Ok(()) => {
-                        tracing::info!(path = %store.path().display(), "cloud token stored");
-                        JobResult::Done
-                    }
-                    Err(e) => {
-                        tracing::error!(path = %store.path().display(), error = %e, "cloud token not stored");
-                        JobResult::Failed(canopen::sdo::abort::AbortCode::CANNOT_STORE)
-                    }
-                };
-                let _ = tx.send((id, result));
+            let stored = tokio::task::spawn_blocking(move || match store.store(&token) {
+                Ok(()) => {
+                    tracing::info!(path = %store.path().display(), "cloud token stored");
+                    JobResult::Done
+                }
+                Err(e) => {
+                    tracing::error!(path = %store.path().display(), error = %e, "cloud token not stored");
+                    JobResult::Failed(canopen::sdo::abort::AbortCode::CANNOT_STORE)
+                }
             });
-            None
+            Err(Box::pin(async move {
+                let result = stored.await.unwrap_or(JobResult::Failed(
+                    canopen::sdo::abort::AbortCode::CANNOT_STORE,
+                ));
+                (id, result)
+            }))
         }
         job => {
             let objects = shared.objects.clone();
@@ -437,26 +444,27 @@ fn start_job(
             });
             let metrics = shared.metrics.clone();
             let ok = |result: &JobResult| !matches!(result, JobResult::Failed(_));
-            // The local dictionary answers at once: in this round, with no task and no wake-up.
-            // An SDO transfer is polled first in a task of its own, so its wake-ups go there
-            // alone.
+            // The local dictionary answers at once: in this round, with no wake-up.
             if matches!(shared.objects, Objects::Local { .. }) {
-                if let Some(result) = futures_util::FutureExt::now_or_never(run.as_mut()) {
+                if let Some(result) = FutureExt::now_or_never(run.as_mut()) {
                     if let Some(metrics) = &metrics {
                         metrics.access(ok(&result), None);
                     }
-                    return Some(result);
+                    return Ok(result);
                 }
             }
             let started = Instant::now();
-            tokio::spawn(async move {
-                let result = run.await;
+            Err(Box::pin(async move {
+                // A job that panics (a bug) fails its request, not the connection that polls it.
+                let result = std::panic::AssertUnwindSafe(run)
+                    .catch_unwind()
+                    .await
+                    .unwrap_or(JobResult::Failed(canopen::sdo::abort::AbortCode::GENERAL));
                 if let Some(metrics) = &metrics {
                     metrics.access(ok(&result), Some(started.elapsed()));
                 }
-                let _ = tx.send((id, result));
-            });
-            None
+                (id, result)
+            }))
         }
     }
 }
@@ -504,6 +512,25 @@ mod tests {
             std::io::ErrorKind::InvalidData,
             rustls::Error::AlertReceived(description),
         )
+    }
+
+    #[tokio::test]
+    async fn jobs_in_flight_finish_after_their_connection_ends() {
+        let (answer, answered) = tokio::sync::oneshot::channel::<()>();
+        let (done, finished) = tokio::sync::oneshot::channel();
+        let running = InFlight::default();
+        running.0.push(Box::pin(async move {
+            // The node's answer comes after the connection is gone.
+            let _ = answered.await;
+            let _ = done.send(());
+            (7, JobResult::Done)
+        }));
+        drop(running);
+        answer.send(()).unwrap();
+        tokio::time::timeout(Duration::from_secs(5), finished)
+            .await
+            .expect("the job ran on after its connection ended")
+            .unwrap();
     }
 
     #[test]
