@@ -296,8 +296,13 @@ impl RxFeed {
         }
         let handler = self.handler.lock().unwrap_or_else(PoisonError::into_inner);
         if let Some(handle) = handler.as_ref() {
+            // Once the endpoint is dropped nothing more reaches its handler, which goes with
+            // the endpoint when the bus prunes it.
+            if self.tx.is_closed() {
+                return false;
+            }
             handle(event);
-            return !self.tx.is_closed();
+            return true;
         }
         match self.tx.try_send(event) {
             Ok(()) => true,
@@ -314,8 +319,11 @@ impl RxFeed {
         {
             let handler = self.handler.lock().unwrap_or_else(PoisonError::into_inner);
             if let Some(handle) = handler.as_ref() {
+                if self.tx.is_closed() {
+                    return false;
+                }
                 handle(event);
-                return !self.tx.is_closed();
+                return true;
             }
         }
         self.tx.send(event).await.is_ok()
@@ -439,21 +447,7 @@ impl fmt::Debug for BusReceiver {
 /// An endpoint whose events go to a handler ([`BusReceiver::handle_with`]); dropping it closes
 /// the endpoint.
 pub struct Handled {
-    receiver: BusReceiver,
-}
-
-impl Drop for Handled {
-    fn drop(&mut self) {
-        // Nothing reaches the handler once this is gone, and what it holds goes now, not when
-        // the bus next delivers and finds the endpoint closed.
-        let handler = self
-            .receiver
-            .handler
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .take();
-        drop(handler);
-    }
+    _receiver: BusReceiver,
 }
 
 impl fmt::Debug for Handled {
@@ -492,7 +486,11 @@ impl BusReceiver {
     /// while the returned [`Handled`] does.
     ///
     /// `handler` runs while the bus delivers to its endpoints, one frame at a time: it must not
-    /// block, wait or send on this bus (a send delivers too, and would wait for itself).
+    /// block, wait or send on this bus (a send delivers too, and would wait for itself), nor
+    /// drop the last reference to what holds the [`Handled`] (its drop would wait for the
+    /// delivery it is part of): share the state it needs rather than a `Weak` to its owner.
+    /// After the `Handled` is dropped no event reaches `handler`; it is dropped itself when
+    /// the bus next delivers and finds the endpoint gone.
     pub fn handle_with(mut self, handler: impl Fn(BusEvent) + Send + Sync + 'static) -> Handled {
         let shared = self.handler.clone();
         let mut slot = shared.lock().unwrap_or_else(PoisonError::into_inner);
@@ -501,7 +499,7 @@ impl BusReceiver {
         }
         *slot = Some(Box::new(handler));
         drop(slot);
-        Handled { receiver: self }
+        Handled { _receiver: self }
     }
 
     /// Accept only frames matching at least one of `filters`; an empty list accepts all. Frames

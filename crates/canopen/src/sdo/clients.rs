@@ -125,11 +125,11 @@ impl Default for TransferOptions<'_> {
 
 struct ClientInner {
     sender: BusSender,
-    /// The client's endpoint, its frames routed by [`ClientInner::route`].
+    /// The client's endpoint, its frames routed by [`route`].
     _receiver: Handled,
     config: ClientConfig,
     /// Responses for the transfer in progress, by response COB-ID.
-    routes: Mutex<HashMap<CanId, mpsc::Sender<Payload>>>,
+    routes: Routes,
     /// Configured channels (request, response COB-ID) by server node-ID; a node without any
     /// uses its default channel.
     channels: HashMap<u8, Vec<(CanId, CanId)>>,
@@ -139,14 +139,15 @@ struct ClientInner {
     probe_nanos: AtomicU64,
 }
 
-impl ClientInner {
-    /// Hand a response to the transfer waiting on its COB-ID, if any.
-    fn route(&self, f: &Frame) {
-        let Some(p) = payload(f.data()) else { return };
-        let routes = self.routes.lock().unwrap_or_else(PoisonError::into_inner);
-        if let Some(route) = routes.get(&f.id()) {
-            let _ = route.try_send(p);
-        }
+/// Responses for the transfers in progress, by response COB-ID; shared with the bus's delivery.
+type Routes = Arc<Mutex<HashMap<CanId, mpsc::Sender<Payload>>>>;
+
+/// Hand a response to the transfer waiting on its COB-ID, if any.
+fn route(routes: &Routes, f: &Frame) {
+    let Some(p) = payload(f.data()) else { return };
+    let routes = routes.lock().unwrap_or_else(PoisonError::into_inner);
+    if let Some(route) = routes.get(&f.id()) {
+        let _ = route.try_send(p);
     }
 }
 
@@ -337,33 +338,33 @@ impl SdoClients {
                 .map(|&(_, _, response)| Filter::exact(response)),
         );
         receiver.set_filters(&filters);
-        let inner = Arc::new_cyclic(|client: &std::sync::Weak<ClientInner>| {
-            let client = client.clone();
-            // Responses are routed where the bus delivers them, not by a task of the client's
-            // own: one hand-over less between the answer and the transfer waiting for it.
-            let receiver = receiver.handle_with(move |event| {
-                if let (BusEvent::Frame(f), Some(inner)) = (event, client.upgrade()) {
-                    inner.route(&f);
+        let routes = Routes::default();
+        // Responses are routed where the bus delivers them, not by a task of the client's own:
+        // one hand-over less between the answer and the transfer waiting for it.
+        let receiver = receiver.handle_with({
+            let routes = routes.clone();
+            move |event| {
+                if let BusEvent::Frame(f) = event {
+                    route(&routes, &f);
                 }
-            });
-            ClientInner {
-                sender,
-                _receiver: receiver,
-                config,
-                routes: Mutex::new(HashMap::new()),
-                channels: channels.iter().fold(
-                    HashMap::new(),
-                    |mut by_node, &(node, req, resp)| {
-                        by_node
-                            .entry(node)
-                            .or_insert_with(Vec::new)
-                            .push((req, resp));
-                        by_node
-                    },
-                ),
-                nodes: Mutex::new(HashMap::new()),
-                probe_nanos: AtomicU64::new(10_000_000_000),
             }
+        });
+        let inner = Arc::new(ClientInner {
+            sender,
+            _receiver: receiver,
+            config,
+            routes,
+            channels: channels
+                .iter()
+                .fold(HashMap::new(), |mut by_node, &(node, req, resp)| {
+                    by_node
+                        .entry(node)
+                        .or_insert_with(Vec::new)
+                        .push((req, resp));
+                    by_node
+                }),
+            nodes: Mutex::new(HashMap::new()),
+            probe_nanos: AtomicU64::new(10_000_000_000),
         });
         SdoClients { inner }
     }
@@ -763,6 +764,58 @@ mod tests {
             Variable::new("Blob", DataType::Domain, Access::Rw),
         ));
         Arc::new(Mutex::new(od))
+    }
+
+    /// A client dropped while the bus delivers answers to it: the bus goes on. (Its answers
+    /// were once routed through a `Weak` to the client, upgraded in the delivery: when that
+    /// was the last reference, the client's drop waited for the delivery it was part of.)
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_client_dropped_while_answers_arrive_leaves_the_bus_working() {
+        let url = "mem://sdo-clients-dropped";
+        let flooder = Bus::open(url).await.unwrap();
+        let mut witness = Bus::open(url).await.unwrap();
+        witness
+            .receiver
+            .set_filters(&[Filter::exact(CanId::Standard(0x100))]);
+        let flooding = Arc::new(std::sync::atomic::AtomicBool::new(true));
+        let flood = {
+            let flooding = flooding.clone();
+            let answer = Frame::standard(0x585, &[0x43, 0, 0x10, 0, 1, 2, 3, 4]).unwrap();
+            std::thread::spawn(move || {
+                let rt = tokio::runtime::Builder::new_current_thread()
+                    .build()
+                    .unwrap();
+                while flooding.load(std::sync::atomic::Ordering::Relaxed) {
+                    rt.block_on(flooder.send(answer)).unwrap();
+                }
+                flooder
+            })
+        };
+        for _ in 0..2000 {
+            let sdo = SdoClients::new(Bus::open(url).await.unwrap(), ClientConfig::default());
+            tokio::task::yield_now().await;
+            drop(sdo);
+        }
+        flooding.store(false, std::sync::atomic::Ordering::Relaxed);
+        let (done, joined) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let _ = done.send(flood.join().is_ok());
+        });
+        assert_eq!(
+            joined.recv_timeout(Duration::from_secs(10)),
+            Ok(true),
+            "the bus's delivery hung"
+        );
+        let probe = Bus::open(url).await.unwrap();
+        probe
+            .send(Frame::standard(0x100, &[1]).unwrap())
+            .await
+            .unwrap();
+        let seen = tokio::time::timeout(Duration::from_secs(5), witness.receiver.recv_frame())
+            .await
+            .expect("the bus delivers")
+            .unwrap();
+        assert_eq!(seen.id(), CanId::Standard(0x100));
     }
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
