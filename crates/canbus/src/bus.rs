@@ -294,39 +294,44 @@ impl RxFeed {
                 return !self.tx.is_closed();
             }
         }
-        let handler = self.handler.lock().unwrap_or_else(PoisonError::into_inner);
-        if let Some(handle) = handler.as_ref() {
-            // Once the endpoint is dropped nothing more reaches its handler, which goes with
-            // the endpoint when the bus prunes it.
-            if self.tx.is_closed() {
-                return false;
-            }
-            handle(event);
-            return true;
-        }
-        match self.tx.try_send(event) {
-            Ok(()) => true,
-            Err(mpsc::error::TrySendError::Full(_)) => {
+        match self.offer(event) {
+            Ok(open) => open,
+            Err(_) => {
                 self.overruns.fetch_add(1, Ordering::Relaxed);
                 true
             }
-            Err(mpsc::error::TrySendError::Closed(_)) => false,
         }
     }
 
     /// Queue a link event, waiting for room: those must not be lost to an overrun.
     pub(crate) async fn push_link(&self, event: BusEvent) -> bool {
-        {
-            let handler = self.handler.lock().unwrap_or_else(PoisonError::into_inner);
-            if let Some(handle) = handler.as_ref() {
-                if self.tx.is_closed() {
-                    return false;
-                }
-                handle(event);
-                return true;
-            }
+        match self.offer(event) {
+            Ok(open) => open,
+            // Only a queue left unread this long can be full when it is handed to a handler;
+            // this event then stays in it.
+            Err(event) => self.tx.send(event).await.is_ok(),
         }
-        self.tx.send(event).await.is_ok()
+    }
+
+    /// Hand `event` to the endpoint's handler, or queue it without waiting — under the
+    /// handler's lock, so that nothing is queued once the queue has been handed over. Whether
+    /// the endpoint is still open; the event back if the queue is full.
+    fn offer(&self, event: BusEvent) -> Result<bool, BusEvent> {
+        let handler = self.handler.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some(handle) = handler.as_ref() {
+            // Once the endpoint is dropped nothing more reaches its handler, which goes with
+            // the endpoint when the bus prunes it.
+            if self.tx.is_closed() {
+                return Ok(false);
+            }
+            handle(event);
+            return Ok(true);
+        }
+        match self.tx.try_send(event) {
+            Ok(()) => Ok(true),
+            Err(mpsc::error::TrySendError::Full(event)) => Err(event),
+            Err(mpsc::error::TrySendError::Closed(_)) => Ok(false),
+        }
     }
 
     pub(crate) fn is_closed(&self) -> bool {
