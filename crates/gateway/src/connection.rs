@@ -166,6 +166,14 @@ enum Wake {
 /// of their own.
 type Running = std::pin::Pin<Box<dyn std::future::Future<Output = (JobId, JobResult)> + Send>>;
 
+/// What [`start_job`] made of a job.
+enum Started {
+    /// Answered at once (the local dictionary).
+    Done(JobResult),
+    /// To be polled until it has its result.
+    Running(Running),
+}
+
 /// The connection's jobs in flight. Those still running when the connection ends finish in a
 /// task of their own, as a request sent to the bus does: a transfer cut off mid-way would
 /// leave the node's SDO server waiting for its next segment (CiA 301 §7.2.4.3), and a write
@@ -298,8 +306,10 @@ where
                 break;
             };
             match start_job(shared, id, job) {
-                Ok(result) => outputs.extend(session.handle_job(id, result, Instant::now())),
-                Err(job) => running.0.push(job),
+                Started::Done(result) => {
+                    outputs.extend(session.handle_job(id, result, Instant::now()))
+                }
+                Started::Running(job) => running.0.push(job),
             }
         }
         if !outputs.is_empty() {
@@ -404,7 +414,7 @@ where
 
 /// Start `job`: its result now when it has it at once (a read or write of the local
 /// dictionary), or the job to poll until it has (SDO, the token on disk).
-fn start_job(shared: &Shared, id: JobId, job: Job) -> Result<JobResult, Running> {
+fn start_job(shared: &Shared, id: JobId, job: Job) -> Started {
     match job {
         Job::StoreToken(token) => {
             let store = shared.token.clone();
@@ -418,7 +428,7 @@ fn start_job(shared: &Shared, id: JobId, job: Job) -> Result<JobResult, Running>
                     JobResult::Failed(canopen::sdo::abort::AbortCode::CANNOT_STORE)
                 }
             });
-            Err(Box::pin(async move {
+            Started::Running(Box::pin(async move {
                 let result = stored.await.unwrap_or(JobResult::Failed(
                     canopen::sdo::abort::AbortCode::CANNOT_STORE,
                 ));
@@ -450,11 +460,11 @@ fn start_job(shared: &Shared, id: JobId, job: Job) -> Result<JobResult, Running>
                     if let Some(metrics) = &metrics {
                         metrics.access(ok(&result), None);
                     }
-                    return Ok(result);
+                    return Started::Done(result);
                 }
             }
             let started = Instant::now();
-            Err(Box::pin(async move {
+            Started::Running(Box::pin(async move {
                 // A job that panics (a bug) fails its request, not the connection that polls it.
                 let result = std::panic::AssertUnwindSafe(run)
                     .catch_unwind()
