@@ -22,6 +22,7 @@ pub mod insights;
 mod memory;
 pub mod metrics;
 pub mod outbound;
+pub mod request_body;
 pub mod server;
 pub mod sse;
 pub mod state;

@@ -580,6 +580,8 @@ impl Portal {
                 },
             ));
         }
+        // Outermost: every refusal, the router's own (404, 405) too, finds a small body read.
+        let router = router.layer(axum::middleware::from_fn(crate::request_body::read_first));
         let listener = listen(config.server.listen).map_err(|e| {
             ServerError::Other(format!("listening on {}: {e}", config.server.listen))
         })?;
