@@ -369,18 +369,38 @@ async fn stored_parameters_survive_restarts_and_resets() {
     assert_eq!(node.value(TRIPS, 0).unwrap(), Value::Uint(1001));
     assert_eq!(master.sdo().read::<u16>(8, 0x1017, 0).await.unwrap(), 250);
     // Reset node returns to the stored values, not to what was changed since.
+    // Each reset is over when the node's boot-up is on the bus (CiA 301 §7.2.8.3.2.2): an SDO
+    // request sent before could reach the node while it resets.
+    let mut boot_ups = Bus::open(url).await.unwrap();
+    boot_ups
+        .receiver
+        .set_filters(&[canbus::Filter::standard(0x708, 0x7FF)]);
     master.sdo().write(8, 0x1017, 0, 100u16).await.unwrap();
     master.nmt(NmtCommand::ResetNode, 8).await.unwrap();
-    tokio::time::sleep(Duration::from_millis(100)).await;
-    node.wait_for_state(NmtState::PreOperational).await;
+    booted(&mut boot_ups).await;
     assert_eq!(master.sdo().read::<u16>(8, 0x1017, 0).await.unwrap(), 250);
     // Restore defaults of the communication parameters; they apply at the next reset.
     master.sdo().write_raw(8, 0x1011, 2, b"load").await.unwrap();
     master.nmt(NmtCommand::ResetCommunication, 8).await.unwrap();
-    tokio::time::sleep(Duration::from_millis(100)).await;
+    booted(&mut boot_ups).await;
     assert_eq!(master.sdo().read::<u16>(8, 0x1017, 0).await.unwrap(), 0);
     assert_eq!(node.value(TRIPS, 0).unwrap(), Value::Uint(1001));
     node.stop().await;
+}
+
+/// Wait for the next boot-up message `bus` receives (its filters pick the node), past the
+/// node's heartbeats.
+async fn booted(bus: &mut Bus) {
+    tokio::time::timeout(WAIT, async {
+        while let Some(frame) = bus.receiver.recv_frame().await {
+            if frame.data() == [0x00] {
+                return;
+            }
+        }
+        panic!("the bus closed");
+    })
+    .await
+    .expect("a boot-up in time");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
