@@ -15,6 +15,7 @@ use tokio::sync::mpsc;
 use crate::od::ObjectDictionary;
 use crate::sdo::abort::AbortCode;
 use crate::sdo::client::{ClientConfig, DownloadSource, SdoClient, SdoError, Transfer};
+use crate::sdo::msg::Request;
 use crate::sdo::server::default_channel;
 use crate::sdo::{payload, Payload};
 use crate::types::{CanopenValue, TypeError};
@@ -310,6 +311,45 @@ impl Drop for ChannelGuard {
     }
 }
 
+/// A transfer under way on a channel the client holds. Dropped before the transfer ends (its
+/// caller gave up on it: a timeout around it, a cancelled task), it aborts the transfer on the
+/// bus with 08000000h — either side may abort (CiA 301 §7.2.4.3.17) — so that the node's server
+/// does not wait for the rest until its own timeout and refuse the next transfer's request on
+/// the channel as out of place (05040001h); and it gives the channel back only once the abort
+/// is sent, so that no next transfer's request goes out before it.
+struct UnderWay {
+    turn: Option<ChannelGuard>,
+    object: (u16, u8),
+    sender: BusSender,
+}
+
+impl UnderWay {
+    /// The transfer ended (done or failed): the channel, nothing to abort.
+    fn ended(mut self) -> Option<ChannelGuard> {
+        self.turn.take()
+    }
+}
+
+impl Drop for UnderWay {
+    fn drop(&mut self) {
+        let Some(turn) = self.turn.take() else {
+            return;
+        };
+        // Outside a runtime (it is shutting down) nothing can be sent: the server times out.
+        let Ok(runtime) = tokio::runtime::Handle::try_current() else {
+            return;
+        };
+        let (index, sub) = self.object;
+        let code = AbortCode::GENERAL;
+        let abort = frame(turn.channel.0, &Request::Abort { index, sub, code }.write());
+        let sender = self.sender.clone();
+        runtime.spawn(async move {
+            let _ = sender.send(abort).await;
+            drop(turn);
+        });
+    }
+}
+
 /// SDO client for every node of a bus (the default client channels 0x600/0x580 + node-ID, or
 /// the channels configured for a node). Transfers to different nodes run concurrently, and to
 /// one node as many as it has channels; the others queue.
@@ -450,10 +490,19 @@ impl SdoClients {
     ) -> Result<Vec<u8>, ClientError> {
         let channels = self.node_channels(node);
         let turn = channels.take().await?;
+        let channel = turn.channel;
+        let under_way = UnderWay {
+            turn: Some(turn),
+            object,
+            sender: self.inner.sender.clone(),
+        };
         let result = self
-            .transfer_on(turn.channel, node, object, source, sink, options)
+            .transfer_on(channel, node, object, source, sink, options)
             .await;
-        if channels.heard(turn.channel, Heard::of(&result)) {
+        let Some(turn) = under_way.ended() else {
+            return result;
+        };
+        if channels.heard(channel, Heard::of(&result)) {
             self.set_aside(node, turn);
         }
         result
@@ -854,6 +903,93 @@ mod tests {
         let err = sdo.read_raw(6, 0x1000, 0).await.unwrap_err();
         assert_eq!(err.abort_code(), AbortCode::TIMEOUT);
         server.abort();
+    }
+
+    /// A transfer its caller gives up on mid-way (here: after its first segment) is aborted
+    /// on the bus before the channel carries anything else, and the next transfer on the
+    /// channel is served — without the abort the node's server, still in the first upload,
+    /// refused the next request as out of place (05040001h).
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_transfer_given_up_on_is_aborted_before_the_next_goes_out() {
+        let url = "mem://sdo-clients-given-up";
+        let od = node_dictionary(7);
+        od.lock().unwrap().write(0x2000, 0, &[0x5A; 700]).unwrap();
+        let server = serve_sdo(
+            Bus::open(url).await.unwrap(),
+            od.clone(),
+            5,
+            ServerConfig::default(),
+        );
+        let mut monitor = Bus::open(url).await.unwrap();
+        monitor
+            .receiver
+            .set_filters(&[Filter::exact(CanId::Standard(0x605))]);
+        let sdo = SdoClients::new(Bus::open(url).await.unwrap(), ClientConfig::default());
+        struct FirstSegment(Arc<tokio::sync::Notify>);
+        impl std::io::Write for FirstSegment {
+            fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+                self.0.notify_one();
+                Ok(buf.len())
+            }
+            fn flush(&mut self) -> std::io::Result<()> {
+                Ok(())
+            }
+        }
+        let arrived = Arc::new(tokio::sync::Notify::new());
+        let mut sink = FirstSegment(arrived.clone());
+        let options = TransferOptions {
+            how: Transfer::Segmented,
+            ..TransferOptions::default()
+        };
+        tokio::select! {
+            read = sdo.read_to(5, 0x2000, 0, &mut sink, options) => panic!("700 bytes in one segment? {read:?}"),
+            () = arrived.notified() => {}
+        }
+        assert_eq!(sdo.read::<u32>(5, 0x1000, 0).await.unwrap(), 0x0001_01A1);
+        let mut requests = Vec::new();
+        while let Ok(Some(f)) =
+            tokio::time::timeout(Duration::from_millis(100), monitor.receiver.recv_frame()).await
+        {
+            requests.push(f.data()[0]);
+        }
+        let abort = requests
+            .iter()
+            .position(|&cs| cs == 0x80)
+            .expect("an abort");
+        assert_eq!(
+            requests[..abort].iter().filter(|&&cs| cs == 0x40).count(),
+            1,
+            "the abort comes before the next initiate: {requests:02X?}"
+        );
+        assert_eq!(
+            requests[abort + 1..],
+            [0x40],
+            "then the next transfer alone: {requests:02X?}"
+        );
+        server.abort();
+    }
+
+    /// The abort as it goes out: the transfer's object and 08000000h.
+    #[tokio::test]
+    async fn the_abort_of_a_transfer_given_up_on_names_its_object() {
+        let url = "mem://sdo-clients-abort-frame";
+        let mut monitor = Bus::open(url).await.unwrap();
+        monitor
+            .receiver
+            .set_filters(&[Filter::exact(CanId::Standard(0x609))]);
+        let sdo = SdoClients::new(Bus::open(url).await.unwrap(), ClientConfig::default());
+        // No server: the read waits for its answer and is given up on.
+        let read = sdo.read_raw(9, 0x2001, 3);
+        assert!(tokio::time::timeout(Duration::from_millis(20), read)
+            .await
+            .is_err());
+        let initiate = monitor.receiver.recv_frame().await.unwrap();
+        assert_eq!(initiate.data(), [0x40, 0x01, 0x20, 0x03, 0, 0, 0, 0]);
+        let abort = tokio::time::timeout(Duration::from_secs(5), monitor.receiver.recv_frame())
+            .await
+            .expect("an abort")
+            .unwrap();
+        assert_eq!(abort.data(), [0x80, 0x01, 0x20, 0x03, 0, 0, 0, 0x08]);
     }
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
