@@ -567,6 +567,9 @@ impl Portal {
                 }),
             );
         }
+        // Around every route: every refusal, the router's own (404, 405) too, finds a small
+        // body read; HSTS below goes on its own answers (408, 400) too.
+        router = router.layer(axum::middleware::from_fn(crate::request_body::read_first));
         // A browser that once came over HTTPS with the portal's own certificate never tries
         // anything else for a year (RFC 6797); a development certificate is not worth pinning.
         if config.server.tls_cert.is_some() {
@@ -580,8 +583,6 @@ impl Portal {
                 },
             ));
         }
-        // Outermost: every refusal, the router's own (404, 405) too, finds a small body read.
-        let router = router.layer(axum::middleware::from_fn(crate::request_body::read_first));
         let listener = listen(config.server.listen).map_err(|e| {
             ServerError::Other(format!("listening on {}: {e}", config.server.listen))
         })?;

@@ -175,9 +175,9 @@ enum Started {
 }
 
 /// The connection's jobs in flight. Those still running when the connection ends finish in a
-/// task of their own, as a request sent to the bus does: a transfer cut off mid-way would
-/// leave the node's SDO server waiting for its next segment (CiA 301 §7.2.4.3), and a write
-/// the node has taken would go unlogged.
+/// task of their own, as a request sent to the bus does: a write the operator asked for is
+/// made and logged, not cut off mid-way (the SDO client would abort the transfer on the bus,
+/// CiA 301 §7.2.4.3.17, and the write would not be made).
 #[derive(Default)]
 struct InFlight(FuturesUnordered<Running>);
 
