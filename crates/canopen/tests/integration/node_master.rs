@@ -369,7 +369,7 @@ async fn stored_parameters_survive_restarts_and_resets() {
     assert_eq!(node.value(TRIPS, 0).unwrap(), Value::Uint(1001));
     assert_eq!(master.sdo().read::<u16>(8, 0x1017, 0).await.unwrap(), 250);
     // Reset node returns to the stored values, not to what was changed since.
-    // Each reset is over when the node's boot-up is on the bus (CiA 301 §7.2.8.3.2.2): an SDO
+    // Each reset is over when the node's boot-up is on the bus (CiA 301 §7.2.8.3.3): an SDO
     // request sent before could reach the node while it resets.
     let mut boot_ups = Bus::open(url).await.unwrap();
     boot_ups
