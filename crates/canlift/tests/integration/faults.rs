@@ -17,6 +17,7 @@ use tokio::process::Child;
 use tokio_tungstenite::tungstenite::Message;
 
 use crate::common;
+use common::http::{answer_of, tls_to};
 use common::{daemon, kill, PortalProcess};
 use testkit::free_port;
 
@@ -314,17 +315,6 @@ async fn a_portal_out_of_file_descriptors_serves_again_once_some_are_free() {
     portal.kill().await;
 }
 
-/// A TLS connection to the portal on `port`, trusting `ca`.
-async fn tls_to(port: u16, ca: &Path) -> tokio_rustls::client::TlsStream<TcpStream> {
-    let config = tls::client_config(Some(ca), None).expect("the portal's CA");
-    let connector = tokio_rustls::TlsConnector::from(config);
-    let tcp = TcpStream::connect(("127.0.0.1", port))
-        .await
-        .expect("a TCP connection");
-    let name = tokio_rustls::rustls::pki_types::ServerName::try_from("localhost").expect("a name");
-    connector.connect(name, tcp).await.expect("TLS")
-}
-
 /// Open TLS to the portal and send a request head one byte every 500 ms; how long until the
 /// portal closed the connection.
 async fn slowloris(port: u16, ca: PathBuf) -> Duration {
@@ -420,32 +410,6 @@ async fn a_refusal_leaves_the_connection_usable() {
         );
     }
     portal.kill().await;
-}
-
-/// One HTTP/1.1 answer from `stream`, head and body (by its Content-Length; none without),
-/// as text; what was read before the connection ended if it ended first.
-async fn answer_of<S: tokio::io::AsyncRead + Unpin>(stream: &mut S) -> String {
-    let mut got = Vec::new();
-    let mut buf = [0u8; 4096];
-    loop {
-        if let Some(end) = got.windows(4).position(|w| w == b"\r\n\r\n") {
-            let head = String::from_utf8_lossy(&got[..end]).to_ascii_lowercase();
-            let length = head
-                .lines()
-                .find_map(|l| l.strip_prefix("content-length:"))
-                .and_then(|v| v.trim().parse::<usize>().ok())
-                .unwrap_or(0);
-            if got.len() >= end + 4 + length {
-                break;
-            }
-        }
-        match tokio::time::timeout(Duration::from_secs(30), stream.read(&mut buf)).await {
-            Ok(Ok(0)) | Ok(Err(_)) => break,
-            Ok(Ok(n)) => got.extend_from_slice(&buf[..n]),
-            Err(_) => panic!("no answer within 30 s"),
-        }
-    }
-    String::from_utf8_lossy(&got).into_owned()
 }
 
 /// A TCP proxy between a gateway and its portal that the test turns hostile: it can stall the

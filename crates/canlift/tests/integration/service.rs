@@ -6,11 +6,12 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use rustls::pki_types::{CertificateDer, ServerName};
-use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt};
+use rustls::pki_types::CertificateDer;
+use tokio::io::{AsyncBufReadExt, AsyncWriteExt};
 use tokio::net::{TcpStream, UnixDatagram};
 use tokio_rustls::client::TlsStream;
 
+use super::common::http::{answer_of, tls_to};
 use super::common::{canlift, send_signal, PortalProcess};
 
 /// What a service manager hears on its `NOTIFY_SOCKET` (sd_notify(3): one datagram of
@@ -52,18 +53,6 @@ fn lines(message: &str) -> Vec<&str> {
     message.lines().collect()
 }
 
-/// A TLS connection to the portal trusting `roots`.
-async fn tls_to(port: u16, roots: &Path) -> TlsStream<TcpStream> {
-    let config = tls::client_config(Some(roots), None).expect("a client configuration");
-    let tcp = TcpStream::connect(("127.0.0.1", port))
-        .await
-        .expect("the portal accepts");
-    tokio_rustls::TlsConnector::from(config)
-        .connect(ServerName::try_from("localhost").expect("a name"), tcp)
-        .await
-        .expect("a TLS handshake")
-}
-
 fn presented(stream: &TlsStream<TcpStream>) -> CertificateDer<'static> {
     stream
         .get_ref()
@@ -83,35 +72,9 @@ async fn healthz(stream: &mut TlsStream<TcpStream>) -> String {
         .write_all(b"GET /healthz HTTP/1.1\r\nHost: localhost\r\n\r\n")
         .await
         .expect("sent");
-    let mut response = Vec::new();
-    let mut buf = [0u8; 4096];
-    let (head, body_len) = loop {
-        let n = tokio::time::timeout(Duration::from_secs(10), stream.read(&mut buf))
-            .await
-            .expect("an answer within 10 s")
-            .expect("read");
-        assert!(n > 0, "the portal closed the connection");
-        response.extend_from_slice(&buf[..n]);
-        if let Some(end) = response.windows(4).position(|w| w == b"\r\n\r\n") {
-            let head = String::from_utf8_lossy(&response[..end]).into_owned();
-            let len = head
-                .lines()
-                .find_map(|l| {
-                    let (name, value) = l.split_once(':')?;
-                    name.eq_ignore_ascii_case("content-length")
-                        .then(|| value.trim().parse::<usize>().ok())?
-                })
-                .expect("a Content-Length");
-            response.drain(..end + 4);
-            break (head, len);
-        }
-    };
-    while response.len() < body_len {
-        let n = stream.read(&mut buf).await.expect("read");
-        assert!(n > 0, "the body ended early");
-        response.extend_from_slice(&buf[..n]);
-    }
-    head.lines().next().unwrap_or_default().to_owned()
+    let answer = answer_of(stream).await;
+    assert!(!answer.is_empty(), "the portal closed the connection");
+    answer.lines().next().unwrap_or_default().to_owned()
 }
 
 /// A test PKI of its own in `dir`.

@@ -139,3 +139,4 @@ mod portal;
 pub use portal::PortalProcess;
 #[cfg(feature = "portal")]
 pub mod demo;
+pub mod http;
