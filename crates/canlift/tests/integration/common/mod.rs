@@ -139,4 +139,5 @@ mod portal;
 pub use portal::PortalProcess;
 #[cfg(feature = "portal")]
 pub mod demo;
+#[cfg(feature = "portal")]
 pub mod http;
