@@ -13,6 +13,7 @@ pub mod audit;
 pub mod auth;
 pub mod client;
 pub mod config;
+pub mod connection;
 pub mod csv;
 pub mod devpki;
 pub mod errors;

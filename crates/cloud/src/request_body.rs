@@ -24,8 +24,8 @@ pub const READ_FIRST: usize = 64 * 1024;
 
 /// How long a body read first may take to arrive once its head has: a client that sends its
 /// head and then its body slowly, or never, is answered 408 and the connection closed, like one
-/// slow with its head (`server::HANDSHAKE_TIMEOUT`).
-pub const BODY_TIMEOUT: std::time::Duration = crate::server::HANDSHAKE_TIMEOUT;
+/// slow with its head (`connection::HEAD_TIMEOUT`).
+pub const BODY_TIMEOUT: std::time::Duration = crate::connection::HEAD_TIMEOUT;
 
 /// The middleware: read a body of a declared length up to [`READ_FIRST`], then route the
 /// request with it; pass any other on as it is.

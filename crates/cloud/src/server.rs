@@ -11,8 +11,6 @@ use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
-use hyper_util::rt::{TokioIo, TokioTimer};
-use hyper_util::service::TowerToHyperService;
 use nxg::names::ObjectNames;
 use tls::tickets::TicketKeys;
 use tokio::net::TcpListener;
@@ -709,15 +707,8 @@ impl Portal {
                         request
                     },
                 );
-                let hyper = TowerToHyperService::new(service);
                 // HTTP/1.1 only (the ALPN offer): WebSocket upgrades and the API need no more.
-                // hyper bounds the request head only when it has a timer: without one a client
-                // sending its headers a byte at a time (slowloris) holds the connection forever.
-                let connection = hyper::server::conn::http1::Builder::new()
-                    .timer(TokioTimer::new())
-                    .header_read_timeout(HANDSHAKE_TIMEOUT)
-                    .serve_connection(TokioIo::new(stream), hyper)
-                    .with_upgrades();
+                let connection = crate::connection::serve(stream, service);
                 if let Err(e) = connection.await {
                     tracing::debug!(%peer, error = %e, "connection ended with an error");
                 }
@@ -868,7 +859,8 @@ async fn health(State((registry, store)): State<(Arc<Registry>, Store)>) -> Resp
 }
 
 /// How long a client may take for its TLS handshake, and then for each HTTP request head
-/// (docs/SECURITY.md §Bounds): a connection that says nothing, or says it slowly, is closed.
+/// (`connection::HEAD_TIMEOUT`; docs/SECURITY.md §Bounds): a connection that says nothing, or
+/// says it slowly, is closed.
 pub const HANDSHAKE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(10);
 
 /// The alarm service and the webhook worker, started, and the queue the gateway connections
