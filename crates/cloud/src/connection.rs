@@ -54,7 +54,7 @@ where
     let io = Bounded {
         inner: io,
         phase: phase.clone(),
-        head_by: Box::pin(tokio::time::sleep(HEAD_TIMEOUT)),
+        head_by: Some(Box::pin(tokio::time::sleep(HEAD_TIMEOUT))),
     };
     let arrived = phase.clone();
     let service = tower::ServiceBuilder::new()
@@ -146,8 +146,9 @@ impl Drop for Answer {
 struct Bounded<I> {
     inner: I,
     phase: Phase,
-    /// When the head being waited for must be in: reset at the first byte after an idle wait.
-    head_by: Pin<Box<Sleep>>,
+    /// When the head being waited for must be in: reset at the first byte after an idle wait;
+    /// dropped once the connection is upgraded (a gateway's lasts for days).
+    head_by: Option<Pin<Box<Sleep>>>,
 }
 
 impl<I: AsyncRead + Unpin> AsyncRead for Bounded<I> {
@@ -159,7 +160,11 @@ impl<I: AsyncRead + Unpin> AsyncRead for Bounded<I> {
         let this = &mut *self;
         match this.phase.get() {
             HEAD => {
-                if this.head_by.as_mut().poll(cx).is_ready() {
+                let late = this
+                    .head_by
+                    .as_mut()
+                    .is_some_and(|t| t.as_mut().poll(cx).is_ready());
+                if late {
                     return Poll::Ready(Err(io::Error::new(
                         io::ErrorKind::TimedOut,
                         "the request head did not come in time",
@@ -172,9 +177,16 @@ impl<I: AsyncRead + Unpin> AsyncRead for Bounded<I> {
                 let read = Pin::new(&mut this.inner).poll_read(cx, buf);
                 if matches!(read, Poll::Ready(Ok(()))) && buf.filled().len() > before {
                     this.phase.set(HEAD);
-                    this.head_by.as_mut().reset(Instant::now() + HEAD_TIMEOUT);
+                    // Always there: only an upgrade drops it, and nothing comes after that.
+                    if let Some(timer) = &mut this.head_by {
+                        timer.as_mut().reset(Instant::now() + HEAD_TIMEOUT);
+                    }
                 }
                 read
+            }
+            UPGRADED => {
+                this.head_by = None;
+                Pin::new(&mut this.inner).poll_read(cx, buf)
             }
             _ => Pin::new(&mut this.inner).poll_read(cx, buf),
         }
