@@ -639,25 +639,14 @@ impl Portal {
             proxies,
             refusals,
         } = self;
-        let mut retry = None;
         loop {
             let (tcp, peer) = tokio::select! {
-                accepted = listener.accept() => match accepted {
-                    Ok(a) => {
-                        retry = None;
-                        a
+                accepted = accept_next(&listener, |e, first| {
+                    metrics.accept_failures.fetch_add(1, Ordering::Relaxed);
+                    if first {
+                        tracing::warn!(error = %e, "accept failed: new connections wait in the listen queue until it works again (canlift_accept_failures_total counts the attempts)");
                     }
-                    Err(e) => {
-                        metrics.accept_failures.fetch_add(1, Ordering::Relaxed);
-                        if retry.is_none() {
-                            tracing::warn!(error = %e, "accept failed: new connections wait in the listen queue until it works again (canlift_accept_failures_total counts the attempts)");
-                        }
-                        let wait = accept_retry(retry);
-                        retry = Some(wait);
-                        tokio::time::sleep(wait).await;
-                        continue;
-                    }
-                },
+                }) => accepted,
                 _ = shutdown.changed() => break,
             };
             let _ = tcp.set_nodelay(true);
@@ -772,6 +761,26 @@ fn accept_retry(last: Option<Duration>) -> Duration {
     last.map_or(Duration::from_millis(5), |w| {
         (w * 2).min(Duration::from_secs(1))
     })
+}
+
+/// The next connection on `listener`, accepts that fail tried again after [`accept_retry`]'s
+/// waits; `failed` hears of each failure, and whether it is the first since one succeeded.
+async fn accept_next(
+    listener: &TcpListener,
+    mut failed: impl FnMut(&std::io::Error, bool),
+) -> (tokio::net::TcpStream, SocketAddr) {
+    let mut retry = None;
+    loop {
+        match listener.accept().await {
+            Ok(accepted) => return accepted,
+            Err(e) => {
+                failed(&e, retry.is_none());
+                let wait = accept_retry(retry);
+                retry = Some(wait);
+                tokio::time::sleep(wait).await;
+            }
+        }
+    }
 }
 
 /// How long a stopping portal waits for its gateways' connections to end and for what they
@@ -974,7 +983,9 @@ fn metrics_response(render: &Metered) -> Response {
 }
 
 /// `/metrics` alone, in plain HTTP, on `listen` (`[server] metrics_listen`: a scraper on the
-/// portal's network); the task that serves it.
+/// portal's network); the task that serves it. Its connections have the public port's bounds
+/// (`connection::serve`): a scraper keeps its connection between scrapes, a client that says
+/// nothing is closed.
 async fn serve_metrics(
     listen: SocketAddr,
     render: Metered,
@@ -987,8 +998,17 @@ async fn serve_metrics(
         get(move || async move { metrics_response(&render) }),
     );
     Ok(tokio::spawn(async move {
-        if let Err(e) = axum::serve(listener, router).await {
-            tracing::error!(error = %e, "the metrics listener failed");
+        loop {
+            let (tcp, _) = accept_next(&listener, |e, first| {
+                if first {
+                    tracing::warn!(error = %e, "the metrics listener's accept failed");
+                }
+            })
+            .await;
+            let router = router.clone();
+            tokio::spawn(async move {
+                let _ = crate::connection::serve(tcp, router).await;
+            });
         }
     }))
 }

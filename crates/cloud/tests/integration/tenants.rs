@@ -11,6 +11,7 @@ use cloud_types::users::Role;
 use serde_json::{json, Value};
 use testkit::constants::{ACCOUNT, LIFT, SERNUM, WAIT};
 use testkit::portal::{until, Rig};
+use tokio::io::AsyncReadExt;
 
 /// The passenger call, privilege 0.
 const CALL: &str = "0x502200";
@@ -531,5 +532,16 @@ async fn metrics_are_for_their_token_alone() {
     })
     .await;
     eprintln!("metrics listener answered after {scraped:?}");
+    // It has the public port's bounds: a connection that says nothing is closed after the
+    // head's (docs/SECURITY.md §Bounds), not held for ever.
+    let mut silent = tokio::net::TcpStream::connect(listen)
+        .await
+        .expect("connected");
+    let mut byte = [0u8; 1];
+    let read = tokio::time::timeout(Duration::from_secs(30), silent.read(&mut byte)).await;
+    assert!(
+        matches!(read, Ok(Ok(0) | Err(_))),
+        "a silent connection to the metrics listener: {read:?}"
+    );
     rig.stop().await;
 }
