@@ -30,8 +30,8 @@ use tokio::time::{Instant, Sleep};
 
 /// How long a request head may take, from its first byte (for a connection's first request,
 /// from the end of its TLS handshake): a client that sends its head slowly (slowloris) or not at
-/// all is closed.
-pub const HEAD_TIMEOUT: Duration = crate::server::HANDSHAKE_TIMEOUT;
+/// all is closed. The TLS handshake has the same bound (`server::HANDSHAKE_TIMEOUT`).
+pub const HEAD_TIMEOUT: Duration = Duration::from_secs(10);
 
 /// How long a connection may wait idle for its next request. Longer than the keep-alive of the
 /// balancers and proxies put in front of portals (60 s for nginx's upstream connections and

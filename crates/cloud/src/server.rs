@@ -867,10 +867,9 @@ async fn health(State((registry, store)): State<(Arc<Registry>, Store)>) -> Resp
     text.into_response()
 }
 
-/// How long a client may take for its TLS handshake, and then for each HTTP request head
-/// (`connection::HEAD_TIMEOUT`; docs/SECURITY.md §Bounds): a connection that says nothing, or
-/// says it slowly, is closed.
-pub const HANDSHAKE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(10);
+/// How long a client may take for its TLS handshake, as for each HTTP request head after it
+/// (docs/SECURITY.md §Bounds): a connection that says nothing, or says it slowly, is closed.
+pub const HANDSHAKE_TIMEOUT: std::time::Duration = crate::connection::HEAD_TIMEOUT;
 
 /// The alarm service and the webhook worker, started, and the queue the gateway connections
 /// report into.
