@@ -316,23 +316,37 @@ impl Drop for ChannelGuard {
 /// bus with 08000000h — either side may abort (CiA 301 §7.2.4.3.17) — so that the node's server
 /// does not wait for the rest until its own timeout and refuse the next transfer's request on
 /// the channel as out of place (05040001h); and it gives the channel back only once the abort
-/// is sent, so that no next transfer's request goes out before it.
+/// is sent and the channel has fallen quiet (see [`QUIET`]), so that neither the next
+/// transfer's request goes out before the abort nor an answer meant for this transfer reaches
+/// the next one.
 struct UnderWay {
-    turn: Option<ChannelGuard>,
+    /// The channel and its route, until the transfer ends.
+    held: Option<(ChannelGuard, Route)>,
     object: (u16, u8),
     sender: BusSender,
+    /// The transfer's response timeout: how long its node may take to answer.
+    timeout: Duration,
 }
+
+/// How long a channel whose transfer was given up must stay silent, after a response to it,
+/// before the next transfer may use it. The node answers what the transfer last asked before
+/// it reads the abort (a server serves its channel's requests in order), and in a block upload
+/// may still be sending a sub-block's segments: a response that came late to the transfer it
+/// answers would be taken by the next transfer on the channel for its own, and fail it
+/// (05040001h). Frames of one answer follow each other within a millisecond or two, on a bus
+/// or through socketcand.
+const QUIET: Duration = Duration::from_millis(10);
 
 impl UnderWay {
     /// The transfer ended (done or failed): the channel, nothing to abort.
     fn ended(mut self) -> Option<ChannelGuard> {
-        self.turn.take()
+        self.held.take().map(|(turn, _)| turn)
     }
 }
 
 impl Drop for UnderWay {
     fn drop(&mut self) {
-        let Some(turn) = self.turn.take() else {
+        let Some((turn, mut route)) = self.held.take() else {
             return;
         };
         // Outside a runtime (it is shutting down) nothing can be sent: the server times out.
@@ -341,10 +355,22 @@ impl Drop for UnderWay {
         };
         let (index, sub) = self.object;
         let code = AbortCode::GENERAL;
-        let abort = frame(turn.channel.0, &Request::Abort { index, sub, code }.write());
+        let abort = frame(
+            route.channel.0,
+            &Request::Abort { index, sub, code }.write(),
+        );
         let sender = self.sender.clone();
+        let timeout = self.timeout;
         runtime.spawn(async move {
             let _ = sender.send(abort).await;
+            // The route still takes the channel's responses, those already queued in it among
+            // them. The first may take as long as the node may take to answer: a silent node
+            // holds the channel that long once.
+            let mut wait = timeout;
+            while let Ok(Some(_)) = tokio::time::timeout(wait, route.responses.recv()).await {
+                wait = QUIET;
+            }
+            drop(route);
             drop(turn);
         });
     }
@@ -456,8 +482,9 @@ impl SdoClients {
             let sdo = self.clone();
             reads.spawn(async move {
                 let options = TransferOptions::default();
+                let mut route = Route::open(&sdo.inner.routes, turn.channel);
                 let answer = sdo
-                    .transfer_on(turn.channel, node, (0x1000, 0), None, None, options)
+                    .transfer_on(&mut route, node, (0x1000, 0), None, None, options)
                     .await;
                 (turn.channel, answer.map(|_| ()))
             });
@@ -491,14 +518,20 @@ impl SdoClients {
         let channels = self.node_channels(node);
         let turn = channels.take().await?;
         let channel = turn.channel;
-        let under_way = UnderWay {
-            turn: Some(turn),
+        let route = Route::open(&self.inner.routes, channel);
+        let mut under_way = UnderWay {
+            held: Some((turn, route)),
             object,
             sender: self.inner.sender.clone(),
+            timeout: options.timeout.unwrap_or(self.inner.config.timeout),
         };
-        let result = self
-            .transfer_on(channel, node, object, source, sink, options)
-            .await;
+        let result = match &mut under_way.held {
+            Some((_, route)) => {
+                self.transfer_on(route, node, object, source, sink, options)
+                    .await
+            }
+            None => Err(ClientError::Closed),
+        };
         let Some(turn) = under_way.ended() else {
             return result;
         };
@@ -530,8 +563,9 @@ impl SdoClients {
                 };
                 let sdo = SdoClients { inner };
                 let options = TransferOptions::default();
+                let mut route = Route::open(&sdo.inner.routes, turn.channel);
                 let answer = sdo
-                    .transfer_on(turn.channel, node, (0x1000, 0), None, None, options)
+                    .transfer_on(&mut route, node, (0x1000, 0), None, None, options)
                     .await;
                 if Heard::of(&answer) == Heard::Answer {
                     turn.node.back_in_service();
@@ -545,23 +579,15 @@ impl SdoClients {
     /// [`Self::transfer`] on `channel`, which the caller holds.
     async fn transfer_on(
         &self,
-        (request_id, response_id): (CanId, CanId),
+        route: &mut Route,
         node: u8,
         (index, sub): (u16, u8),
         source: Option<Box<dyn DownloadSource>>,
         mut sink: Option<&mut (dyn std::io::Write + Send)>,
         options: TransferOptions<'_>,
     ) -> Result<Vec<u8>, ClientError> {
-        let (tx, mut rx) = mpsc::channel(256);
-        self.inner
-            .routes
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .insert(response_id, tx);
-        let _route = RouteGuard {
-            inner: &self.inner,
-            id: response_id,
-        };
+        let request_id = route.channel.0;
+        let rx = &mut route.responses;
         let mut config = self.inner.config.clone();
         if let Some(timeout) = options.timeout {
             config.timeout = timeout;
@@ -770,19 +796,35 @@ impl std::io::Write for CountingWriter<'_> {
     }
 }
 
-/// Removes a transfer's response route however the transfer ends.
-struct RouteGuard<'a> {
-    inner: &'a ClientInner,
-    id: CanId,
+/// A channel held by a transfer: the request COB-ID it sends on, and the responses on its
+/// response COB-ID, routed here until this drops.
+struct Route {
+    routes: Routes,
+    channel: (CanId, CanId),
+    responses: mpsc::Receiver<Payload>,
 }
 
-impl Drop for RouteGuard<'_> {
-    fn drop(&mut self) {
-        self.inner
-            .routes
+impl Route {
+    fn open(routes: &Routes, channel: (CanId, CanId)) -> Route {
+        let (tx, responses) = mpsc::channel(256);
+        routes
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
-            .remove(&self.id);
+            .insert(channel.1, tx);
+        Route {
+            routes: routes.clone(),
+            channel,
+            responses,
+        }
+    }
+}
+
+impl Drop for Route {
+    fn drop(&mut self) {
+        self.routes
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .remove(&self.channel.1);
     }
 }
 
@@ -925,26 +967,7 @@ mod tests {
             .receiver
             .set_filters(&[Filter::exact(CanId::Standard(0x605))]);
         let sdo = SdoClients::new(Bus::open(url).await.unwrap(), ClientConfig::default());
-        struct FirstSegment(Arc<tokio::sync::Notify>);
-        impl std::io::Write for FirstSegment {
-            fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
-                self.0.notify_one();
-                Ok(buf.len())
-            }
-            fn flush(&mut self) -> std::io::Result<()> {
-                Ok(())
-            }
-        }
-        let arrived = Arc::new(tokio::sync::Notify::new());
-        let mut sink = FirstSegment(arrived.clone());
-        let options = TransferOptions {
-            how: Transfer::Segmented,
-            ..TransferOptions::default()
-        };
-        tokio::select! {
-            read = sdo.read_to(5, 0x2000, 0, &mut sink, options) => panic!("700 bytes in one segment? {read:?}"),
-            () = arrived.notified() => {}
-        }
+        give_up_after_the_first_segment(&sdo).await;
         assert_eq!(sdo.read::<u32>(5, 0x1000, 0).await.unwrap(), 0x0001_01A1);
         let mut requests = Vec::new();
         while let Ok(Some(f)) =
@@ -967,6 +990,72 @@ mod tests {
             "then the next transfer alone: {requests:02X?}"
         );
         server.abort();
+    }
+
+    /// The answer to what a transfer given up on last asked can come after the next transfer
+    /// on the channel has begun (the node answers in its own time): it is not taken for the
+    /// next transfer's answer. A scripted node answers upload segments 50 ms late; without the
+    /// channel held until it falls quiet, the read of 1000h got the late segment and failed
+    /// with 05040001h.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_late_answer_to_a_transfer_given_up_on_is_not_the_next_ones() {
+        let url = "mem://sdo-clients-late-answer";
+        let mut node = Bus::open(url).await.unwrap();
+        node.receiver
+            .set_filters(&[Filter::exact(CanId::Standard(0x605))]);
+        let script = tokio::spawn(async move {
+            let mut heard = Vec::new();
+            while let Some(request) = node.receiver.recv_frame().await {
+                let data = request.data();
+                heard.push(data[0]);
+                let answer: [u8; 8] = match (data[0], data[1], data[2]) {
+                    // 2000h: segmented, 700 bytes.
+                    (0x40, 0x00, 0x20) => [0x41, 0x00, 0x20, 0x00, 0xBC, 0x02, 0, 0],
+                    (0x60 | 0x70, ..) => {
+                        tokio::time::sleep(Duration::from_millis(50)).await;
+                        [data[0] & 0x10, 1, 2, 3, 4, 5, 6, 7]
+                    }
+                    (0x40, 0x00, 0x10) => [0x43, 0x00, 0x10, 0x00, 0xA1, 0x01, 0x01, 0x00],
+                    (0x80, ..) => continue,
+                    _ => [0x80, data[1], data[2], data[3], 0x01, 0x00, 0x04, 0x05],
+                };
+                let answer = Frame::new(CanId::Standard(0x585), &answer).unwrap();
+                if node.sender.send(answer).await.is_err() {
+                    break;
+                }
+            }
+            heard
+        });
+        let sdo = SdoClients::new(Bus::open(url).await.unwrap(), ClientConfig::default());
+        give_up_after_the_first_segment(&sdo).await;
+        let read = sdo.read::<u32>(5, 0x1000, 0).await;
+        script.abort();
+        let heard = script.await.unwrap_or_default();
+        assert_eq!(read.unwrap(), 0x0001_01A1, "the node heard {heard:02X?}");
+    }
+
+    /// Read 2000h of node 5 segmented, and give the read up once its first segment is in.
+    async fn give_up_after_the_first_segment(sdo: &SdoClients) {
+        struct Notifying(Arc<tokio::sync::Notify>);
+        impl std::io::Write for Notifying {
+            fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+                self.0.notify_one();
+                Ok(buf.len())
+            }
+            fn flush(&mut self) -> std::io::Result<()> {
+                Ok(())
+            }
+        }
+        let arrived = Arc::new(tokio::sync::Notify::new());
+        let mut sink = Notifying(arrived.clone());
+        let options = TransferOptions {
+            how: Transfer::Segmented,
+            ..TransferOptions::default()
+        };
+        tokio::select! {
+            read = sdo.read_to(5, 0x2000, 0, &mut sink, options) => panic!("700 bytes in one segment? {read:?}"),
+            () = arrived.notified() => {}
+        }
     }
 
     /// The abort as it goes out: the transfer's object and 08000000h.
