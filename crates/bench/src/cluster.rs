@@ -67,6 +67,11 @@ pub struct ClusterBench {
     /// to measure what TLS on the relays costs (docs/CLUSTER.md §Securing NATS).
     #[arg(long)]
     nats_tls: bool,
+    /// Seconds to wait after the reads before process 0 is killed: its restart then falls
+    /// after the roll-ups of the values the first contacts brought, not beside them
+    /// (docs/BENCHMARKS.md §First contact on a durable PostgreSQL).
+    #[arg(long, default_value_t = 0)]
+    settle_s: u64,
 }
 
 /// How long the cluster's own cost is measured with every gateway online and no operator
@@ -533,6 +538,7 @@ pub async fn run(args: ClusterBench) -> anyhow::Result<()> {
         percentile(&bare, 99.0)
     );
     if args.portals > 1 {
+        tokio::time::sleep(Duration::from_secs(args.settle_s)).await;
         let victim = portals.processes.remove(0);
         let (pdir, config) = portals.configs[0].clone();
         let killed = Instant::now();
