@@ -284,13 +284,11 @@ async fn the_ascii_gateway_speaks_cia_309_3() {
         serial_of(&python, &addr, 42).await,
         format!("0x{:08X}", UNCONFIGURED[0])
     );
-    // lss_allnodes gives the rest IDs from 50.
-    let r = session(
-        &python,
-        &addr,
-        &["lss_allnodes 250 50 0", "_lss_fastscan 250"],
-    )
-    .await;
+    // lss_allnodes gives the rest IDs from 50: vendor, product and revision matched, the
+    // serial scanned (37 steps of 250 ms instead of the whole scan's 133, which the Fastscan
+    // above went through).
+    let allnodes = format!("lss_allnodes 250 50 0 2 0x{VENDOR:X} 2 0x1000 2 1 0 0");
+    let r = session(&python, &addr, &[&allnodes, "_lss_fastscan 250"]).await;
     ok(&r[0]);
     let lines: Vec<&str> = r[0]["lines"]
         .as_array()

@@ -458,6 +458,8 @@ impl SdoClients {
     /// response timeout): which ones answer, in the configured order. A channel configured here
     /// that the node does not serve would fail every transfer that lands on it; this finds it.
     /// Channels set aside (see [`Self::set_probe_interval`]) are their probe's, not checked.
+    /// A check given up on aborts its reads and holds their channels until quiet, as any
+    /// transfer given up on.
     pub async fn check_channels(
         &self,
         node: u8,
@@ -481,20 +483,25 @@ impl SdoClients {
         for turn in channels.claim(held) {
             let sdo = self.clone();
             reads.spawn(async move {
+                let channel = turn.channel;
                 let options = TransferOptions::default();
-                let mut route = Route::open(&sdo.inner.routes, turn.channel);
-                let answer = sdo
-                    .transfer_on(&mut route, node, (0x1000, 0), None, None, options)
+                let (answer, turn) = sdo
+                    .transfer_held(turn, node, (0x1000, 0), None, None, options)
                     .await;
-                (turn.channel, answer.map(|_| ()))
+                (channel, answer.map(|_| ()), turn)
             });
         }
         let mut answers = Vec::with_capacity(channels.all.len());
         while let Some(done) = reads.join_next().await {
             answers.push(done.map_err(|_| ClientError::Closed)?);
         }
-        answers.sort_by_key(|(channel, _)| channels.all.iter().position(|c| c == channel));
-        Ok(answers)
+        answers.sort_by_key(|(channel, ..)| channels.all.iter().position(|c| c == channel));
+        // The channels go back in the configured order, whichever read ended first: the
+        // transfers after a check take them in that order.
+        Ok(answers
+            .into_iter()
+            .map(|(channel, answer, _turn)| (channel, answer))
+            .collect())
     }
 
     /// How often a channel set aside is asked whether it answers again (default 10 s). A
@@ -518,7 +525,30 @@ impl SdoClients {
         let channels = self.node_channels(node);
         let turn = channels.take().await?;
         let channel = turn.channel;
-        let route = Route::open(&self.inner.routes, channel);
+        let (result, turn) = self
+            .transfer_held(turn, node, object, source, sink, options)
+            .await;
+        let Some(turn) = turn else {
+            return result;
+        };
+        if channels.heard(channel, Heard::of(&result)) {
+            self.set_aside(node, turn);
+        }
+        result
+    }
+
+    /// Run one transfer on `turn`'s channel; the channel back when it ended. A transfer given
+    /// up on (its future dropped) is aborted and its channel held until quiet ([`UnderWay`]).
+    async fn transfer_held(
+        &self,
+        turn: ChannelGuard,
+        node: u8,
+        object: (u16, u8),
+        source: Option<Box<dyn DownloadSource>>,
+        sink: Option<&mut (dyn std::io::Write + Send)>,
+        options: TransferOptions<'_>,
+    ) -> (Result<Vec<u8>, ClientError>, Option<ChannelGuard>) {
+        let route = Route::open(&self.inner.routes, turn.channel);
         let mut under_way = UnderWay {
             held: Some((turn, route)),
             object,
@@ -532,13 +562,7 @@ impl SdoClients {
             }
             None => Err(ClientError::Closed),
         };
-        let Some(turn) = under_way.ended() else {
-            return result;
-        };
-        if channels.heard(channel, Heard::of(&result)) {
-            self.set_aside(node, turn);
-        }
-        result
+        (result, under_way.ended())
     }
 
     /// Hold `turn`'s channel in a task that asks it (1000h) at every probe interval, until it
@@ -1000,38 +1024,89 @@ mod tests {
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn a_late_answer_to_a_transfer_given_up_on_is_not_the_next_ones() {
         let url = "mem://sdo-clients-late-answer";
-        let mut node = Bus::open(url).await.unwrap();
-        node.receiver
-            .set_filters(&[Filter::exact(CanId::Standard(0x605))]);
-        let script = tokio::spawn(async move {
-            let mut heard = Vec::new();
-            while let Some(request) = node.receiver.recv_frame().await {
-                let data = request.data();
-                heard.push(data[0]);
-                let answer: [u8; 8] = match (data[0], data[1], data[2]) {
-                    // 2000h: segmented, 700 bytes.
-                    (0x40, 0x00, 0x20) => [0x41, 0x00, 0x20, 0x00, 0xBC, 0x02, 0, 0],
-                    (0x60 | 0x70, ..) => {
-                        tokio::time::sleep(Duration::from_millis(50)).await;
-                        [data[0] & 0x10, 1, 2, 3, 4, 5, 6, 7]
-                    }
-                    (0x40, 0x00, 0x10) => [0x43, 0x00, 0x10, 0x00, 0xA1, 0x01, 0x01, 0x00],
-                    (0x80, ..) => continue,
-                    _ => [0x80, data[1], data[2], data[3], 0x01, 0x00, 0x04, 0x05],
-                };
-                let answer = Frame::new(CanId::Standard(0x585), &answer).unwrap();
-                if node.sender.send(answer).await.is_err() {
-                    break;
-                }
-            }
-            heard
-        });
+        let script = scripted_node(url, |data| match (data[0], data[1], data[2]) {
+            // 2000h: segmented, 700 bytes.
+            (0x40, 0x00, 0x20) => now([0x41, 0x00, 0x20, 0x00, 0xBC, 0x02, 0, 0]),
+            (0x60 | 0x70, ..) => (
+                Duration::from_millis(50),
+                Some([data[0] & 0x10, 1, 2, 3, 4, 5, 6, 7]),
+            ),
+            (0x40, 0x00, 0x10) => now(DEVICE_TYPE),
+            (0x80, ..) => (Duration::ZERO, None),
+            _ => now(refused(data)),
+        })
+        .await;
         let sdo = SdoClients::new(Bus::open(url).await.unwrap(), ClientConfig::default());
         give_up_after_the_first_segment(&sdo).await;
         let read = sdo.read::<u32>(5, 0x1000, 0).await;
         script.abort();
         let heard = script.await.unwrap_or_default();
         assert_eq!(read.unwrap(), 0x0001_01A1, "the node heard {heard:02X?}");
+    }
+
+    /// A channel check given up on (its future dropped, as the gateway's start does when its
+    /// time is up) is a transfer given up on like any other: the late answer to its read of
+    /// 1000h is not taken for the next transfer's. Without the check's reads held until quiet,
+    /// the read of 1001h got 1000h's answer and failed.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_channel_check_given_up_on_leaves_its_late_answer_behind() {
+        let url = "mem://sdo-clients-check-given-up";
+        let script = scripted_node(url, |data| match (data[0], data[1], data[2]) {
+            (0x40, 0x00, 0x10) => (Duration::from_millis(100), Some(DEVICE_TYPE)),
+            (0x40, 0x01, 0x10) => now([0x4F, 0x01, 0x10, 0x00, 0x00, 0, 0, 0]),
+            (0x80, ..) => (Duration::ZERO, None),
+            _ => now(refused(data)),
+        })
+        .await;
+        let sdo = SdoClients::new(Bus::open(url).await.unwrap(), ClientConfig::default());
+        let check = tokio::time::timeout(Duration::from_millis(20), sdo.check_channels(5)).await;
+        assert!(check.is_err(), "the check was given up on");
+        let read = sdo.read::<u8>(5, 0x1001, 0).await;
+        script.abort();
+        assert_eq!(read.unwrap(), 0);
+    }
+
+    /// What a scripted node answers a request: after how long, and what (nothing for `None`).
+    type Scripted = (Duration, Option<[u8; 8]>);
+
+    /// An answer sent at once.
+    fn now(answer: [u8; 8]) -> Scripted {
+        (Duration::ZERO, Some(answer))
+    }
+
+    /// The answer to a read of 1000h: device type 000101A1h.
+    const DEVICE_TYPE: [u8; 8] = [0x43, 0x00, 0x10, 0x00, 0xA1, 0x01, 0x01, 0x00];
+
+    /// The abort 05040001h (command specifier not valid) of the request `data`: what the
+    /// script does not expect.
+    fn refused(data: &[u8]) -> [u8; 8] {
+        [0x80, data[1], data[2], data[3], 0x01, 0x00, 0x04, 0x05]
+    }
+
+    /// Node 5 on `url`'s default SDO channel, answering each request as `answer` says, one
+    /// after the other (a server serves its channel in order); what it heard (command bytes)
+    /// when stopped.
+    async fn scripted_node(
+        url: &str,
+        answer: impl Fn(&[u8]) -> Scripted + Send + 'static,
+    ) -> tokio::task::JoinHandle<Vec<u8>> {
+        let mut node = Bus::open(url).await.unwrap();
+        node.receiver
+            .set_filters(&[Filter::exact(CanId::Standard(0x605))]);
+        tokio::spawn(async move {
+            let mut heard = Vec::new();
+            while let Some(request) = node.receiver.recv_frame().await {
+                heard.push(request.data()[0]);
+                let (after, answer) = answer(request.data());
+                tokio::time::sleep(after).await;
+                let Some(answer) = answer else { continue };
+                let answer = Frame::new(CanId::Standard(0x585), &answer).unwrap();
+                if node.sender.send(answer).await.is_err() {
+                    break;
+                }
+            }
+            heard
+        })
     }
 
     /// Read 2000h of node 5 segmented, and give the read up once its first segment is in.
