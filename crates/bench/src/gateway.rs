@@ -26,6 +26,7 @@ use tokio_tungstenite::WebSocketStream;
 
 use cloud::devpki::{self, DevPki};
 
+use crate::gets::get;
 use crate::process::{lone_gateway, memory_kib, mib, percentile, Daemon};
 
 /// Arguments of `canlift-bench gateway`.
@@ -148,17 +149,6 @@ fn config(url: &str, pki: &DevPki, bus: &str, state: &Path) -> Config {
     c.limits.max_in_flight = 64;
     c.limits.max_subscriptions = 4096;
     c
-}
-
-fn get(id: usize, mplex: &str, form: &str) -> String {
-    let flag = match form {
-        "naked" => r#","naked":true"#,
-        "stripped" => r#","stripped":true"#,
-        _ => "",
-    };
-    format!(
-        r#"{{"jsonrpc":"2.0","id":{id},"method":"get_canopen_object","params":{{"lang":{{"preferred_language":"en","alternate_language":"de"}},"object":{{"mplex":"{mplex}"{flag}}}}}}}"#
-    )
 }
 
 /// `n` gets of 0x652001 in `form` one after another; their round-trip times, sorted.
@@ -513,6 +503,14 @@ async fn cpu_per_request(
         println!(
             "the least a request on one SDO channel costs here: {:.1} µs CPU, {:.2} wake-ups (a thread writing the SDO request to the hub, blocking for the answer, writing 200 bytes to a socket: no TLS, JSON or runtime; {requests} requests)",
             least.cpu_us, least.wakeups,
+        );
+        let pki = pki.clone();
+        let (sans_io, work) =
+            tokio::task::spawn_blocking(move || crate::least::measure_sans_io(hub, requests, &pki))
+                .await??;
+        println!(
+            "the same with the connector's own work, sans-IO, no runtime: {:.1} µs CPU, {:.2} wake-ups (TLS record and WebSocket frame opened, NXg session, SDO client, socketcand text, answer framed and sealed; {requests} requests); that work alone in a loop without sleeping: {work:.1} µs",
+            sans_io.cpu_us, sans_io.wakeups,
         );
     }
     Ok(())

@@ -8,6 +8,7 @@ mod alarms;
 mod bus;
 mod cluster;
 mod gateway;
+mod gets;
 mod ingest;
 mod least;
 mod plot;

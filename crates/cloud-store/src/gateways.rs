@@ -800,7 +800,7 @@ mod tests {
             store.add_account("other", "OTH").await.unwrap();
             store
         };
-        let (batched, one_by_one) = (open(a).await, open(b).await);
+        let (batched, one_by_one) = (open(a.to_string()).await, open(b.to_string()).await);
         a_batch_is_its_records_in_order(&batched, &one_by_one, &crafted()).await;
         a_batch_is_its_records_in_order(&batched, &one_by_one, &crafted()).await;
     }

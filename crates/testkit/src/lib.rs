@@ -29,7 +29,7 @@ pub mod script;
 pub mod scripted;
 
 #[cfg(feature = "postgres")]
-pub use postgres::{postgres, Server as PostgresServer};
+pub use postgres::{postgres, Database as PostgresDatabase, Server as PostgresServer};
 
 use std::io::Write;
 use std::net::SocketAddr;

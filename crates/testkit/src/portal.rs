@@ -205,7 +205,21 @@ impl Rig {
         sernum: &str,
         domain: &str,
     ) -> Result<GatewaySocket, String> {
-        use futures_util::{SinkExt, StreamExt};
+        use futures_util::StreamExt;
+        use tokio_tungstenite::tungstenite::Message;
+        let mut ws = self.hand_made_connect(sernum, domain).await;
+        match ws.next().await {
+            Some(Ok(Message::Text(answer))) if answer.contains("CONNACK") => Ok(ws),
+            Some(Ok(other)) => Err(other.to_string()),
+            Some(Err(e)) => Err(e.to_string()),
+            None => Err("closed".into()),
+        }
+    }
+
+    /// A hand-made gateway as [`Rig::hand_made_gateway`] makes it, its CONNECT sent and the
+    /// portal's answer not read.
+    pub async fn hand_made_connect(&self, sernum: &str, domain: &str) -> GatewaySocket {
+        use futures_util::SinkExt;
         use tokio_tungstenite::tungstenite::client::IntoClientRequest;
         use tokio_tungstenite::tungstenite::Message;
         let config = tls::client_config(Some(&self.ca), None).expect("the portal's CA");
@@ -241,12 +255,7 @@ impl Rig {
         ws.send(Message::Text(connect.to_string().into()))
             .await
             .expect("sent");
-        match ws.next().await {
-            Some(Ok(Message::Text(answer))) if answer.contains("CONNACK") => Ok(ws),
-            Some(Ok(other)) => Err(other.to_string()),
-            Some(Err(e)) => Err(e.to_string()),
-            None => Err("closed".into()),
-        }
+        ws
     }
 
     /// `wss://localhost:PORT/ws`, where gateways connect.

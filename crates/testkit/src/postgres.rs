@@ -4,7 +4,7 @@
 /// skipped. CANLIFT_TEST_POSTGRES is a URL to an existing database whose user may create
 /// databases (CI sets it after starting Debian's PostgreSQL); with CANLIFT_REQUIRE_POSTGRES=1 a
 /// missing or unreachable server fails the test instead.
-pub async fn postgres(name: &str) -> Option<String> {
+pub async fn postgres(name: &str) -> Option<Database> {
     use sqlx::Connection;
     let give_up = |reason: String| crate::unavailable("CANLIFT_REQUIRE_POSTGRES", &reason);
     let Ok(admin) = std::env::var("CANLIFT_TEST_POSTGRES") else {
@@ -14,17 +14,85 @@ pub async fn postgres(name: &str) -> Option<String> {
         Ok(c) => c,
         Err(e) => return give_up(format!("postgres: {admin}: {e}")),
     };
-    let db = format!("canlift_{name}_{}", std::process::id());
-    for statement in [
-        format!("DROP DATABASE IF EXISTS {db}"),
-        format!("CREATE DATABASE {db}"),
-    ] {
+    let name = format!("canlift_{name}_{}", std::process::id());
+    for statement in [drop_statement(&name), format!("CREATE DATABASE {name}")] {
         if let Err(e) = sqlx::query(&statement).execute(&mut conn).await {
             return give_up(format!("postgres: {statement}: {e}"));
         }
     }
     let base = admin.rsplit_once('/').map_or(admin.as_str(), |(b, _)| b);
-    Some(format!("{base}/{db}"))
+    Some(Database {
+        url: format!("{base}/{name}"),
+        name,
+        admin,
+    })
+}
+
+/// A test's database (its URL, as `&str` and in `format!`), dropped when the test drops it: a
+/// developer's server would otherwise keep one per test and run, some forty a suite.
+#[derive(Debug)]
+pub struct Database {
+    url: String,
+    name: String,
+    admin: String,
+}
+
+impl Database {
+    /// `postgres://…/canlift_NAME_PID`.
+    pub fn url(&self) -> &str {
+        &self.url
+    }
+}
+
+impl std::ops::Deref for Database {
+    type Target = str;
+    fn deref(&self) -> &str {
+        &self.url
+    }
+}
+
+impl std::fmt::Display for Database {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.url)
+    }
+}
+
+impl Drop for Database {
+    /// Dropped from a thread with a runtime of its own (a test drops it inside its own
+    /// runtime, which cannot be blocked on). Sessions the test left open (a pool's, a portal
+    /// process's) are ended with it; a failure is printed, not raised: the test has its
+    /// outcome already, and the next run of the same process id drops the database first.
+    fn drop(&mut self) {
+        use sqlx::Connection;
+        let (admin, statement) = (self.admin.clone(), drop_statement(&self.name));
+        let dropped = std::thread::spawn(move || {
+            let runtime = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+                .map_err(|e| e.to_string())?;
+            runtime.block_on(async {
+                let mut conn = sqlx::PgConnection::connect(&admin)
+                    .await
+                    .map_err(|e| e.to_string())?;
+                sqlx::query(&statement)
+                    .execute(&mut conn)
+                    .await
+                    .map(drop)
+                    .map_err(|e| e.to_string())
+            })
+        })
+        .join();
+        match dropped {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => eprintln!("postgres: {}: {e}", self.name),
+            Err(_) => eprintln!("postgres: {}: the drop's thread panicked", self.name),
+        }
+    }
+}
+
+/// The statement that drops database `name`, ending its sessions (PostgreSQL 13 and later).
+fn drop_statement(name: &str) -> String {
+    format!("DROP DATABASE IF EXISTS {name} WITH (FORCE)")
 }
 
 /// A PostgreSQL server of the test's own (Debian's binaries, a throw-away cluster in a scratch

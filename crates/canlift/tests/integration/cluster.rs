@@ -34,6 +34,8 @@ struct Cluster {
     /// The lift's gateway's configuration (through the balancer), to start it again.
     gateway: gateway::config::Config,
     dir: tempfile::TempDir,
+    /// Dropped last, after the processes that use it.
+    _database: testkit::PostgresDatabase,
 }
 
 impl Cluster {
@@ -102,6 +104,7 @@ impl Cluster {
             other,
             gateway,
             dir,
+            _database: database,
         };
         cluster.wait_held_by(0).await;
         Some(cluster)

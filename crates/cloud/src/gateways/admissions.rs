@@ -213,6 +213,13 @@ async fn ask(
         if rx.recv_many(&mut batch, BATCH).await == 0 {
             return;
         }
+        // Nobody to tell: the gateway left while it waited (its connection stopped waiting,
+        // `gateways::connection`). In a storm on a slow database these are many, and asking
+        // about them would slow the answers to those still waiting.
+        batch.retain(|asked| !asked.answer.is_closed());
+        if batch.is_empty() {
+            continue;
+        }
         let (store, counters, timer) = (store.clone(), counters.clone(), timer.clone());
         tokio::spawn(async move {
             let connects: Vec<&Connect> = batch.iter().map(|asked| &asked.connect).collect();

@@ -3,7 +3,7 @@
 //! operators, record its token, pass operator requests and their answers, store and fan out
 //! what it pushes, and clean up when it goes.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Instant;
@@ -103,6 +103,9 @@ pub struct Connection {
     /// The gateway's messages: `[gateways] max_messages_per_s`, bursts of two seconds' worth
     /// (a gateway pushing its subscriptions after CONNACK).
     rate: TokenBucket,
+    /// What the gateway sent while its CONNECT was looked up, read then to see whether it had
+    /// left (`identify`), handled after.
+    early: VecDeque<Message>,
 }
 
 /// Serve one gateway connection until it ends.
@@ -141,6 +144,7 @@ impl Connection {
             admitted: None,
             closing,
             rate,
+            early: VecDeque::new(),
         }
     }
 
@@ -183,7 +187,7 @@ impl Connection {
                     // live only while it runs instead of sizing the connection's task for good
                     // (an idle connection's memory is mostly that task).
                     Output::Identify(connect) => {
-                        outputs.extend(Box::pin(self.identify(connect)).await);
+                        outputs.extend(Box::pin(self.identify(connect)).await?);
                     }
                     Output::TokenConfirmed(token) => Box::pin(self.token_confirmed(&token)).await,
                     Output::Answer(request, answer) => self.answer(request, answer),
@@ -207,41 +211,12 @@ impl Connection {
     /// Wait for the next thing to happen: a message, an operator request, replacement by a
     /// newer connection, or the session's timer.
     async fn next(&mut self) -> Result<Vec<Output>, String> {
+        if let Some(message) = self.early.pop_front() {
+            return self.received(Some(Ok(message))).await;
+        }
         let deadline = self.session.poll_timeout();
         tokio::select! {
-            message = self.socket.recv() => {
-                let now = Instant::now();
-                if matches!(message, Some(Ok(_))) && self.rate.take(now).is_err() {
-                    let frame = CloseFrame {
-                        code: close_code::POLICY,
-                        reason: "message rate above [gateways] max_messages_per_s".into(),
-                    };
-                    let _ = self.socket.send(Message::Close(Some(frame))).await;
-                    let limit = self.shared.policy.max_messages_per_s;
-                    return Err(format!("more than {limit} messages/s"));
-                }
-                match message {
-                    Some(Ok(Message::Text(text))) => {
-                        let out = self.session.handle_text(text.as_str(), now);
-                        // An answer to one of the portal's own requests is not a message the
-                        // gateway chose to send: those requests are limited where they are
-                        // made (`max_in_flight`, the API keys' rates), and operators reading a
-                        // lift at once must not cost the lift its connection.
-                        if out.iter().any(|o| matches!(o, Output::Answer(..))) {
-                            self.rate.give_back();
-                        }
-                        Ok(out)
-                    }
-                    // Liveness is the gateway's NXg messages alone (NXg §5.3): a proxy may
-                    // answer pings for a gateway that is gone.
-                    Some(Ok(Message::Ping(_) | Message::Pong(_))) => Ok(Vec::new()),
-                    Some(Ok(Message::Binary(_))) => Err("binary message".into()),
-                    Some(Ok(Message::Close(_))) | None => {
-                        Err("gateway closed the connection".into())
-                    }
-                    Some(Err(e)) => Err(format!("connection failed: {e}")),
-                }
-            }
+            message = self.socket.recv() => self.received(message).await,
             letter = self.calls.next() => match letter {
                 Letter::Item(call) => {
                     // The requests that came together (a lift page asks for all its objects
@@ -272,38 +247,72 @@ impl Connection {
         }
     }
 
+    /// What the gateway sent, taken by the session.
+    async fn received(
+        &mut self,
+        message: Option<Result<Message, axum::Error>>,
+    ) -> Result<Vec<Output>, String> {
+        let now = Instant::now();
+        if matches!(message, Some(Ok(_))) && self.rate.take(now).is_err() {
+            let frame = CloseFrame {
+                code: close_code::POLICY,
+                reason: "message rate above [gateways] max_messages_per_s".into(),
+            };
+            let _ = self.socket.send(Message::Close(Some(frame))).await;
+            let limit = self.shared.policy.max_messages_per_s;
+            return Err(format!("more than {limit} messages/s"));
+        }
+        match message {
+            Some(Ok(Message::Text(text))) => {
+                let out = self.session.handle_text(text.as_str(), now);
+                // An answer to one of the portal's own requests is not a message the
+                // gateway chose to send: those requests are limited where they are
+                // made (`max_in_flight`, the API keys' rates), and operators reading a
+                // lift at once must not cost the lift its connection.
+                if out.iter().any(|o| matches!(o, Output::Answer(..))) {
+                    self.rate.give_back();
+                }
+                Ok(out)
+            }
+            // Liveness is the gateway's NXg messages alone (NXg §5.3): a proxy may
+            // answer pings for a gateway that is gone.
+            Some(Ok(Message::Ping(_) | Message::Pong(_))) => Ok(Vec::new()),
+            Some(Ok(Message::Binary(_))) => Err("binary message".into()),
+            Some(Ok(Message::Close(_))) | None => Err("gateway closed the connection".into()),
+            Some(Err(e)) => Err(format!("connection failed: {e}")),
+        }
+    }
+
     /// CONNECT came: admit the gateway (CONNACK, a token on first contact or when the one in
     /// use is due for rotation) or refuse it; a valid token from another board is dealt with
     /// per `[gateways] boardhash_change`.
-    async fn identify(&mut self, connect: Connect) -> Vec<Output> {
+    ///
+    /// While the registry is asked, the socket is read: a gateway that gives up waiting (its
+    /// CONNACK timeout) and closes ends the connection at once. Otherwise, when look-ups take
+    /// long (a reconnect storm on a busy database), every gateway that gave up would keep its
+    /// connection's socket open here until its look-up ended — thousands of sockets the
+    /// portal's file limit counts, while the same gateways come back on new ones: the portal
+    /// ran out of files and accepted nothing more. `Err`: the gateway left.
+    async fn identify(&mut self, connect: Connect) -> Result<Vec<Output>, String> {
         let id = cloud_types::lifts::lift_id(&connect.identity);
         let peer = self.peer.clone();
-        // A token its last connection confirmed is on record first (else: a first contact
-        // again, its board unchecked).
-        self.shared.records.settled(&id, &connect.domaintoken).await;
-        // A known gateway on its known board changes nothing the next admission decides on
-        // (`unchanged`): its row is refreshed behind the connection, with others.
-        let (admission, unchanged) = match self.shared.admissions.admit(&connect).await {
-            Ok(Admission::Known(mut known)) => match known.board_was.take() {
-                Some(was) => (
-                    board_changed(&self.shared, &peer, &connect, was, known).await,
-                    false,
-                ),
-                None => (Ok(Admission::Known(known)), true),
-            },
-            other => (other, false),
+        let (admission, unchanged) = {
+            let look_up = look_up(&self.shared, &peer, &id, &connect);
+            tokio::pin!(look_up);
+            loop {
+                tokio::select! {
+                    looked_up = &mut look_up => break looked_up,
+                    message = self.socket.recv(), if self.early.len() < EARLY => match message {
+                        Some(Ok(Message::Close(_)) | Err(_)) | None => {
+                            return Err("the gateway left while its CONNECT was looked up".into())
+                        }
+                        Some(Ok(message)) => self.early.push_back(message),
+                    },
+                }
+            }
         };
         let counters = &self.shared.admissions.counters;
-        // A first contact's row is written (and checked) before CONNACK; what the CONNACK
-        // agreed then follows behind the connection.
-        let (admission, unchanged) = match admission {
-            Ok(Admission::FirstContact { key, subscribed }) => (
-                first_contact(&self.shared, &connect, key, subscribed).await,
-                true,
-            ),
-            other => (other, unchanged),
-        };
-        match admission {
+        Ok(match admission {
             Ok(Admission::Refused(reason, cause)) => {
                 let refusals = &self.shared.refusals;
                 Box::pin(refusals.note(&id, &peer, reason, &cause, &connect.domaintoken)).await;
@@ -339,7 +348,7 @@ impl Connection {
                 self.shared.reports.report(Report::Online(lift)).await;
                 out
             }
-        }
+        })
     }
 
     /// Make the lift reachable for operators and subscribe the dashboard's objects and its bus
@@ -474,6 +483,39 @@ impl Connection {
                 .await;
         }
         tracing::info!(lift = %a.lift, %peer, %cause, "gateway offline");
+    }
+}
+
+/// Messages a gateway may send before its CONNACK that are kept for after it; beyond them it
+/// is not read until then (NXg §5.2: a gateway waits for CONNACK, so there are none).
+const EARLY: usize = 16;
+
+/// What the registry says about `connect` of lift `id` from `peer`, and whether its admission
+/// changes nothing the next one decides on (its row is then refreshed behind the connection,
+/// with others).
+async fn look_up(
+    shared: &Shared,
+    peer: &str,
+    id: &str,
+    connect: &Connect,
+) -> (Result<Admission, cloud_store::StoreError>, bool) {
+    // A token its last connection confirmed is on record first (else: a first contact
+    // again, its board unchecked).
+    shared.records.settled(id, &connect.domaintoken).await;
+    match shared.admissions.admit(connect).await {
+        Ok(Admission::Known(mut known)) => match known.board_was.take() {
+            Some(was) => (
+                board_changed(shared, peer, connect, was, known).await,
+                false,
+            ),
+            None => (Ok(Admission::Known(known)), true),
+        },
+        // A first contact's row is written (and checked) before CONNACK; what the CONNACK
+        // agreed then follows behind the connection.
+        Ok(Admission::FirstContact { key, subscribed }) => {
+            (first_contact(shared, connect, key, subscribed).await, true)
+        }
+        other => (other, false),
     }
 }
 

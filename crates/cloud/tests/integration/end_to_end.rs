@@ -18,7 +18,7 @@ async fn with_postgres() {
     let Some(url) = testkit::postgres("e2e").await else {
         return;
     };
-    operator_reads_writes_and_watches_a_simulated_lift(Some(url)).await;
+    operator_reads_writes_and_watches_a_simulated_lift(Some(url.to_string())).await;
 }
 
 async fn operator_reads_writes_and_watches_a_simulated_lift(database: Option<String>) {
@@ -397,6 +397,96 @@ async fn the_portal_gives_memory_back_after_a_burst_of_connections() {
 
 /// NXg §7.1's sample writes `"threshold": 1`: the portal's registrations write an integral
 /// threshold as an integer too, on the wire.
+/// Gateways that give up waiting for their CONNACK (their look-ups held up by the database, as
+/// in a reconnect storm on a busy one) and leave are let go at once, their sockets closed, not
+/// kept until their look-ups end; one that left while waiting for a look-up of its own is not
+/// asked about at all. Look-ups are held up here by a transaction that locks the accounts.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn gateways_that_leave_before_connack_are_let_go() {
+    use sqlx::Connection;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let Some(database) = testkit::postgres("left_early").await else {
+        return;
+    };
+    let rig = Rig::builder()
+        .database(Some(database.to_string()))
+        .without_lift()
+        .start()
+        .await;
+    let mut lock = sqlx::PgConnection::connect(&database).await.unwrap();
+    let mut watch = sqlx::PgConnection::connect(&database).await.unwrap();
+    sqlx::query("BEGIN").execute(&mut lock).await.unwrap();
+    sqlx::query("LOCK TABLE accounts IN ACCESS EXCLUSIVE MODE")
+        .execute(&mut lock)
+        .await
+        .unwrap();
+    // The portal's admission look-ups (`lookup_sql`) waiting for the lock, not its other work.
+    let waiting = "SELECT COUNT(*) FROM pg_stat_activity WHERE datname = current_database() \
+                   AND wait_event_type = 'Lock' AND query LIKE '%AS subscribed%'";
+    // One look-up per CONNECT, each waiting on the lock, until the portal asks no more at once.
+    let mut asked = Vec::new();
+    let mut in_flight = 0;
+    loop {
+        let ws = rig
+            .hand_made_connect(&format!("EARLY-{}", asked.len()), "MAS")
+            .await;
+        asked.push(ws);
+        let before = in_flight;
+        let settle = tokio::time::Instant::now() + Duration::from_secs(2);
+        while tokio::time::Instant::now() < settle {
+            let n: i64 = sqlx::query_scalar(waiting)
+                .fetch_one(&mut watch)
+                .await
+                .unwrap();
+            in_flight = n;
+            if in_flight > before {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        if in_flight == before {
+            break;
+        }
+        assert!(asked.len() < 10, "the look-ups are not held up");
+    }
+    assert!(in_flight >= 1, "no look-up waits for the lock");
+    // The last gateway's CONNECT waits for a look-up; the one before it has one under way.
+    // Both leave (TLS close_notify, then the write side shut): the portal closes its side.
+    for ws in asked.iter_mut().rev().take(2) {
+        let tls = ws.get_mut();
+        tls.shutdown().await.unwrap();
+        let mut rest = Vec::new();
+        let closed =
+            tokio::time::timeout(Duration::from_secs(10), tls.read_to_end(&mut rest)).await;
+        assert!(
+            closed.is_ok(),
+            "the portal keeps the connection of a gateway that left while its CONNECT was looked up"
+        );
+    }
+    sqlx::query("COMMIT").execute(&mut lock).await.unwrap();
+    // The others are admitted once the look-ups go on.
+    let stayed = asked.len() - 2;
+    for ws in asked.iter_mut().take(stayed) {
+        let answer =
+            tokio::time::timeout(Duration::from_secs(20), futures_util::StreamExt::next(ws))
+                .await
+                .expect("an answer");
+        assert!(
+            matches!(answer, Some(Ok(ref m)) if m.to_string().contains("CONNACK")),
+            "{answer:?}"
+        );
+    }
+    // The gateway that left before its look-up began was not asked about: the look-ups are
+    // those that were held up, once the queue behind them has been taken (the admitted ones'
+    // records written meanwhile need no look-up).
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert_eq!(
+        rig.metric("canlift_admission_lookups_total").await,
+        in_flight as f64,
+        "a look-up for a gateway that had left"
+    );
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn registrations_write_an_integral_threshold_as_an_integer() {
     use futures_util::StreamExt;

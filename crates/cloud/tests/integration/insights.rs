@@ -282,7 +282,7 @@ async fn availability_figures_are_those_computed_by_hand_on_postgres() {
         return;
     };
     let rig = Rig::builder()
-        .database(Some(url))
+        .database(Some(url.to_string()))
         .without_lift()
         .start()
         .await;

@@ -430,7 +430,7 @@ async fn portals_started_together_on_a_fresh_postgres_all_serve() {
     let dirs: Vec<_> = (0..3).map(|_| testkit::scratch()).collect();
     let binds = dirs.iter().map(|dir| {
         let mut config = cloud::config::Config::default();
-        config.database.url = Some(url.clone());
+        config.database.url = Some(url.to_string());
         config.server.listen = "127.0.0.1:0".parse().expect("an address");
         config.state.dir = dir.path().to_owned();
         async move {
