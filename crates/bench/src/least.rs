@@ -10,7 +10,7 @@
 //! record. That is what a gateway restructured into one sans-IO step per wake-up would cost; the
 //! same work in a loop without sleeping says how much of it is the work and how much the wake-up.
 //! What the gateway spends above them is its async edges' (docs/BENCHMARKS.md §The bus-node
-//! gateway on its default channel, counted).
+//! gateway on its default channel, counted; §The floor of a restructured gateway).
 
 use std::io::{Cursor, Read, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream};
