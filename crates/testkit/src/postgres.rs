@@ -37,13 +37,6 @@ pub struct Database {
     admin: String,
 }
 
-impl Database {
-    /// `postgres://…/canlift_NAME_PID`.
-    pub fn url(&self) -> &str {
-        &self.url
-    }
-}
-
 impl std::ops::Deref for Database {
     type Target = str;
     fn deref(&self) -> &str {

@@ -395,8 +395,6 @@ async fn the_portal_gives_memory_back_after_a_burst_of_connections() {
     rig.stop().await;
 }
 
-/// NXg §7.1's sample writes `"threshold": 1`: the portal's registrations write an integral
-/// threshold as an integer too, on the wire.
 /// Gateways that give up waiting for their CONNACK (their look-ups held up by the database, as
 /// in a reconnect storm on a busy one) and leave are let go at once, their sockets closed, not
 /// kept until their look-ups end; one that left while waiting for a look-up of its own is not
@@ -487,6 +485,8 @@ async fn gateways_that_leave_before_connack_are_let_go() {
     );
 }
 
+/// NXg §7.1's sample writes `"threshold": 1`: the portal's registrations write an integral
+/// threshold as an integer too, on the wire.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn registrations_write_an_integral_threshold_as_an_integer() {
     use futures_util::StreamExt;
